@@ -1,0 +1,5 @@
+import sys
+
+from mntes_stream.cli import main
+
+sys.exit(main())

@@ -1,0 +1,25 @@
+"""One exception hierarchy for the whole package.
+
+Validation happens at the boundary (files, messages, CLI arguments) and raises
+one of these; the core never uses ``assert`` for input checking.
+"""
+
+
+class MntesError(Exception):
+    """Root of every error raised on purpose by mntes-stream."""
+
+
+class ConfigError(MntesError, ValueError):
+    """Bad parameters or configuration: unknown key, missing or unphysical value."""
+
+
+class SchemaError(MntesError, ValueError):
+    """A message or file does not match its schema (name, version, fields, dtypes)."""
+
+
+class TableDomainError(MntesError, ValueError):
+    """A request lies outside the domain a response table or model was built for."""
+
+
+class TransportError(MntesError, RuntimeError):
+    """zenoh or MCAP transport failure (session, key expression, truncated file)."""
