@@ -1,0 +1,38 @@
+"""``mntes-stream bench NAME [--json]``: run one benchmark and print its figures."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import pkgutil
+
+
+def _benches():
+    import mntes_stream.bench as pkg
+
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
+        if not info.name.startswith("_"):
+            yield info.name, importlib.import_module(f"mntes_stream.bench.{info.name}")
+
+
+def _run(args) -> int:
+    from mntes_stream.bench import machine
+
+    result = args.bench_module.run(args)
+    result.setdefault("machine", machine())
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        for key, value in result.items():
+            print(f"{key:>32s}: {value}")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("bench", help="benchmarks (speed, memory, accuracy)")
+    bsub = p.add_subparsers(dest="bench", metavar="NAME")
+    for name, module in _benches():
+        bp = bsub.add_parser(name, help=getattr(module, "HELP", ""))
+        bp.add_argument("--json", action="store_true", help="print one JSON object")
+        module.add_arguments(bp)
+        bp.set_defaults(func=_run, bench_module=module)

@@ -1,0 +1,50 @@
+"""Per-sample quality flags (uint16 bitmask). One definition for the whole package.
+
+A sample with any flag other than ``HK_INTERPOLATED`` set must not be trusted
+as optical power; where no power can be computed it is NaN and flagged,
+never a silent number.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FLAG_DTYPE = np.dtype("<u2")
+
+SATURATED = 1 << 0          # TES normal / saturated: R at or above the normal threshold
+SUPERCONDUCTING = 1 << 1    # TES latched: R at or below the stable branch (R <= |z|)
+OUT_OF_TABLE = 1 << 2       # counts outside the range the response table covers
+ENV_OUT_OF_RANGE = 1 << 3   # bath temperature, field or bias outside the tabulated range
+HK_STALE = 1 << 4           # housekeeping held longer than the allowed staleness
+HK_MISSING = 1 << 5         # no housekeeping at all for this sample
+INVALID_INPUT = 1 << 6      # NaN / absurd counts, zero current, bad gain
+UNKNOWN_CHANNEL = 1 << 7    # channel has no detector parameters / table
+GAP = 1 << 8                # sample lies in a gap (missing chunk) of the stream
+PHASE_RESIDUAL = 1 << 9     # Im(sqrt2 V/i - z) too large: gain phase or pickup off
+
+NAMES = {
+    SATURATED: "saturated",
+    SUPERCONDUCTING: "superconducting",
+    OUT_OF_TABLE: "out_of_table",
+    ENV_OUT_OF_RANGE: "env_out_of_range",
+    HK_STALE: "hk_stale",
+    HK_MISSING: "hk_missing",
+    INVALID_INPUT: "invalid_input",
+    UNKNOWN_CHANNEL: "unknown_channel",
+    GAP: "gap",
+    PHASE_RESIDUAL: "phase_residual",
+}
+
+# Flags after which the power value is not usable (NaN in the output).
+UNUSABLE = SATURATED | SUPERCONDUCTING | OUT_OF_TABLE | HK_MISSING | INVALID_INPUT | UNKNOWN_CHANNEL | GAP
+
+
+def describe(mask: int) -> list[str]:
+    """Names of the bits set in ``mask``."""
+    return [name for bit, name in NAMES.items() if mask & bit]
+
+
+def counts_by_flag(flags: np.ndarray) -> dict[str, int]:
+    """How many samples carry each flag (for status messages)."""
+    flags = np.asarray(flags)
+    return {name: int(np.count_nonzero(flags & bit)) for bit, name in NAMES.items()}
