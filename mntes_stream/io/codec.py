@@ -77,7 +77,7 @@ def encode_array(a: np.ndarray) -> dict:
     """Array to ``{"dtype", "shape", "data"}`` with explicit little-endian dtype."""
     a = np.asarray(a)
     dt = a.dtype.newbyteorder("<") if a.dtype.byteorder not in ("|", "<") else a.dtype
-    a = np.ascontiguousarray(a, dtype=dt)
+    a = np.asarray(a, dtype=dt, order="C")
     return {"dtype": dt.str, "shape": list(a.shape), "data": a.tobytes()}
 
 
@@ -105,7 +105,7 @@ def decode_array(d: Any, field: str = "array", dtype: str | None = None, ndim: i
     npdt = np.dtype(dt)
     if len(data) != n * npdt.itemsize:
         raise SchemaError(f"{field}: {len(data)} bytes do not match shape {shape} of {dt}")
-    return np.frombuffer(data, dtype=npdt).reshape(shape)
+    return np.frombuffer(data, dtype=npdt).reshape(tuple(shape))
 
 
 def pack(schema: str, body: dict) -> bytes:
