@@ -1,0 +1,69 @@
+"""zenoh key expressions: the one place that spells them.
+
+    mntes/<setup>/counts/<board>/<module>   counts chunks (schema mntes.counts)
+    mntes/<setup>/hk/<sensor>               housekeeping   (schema mntes.hk)
+    mntes/<setup>/power/<board>/<module>    power chunks   (schema mntes.power)
+    mntes/<setup>/status/<service>          service status (schema mntes.status)
+    mntes/<setup>/provenance                parameters + table identity (schema mntes.provenance)
+"""
+
+from __future__ import annotations
+
+import re
+
+from mntes_stream.errors import ConfigError
+
+PREFIX = "mntes"
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def _check(name: str, what: str) -> str:
+    name = str(name)
+    if not _NAME.match(name):
+        raise ConfigError(f"{what} {name!r} must match [A-Za-z0-9_.-]+ (no '/', '*', '$')")
+    return name
+
+
+def counts_key(setup: str, board: int | str = "*", module: int | str = "*") -> str:
+    return f"{PREFIX}/{_check(setup, 'setup')}/counts/{board}/{module}"
+
+
+def hk_key(setup: str, sensor: str = "**") -> str:
+    return f"{PREFIX}/{_check(setup, 'setup')}/hk/{sensor}"
+
+
+def power_key(setup: str, board: int | str = "*", module: int | str = "*") -> str:
+    return f"{PREFIX}/{_check(setup, 'setup')}/power/{board}/{module}"
+
+
+def status_key(setup: str, service: str = "*") -> str:
+    return f"{PREFIX}/{_check(setup, 'setup')}/status/{service}"
+
+
+def provenance_key(setup: str) -> str:
+    return f"{PREFIX}/{_check(setup, 'setup')}/provenance"
+
+
+def all_key(setup: str) -> str:
+    """Everything of one setup (what the recorder subscribes to)."""
+    return f"{PREFIX}/{_check(setup, 'setup')}/**"
+
+
+def parse_key(key: str) -> dict:
+    """Split a concrete key into its parts: ``{"setup", "kind", ...}``."""
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[0] != PREFIX:
+        raise ConfigError(f"not an mntes key: {key!r}")
+    setup, kind, rest = parts[1], parts[2], parts[3:]
+    out: dict = {"setup": setup, "kind": kind}
+    if kind in ("counts", "power") and len(rest) == 2:
+        out["board"], out["module"] = rest
+    elif kind == "hk" and rest:
+        out["sensor"] = "/".join(rest)
+    elif kind == "status" and len(rest) == 1:
+        out["service"] = rest[0]
+    elif kind == "provenance" and not rest:
+        pass
+    else:
+        raise ConfigError(f"malformed mntes key: {key!r}")
+    return out
