@@ -1,0 +1,333 @@
+"""Recorder service: everything under ``mntes/<setup>/**`` into rotated MCAP files.
+
+The zenoh callback only timestamps the sample and puts it on a queue; the
+calling thread of :func:`run_recorder` drains the queue into a
+:class:`~mntes_stream.io.mcap_io.RotatingMcapWriter`, flushing every
+``flush_interval_s`` so a killed recorder loses at most that span (plus what
+was still queued). Nothing is dropped on purpose: the queue is unbounded and
+its high-water mark is reported, so a recorder that cannot keep up shows it.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from mntes_stream.errors import ConfigError, MntesError, TransportError
+from mntes_stream.io import keys
+
+__all__ = ["RecorderConfig", "RecorderStats", "ZenohSettings", "open_zenoh_session", "run_recorder"]
+
+log = logging.getLogger("mntes_stream.recorder")
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """How to join the zenoh network.
+
+    ``mode`` is "peer" or "client" (or "router"); ``connect``/``listen`` are
+    endpoints such as ``tcp/127.0.0.1:7447``; ``config_file`` (JSON5) is read
+    first and the other fields override it. Scouting is off unless enabled:
+    explicit endpoints behave the same on every network.
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str = ""
+    scouting: bool = False
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "[zenoh]") -> ZenohSettings:
+        return _from_dict(cls, d, source, tuples=("connect", "listen"))
+
+
+def open_zenoh_session(z: ZenohSettings):
+    """Open a zenoh session; the caller closes it (context manager or ``close()``)."""
+    import json
+
+    import zenoh
+
+    try:
+        conf = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(z.mode))
+        if z.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(z.connect)))
+        if z.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(z.listen)))
+        if not z.config_file or not z.scouting:
+            conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(z.scouting)))
+            conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(z.scouting)))
+        return zenoh.open(conf)
+    except Exception as exc:  # zenoh raises its own ZError for config and network failures
+        raise TransportError(f"cannot open zenoh session ({z.mode}, connect={list(z.connect)}, listen={list(z.listen)}): {exc}") from None
+
+
+def _from_dict(cls, d: dict, source: str, tuples: tuple[str, ...] = ()):
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(known)
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
+    kw = {}
+    for k, v in d.items():
+        if k in tuples:
+            if isinstance(v, str) or not all(isinstance(x, str) for x in v):
+                raise ConfigError(f"{source}: {k} must be a list of strings")
+            v = tuple(v)
+        kw[k] = v
+    return cls(**kw)
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """What to record, where, and how safely.
+
+    Attributes
+    ----------
+    setup : str
+        Records ``mntes/<setup>/**`` unless ``key_expr`` is given.
+    directory, prefix : str
+        Files are ``<directory>/<prefix>-<seq>.mcap``.
+    flush_interval_s : float
+        The crash-loss bound: a killed recorder loses at most this much received data
+        (plus its queue, reported as ``queue_high_water``).
+    rotate_mb, rotate_s : float
+        New file after this size / duration (0 disables either).
+    compression : {"zstd", "lz4", "none"}
+    chunk_size_kb : int
+        Chunks close at this uncompressed size or at the flush cadence, whichever first.
+    fsync : bool
+        fsync at every flush (bounds loss on power failure too).
+    duration_s : float
+        Stop by itself after this long (0: run until stopped).
+    log_interval_s : float
+        Progress log line cadence.
+    """
+
+    setup: str = "lab"
+    key_expr: str = ""
+    directory: str = "recordings"
+    prefix: str = "mntes"
+    flush_interval_s: float = 1.0
+    rotate_mb: float = 1024.0
+    rotate_s: float = 3600.0
+    compression: str = "zstd"
+    chunk_size_kb: int = 4096
+    fsync: bool = False
+    duration_s: float = 0.0
+    log_interval_s: float = 10.0
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+
+    def __post_init__(self):
+        keys.all_key(self.setup)  # validates the setup name
+        if self.flush_interval_s <= 0:
+            raise ConfigError(f"flush_interval_s must be > 0, got {self.flush_interval_s}")
+        if self.rotate_mb < 0 or self.rotate_s < 0 or self.duration_s < 0:
+            raise ConfigError("rotate_mb, rotate_s and duration_s must be >= 0 (0 disables)")
+        if self.chunk_size_kb < 1:
+            raise ConfigError(f"chunk_size_kb must be >= 1, got {self.chunk_size_kb}")
+        if self.compression not in ("zstd", "lz4", "none"):
+            raise ConfigError(f"compression must be zstd, lz4 or none, got {self.compression!r}")
+
+    @property
+    def subscription(self) -> str:
+        return self.key_expr or keys.all_key(self.setup)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> RecorderConfig:
+        """Read ``[recorder]`` and ``[zenoh]`` tables (see ``services/recorder.toml``)."""
+        try:
+            doc = tomllib.loads(Path(path).read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+        return cls.from_dict(doc, str(path))
+
+    @classmethod
+    def from_dict(cls, doc: dict, source: str = "<config>") -> RecorderConfig:
+        unknown = set(doc) - {"recorder", "zenoh"}
+        if unknown:
+            raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [recorder], [zenoh])")
+        rec = dict(doc.get("recorder", {}))
+        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]")
+        if "zenoh" in rec:
+            raise ConfigError(f"{source}: put zenoh settings in the [zenoh] table")
+        return _from_dict(cls, {**rec, "zenoh": z}, f"{source} [recorder]")
+
+    def to_metadata(self) -> dict[str, str]:
+        """Flat string form stored in every file's ``mntes.recording`` metadata."""
+        d = asdict(self)
+        z = d.pop("zenoh")
+        out = {f"recorder.{k}": str(v) for k, v in d.items()}
+        out.update({f"recorder.zenoh.{k}": str(list(v) if isinstance(v, tuple) else v) for k, v in z.items()})
+        out["recorder.subscription"] = self.subscription
+        return out
+
+
+@dataclass(frozen=True)
+class RecorderStats:
+    """What a recorder run wrote.
+
+    ``by_kind`` counts messages per key kind (counts, hk, power, status,
+    provenance, other); ``seq_gaps`` sums the sequence numbers skipped per
+    topic (messages the recorder never received), ``seq_repeats`` the
+    messages whose ``seq`` did not increase (duplicates, reordering, a
+    restarted publisher); ``invalid`` the payloads that were not a valid
+    envelope (recorded anyway).
+    """
+
+    messages: int
+    payload_bytes: int
+    by_kind: dict
+    invalid: int
+    seq_gaps: int
+    seq_repeats: int
+    files: tuple[str, ...]
+    flushes: int
+    queue_high_water: int
+    duration_s: float
+
+
+def _kind(topic: str) -> str:
+    parts = topic.split("/")
+    return parts[2] if len(parts) > 2 and parts[0] == keys.PREFIX else "other"
+
+
+class _SignalStop:
+    """Turn SIGINT/SIGTERM into a stop request while recording (main thread only)."""
+
+    def __init__(self):
+        self.event = threading.Event()
+        self._old = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, lambda *_: self.event.set())
+        return self
+
+    def __exit__(self, *exc):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
+    """Record until ``stop_event`` is set, SIGINT/SIGTERM arrives, or ``duration_s`` passes.
+
+    Parameters
+    ----------
+    config : RecorderConfig
+    stop_event : threading.Event or multiprocessing.Event, optional
+        Anything with ``is_set()``; safe to launch in a spawned process.
+
+    Returns
+    -------
+    RecorderStats
+        After the last file is finished (summary and footer written).
+    """
+    from mntes_stream.io.mcap_io import RotatingMcapWriter
+
+    q: queue.SimpleQueue = queue.SimpleQueue()
+
+    def on_sample(sample) -> None:
+        # Runs on a zenoh thread: timestamp and hand over, nothing else.
+        q.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+    writer = RotatingMcapWriter(
+        config.directory,
+        config.prefix,
+        flush_interval_s=config.flush_interval_s,
+        rotate_bytes=int(config.rotate_mb * (1 << 20)),
+        rotate_s=config.rotate_s,
+        compression=config.compression,
+        chunk_size_bytes=config.chunk_size_kb * 1024,
+        fsync=config.fsync,
+        metadata=config.to_metadata(),
+    )
+    last_seq: dict[str, int] = {}
+    by_kind: dict[str, int] = {}
+    gaps = repeats = high_water = 0
+    t_start = time.monotonic()
+    next_log = t_start + config.log_interval_s
+
+    def write(item) -> None:
+        nonlocal gaps, repeats
+        topic, payload, t_ns = item
+        env = writer.write(topic, payload, t_ns)
+        kind = _kind(topic)
+        by_kind[kind] = by_kind.get(kind, 0) + 1
+        if env.seq is not None:
+            prev = last_seq.get(topic)
+            if prev is not None:
+                if env.seq > prev + 1:
+                    gaps += env.seq - prev - 1
+                elif env.seq <= prev:
+                    repeats += 1
+            last_seq[topic] = env.seq
+
+    session = None
+    error: BaseException | None = None
+    with _SignalStop() as sig:
+        try:
+            session = open_zenoh_session(config.zenoh)
+            session.declare_subscriber(config.subscription, on_sample)
+            log.info("recording %s into %s", config.subscription, writer.current_path)
+            while not (sig.event.is_set() or (stop_event is not None and stop_event.is_set())):
+                if config.duration_s and time.monotonic() - t_start >= config.duration_s:
+                    break
+                try:
+                    item = q.get(timeout=min(0.1, max(writer.next_tick_s(), 0.005)))
+                except queue.Empty:
+                    item = None
+                if item is not None:
+                    high_water = max(high_water, q.qsize() + 1)
+                    write(item)
+                    # Drain what is there; check the stop flags once per batch.
+                    for _ in range(10_000):
+                        try:
+                            write(q.get_nowait())
+                        except queue.Empty:
+                            break
+                writer.tick()
+                if time.monotonic() >= next_log:
+                    next_log += config.log_interval_s
+                    log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)
+        except BaseException as exc:  # finish the file whatever happened, then re-raise
+            error = exc
+        finally:
+            if session is not None:
+                try:
+                    session.close()  # also undeclares the subscriber: no callback after this
+                except Exception as exc:  # closing twice or a dead network must not lose the file
+                    log.warning("closing zenoh session: %s", exc)
+            try:
+                while True:
+                    write(q.get_nowait())
+            except queue.Empty:
+                pass
+            except BaseException as exc:
+                error = error or exc
+            writer.close()
+    if error is not None:
+        if isinstance(error, (MntesError, KeyboardInterrupt)):
+            raise error
+        raise TransportError(f"recorder failed: {type(error).__name__}: {error}") from error
+    stats = RecorderStats(
+        messages=writer.messages,
+        payload_bytes=writer.payload_bytes,
+        by_kind=by_kind,
+        invalid=writer.invalid,
+        seq_gaps=gaps,
+        seq_repeats=repeats,
+        files=tuple(str(p) for p in writer.files),
+        flushes=writer.flushes,
+        queue_high_water=high_water,
+        duration_s=time.monotonic() - t_start,
+    )
+    log.info("recorder stopped: %s", stats)
+    return stats
