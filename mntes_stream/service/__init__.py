@@ -1,0 +1,1 @@
+"""Long-running services: converter, recorder, replay (zenoh and MCAP at the edges)."""
