@@ -1,0 +1,195 @@
+"""Housekeeping alignment: environment readings at every sample time (pure, no I/O).
+
+Housekeeping (bath temperature, magnetic field, bias) arrives at its own
+cadence with its own timestamps. For each sample time ``t``:
+
+- where readings bracket ``t`` (one at or before, one at or after), the value
+  is interpolated linearly between the two;
+- after the newest reading, the newest value is held; before the oldest, the
+  oldest value is used;
+- the *age* of a sample's value is its distance to the nearest reading used
+  (``min(t - t_prev, t_next - t)`` when bracketed). Age above the staleness
+  limit sets ``HK_STALE`` (the value is still given); with no usable reading
+  at all the value is NaN and ``HK_MISSING`` is set. Before the oldest
+  reading, only a reading within the staleness limit is used; otherwise the
+  sample is ``HK_MISSING`` (nothing is known that early);
+- readings outside the valid range (or non-finite ones, which are dropped
+  first) flag ``ENV_OUT_OF_RANGE`` on every sample they contribute to.
+
+Times are int64 ns; the arithmetic is done in int64 relative to the first
+reading so ns timestamps near 2e18 keep full precision.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+from mntes_stream.errors import ConfigError
+
+__all__ = ["Aligned", "align", "sample_times_ns", "HkSeries"]
+
+
+def sample_times_ns(t0_ns: int, sample_rate_hz: float, n: int) -> np.ndarray:
+    """Times of a regularly sampled chunk: ``t0_ns + round(k * 1e9 / rate)``, int64 (n,)."""
+    k = np.arange(int(n), dtype=np.float64)
+    return np.int64(t0_ns) + np.rint(k * (1e9 / float(sample_rate_hz))).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class Aligned:
+    """Housekeeping at sample times.
+
+    Attributes
+    ----------
+    value : ndarray of float64, shape (n,) or (n, k)
+        NaN where ``HK_MISSING``.
+    flags : ndarray of uint16, shape (n,)
+        ``HK_STALE``, ``HK_MISSING``, ``ENV_OUT_OF_RANGE`` bits.
+    age_ns : ndarray of int64, shape (n,)
+        Distance to the nearest reading used (-1 where missing).
+    """
+
+    value: np.ndarray
+    flags: np.ndarray
+    age_ns: np.ndarray
+
+
+def align(
+    t_ns,
+    hk_t_ns,
+    hk_value,
+    staleness_ns: int,
+    valid_range: tuple[float, float] | None = None,
+) -> Aligned:
+    """Housekeeping values at sample times ``t_ns``.
+
+    Parameters
+    ----------
+    t_ns : array_like of int64, shape (n,)
+        Sample times (any order).
+    hk_t_ns : array_like of int64, shape (m,)
+        Reading times, strictly increasing.
+    hk_value : array_like of float, shape (m,) or (m, k)
+        Readings; rows with any non-finite entry are ignored.
+    staleness_ns : int
+        Largest allowed age of a value before ``HK_STALE``.
+    valid_range : (lo, hi), optional
+        Readings outside ``[lo, hi]`` flag ``ENV_OUT_OF_RANGE``.
+
+    Returns
+    -------
+    Aligned
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    ht = np.asarray(hk_t_ns, dtype=np.int64)
+    hv = np.asarray(hk_value, dtype=np.float64)
+    if t.ndim != 1 or ht.ndim != 1 or hv.ndim not in (1, 2) or hv.shape[0] != ht.shape[0]:
+        raise ConfigError(f"align: shapes t {t.shape}, hk_t {ht.shape}, hk_value {hv.shape} do not fit")
+    if ht.size > 1 and np.any(np.diff(ht) <= 0):
+        raise ConfigError("align: housekeeping times must be strictly increasing")
+    if staleness_ns < 0:
+        raise ConfigError("align: staleness must be >= 0")
+    finite = np.isfinite(hv) if hv.ndim == 1 else np.all(np.isfinite(hv), axis=1)
+    if not np.all(finite):
+        ht, hv = ht[finite], hv[finite]
+    n, m = t.size, ht.size
+    out_shape = (n,) + hv.shape[1:]
+    flags = np.zeros(n, dtype=fl.FLAG_DTYPE)
+    if m == 0:
+        return Aligned(np.full(out_shape, np.nan), flags | fl.HK_MISSING, np.full(n, -1, dtype=np.int64))
+    bad = np.zeros(m, dtype=bool)
+    if valid_range is not None:
+        lo, hi = valid_range
+        inside = (hv >= lo) & (hv <= hi)
+        bad = ~(inside if hv.ndim == 1 else np.all(inside, axis=1))
+    # prev: newest reading at or before t; nxt: oldest reading at or after t.
+    idx = np.searchsorted(ht, t, side="right")
+    prev = np.clip(idx - 1, 0, m - 1)
+    has_prev = idx > 0
+    exact = has_prev & (ht[prev] == t)
+    nxt = np.where(exact, prev, np.clip(idx, 0, m - 1))
+    has_next = exact | (idx < m)
+    bracketed = has_prev & has_next
+    # int64 differences: exact for ns timestamps.
+    d_prev = t - ht[prev]
+    d_next = ht[nxt] - t
+    span = ht[nxt] - ht[prev]
+    w = np.zeros(n)
+    np.divide(d_prev, span, out=w, where=bracketed & (span > 0))
+    wv = w.reshape((n,) + (1,) * (hv.ndim - 1))
+    value = hv[prev] + wv * (hv[nxt] - hv[prev])
+    # Before the oldest reading: the oldest value (age d_next); after the newest: hold.
+    age = np.where(bracketed, np.minimum(d_prev, d_next), np.where(has_prev, d_prev, d_next))
+    value = np.where(
+        (bracketed | has_prev).reshape(wv.shape), value, hv[nxt]
+    )
+    missing = ~has_prev & (d_next > staleness_ns)
+    stale = ~missing & (age > staleness_ns)
+    used_prev = has_prev & (~bracketed | (w < 1.0))
+    used_next = ~has_prev | (bracketed & (w > 0.0))
+    out_of_range = (used_prev & bad[prev]) | (used_next & bad[nxt])
+    flags[stale] |= fl.HK_STALE
+    flags[missing] |= fl.HK_MISSING
+    flags[out_of_range & ~missing] |= fl.ENV_OUT_OF_RANGE
+    value = np.where(missing.reshape(wv.shape), np.nan, value)
+    return Aligned(value=value, flags=flags, age_ns=np.where(missing, -1, age).astype(np.int64))
+
+
+class HkSeries:
+    """A growing, bounded history of one sensor's readings (pure state, no I/O).
+
+    Readings may arrive in any order; a reading at an existing time replaces
+    the old one. Readings older than ``retention_ns`` before the newest are
+    pruned, so memory stays bounded in a long run.
+
+    Parameters
+    ----------
+    width : int or None
+        None for scalar sensors; the number of channels for per-channel ones.
+    retention_ns : int
+        History kept behind the newest reading.
+    """
+
+    def __init__(self, width: int | None = None, retention_ns: int = 600 * 10**9):
+        self.width = width
+        self.retention_ns = int(retention_ns)
+        self.t_ns = np.zeros(0, dtype=np.int64)
+        self.value = np.zeros((0,) if width is None else (0, width))
+
+    def __len__(self) -> int:
+        return int(self.t_ns.size)
+
+    @property
+    def newest_t_ns(self) -> int | None:
+        return int(self.t_ns[-1]) if self.t_ns.size else None
+
+    def add(self, t_ns, value) -> None:
+        """Add readings: ``t_ns`` (n,) int64, ``value`` (n,) or (n, width)."""
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        v = np.asarray(value, dtype=np.float64)
+        want = (t.size,) if self.width is None else (t.size, self.width)
+        if v.shape != want:
+            raise ConfigError(f"HkSeries.add: value shape {v.shape}, expected {want}")
+        if t.size == 0:
+            return
+        if self.t_ns.size and t.min() > self.t_ns[-1] and np.all(np.diff(t) > 0):
+            self.t_ns = np.concatenate([self.t_ns, t])
+            self.value = np.concatenate([self.value, v])
+        else:
+            all_t = np.concatenate([self.t_ns, t])
+            all_v = np.concatenate([self.value, v])
+            # Stable sort then keep the last of equal times: newest message wins.
+            order = np.argsort(all_t, kind="stable")
+            all_t, all_v = all_t[order], all_v[order]
+            keep = np.ones(all_t.size, dtype=bool)
+            keep[:-1] = all_t[1:] != all_t[:-1]
+            self.t_ns, self.value = all_t[keep], all_v[keep]
+        cut = np.searchsorted(self.t_ns, self.t_ns[-1] - self.retention_ns, side="left")
+        if cut > 0:
+            self.t_ns, self.value = self.t_ns[cut:], self.value[cut:]
+
+    def align(self, t_ns, staleness_ns: int, valid_range=None) -> Aligned:
+        return align(t_ns, self.t_ns, self.value, staleness_ns, valid_range)
