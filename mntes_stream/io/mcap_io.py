@@ -179,8 +179,9 @@ class McapFileWriter:
         killed process; costs a disk round trip per flush).
     metadata : mapping of str to mapping of str to str
         Metadata records written at the start (e.g. ``mntes.recording``).
-    provenance : bytes, optional
-        The latest ``mntes.provenance`` payload, repeated at the start of this file.
+    provenance : (bytes, int), optional
+        The latest ``mntes.provenance`` payload and its receive time, repeated at
+        the start of this file.
     """
 
     def __init__(
@@ -191,7 +192,7 @@ class McapFileWriter:
         chunk_size_bytes: int = 4 << 20,
         fsync: bool = False,
         metadata: Mapping[str, Mapping[str, str]] | None = None,
-        provenance: bytes | None = None,
+        provenance: tuple[bytes, int] | None = None,
     ):
         if compression not in _COMPRESSION:
             raise ConfigError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
@@ -207,7 +208,7 @@ class McapFileWriter:
         self._writer.start(profile="", library=f"mntes-stream {__version__}")
         self._schemas: dict[tuple[str, int], int] = {}
         self._channels: dict[tuple[str, str, int, str], int] = {}
-        self._provenance: bytes | None = None
+        self._provenance: tuple[bytes, int] | None = None
         self.messages = 0
         self.payload_bytes = 0
         self.unflushed_bytes = 0
@@ -216,7 +217,7 @@ class McapFileWriter:
         for name, data in (metadata or {}).items():
             self._writer.add_metadata(name, dict(data))
         if provenance is not None:
-            self._add_provenance(provenance, time.time_ns())
+            self._add_provenance(*provenance)
         self.flush()
 
     # -- channels
@@ -254,12 +255,12 @@ class McapFileWriter:
         self.messages += 1
         self.payload_bytes += len(payload)
         self.unflushed_bytes += len(payload)
-        if env.schema == PROVENANCE_SCHEMA and not env.problem and payload != self._provenance:
+        if env.schema == PROVENANCE_SCHEMA and not env.problem and (self._provenance is None or payload != self._provenance[0]):
             self._add_provenance(payload, log_time_ns)
         return env
 
     def _add_provenance(self, payload: bytes, log_time_ns: int) -> None:
-        self._provenance = payload
+        self._provenance = (payload, int(log_time_ns))
         env = peek_envelope(payload)
         self._writer.add_attachment(
             create_time=int(env.publish_time_ns or 0),
@@ -274,8 +275,8 @@ class McapFileWriter:
         self._writer.add_metadata(PROVENANCE_SCHEMA, meta)
 
     @property
-    def provenance(self) -> bytes | None:
-        """The latest provenance payload written to this file."""
+    def provenance(self) -> tuple[bytes, int] | None:
+        """The latest provenance payload written to this file and its receive time."""
         return self._provenance
 
     @property
@@ -378,7 +379,7 @@ class RotatingMcapWriter:
         self.invalid = 0
         self.flushes = 0
         self._current: McapFileWriter | None = None
-        self._provenance: bytes | None = None
+        self._provenance: tuple[bytes, int] | None = None
         self._open_next()
 
     def _open_next(self) -> None:
@@ -592,6 +593,7 @@ def _index_from_summary(idx: _FileIndex, f) -> bool:
     from mcap.reader import SeekingReader
 
     try:
+        f.seek(0)
         summary = SeekingReader(f).get_summary()
     except Exception:  # a file without a valid footer: the writer died
         return False
@@ -668,7 +670,8 @@ def _index_by_scan(idx: _FileIndex, f) -> None:
             pos = end
             f.seek(pos)
             idx.complete = f.read(len(_MAGIC)) == _MAGIC
-            idx.problem = "" if idx.complete else "footer not followed by the closing magic"
+            if not idx.complete:
+                idx.problem = "footer not followed by the closing magic"
             idx.recovered = pos + (len(_MAGIC) if idx.complete else 0)
             return
         pos = end
@@ -766,6 +769,8 @@ class Session:
                         TruncatedFileWarning,
                         stacklevel=3,
                     )
+                elif fi.problem:
+                    warnings.warn(f"{fi.path}: {fi.problem}", TruncatedFileWarning, stacklevel=3)
 
     @property
     def complete(self) -> bool:
@@ -904,5 +909,5 @@ def read_attachments(source) -> list[RecordedAttachment]:
 
 def latest_provenance(source) -> bytes | None:
     """The most recent ``mntes.provenance`` payload stored in the session, or None."""
-    found = [a for a in read_attachments(source) if a.name == PROVENANCE_ATTACHMENT]
-    return max(found, key=lambda a: a.log_time_ns).data if found else None
+    found = [(a.log_time_ns, k, a.data) for k, a in enumerate(read_attachments(source)) if a.name == PROVENANCE_ATTACHMENT]
+    return max(found)[2] if found else None

@@ -1,0 +1,188 @@
+"""Replay: re-publish a recorded session onto zenoh, paced by the recorded receive times.
+
+Messages go out in log-time order with their payload bytes unchanged, on their
+recorded keys, through publishers with BLOCK congestion control (a slow
+subscriber slows the replay instead of losing data). ``speed`` 1 is real time,
+10 ten times faster, 0 as fast as possible.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import tomllib
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from mntes_stream.errors import ConfigError
+from mntes_stream.service.recorder import ZenohSettings, _from_dict, _SignalStop, open_zenoh_session
+
+__all__ = ["INPUT_TOPICS", "ReplayConfig", "ReplayStats", "parse_time", "run_replay"]
+
+log = logging.getLogger("mntes_stream.replay")
+
+#: What a converter consumes: the default selection of a replay.
+INPUT_TOPICS = ("mntes/*/counts/**", "mntes/*/hk/**")
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """What to replay and how fast.
+
+    Attributes
+    ----------
+    source : tuple of str
+        Files or directories (one session; rotated files are read in order).
+    speed : float
+        Multiple of real time; 0 means as fast as possible.
+    start_ns, end_ns : int, optional
+        Replay messages with ``start_ns <= log_time < end_ns``.
+    topics : tuple of str
+        Topics or zenoh-style patterns; default: the converter's inputs
+        (:data:`INPUT_TOPICS`). ``("**",)`` replays everything.
+    wait_subscribers_s : float
+        Wait up to this long for every publisher to have a matching subscriber.
+    linger_s : float
+        Keep the session open this long after the last message so it is delivered.
+    """
+
+    source: tuple[str, ...] = ()
+    speed: float = 1.0
+    start_ns: int | None = None
+    end_ns: int | None = None
+    topics: tuple[str, ...] = INPUT_TOPICS
+    wait_subscribers_s: float = 5.0
+    linger_s: float = 0.5
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+
+    def __post_init__(self):
+        if self.speed < 0:
+            raise ConfigError(f"speed must be >= 0 (0: as fast as possible), got {self.speed}")
+        if self.start_ns is not None and self.end_ns is not None and self.end_ns <= self.start_ns:
+            raise ConfigError("end must be after start")
+        if self.wait_subscribers_s < 0 or self.linger_s < 0:
+            raise ConfigError("wait_subscribers_s and linger_s must be >= 0")
+
+    @classmethod
+    def from_toml(cls, path: str | Path, **overrides) -> ReplayConfig:
+        """Read ``[replay]`` and ``[zenoh]`` tables (see ``services/replay.toml``)."""
+        try:
+            doc = tomllib.loads(Path(path).read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+        unknown = set(doc) - {"replay", "zenoh"}
+        if unknown:
+            raise ConfigError(f"{path}: unknown table(s) {sorted(unknown)} (expected [replay], [zenoh])")
+        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{path} [zenoh]")
+        d = {**doc.get("replay", {}), "zenoh": z, **overrides}
+        return _from_dict(cls, d, f"{path} [replay]", tuples=("source", "topics"))
+
+
+@dataclass(frozen=True)
+class ReplayStats:
+    """``behind_max_ms``: the most a message went out after its scheduled time."""
+
+    messages: int
+    payload_bytes: int
+    by_kind: dict
+    topics: int
+    unmatched_topics: tuple[str, ...]
+    duration_s: float
+    recorded_span_s: float
+    behind_max_ms: float
+    complete: bool
+
+
+def parse_time(text: str, session_start_ns: int | None) -> int:
+    """``12.5`` (seconds after the session's first message) or an ISO-8601 time -> ns."""
+    try:
+        rel = float(text)
+    except ValueError:
+        try:
+            dt = datetime.fromisoformat(text.replace("Z", "+00:00"))
+        except ValueError:
+            raise ConfigError(f"time {text!r}: give seconds from the start or an ISO-8601 time") from None
+        if dt.tzinfo is None:
+            dt = dt.replace(tzinfo=timezone.utc)
+        return int(round(dt.timestamp() * 1e9))
+    if session_start_ns is None:
+        raise ConfigError("the session has no messages to count time from")
+    return session_start_ns + int(round(rel * 1e9))
+
+
+def _stopped(stop_event, sig) -> bool:
+    return sig.event.is_set() or (stop_event is not None and stop_event.is_set())
+
+
+def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) -> ReplayStats:
+    """Publish the selected messages of ``config.source``; returns when done or stopped."""
+    import zenoh
+
+    from mntes_stream.io.mcap_io import Session, topic_matcher
+
+    if not config.source:
+        raise ConfigError("nothing to replay: no source files")
+    session_in = Session(list(config.source))
+    match = topic_matcher(config.topics)
+    topics = sorted(t for t in session_in.message_counts() if match(t))
+    total = session_in.count(topics)
+    by_kind: dict[str, int] = {}
+    n = nbytes = 0
+    behind_max = 0.0
+    first_log = last_log = None
+    t_begin = time.monotonic()
+    with _SignalStop() as sig, open_zenoh_session(config.zenoh) as z:
+        pubs = {t: z.declare_publisher(t, congestion_control=zenoh.CongestionControl.BLOCK) for t in topics}
+        deadline = time.monotonic() + config.wait_subscribers_s
+        while not all(p.matching_status for p in pubs.values()) and time.monotonic() < deadline:
+            if _stopped(stop_event, sig):
+                break
+            time.sleep(0.01)
+        unmatched = tuple(t for t, p in pubs.items() if not p.matching_status)
+        if unmatched:
+            log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(unmatched), len(pubs), unmatched[0])
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total, unit="msg", desc="replay")
+        wall0 = time.monotonic()
+        for msg in session_in.iter_messages(topics, config.start_ns, config.end_ns):
+            if n % 64 == 0 and _stopped(stop_event, sig):
+                break
+            if first_log is None:
+                first_log = msg.log_time_ns
+            last_log = msg.log_time_ns
+            if config.speed > 0:
+                due = wall0 + (msg.log_time_ns - first_log) / 1e9 / config.speed
+                while (wait := due - time.monotonic()) > 0:
+                    time.sleep(min(wait, 0.1))
+                    if _stopped(stop_event, sig):
+                        break
+                behind_max = max(behind_max, time.monotonic() - due)
+            pubs[msg.topic].put(msg.payload)
+            n += 1
+            nbytes += len(msg.payload)
+            kind = msg.topic.split("/")[2] if msg.topic.count("/") >= 2 else "other"
+            by_kind[kind] = by_kind.get(kind, 0) + 1
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+        time.sleep(config.linger_s)
+        for p in pubs.values():
+            p.undeclare()
+    stats = ReplayStats(
+        messages=n,
+        payload_bytes=nbytes,
+        by_kind=by_kind,
+        topics=len(topics),
+        unmatched_topics=unmatched,
+        duration_s=time.monotonic() - t_begin,
+        recorded_span_s=0.0 if first_log is None else (last_log - first_log) / 1e9,
+        behind_max_ms=behind_max * 1e3,
+        complete=session_in.complete,
+    )
+    log.info("replay done: %s", stats)
+    return stats

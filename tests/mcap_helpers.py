@@ -1,0 +1,52 @@
+"""Helpers for the recorder/replay tests: real messages and loopback zenoh endpoints."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+
+from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance
+
+
+def free_endpoint() -> str:
+    """A ``tcp/127.0.0.1:<port>`` endpoint on a port free right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def counts_payload(seq: int, *, setup: str = "t", board: int = 0, module: int = 0, n_ch: int = 4, n_samp: int = 8) -> bytes:
+    rng = np.random.default_rng(seq)
+    t0 = 1_700_000_000_000_000_000 + seq * 100_000_000
+    return CountsChunk(
+        setup=setup, board=board, module=module, channels=np.arange(n_ch, dtype=np.int32), seq=seq,
+        t0_ns=t0, sample_rate_hz=80.0,
+        counts_i=rng.integers(-2**20, 2**20, (n_ch, n_samp), dtype=np.int32),
+        counts_q=rng.integers(-2**20, 2**20, (n_ch, n_samp), dtype=np.int32),
+        t_pub_ns=t0 + 100_000_000,
+    ).to_bytes()
+
+
+def hk_payload(seq: int, *, setup: str = "t", sensor: str = "t_bath") -> bytes:
+    t = 1_700_000_000_000_000_000 + seq * 100_000_000
+    return HousekeepingChunk(
+        setup=setup, sensor=sensor, seq=seq, t_ns=np.array([t], dtype=np.int64), value=np.array([0.1 + 1e-6 * seq]), unit="K",
+    ).to_bytes()
+
+
+def provenance_payload(tag: str = "a", *, setup: str = "t") -> bytes:
+    return Provenance(
+        setup=setup, params_toml=f'schema = "mntes-params"\nversion = 1\n# {tag}\n', table_identity=f"sha256:{tag}",
+        converter_kind="exact", software_version="test", t_ns=1_700_000_000_000_000_000,
+    ).to_bytes()
+
+
+def wait_matching(publisher, timeout_s: float = 10.0) -> None:
+    """Block until a zenoh publisher has a matching subscriber (fail after ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    while not publisher.matching_status:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no subscriber for {publisher.key_expr} after {timeout_s} s")
+        time.sleep(0.01)

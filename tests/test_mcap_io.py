@@ -1,0 +1,226 @@
+"""MCAP writer/reader: round trips, self-description, rotation, recovery of cut files."""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+
+import msgpack
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+from mcap_helpers import counts_payload, hk_payload, provenance_payload
+
+from mntes_stream.errors import ConfigError, TransportError
+from mntes_stream.io import mcap_io as mio
+from mntes_stream.io.codec import json_schema
+
+T0 = 1_700_000_000_000_000_000
+
+topics = st.sampled_from(["mntes/t/counts/0/0", "mntes/t/counts/0/1", "mntes/t/hk/t_bath", "mntes/t/power/0/0", "odd/key"])
+payloads = st.one_of(
+    st.binary(max_size=300),
+    st.integers(0, 50).map(counts_payload),
+    st.integers(0, 50).map(hk_payload),
+    st.builds(lambda v: msgpack.packb({"schema": "mntes.counts", "version": v}), st.integers(2, 5)),
+)
+
+
+def _read(source, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", mio.TruncatedFileWarning)
+        return list(mio.iter_messages(source, **kw))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(msgs=st.lists(st.tuples(topics, payloads, st.integers(0, 10**9)), max_size=60),
+       compression=st.sampled_from(["zstd", "lz4", "none"]))
+def test_round_trip_in_log_time_order(tmp_path_factory, msgs, compression):
+    path = tmp_path_factory.mktemp("rt") / "x.mcap"
+    with mio.McapFileWriter(path, compression=compression, chunk_size_bytes=2048) as w:
+        for k, (topic, payload, dt) in enumerate(msgs):
+            w.write(topic, payload, T0 + dt)
+            if k % 7 == 6:
+                w.flush()
+    got = _read(path)
+    # Expected: a stable sort of what was written by receive time.
+    expected = sorted(((T0 + dt, k, topic, payload) for k, (topic, payload, dt) in enumerate(msgs)), key=lambda e: e[:2])
+    assert [(m.log_time_ns, m.topic, m.payload) for m in got] == [(t, topic, p) for t, _, topic, p in expected]
+    for m in got:
+        env = mio.peek_envelope(m.payload)
+        assert (m.schema_name, m.schema_version) == ((env.schema, env.version) if not env.problem else ("", 0))
+    # The file is an ordinary MCAP to the reference reader too.
+    with open(path, "rb") as f:
+        ref = list(make_reader(f).iter_messages(log_time_order=False))
+    assert sorted(msg.data for _, _, msg in ref) == sorted(p for _, p, _ in msgs)
+
+
+def test_file_explains_itself(tmp_path):
+    path = tmp_path / "x.mcap"
+    bad_version = msgpack.packb({"schema": "mntes.counts", "version": 99})
+    with mio.McapFileWriter(path) as w:
+        w.write("mntes/t/counts/0/0", counts_payload(1), T0)
+        w.write("mntes/t/counts/0/0", b"\xc1not msgpack", T0 + 1)
+        w.write("mntes/t/counts/0/0", bad_version, T0 + 2)
+        w.write("mntes/t/hk/t_bath", hk_payload(1), T0 + 3)
+        assert w.invalid == 1
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        by_topic = {}
+        for schema, channel, msg in reader.iter_messages():
+            by_topic.setdefault(channel.topic, []).append((schema, channel, msg))
+    (s0, c0, m0), (s1, c1, _), (s2, c2, _) = by_topic["mntes/t/counts/0/0"]
+    assert c0.message_encoding == "msgpack" and s0.encoding == "jsonschema" and s0.name == "mntes.counts"
+    assert json.loads(s0.data) == json_schema("mntes.counts", 1)
+    # publish_time is the message's own t_pub_ns; sequence its seq.
+    env = msgpack.unpackb(counts_payload(1))
+    assert (m0.publish_time, m0.sequence) == (env["t_pub_ns"], 1)
+    assert s1 is None and "malformed msgpack" in c1.metadata["mntes.invalid"]
+    assert s2 is None and c2.metadata["mntes.schema"] == "mntes.counts" and c2.metadata["mntes.version"] == "99"
+    assert "no JSON Schema" in c2.metadata["mntes.invalid"]
+    assert len({c.topic for c in summary.channels.values()}) == 2
+    hk_schema = by_topic["mntes/t/hk/t_bath"][0][0]
+    assert json.loads(hk_schema.data) == json_schema("mntes.hk", 1)
+    # The hk message has no t_pub_ns: publish time is its own t_ns? No: t_ns is an array there,
+    # so the receive time stands in.
+    assert by_topic["mntes/t/hk/t_bath"][0][2].publish_time == T0 + 3
+
+
+def test_provenance_attachment_and_metadata(tmp_path):
+    a, b = provenance_payload("a"), provenance_payload("b")
+    w = mio.RotatingMcapWriter(tmp_path, "p", rotate_bytes=0, rotate_s=0)
+    w.write("mntes/t/provenance", a, T0)
+    w.write("mntes/t/provenance", a, T0 + 1)  # unchanged: stored once
+    w.write("mntes/t/counts/0/0", counts_payload(0), T0 + 2)
+    w._open_next()  # a rotation carries the latest provenance into the new file
+    w.write("mntes/t/provenance", b, T0 + 3)
+    w.close()
+    f1, f2 = w.files
+    att1, att2 = mio.read_attachments(f1), mio.read_attachments(f2)
+    assert [x.data for x in att1] == [a]
+    assert [x.data for x in att2] == [a, b]
+    assert mio.latest_provenance(tmp_path) == b and mio.latest_provenance(f1) == a
+    meta = [m for m in mio.read_metadata(f1) if m.name == "mntes.provenance"]
+    assert len(meta) == 1 and meta[0].data["params_toml"] == msgpack.unpackb(a)["params_toml"]
+    assert meta[0].data["table_identity"] == "sha256:a"
+    rec = [m for m in mio.read_metadata(f2) if m.name == "mntes.recording"][0].data
+    assert rec["software"].startswith("mntes-stream") and rec["previous_file"] == f1.name and rec["file_seq"] == "2"
+
+
+def test_rotation_by_size_and_duration_reads_as_one_session(tmp_path):
+    sent = []
+    w = mio.RotatingMcapWriter(tmp_path, "r", rotate_bytes=20_000, rotate_s=0, flush_interval_s=0.01, chunk_size_bytes=4096)
+    for i in range(200):
+        p = counts_payload(i)
+        sent.append(("mntes/t/counts/0/0", p))
+        w.write("mntes/t/counts/0/0", p, T0 + i)
+    n_size = len(w.files)
+    w.rotate_s = 0.05
+    time.sleep(0.06)
+    w.tick()
+    w.write("mntes/t/hk/t_bath", hk_payload(0), T0 + 500)
+    sent.append(("mntes/t/hk/t_bath", hk_payload(0)))
+    w.close()
+    assert n_size >= 4  # ~100 kB in 20 kB files
+    assert len(w.files) == n_size + 1
+    assert [p.name for p in w.files] == [f"r-{k:06d}.mcap" for k in range(1, n_size + 2)]
+    assert all(p.stat().st_size < 20_000 + 8_000 for p in w.files)
+    assert [(m.topic, m.payload) for m in _read(tmp_path)] == sent
+    assert [(m.topic, m.payload) for m in _read(list(reversed(w.files)))] == sent  # order comes from time
+    # A restarted writer continues the numbering instead of overwriting.
+    w2 = mio.RotatingMcapWriter(tmp_path, "r")
+    w2.close()
+    assert w2.files[0].name == f"r-{n_size + 2:06d}.mcap"
+
+
+def test_time_range_and_topic_patterns(tmp_path):
+    path = tmp_path / "x.mcap"
+    with mio.McapFileWriter(path, chunk_size_bytes=1024) as w:
+        for i in range(100):
+            w.write(f"mntes/t/counts/0/{i % 2}", counts_payload(i), T0 + i * 10)
+            w.write("mntes/t/hk/t_bath", hk_payload(i), T0 + i * 10 + 5)
+    got = _read(path, topics="mntes/*/counts/**", start_ns=T0 + 200, end_ns=T0 + 400)
+    assert [m.payload for m in got] == [counts_payload(i) for i in range(20, 40)]
+    got = _read(path, topics=["mntes/t/hk/t_bath", "mntes/t/counts/0/1"])
+    assert len(got) == 150 and {m.topic for m in got} == {"mntes/t/hk/t_bath", "mntes/t/counts/0/1"}
+    s = mio.Session(path)
+    assert s.complete and s.count("mntes/t/counts/**") == 100 and s.start_ns == T0 and s.end_ns == T0 + 995
+
+
+def _chunked_file(path, n=120):
+    sent = []
+    with mio.McapFileWriter(path, chunk_size_bytes=1 << 20) as w:
+        for i in range(n):
+            p = counts_payload(i) if i % 3 else hk_payload(i)
+            w.write("mntes/t/counts/0/0" if i % 3 else "mntes/t/hk/t_bath", p, T0 + i)
+            sent.append(p)
+            if i % 10 == 9:
+                w.flush()
+        w.write("mntes/t/provenance", provenance_payload(), T0 + n)
+        sent.append(provenance_payload())
+    with open(path, "rb") as f:
+        idx = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    return sent, idx
+
+
+@pytest.fixture(scope="module")
+def chunked(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cut") / "full.mcap"
+    sent, idx = _chunked_file(path)
+    return path.read_bytes(), sent, idx
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frac=st.floats(0, 1))
+def test_cut_at_any_offset_recovers_every_complete_chunk(chunked, tmp_path_factory, frac):
+    data, sent, idx = chunked
+    cut = int(frac * len(data))
+    path = tmp_path_factory.mktemp("c") / "cut.mcap"
+    path.write_bytes(data[:cut])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        session = mio.Session(path)
+        got = [m.payload for m in session.iter_messages()]
+    # Independent expectation from the reference reader's chunk index of the full file.
+    n_complete = sum(1 for c in idx if c.chunk_start_offset + c.chunk_length <= cut)
+    per_chunk = [10] * 12 + [1]
+    expected = sent[: sum(per_chunk[:n_complete])]
+    if cut == len(data):
+        assert session.complete and not caught and got == sent
+    else:
+        assert got == expected
+        assert not session.complete and any(issubclass(w.category, mio.TruncatedFileWarning) for w in caught)
+        assert session.files[0].recovered_bytes <= cut
+
+
+def test_unreadable_inputs_raise_transport_error(tmp_path):
+    (tmp_path / "junk.mcap").write_bytes(b"PK\x03\x04 definitely not mcap")
+    with pytest.raises(TransportError, match="not an MCAP"):
+        mio.Session(tmp_path / "junk.mcap")
+    with pytest.raises(TransportError, match="no such file"):
+        mio.Session(tmp_path / "missing.mcap")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(TransportError, match="no .mcap files"):
+        mio.Session(tmp_path / "empty")
+    with pytest.raises(TransportError, match="cannot create"):
+        mio.McapFileWriter(tmp_path / "junk.mcap")  # never overwrite a recording
+    with pytest.raises(ConfigError):
+        mio.McapFileWriter(tmp_path / "y.mcap", compression="gzip")
+
+
+def test_damaged_chunk_is_skipped_with_a_warning(chunked, tmp_path):
+    data, sent, idx = chunked
+    bad = bytearray(data)
+    c = idx[3]
+    mid = c.chunk_start_offset + c.chunk_length - 20  # inside the compressed data
+    bad[mid] ^= 0xFF
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(bytes(bad))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = [m.payload for m in mio.iter_messages(path)]
+    assert got == sent[:30] + sent[40:]
+    assert any("damaged chunk" in str(w.message) for w in caught)
