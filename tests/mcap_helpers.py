@@ -46,7 +46,7 @@ def provenance_payload(tag: str = "a", *, setup: str = "t") -> bytes:
 def wait_matching(publisher, timeout_s: float = 10.0) -> None:
     """Block until a zenoh publisher has a matching subscriber (fail after ``timeout_s``)."""
     deadline = time.monotonic() + timeout_s
-    while not publisher.matching_status:
+    while not publisher.matching_status.matching:
         if time.monotonic() > deadline:
             raise TimeoutError(f"no subscriber for {publisher.key_expr} after {timeout_s} s")
         time.sleep(0.01)

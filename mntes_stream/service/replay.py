@@ -135,11 +135,11 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
     with _SignalStop() as sig, open_zenoh_session(config.zenoh) as z:
         pubs = {t: z.declare_publisher(t, congestion_control=zenoh.CongestionControl.BLOCK) for t in topics}
         deadline = time.monotonic() + config.wait_subscribers_s
-        while not all(p.matching_status for p in pubs.values()) and time.monotonic() < deadline:
+        while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
             if _stopped(stop_event, sig):
                 break
             time.sleep(0.01)
-        unmatched = tuple(t for t, p in pubs.items() if not p.matching_status)
+        unmatched = tuple(t for t, p in pubs.items() if not p.matching_status.matching)
         if unmatched:
             log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(unmatched), len(pubs), unmatched[0])
         bar = None
