@@ -1,0 +1,323 @@
+"""Table conversion kernels: compiled (numba, one core, no GIL) and numpy twins.
+
+Both backends implement the same arithmetic and flag rules as
+``core.convert`` (documented there); the tests run both against the exact
+inverse. The compiled kernel does one pass over the samples with two
+transcendental calls per sample (``exp(n log T)`` and ``exp(n log T_bath)``,
+with ``log T_bath`` computed once per sample outside), so it runs far above
+numpy's many-temporaries speed; see ``benchmarks/README.md``.
+
+Per-detector scalars ``phys`` (n_bank, 14): gain re/im, pickup re/im, z re/im,
+K, n, c1, c2, gamma, nominal bias, stable-branch bounds lo/hi.
+``dom``: bath temperature lo/hi, field lo/hi, bias fraction lo/hi.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+
+__all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "lookup_numpy", "lagrange4"]
+
+SQRT2 = math.sqrt(2.0)
+RAIL = float(2**31 - 1)
+_INVALID = int(fl.INVALID_INPUT)
+_SAT = int(fl.SATURATED)
+_SC = int(fl.SUPERCONDUCTING)
+_OOT = int(fl.OUT_OF_TABLE)
+_ENV = int(fl.ENV_OUT_OF_RANGE)
+_UNKNOWN = int(fl.UNKNOWN_CHANNEL)
+_HK_MISSING = int(fl.HK_MISSING)
+_UNUSABLE = int(fl.UNUSABLE)
+
+
+# --- numpy twins -------------------------------------------------------------------------
+
+def lookup_numpy(rows, r, ko, x, co, ci, cpo):
+    """Global knot index of the interval holding ``r`` (rows broadcast over samples).
+
+    Returns ``j`` (int64, shape of ``r``) and ``inside`` (r within the table).
+    """
+    d = np.broadcast_to(rows[:, None], r.shape)
+    k0 = ko[d]
+    last = ko[d + 1] - 1
+    with np.errstate(invalid="ignore"):
+        inside = (r >= x[k0]) & (r <= x[last])
+    rr = np.where(inside, r, x[k0])
+    nc = co[d + 1] - co[d]
+    cell = np.minimum(((rr - x[k0]) * cpo[d]).astype(np.int64), nc - 1)
+    j = k0 + ci[co[d] + np.maximum(cell, 0)]
+    while True:
+        step = (j + 1 < last) & (rr >= x[np.minimum(j + 1, last)])
+        if not np.any(step):
+            return j, inside
+        j = j + step
+
+
+def lagrange4(u):
+    """4-point Lagrange weights at ``u`` in node units (nodes at 0, 1, 2, 3)."""
+    return (
+        -(u - 1.0) * (u - 2.0) * (u - 3.0) / 6.0,
+        u * (u - 2.0) * (u - 3.0) / 2.0,
+        -u * (u - 1.0) * (u - 3.0) / 2.0,
+        u * (u - 1.0) * (u - 2.0) / 6.0,
+    )
+
+
+def _front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
+    """Numpy version of the per-sample front end. Returns R, |i|, flags, ok."""
+    known = (rows >= 0)[:, None]
+    ph = phys[np.maximum(rows, 0)][:, :, None]
+    xi = np.asarray(ci_, dtype=np.float64)
+    xq = np.asarray(cq_, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        counts_ok = (np.abs(xi) < RAIL) & (np.abs(xq) < RAIL)
+        env_ok = (tb > 0) & (np.abs(b) < np.inf) & (v > 0) & (v < np.inf)
+        ire = ph[:, 0] * xi - ph[:, 1] * xq - ph[:, 2] * b
+        iim = ph[:, 0] * xq + ph[:, 1] * xi - ph[:, 3] * b
+        m2 = ire * ire + iim * iim
+        valid = counts_ok & env_ok & (m2 > 0) & known
+        invalid = known & (~counts_ok | (counts_ok & env_ok & ~(m2 > 0)) | (~env_ok & ((hk & _HK_MISSING) == 0)))
+        r = SQRT2 * v * ire / m2 - ph[:, 4]
+        sat = valid & (r >= ph[:, 13])
+        sc = valid & ~sat & ~(r > ph[:, 12])
+        vf = v / ph[:, 11]
+        env_out = known & env_ok & ~(
+            (tb >= dom[0]) & (tb <= dom[1]) & (b >= dom[2]) & (b <= dom[3]) & (vf >= dom[4]) & (vf <= dom[5])
+        )
+    f = np.array(hk, dtype=np.uint16)
+    f[invalid] |= _INVALID
+    f[sat] |= _SAT
+    f[sc] |= _SC
+    f[env_out] |= _ENV
+    f[~known[:, 0]] |= _UNKNOWN
+    return r, np.sqrt(m2), f, valid & ~sat & ~sc
+
+
+def _chunks(n_rows, n_samp, elements=1 << 19):
+    step = max(1, elements // max(n_samp, 1))
+    for r0 in range(0, n_rows, step):
+        yield r0, min(n_rows, r0 + step)
+
+
+def table_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
+    """Structured-table conversion in numpy (same contract as :func:`table_numba`)."""
+    for r0, r1 in _chunks(*out_p.shape):
+        rw = rows[r0:r1]
+        r, iabs, f, ok = _front_numpy(ci_[r0:r1], cq_[r0:r1], tb[r0:r1], b[r0:r1], v[r0:r1], hk[r0:r1],
+                                      rw, phys, dom)
+        j, inside = lookup_numpy(np.maximum(rw, 0), r, ko, x, co, cidx, cpo)
+        f[ok & ~inside] |= _OOT
+        ph = phys[np.maximum(rw, 0)][:, :, None]
+        bb = b[r0:r1]
+        vv = v[r0:r1]
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            s = r - x[j]
+            c = coef[j]
+            ts = c[..., 0] + s * (c[..., 1] + s * (c[..., 2] + s * c[..., 3]))
+            t = ts + ph[:, 8] * bb + ph[:, 9] * bb * bb - ph[:, 10] * iabs
+            tn = np.where(t > 0, np.exp(ph[:, 7] * np.log(np.maximum(t, 1e-300))), 0.0)
+            p = ph[:, 6] * (tn - np.exp(ph[:, 7] * ltb[r0:r1])) - vv * vv * r / ((r + ph[:, 4]) ** 2 + ph[:, 5] ** 2)
+        out_p[r0:r1] = p
+        out_f[r0:r1] = f
+
+
+def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
+               p_w, dp_w, bias_v, b_nodes, k_tref_n, bias_rtol, out_p, out_f):
+    """Grid-table conversion in numpy (same contract as :func:`grid_numba`)."""
+    nb = b_nodes.size
+    db = b_nodes[1] - b_nodes[0]
+    for r0, r1 in _chunks(*out_p.shape):
+        rw = rows[r0:r1]
+        rk = np.maximum(rw, 0)
+        r, _, f, ok = _front_numpy(ci_[r0:r1], cq_[r0:r1], tb[r0:r1], b[r0:r1], v[r0:r1], hk[r0:r1],
+                                   rw, phys, dom)
+        j, inside = lookup_numpy(rk, r, ko, x, co, cidx, cpo)
+        vv = v[r0:r1]
+        bv = bias_v[rk][:, None, :]                        # (rows, 1, n_bias)
+        with np.errstate(invalid="ignore"):
+            match = np.abs(vv[:, :, None] - bv) <= bias_rtol * bv
+        state = np.argmax(match, axis=2)
+        has_state = np.any(match, axis=2)
+        f[ok & ~inside] |= _OOT
+        f[ok & inside & ~has_state] |= _OOT | _ENV
+        bb = np.where(np.isfinite(b[r0:r1]), b[r0:r1], 0.0)
+        f[ok & ((bb < b_nodes[0]) | (bb > b_nodes[-1]))] |= _ENV
+        tpos = (bb - b_nodes[0]) / db
+        j0 = np.clip(np.floor(tpos).astype(np.int64) - 1, 0, nb - 4)
+        w = lagrange4(tpos - j0)
+        h = x[np.minimum(j + 1, x.size - 1)] - x[j]
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            u = (r - x[j]) / h
+            h00 = (1 + 2 * u) * (1 - u) ** 2
+            h10 = u * (1 - u) ** 2 * h
+            h01 = u * u * (3 - 2 * u)
+            h11 = u * u * (u - 1) * h
+            acc = np.zeros(r.shape)
+            for q in range(4):
+                jb = j0 + q
+                acc += w[q] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
+                               + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
+            ph = phys[rk][:, :, None]
+            p = acc + k_tref_n[rk][:, None] - ph[:, 6] * np.exp(ph[:, 7] * ltb[r0:r1])
+        out_p[r0:r1] = p
+        out_f[r0:r1] = f
+
+
+# --- compiled kernels ----------------------------------------------------------------------
+
+try:
+    import numba
+except ImportError:  # the numpy twins above still work
+    numba = None
+
+if numba is not None:
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+    @_jit
+    def _front(xi, xq, tb, b, v, hk, phys, d, dom):
+        """One sample: flags so far, R, |i| and whether R is on the stable branch."""
+        f = hk
+        env_ok = tb > 0.0 and abs(b) < math.inf and v > 0.0 and v < math.inf
+        if env_ok:
+            vf = v / phys[d, 11]
+            if not (dom[0] <= tb <= dom[1] and dom[2] <= b <= dom[3] and dom[4] <= vf <= dom[5]):
+                f |= _ENV
+        if not (abs(xi) < RAIL and abs(xq) < RAIL):
+            return f | _INVALID, 0.0, 0.0, False
+        if not env_ok:
+            if (hk & _HK_MISSING) == 0:
+                f |= _INVALID
+            return f, 0.0, 0.0, False
+        ire = phys[d, 0] * xi - phys[d, 1] * xq - phys[d, 2] * b
+        iim = phys[d, 0] * xq + phys[d, 1] * xi - phys[d, 3] * b
+        m2 = ire * ire + iim * iim
+        if not m2 > 0.0:
+            return f | _INVALID, 0.0, 0.0, False
+        r = SQRT2 * v * ire / m2 - phys[d, 4]
+        if r >= phys[d, 13]:
+            return f | _SAT, r, 0.0, False
+        if not r > phys[d, 12]:
+            return f | _SC, r, 0.0, False
+        return f, r, math.sqrt(m2), True
+
+    @_jit
+    def _interval(r, d, ko, x, co, cidx, cpo):
+        """Global knot index of the interval holding r, or -1 outside the table."""
+        k0 = ko[d]
+        last = ko[d + 1] - 1
+        if not (x[k0] <= r <= x[last]):
+            return -1
+        nc = co[d + 1] - co[d]
+        cell = int((r - x[k0]) * cpo[d])
+        if cell >= nc:
+            cell = nc - 1
+        j = k0 + cidx[co[d] + cell]
+        while j + 1 < last and r >= x[j + 1]:
+            j += 1
+        return j
+
+    @_jit
+    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
+        """Structured-table conversion, one pass over (n_det, n_samp) samples.
+
+        Writes ``out_p`` (float64, NaN where unusable) and ``out_f`` (uint16).
+        """
+        n_rows, n_samp = out_p.shape
+        for row in range(n_rows):
+            d = rows[row]
+            if d < 0:
+                for s in range(n_samp):
+                    out_f[row, s] = hk[row, s] | _UNKNOWN
+                    out_p[row, s] = math.nan
+                continue
+            k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]
+            zr, zi = phys[d, 4], phys[d, 5]
+            for s in range(n_samp):
+                bs = b[row, s]
+                vs = v[row, s]
+                f, r, iabs, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
+                                        int(hk[row, s]), phys, d, dom)
+                p = math.nan
+                if ok:
+                    j = _interval(r, d, ko, x, co, cidx, cpo)
+                    if j < 0:
+                        f |= _OOT
+                    else:
+                        u = r - x[j]
+                        ts = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
+                        t = ts + c1 * bs + c2 * bs * bs - gamma * iabs
+                        tn = math.exp(n * math.log(t)) if t > 0.0 else 0.0
+                        p = k * (tn - math.exp(n * ltb[row, s])) - vs * vs * r / ((r + zr) ** 2 + zi * zi)
+                if f & _UNUSABLE:
+                    p = math.nan
+                out_p[row, s] = p
+                out_f[row, s] = f
+
+    @_jit
+    def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
+                   p_w, dp_w, bias_v, b_nodes, k_tref_n, bias_rtol, out_p, out_f):
+        """Grid-table conversion: bias state, cubic in B, Hermite in R, exact bath term."""
+        n_rows, n_samp = out_p.shape
+        nb = b_nodes.size
+        n_bias = bias_v.shape[1]
+        b0 = b_nodes[0]
+        inv_db = 1.0 / (b_nodes[1] - b_nodes[0])
+        for row in range(n_rows):
+            d = rows[row]
+            if d < 0:
+                for s in range(n_samp):
+                    out_f[row, s] = hk[row, s] | _UNKNOWN
+                    out_p[row, s] = math.nan
+                continue
+            k, n = phys[d, 6], phys[d, 7]
+            for s in range(n_samp):
+                bs = b[row, s]
+                vs = v[row, s]
+                f, r, iabs, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
+                                        int(hk[row, s]), phys, d, dom)
+                p = math.nan
+                if ok:
+                    j = _interval(r, d, ko, x, co, cidx, cpo)
+                    state = -1
+                    for q in range(n_bias):
+                        if abs(vs - bias_v[d, q]) <= bias_rtol * bias_v[d, q]:
+                            state = q
+                            break
+                    if j < 0:
+                        f |= _OOT
+                    elif state < 0:
+                        f |= _OOT | _ENV
+                    else:
+                        if bs < b_nodes[0] or bs > b_nodes[nb - 1]:
+                            f |= _ENV
+                        tpos = (bs - b0) * inv_db
+                        j0 = int(math.floor(tpos)) - 1
+                        j0 = min(max(j0, 0), nb - 4)
+                        uu = tpos - j0
+                        w0 = -(uu - 1.0) * (uu - 2.0) * (uu - 3.0) / 6.0
+                        w1 = uu * (uu - 2.0) * (uu - 3.0) / 2.0
+                        w2 = -uu * (uu - 1.0) * (uu - 3.0) / 2.0
+                        w3 = uu * (uu - 1.0) * (uu - 2.0) / 6.0
+                        h = x[j + 1] - x[j]
+                        u = (r - x[j]) / h
+                        h00 = (1.0 + 2.0 * u) * (1.0 - u) ** 2
+                        h10 = u * (1.0 - u) ** 2 * h
+                        h01 = u * u * (3.0 - 2.0 * u)
+                        h11 = u * u * (u - 1.0) * h
+                        acc = 0.0
+                        for q in range(4):
+                            jb = j0 + q
+                            wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
+                            acc += wq * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
+                                         + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
+                        p = acc + k_tref_n[d] - k * math.exp(n * ltb[row, s])
+                if f & _UNUSABLE:
+                    p = math.nan
+                out_p[row, s] = p
+                out_f[row, s] = f
+else:  # pragma: no cover - exercised only without numba
+    table_numba = grid_numba = None

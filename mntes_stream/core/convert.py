@@ -1,0 +1,541 @@
+"""Counts to optical power: every conversion kind behind one interface (pure, no I/O).
+
+Kinds (:func:`make_converter`):
+
+- ``"table"``: MNTES with structured response tables (:mod:`core.tables`):
+  only the transition shape is tabulated; bath temperature, bias and field
+  are exact. Compiled kernel (numba) by default, numpy fallback. Accuracy
+  better than 1e-19 W against the exact inverse over the table domain.
+- ``"grid"``: MNTES by the paper's general route: per-detector 1-D tables of
+  P(R) for each discrete bias state and B node, cubic in B, exact in bath
+  temperature. Accuracy documented in the README (looser).
+- ``"exact"``: :func:`core.model.invert_current` per sample, the oracle.
+- ``"linear"``: today's linear conversion, ``P = P0 + Re((i - i0) / S)`` with
+  S (paper eq. 3) and i0 at the nominal operating point; ignores environment.
+- ``"electrical"``: SPT-3G style, ``P = P_total,nominal - Re(V_tes conj(I))``
+  with RMS quantities and the sample's bias; ignores bath temperature and field.
+
+Every kind returns a :class:`PowerBlock` with the same flag semantics
+(``core.flags``): input that cannot be converted is NaN and flagged, never a
+silent number. Flag rules, per sample:
+
+- ``INVALID_INPUT``: counts not finite or at/beyond the int32 rails
+  (``|x| >= 2**31 - 1``: ADC saturation or sentinel), zero current after the
+  pickup is removed, non-finite field, bath temperature or bias not > 0
+  (not added where the housekeeping already says ``HK_MISSING``);
+- ``SATURATED`` / ``SUPERCONDUCTING``: ``R = Re(sqrt(2) V / i - z)`` at or
+  above / at or below the stable branch of the exact inverse;
+- ``OUT_OF_TABLE``: inside the branch but outside the table's R range (or, for
+  ``"grid"``, a bias matching no tabulated bias state);
+- ``ENV_OUT_OF_RANGE``: table kinds, environment outside the bank's domain
+  (the value is still given; ``"table"`` stays exact there when R is covered);
+- ``UNKNOWN_CHANNEL``: detector id without parameters/tables (whole row);
+- housekeeping ``flags`` of the environment are OR-ed in.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+from mntes_stream.core import model
+from mntes_stream.core.params import DetectorParams
+from mntes_stream.core.tables import TableBank, TableDomain, build_bank, params_identity
+from mntes_stream.errors import ConfigError, SchemaError
+
+__all__ = [
+    "CONVERTER_KINDS",
+    "COUNTS_RAIL",
+    "EnvironmentBlock",
+    "PowerBlock",
+    "Converter",
+    "make_converter",
+    "ExactConverter",
+    "LinearConverter",
+    "ElectricalConverter",
+    "TableConverter",
+    "numba_available",
+]
+
+CONVERTER_KINDS = ("table", "grid", "exact", "linear", "electrical")
+# Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
+COUNTS_RAIL = float(2**31 - 1)
+SQRT2 = model.SQRT2
+
+
+@dataclass(frozen=True)
+class EnvironmentBlock:
+    """Environment aligned to every sample of a counts block.
+
+    Attributes
+    ----------
+    t_bath_k : ndarray, shape (n_samp,) shared by all detectors, or (n_det, n_samp)
+    b_field_t : ndarray, shape (n_samp,) or (n_det, n_samp)
+    v_thev_v : ndarray, shape (n_det,) or (n_det, n_samp), optional
+        RMS bias; None means each detector's nominal ``params.v_thev_v``.
+    flags : ndarray of uint16, shape (n_samp,) or (n_det, n_samp), optional
+        Housekeeping flags (``HK_STALE``, ``HK_MISSING``, ...) OR-ed into the output.
+    """
+
+    t_bath_k: np.ndarray
+    b_field_t: np.ndarray
+    v_thev_v: np.ndarray | None = None
+    flags: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class PowerBlock:
+    """Converted power.
+
+    Attributes
+    ----------
+    p_opt_w : ndarray of float64, shape (n_det, n_samp)
+        NaN wherever ``flags & core.flags.UNUSABLE``.
+    flags : ndarray of uint16, shape (n_det, n_samp)
+    identity : str
+        Identity (hash) of the parameters/tables that produced it.
+    """
+
+    p_opt_w: np.ndarray
+    flags: np.ndarray
+    identity: str = ""
+
+
+@runtime_checkable
+class Converter(Protocol):
+    """What every conversion kind provides."""
+
+    kind: str
+    identity: str
+    detector_ids: tuple[str, ...]
+
+    def convert(self, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray,
+                env: EnvironmentBlock) -> PowerBlock: ...
+
+
+def numba_available() -> bool:
+    """True when the compiled kernels can be used."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# --- input checking (shared by every kind) ------------------------------------------------
+
+@dataclass(frozen=True)
+class _Inputs:
+    rows: np.ndarray          # (n_det,) int64 index into the converter's detectors, -1 unknown
+    counts_i: np.ndarray      # (n_det, n_samp) int32 or float64
+    counts_q: np.ndarray
+    t_bath_k: np.ndarray      # (n_det, n_samp) float64 views (may have zero strides)
+    b_field_t: np.ndarray
+    v_thev_v: np.ndarray
+    hk_flags: np.ndarray      # (n_det, n_samp) uint16 view
+    log_t_bath: np.ndarray    # log(t_bath_k), computed before broadcasting
+
+
+def _counts(name: str, a) -> np.ndarray:
+    if not isinstance(a, np.ndarray):
+        raise SchemaError(f"{name}: expected a numpy array, got {type(a).__name__}")
+    if a.ndim != 2:
+        raise SchemaError(f"{name}: expected shape (n_det, n_samp), got {a.shape}")
+    if a.dtype == np.int32:
+        return a
+    if np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating):
+        return a.astype(np.float64)
+    raise SchemaError(f"{name}: counts must be int32 (or another integer/float type), got {a.dtype}")
+
+
+def _env_array(name: str, a, shape: tuple[int, int], per_det_1d: bool = False) -> np.ndarray:
+    """Validate an environment array; return it reshaped to broadcast to ``shape`` (no copy)."""
+    a = np.asarray(a)
+    if a.dtype.kind not in "iuf":
+        raise SchemaError(f"env.{name}: expected real numbers, got dtype {a.dtype}")
+    a = a.astype(np.float64, copy=False)
+    n_det, n_samp = shape
+    if a.ndim == 0:
+        return a.reshape(1, 1)
+    if a.ndim == 1:
+        if per_det_1d:
+            if a.shape != (n_det,):
+                raise SchemaError(f"env.{name}: 1-D must be (n_det,) = ({n_det},), got {a.shape}")
+            return a[:, None]
+        if a.shape != (n_samp,):
+            raise SchemaError(f"env.{name}: 1-D must be (n_samp,) = ({n_samp},), got {a.shape}")
+        return a[None, :]
+    if a.shape != shape:
+        raise SchemaError(f"env.{name}: expected {shape}, got {a.shape}")
+    return a
+
+
+def _hk_flags(f, shape: tuple[int, int]) -> np.ndarray:
+    if f is None:
+        return np.broadcast_to(np.zeros((), dtype=np.uint16), shape)
+    f = np.asarray(f)
+    if f.dtype.kind not in "iu":
+        raise SchemaError(f"env.flags: expected uint16, got {f.dtype}")
+    if f.dtype != np.uint16:
+        if f.size and (f.min() < 0 or f.max() > 0xFFFF):
+            raise SchemaError("env.flags: values do not fit in uint16")
+        f = f.astype(np.uint16)
+    n_det, n_samp = shape
+    if f.shape == (n_samp,):
+        return np.broadcast_to(f[None, :], shape)
+    if f.shape != shape:
+        raise SchemaError(f"env.flags: expected ({n_samp},) or {shape}, got {f.shape}")
+    return f
+
+
+def _prepare(index: Mapping[str, int], v_nominal: np.ndarray, detector_ids, counts_i, counts_q,
+             env: EnvironmentBlock) -> _Inputs:
+    ci = _counts("counts_i", counts_i)
+    cq = _counts("counts_q", counts_q)
+    if ci.shape != cq.shape:
+        raise SchemaError(f"counts_i {ci.shape} and counts_q {cq.shape} differ in shape")
+    if cq.dtype != ci.dtype:
+        ci, cq = ci.astype(np.float64), cq.astype(np.float64)
+    if isinstance(detector_ids, str) or len(detector_ids) != ci.shape[0]:
+        raise SchemaError(f"need one detector id per counts row ({ci.shape[0]})")
+    if not isinstance(env, EnvironmentBlock):
+        raise SchemaError(f"env must be an EnvironmentBlock, got {type(env).__name__}")
+    shape = ci.shape
+    rows = np.array([index.get(d, -1) if isinstance(d, str) else -1 for d in detector_ids], dtype=np.int64)
+    tb = _env_array("t_bath_k", env.t_bath_k, shape)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ltb = np.log(tb)  # before broadcasting: n_samp logs for a shared bath, not n_det * n_samp
+    b = np.broadcast_to(_env_array("b_field_t", env.b_field_t, shape), shape)
+    if env.v_thev_v is None:
+        v_nom = np.where(rows >= 0, v_nominal[np.maximum(rows, 0)] if v_nominal.size else np.nan, np.nan)
+        v = np.broadcast_to(v_nom[:, None], shape)
+    else:
+        v = np.broadcast_to(_env_array("v_thev_v", env.v_thev_v, shape, per_det_1d=True), shape)
+    tb, ltb = np.broadcast_to(tb, shape), np.broadcast_to(ltb, shape)
+    return _Inputs(rows, ci, cq, tb, b, v, _hk_flags(env.flags, shape), ltb)
+
+
+def _phys(params: Sequence[DetectorParams]) -> np.ndarray:
+    """Per-detector scalars for the kernels, shape (n_det, 14) (see ``_kernels``)."""
+    out = np.empty((len(params), 14))
+    for k, p in enumerate(params):
+        lo, hi = model._branch_bounds(p)
+        out[k] = (
+            p.gain_a_per_count.real, p.gain_a_per_count.imag,
+            p.pickup_a_per_t.real, p.pickup_a_per_t.imag,
+            p.z_thev_ohm.real, p.z_thev_ohm.imag,
+            p.k_w_per_k_n, p.n, p.t_c_shift_k_per_t, p.t_c_shift_k_per_t2,
+            p.current_shift_k_per_a, p.v_thev_v, float(lo), float(hi),
+        )
+    return out
+
+
+def _currents(inp: _Inputs, phys: np.ndarray, r0: int, r1: int):
+    """Rows ``r0:r1``: measured current, resistance and the flags every kind shares.
+
+    Returns
+    -------
+    i_meas_a : complex ndarray, gain times counts (pickup included)
+    r_ohm : ndarray, ``Re(sqrt(2) V / i - z)`` with the pickup removed
+    flags : uint16 ndarray, housekeeping | INVALID_INPUT | UNKNOWN_CHANNEL
+    valid : bool ndarray, where ``r_ohm`` is meaningful
+    """
+    rows = inp.rows[r0:r1]
+    known = (rows >= 0)[:, None]
+    ph = phys[np.maximum(rows, 0)][:, :, None] if phys.size else np.full((r1 - r0, 14, 1), np.nan)
+    xi = np.asarray(inp.counts_i[r0:r1], dtype=np.float64)
+    xq = np.asarray(inp.counts_q[r0:r1], dtype=np.float64)
+    tb, b, v = inp.t_bath_k[r0:r1], inp.b_field_t[r0:r1], inp.v_thev_v[r0:r1]
+    hk = inp.hk_flags[r0:r1]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        i_meas = (ph[:, 0] + 1j * ph[:, 1]) * (xi + 1j * xq)
+        i = i_meas - (ph[:, 2] + 1j * ph[:, 3]) * b
+        counts_ok = (np.abs(xi) < COUNTS_RAIL) & (np.abs(xq) < COUNTS_RAIL)
+        env_ok = (tb > 0) & (np.abs(b) < np.inf) & (v > 0) & (v < np.inf)
+        m2 = i.real * i.real + i.imag * i.imag
+        valid = counts_ok & env_ok & (m2 > 0) & known
+        invalid = known & (~counts_ok | (counts_ok & env_ok & ~(m2 > 0)) | (~env_ok & ((hk & fl.HK_MISSING) == 0)))
+        r = SQRT2 * v * i.real / m2 - ph[:, 4]
+    flags = np.array(hk, dtype=np.uint16)
+    flags[invalid] |= fl.INVALID_INPUT
+    flags[~known[:, 0]] |= fl.UNKNOWN_CHANNEL
+    return i_meas, r, flags, valid
+
+
+def _state_flags(phys: np.ndarray, rows: np.ndarray, r: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """SATURATED / SUPERCONDUCTING from R against each detector's stable branch."""
+    lo = phys[np.maximum(rows, 0), 12][:, None]
+    hi = phys[np.maximum(rows, 0), 13][:, None]
+    with np.errstate(invalid="ignore"):
+        sat = valid & (r >= hi)
+        sc = valid & ~(r >= hi) & ~(r > lo)
+    return np.where(sat, fl.SATURATED, 0).astype(np.uint16) | np.where(sc, fl.SUPERCONDUCTING, 0).astype(np.uint16)
+
+
+def _finish(p: np.ndarray, flags: np.ndarray) -> None:
+    p[(flags & fl.UNUSABLE) != 0] = np.nan
+
+
+_CHUNK_ELEMENTS = 1 << 20
+
+
+def _row_chunks(n_rows: int, n_samp: int):
+    step = max(1, _CHUNK_ELEMENTS // max(n_samp, 1))
+    for r0 in range(0, n_rows, step):
+        yield r0, min(n_rows, r0 + step)
+
+
+class _Base:
+    kind: str = ""
+
+    def __init__(self, params: Sequence[DetectorParams], identity: str) -> None:
+        self.params = tuple(params)
+        self.detector_ids = tuple(p.detector_id for p in self.params)
+        self.identity = identity
+        self._index = {d: k for k, d in enumerate(self.detector_ids)}
+        self._phys = _phys(self.params)
+        self._v_nominal = self._phys[:, 11].copy() if self.params else np.empty(0)
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} kind={self.kind!r} detectors={len(self.detector_ids)} identity={self.identity[:12]}>"
+
+    def convert(self, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray,
+                env: EnvironmentBlock) -> PowerBlock:
+        """Convert a block of counts to optical power.
+
+        Parameters
+        ----------
+        detector_ids : sequence of str, length n_det
+        counts_i, counts_q : ndarray, shape (n_det, n_samp)
+            int32 (other integer or float types are accepted; floats may be NaN).
+        env : EnvironmentBlock
+
+        Returns
+        -------
+        PowerBlock with arrays of shape (n_det, n_samp)
+
+        Raises
+        ------
+        SchemaError
+            Only for arrays of the wrong shape or dtype.
+        """
+        inp = _prepare(self._index, self._v_nominal, detector_ids, counts_i, counts_q, env)
+        n_det, n_samp = inp.counts_i.shape
+        p = np.empty((n_det, n_samp))
+        f = np.empty((n_det, n_samp), dtype=np.uint16)
+        self._convert(inp, p, f)
+        _finish(p, f)
+        return PowerBlock(p_opt_w=p, flags=f, identity=self.identity)
+
+    def _convert(self, inp: _Inputs, p: np.ndarray, f: np.ndarray) -> None:
+        raise NotImplementedError
+
+
+class ExactConverter(_Base):
+    """Per-sample exact inverse (:func:`core.model.invert_current`): the oracle."""
+
+    kind = "exact"
+
+    def __init__(self, params: Sequence[DetectorParams]) -> None:
+        super().__init__(params, params_identity(params, {"kind": "exact"}))
+
+    def _convert(self, inp, p, f):
+        n_det, n_samp = p.shape
+        for r0, r1 in _row_chunks(n_det, n_samp):
+            i, _, flags, valid = _currents(inp, self._phys, r0, r1)
+            for k in range(r0, r1):
+                row = inp.rows[k]
+                if row < 0:
+                    continue
+                with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                    inv = model.invert_current(self.params[row], i[k - r0], inp.t_bath_k[k],
+                                               inp.b_field_t[k], inp.v_thev_v[k])
+                p[k] = inv.p_opt_w
+                # States exactly as the oracle decides them.
+                ok = valid[k - r0]
+                flags[k - r0][ok & (inv.state == model.STATE_NORMAL)] |= fl.SATURATED
+                flags[k - r0][ok & (inv.state == model.STATE_SUPERCONDUCTING)] |= fl.SUPERCONDUCTING
+            f[r0:r1] = flags
+
+
+class LinearConverter(_Base):
+    """``P = P0 + Re((i - i0) / S)`` at each detector's nominal operating point.
+
+    S is the complex responsivity of paper eq. 3 and i0 the TES current at the
+    nominal loading, bath temperature, bias and zero field; the measured
+    current is projected onto the phase of S. Environment is ignored (that is
+    the point of the baseline); flags are as for every kind.
+    """
+
+    kind = "linear"
+
+    def __init__(self, params: Sequence[DetectorParams]) -> None:
+        super().__init__(params, params_identity(params, {"kind": "linear"}))
+        i0, s = [], []
+        for q in self.params:
+            op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
+            if int(op.state) != model.STATE_TRANSITION:
+                raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
+            i0.append(complex(op.i_a))
+            s.append(complex(model.small_signal(q, op.r_ohm).responsivity_a_per_w))
+        self.i0_a = np.array(i0)
+        self.responsivity_a_per_w = np.array(s)
+        self.p0_w = np.array([q.p_opt_w for q in self.params])
+
+    def _convert(self, inp, p, f):
+        n_det, n_samp = p.shape
+        for r0, r1 in _row_chunks(n_det, n_samp):
+            rows = np.maximum(inp.rows[r0:r1], 0)
+            i, r, flags, valid = _currents(inp, self._phys, r0, r1)
+            f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
+            with np.errstate(invalid="ignore", over="ignore"):
+                p[r0:r1] = self.p0_w[rows, None] + np.real((i - self.i0_a[rows, None]) / self.responsivity_a_per_w[rows, None])
+
+
+class ElectricalConverter(_Base):
+    """SPT-3G style: optical power = nominal total power - electrical power.
+
+    ``P_el = Re(V_tes conj(I))`` with RMS ``I = i / sqrt(2)`` and
+    ``V_tes = V - z I`` (the sample's bias), and ``P_total`` the optical plus
+    Joule power at the nominal operating point. Assumes the total power is
+    constant (infinite loop gain): ignores bath temperature, field and the
+    temperature change across the transition.
+    """
+
+    kind = "electrical"
+
+    def __init__(self, params: Sequence[DetectorParams]) -> None:
+        super().__init__(params, params_identity(params, {"kind": "electrical"}))
+        total = []
+        for q in self.params:
+            op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
+            if int(op.state) != model.STATE_TRANSITION:
+                raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
+            total.append(q.p_opt_w + float(model.joule_power_w(q, op.r_ohm, q.v_thev_v)))
+        self.p_total_w = np.array(total)
+
+    def _convert(self, inp, p, f):
+        n_det, n_samp = p.shape
+        for r0, r1 in _row_chunks(n_det, n_samp):
+            rows = np.maximum(inp.rows[r0:r1], 0)
+            i, r, flags, valid = _currents(inp, self._phys, r0, r1)
+            f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
+            z = (self._phys[rows, 4] + 1j * self._phys[rows, 5])[:, None]
+            i_rms = i / SQRT2
+            v = inp.v_thev_v[r0:r1]
+            with np.errstate(invalid="ignore", over="ignore"):
+                p_el = np.real((v - z * i_rms) * np.conj(i_rms))
+                p[r0:r1] = self.p_total_w[rows, None] - p_el
+
+
+class TableConverter(_Base):
+    """MNTES with a :class:`~mntes_stream.core.tables.TableBank` (kinds "table" and "grid").
+
+    Parameters
+    ----------
+    bank : TableBank
+    backend : {"auto", "numba", "numpy"}
+        ``"auto"`` uses the compiled kernel when numba is installed.
+    bias_rtol : float
+        ``"grid"`` only: a sample's bias selects a tabulated bias state when
+        within this relative tolerance.
+    """
+
+    def __init__(self, bank: TableBank, backend: str = "auto", bias_rtol: float = 1e-6) -> None:
+        super().__init__(bank.params, bank.identity)
+        if backend not in ("auto", "numba", "numpy"):
+            raise ConfigError(f"backend must be auto, numba or numpy, got {backend!r}")
+        if backend == "auto":
+            backend = "numba" if numba_available() else "numpy"
+        elif backend == "numba" and not numba_available():
+            raise ConfigError("backend 'numba' requested but numba is not installed")
+        if not (0 <= bias_rtol < 0.5):
+            raise ConfigError("bias_rtol must be in [0, 0.5)")
+        self.kind = bank.kind
+        self.bank = bank
+        self.backend = backend
+        self.bias_rtol = float(bias_rtol)
+        d = bank.domain
+        self._domain = np.array([*d.t_bath_k, *d.b_field_t, *d.v_frac], dtype=float)
+        a = bank.arrays
+        if bank.kind == "grid":
+            k, n = self._phys[:, 6], self._phys[:, 7]
+            self._k_tref_n = k * a["t_ref_k"] ** n
+
+    def _convert(self, inp, p, f):
+        from mntes_stream.core import _kernels
+
+        a = self.bank.arrays
+        common = (inp.counts_i, inp.counts_q, inp.t_bath_k, inp.log_t_bath, inp.b_field_t, inp.v_thev_v, inp.hk_flags,
+                  inp.rows, self._phys, self._domain, a["knot_offset"], a["r_knot_ohm"], a["cell_offset"],
+                  a["cell_interval"], a["cell_per_ohm"])
+        if self.kind == "table":
+            kernel = _kernels.table_numba if self.backend == "numba" else _kernels.table_numpy
+            kernel(*common, a["ts_coeffs"], p, f)
+        else:
+            kernel = _kernels.grid_numba if self.backend == "numba" else _kernels.grid_numpy
+            kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], self._k_tref_n,
+                   self.bias_rtol, p, f)
+
+
+def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
+                   bank: TableBank | None = None, **options) -> Converter:
+    """A converter of the given kind.
+
+    Parameters
+    ----------
+    kind : {"table", "grid", "exact", "linear", "electrical"}
+    params : mapping detector id -> DetectorParams
+        May be None for table kinds when ``bank`` is given (the bank carries
+        its parameters). With a bank, every given detector must match the
+        bank's parameters exactly.
+    bank : TableBank, optional
+        Table kinds only; built from ``params`` when absent.
+    **options
+        Table kinds: ``domain`` (TableDomain), ``backend``, ``bias_rtol``,
+        ``progress`` and the build options of :func:`core.tables.build_bank`.
+
+    Raises
+    ------
+    ConfigError
+        Unknown kind or option, or parameters that disagree with the bank.
+    """
+    if kind not in CONVERTER_KINDS:
+        raise ConfigError(f"unknown converter kind {kind!r} (known: {', '.join(CONVERTER_KINDS)})")
+    if params is not None and not isinstance(params, Mapping):
+        raise ConfigError("params must be a mapping detector id -> DetectorParams")
+    if kind in ("table", "grid"):
+        run_opts = {k: options.pop(k) for k in ("backend", "bias_rtol") if k in options}
+        if bank is None:
+            if not params:
+                raise ConfigError(f"kind {kind!r} needs params or a bank")
+            bank = build_bank(params, kind=kind, **options)
+        else:
+            if options:
+                raise ConfigError(f"build options {sorted(options)} given with a ready bank")
+            if bank.kind != kind:
+                raise ConfigError(f"bank is of kind {bank.kind!r}, not {kind!r}")
+            have = bank.params_by_id()
+            for det_id, q in (params or {}).items():
+                if det_id not in have:
+                    raise ConfigError(f"bank {bank.identity[:12]} has no table for detector {det_id!r}")
+                if have[det_id].to_dict() != q.to_dict():
+                    raise ConfigError(f"bank {bank.identity[:12]} was built from other parameters for {det_id!r}")
+        return TableConverter(bank, **run_opts)
+    if bank is not None:
+        raise ConfigError(f"kind {kind!r} takes no table bank")
+    if options:
+        raise ConfigError(f"kind {kind!r} takes no options, got {sorted(options)}")
+    if not params:
+        raise ConfigError(f"kind {kind!r} needs params")
+    plist = list(params.values())
+    for key, q in params.items():
+        if key != q.detector_id:
+            raise ConfigError(f"params key {key!r} != detector_id {q.detector_id!r}")
+    cls = {"exact": ExactConverter, "linear": LinearConverter, "electrical": ElectricalConverter}[kind]
+    return cls(plist)
