@@ -12,6 +12,7 @@ Sample times of counts and power chunks are either ``t0_ns`` plus
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 import re
@@ -35,6 +36,7 @@ __all__ = [
     "Provenance",
     "MESSAGE_TYPES",
     "decode",
+    "detector_ids_for",
     "reason_of",
 ]
 
@@ -162,6 +164,16 @@ def _times(obj, n_samp: int) -> None:
             raise _error("invalid", "t0_ns and sample_rate_hz (or t_ns) are required")
         object.__setattr__(obj, "t0_ns", _int(obj.t0_ns, "t0_ns"))
         object.__setattr__(obj, "sample_rate_hz", _float(obj.sample_rate_hz, "sample_rate_hz", positive=True))
+
+
+@functools.lru_cache(maxsize=4096)
+def _ids(board: int, module: int, channels: bytes) -> tuple[str, ...]:
+    return tuple(detector_id(board, module, c) for c in np.frombuffer(channels, dtype="<i4").tolist())
+
+
+def detector_ids_for(board: int, module: int, channels: np.ndarray) -> tuple[str, ...]:
+    """Detector ids of a module's channel rows (cached: streams repeat them every chunk)."""
+    return _ids(int(board), int(module), np.ascontiguousarray(channels, dtype="<i4").tobytes())
 
 
 def _time_body(obj) -> dict:
@@ -406,8 +418,7 @@ class PowerChunk(_Message):
         if not isinstance(self.detector_ids, (list, tuple)):
             raise _error("invalid", "detector_ids must be a list of strings")
         ids = tuple(self.detector_ids)
-        expected = [detector_id(self.board, self.module, c) for c in ch.tolist()]
-        if list(ids) != expected:
+        if ids != detector_ids_for(self.board, self.module, ch):
             raise _error("invalid", "detector_ids do not match board/module/channels")
         p = _array(self.p_opt_w, "p_opt_w", "<f8", 2)
         f = _array(self.flags, "flags", "<u2", 2)

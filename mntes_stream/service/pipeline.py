@@ -1,0 +1,550 @@
+"""The converter's core, free of zenoh: messages in, power/status messages out.
+
+The live service (``service/converter.py``) feeds it what its subscriber
+receives; offline re-conversion of a recording feeds it the recorded messages
+in log-time order. Both get the same outputs from the same inputs because
+every decision here depends only on the messages and their receive times.
+
+What happens to a message (``handle``):
+
+- counts chunk: decoded and validated, checked against its key, its sequence
+  number tracked per ``(board, module)`` stream (lost = numbers skipped, minus
+  those that turn up late; out of order = a skipped number that turned up;
+  duplicated = a number seen recently: dropped). The chunk then waits until
+  every *required* housekeeping sensor has a reading at or after its last
+  sample (so housekeeping is interpolated, not extrapolated) or until it has
+  waited ``hk_wait_s`` of receive time, whichever first;
+- housekeeping: added to that sensor's history (``core.align.HkSeries``);
+- anything that fails to decode, or does not match its key, is counted by
+  reason in the status and otherwise ignored: the service never stops on one.
+
+A released chunk is converted with the housekeeping aligned to each sample
+(``core.align``): flags HK_STALE / HK_MISSING / ENV_OUT_OF_RANGE come from
+there; channels without detector parameters get UNKNOWN_CHANNEL and NaN; a
+converter failure flags that chunk INVALID_INPUT and is counted, never raised.
+Power is NaN wherever a flag in ``core.flags.UNUSABLE`` is set.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import time
+from dataclasses import dataclass, fields
+from typing import Callable
+
+import numpy as np
+
+from mntes_stream import __version__
+from mntes_stream.core import flags as fl
+from mntes_stream.core.align import HkSeries
+from mntes_stream.core.convert import EnvironmentBlock
+from mntes_stream.errors import ConfigError, SchemaError
+from mntes_stream.io import keys
+from mntes_stream.io.messages import (
+    CountsChunk,
+    HousekeepingChunk,
+    PowerChunk,
+    Provenance,
+    StatusMessage,
+    detector_ids_for,
+    reason_of,
+)
+
+__all__ = ["PipelineConfig", "ConverterPipeline", "SCALAR_SENSORS"]
+
+log = logging.getLogger("mntes_stream.converter")
+
+SCALAR_SENSORS = ("t_bath", "b_field")
+_SEQ_RECENT = 256      # sequence numbers remembered per stream to spot duplicates
+_SEQ_MISSING = 4096    # skipped numbers remembered per stream to spot late arrivals
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """How the converter aligns, holds back and reports (the ``[alignment]`` and ``[status]`` tables).
+
+    Attributes
+    ----------
+    setup, service : str
+        Output keys ``mntes/<setup>/power/...`` and ``mntes/<setup>/status/<service>``.
+    required_hk : tuple of str
+        Scalar sensors the conversion needs (subset of ``t_bath``, ``b_field``).
+        Chunks wait for them; without any reading a sample is HK_MISSING (NaN).
+        A sensor not listed uses its reading when there is one, else its default.
+    hk_staleness_s : float
+        Largest age of a scalar housekeeping value before HK_STALE.
+    hk_wait_s : float
+        Longest a chunk waits (receive clock) for housekeeping that brackets it;
+        0 converts on arrival, holding the last reading.
+    bias_staleness_s : float
+        As ``hk_staleness_s`` for the per-channel bias (default: never stale,
+        the bias is a setting that holds until changed).
+    t_bath_default_k, b_field_default_t : float
+        Values for sensors that are not required and never reported.
+    t_bath_range_k, b_field_range_t, bias_range_v : (float, float)
+        Readings outside are flagged ENV_OUT_OF_RANGE.
+    status_interval_s : float
+        Status cadence (receive clock).
+    max_pending : int
+        Chunks held at most; beyond, the oldest is converted at once.
+    hk_retention_s : float
+        Housekeeping history kept.
+    """
+
+    setup: str = "lab"
+    service: str = "converter"
+    required_hk: tuple[str, ...] = SCALAR_SENSORS
+    hk_staleness_s: float = 2.0
+    hk_wait_s: float = 1.0
+    bias_staleness_s: float = math.inf
+    t_bath_default_k: float = 0.100
+    b_field_default_t: float = 0.0
+    t_bath_range_k: tuple[float, float] = (0.02, 0.5)
+    b_field_range_t: tuple[float, float] = (-0.01, 0.01)
+    bias_range_v: tuple[float, float] = (0.0, 1e-3)
+    status_interval_s: float = 1.0
+    max_pending: int = 4096
+    hk_retention_s: float = 600.0
+
+    def __post_init__(self):
+        keys.status_key(self.setup, "x")  # validates the setup name
+        keys.status_key(self.setup, self.service)
+        req = tuple(self.required_hk)
+        if set(req) - set(SCALAR_SENSORS):
+            raise ConfigError(f"required_hk must be a subset of {SCALAR_SENSORS}, got {list(req)}")
+        object.__setattr__(self, "required_hk", req)
+        for name in ("hk_staleness_s", "hk_wait_s", "bias_staleness_s", "status_interval_s", "hk_retention_s"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= 0:
+                raise ConfigError(f"{name} must be a number >= 0, got {v!r}")
+        if self.status_interval_s <= 0:
+            raise ConfigError("status_interval_s must be > 0")
+        for name in ("t_bath_range_k", "b_field_range_t", "bias_range_v"):
+            v = getattr(self, name)
+            if len(v) != 2 or not float(v[0]) < float(v[1]):
+                raise ConfigError(f"{name} must be [low, high] with low < high, got {v!r}")
+            object.__setattr__(self, name, (float(v[0]), float(v[1])))
+        if int(self.max_pending) < 1:
+            raise ConfigError("max_pending must be >= 1")
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "<config>") -> "PipelineConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
+        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        return cls(**d)
+
+
+def _ns(seconds: float) -> int | float:
+    return math.inf if math.isinf(seconds) else int(round(seconds * 1e9))
+
+
+class _Stream:
+    """Sequence bookkeeping of one (board, module) counts stream."""
+
+    __slots__ = ("next", "recent", "recent_set", "missing")
+
+    def __init__(self):
+        self.next: int | None = None
+        self.recent: collections.deque = collections.deque()
+        self.recent_set: set[int] = set()
+        self.missing: collections.OrderedDict = collections.OrderedDict()
+
+    def remember(self, seq: int) -> None:
+        self.recent.append(seq)
+        self.recent_set.add(seq)
+        if len(self.recent) > _SEQ_RECENT:
+            self.recent_set.discard(self.recent.popleft())
+
+
+@dataclass
+class _Pending:
+    chunk: CountsChunk
+    t_recv_ns: int
+    t_ns: np.ndarray
+    t_last_ns: int | None
+
+
+class ConverterPipeline:
+    """Counts + housekeeping in, power chunks + status out (no I/O).
+
+    Parameters
+    ----------
+    converter
+        Has ``kind``, ``identity``, ``detector_ids`` and
+        ``convert(detector_ids, counts_i, counts_q, env) -> PowerBlock``
+        (``core.convert.make_converter``).
+    config : PipelineConfig
+    params : dict or list of DetectorParams, optional
+        The detector parameters (provenance and nominal bias); default
+        ``converter.params`` when it has them.
+    clock : callable or None
+        Publication time stamp of outputs (ns); default ``time.time_ns``.
+        None stamps outputs with the receive time of the message being handled,
+        which makes offline re-conversion reproducible.
+    """
+
+    def __init__(self, converter, config: PipelineConfig | None = None, params=None, clock: Callable[[], int] | None = time.time_ns):
+        self.converter = converter
+        self.config = config or PipelineConfig()
+        self._clock = clock
+        if params is None:
+            params = getattr(converter, "params", None)
+        if isinstance(params, dict):
+            params = list(params.values())
+        self._params = list(params) if params is not None else []
+        self._nominal_bias = {p.detector_id: float(p.v_thev_v) for p in self._params}
+        self._known = frozenset(converter.detector_ids)
+        self._staleness_ns = _ns(self.config.hk_staleness_s)
+        self._bias_staleness_ns = _ns(self.config.bias_staleness_s)
+        self._wait_ns = _ns(self.config.hk_wait_s)
+        self._status_ns = _ns(self.config.status_interval_s)
+        retention = _ns(self.config.hk_retention_s)
+        self._hk: dict[str, HkSeries] = {s: HkSeries(None, retention) for s in SCALAR_SENSORS}
+        self._bias: dict[tuple[int, int], tuple[np.ndarray, HkSeries]] = {}
+        self._streams: dict[tuple[int, int], _Stream] = {}
+        self._pending: collections.deque[_Pending] = collections.deque()
+        self._rows: dict[tuple, tuple] = {}
+        self._provenance: bytes | None = None
+        self._t_created_ns = time.time_ns()
+        self._t_first_ns: int | None = None
+        self._now_ns: int | None = None
+        self._next_status_ns: int | None = None
+        self._last_status_ns: int | None = None
+        self._interval_latency_ms: list[float] = []
+        self._interval_chunks = 0
+        self._interval_samples = 0
+        self.counters = collections.Counter()
+        self.bad_messages = collections.Counter()
+        self.flag_counts = collections.Counter()
+        self.last_error = ""
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def pending(self) -> int:
+        """Chunks held back waiting for housekeeping."""
+        return len(self._pending)
+
+    def handle(self, key: str, payload: bytes, t_recv_ns: int) -> list[tuple[str, bytes]]:
+        """Process one received message; returns ``(key, payload)`` messages to publish."""
+        out: list[tuple[str, bytes]] = []
+        self._advance(t_recv_ns)
+        try:
+            self._dispatch(str(key), payload, int(t_recv_ns))
+        except Exception as exc:  # the service must survive its own bugs too; counted and shown
+            self._bad("internal_error", f"{type(exc).__name__}: {exc}", key)
+            log.exception("internal error handling %s", key)
+        self._release(out)
+        self._maybe_status(out)
+        return out
+
+    def tick(self, t_now_ns: int) -> list[tuple[str, bytes]]:
+        """Let time pass without a message: release chunks that waited long enough, status when due."""
+        out: list[tuple[str, bytes]] = []
+        self._advance(t_now_ns)
+        self._release(out)
+        self._maybe_status(out)
+        return out
+
+    def flush(self) -> list[tuple[str, bytes]]:
+        """Convert everything still held (with what housekeeping there is) and emit a final status."""
+        out: list[tuple[str, bytes]] = []
+        self._release(out, force=True)
+        if self._now_ns is not None:
+            out.append(self._emit_status())
+        return out
+
+    def status(self) -> StatusMessage:
+        """The status as of the latest message (interval figures since the last emitted status)."""
+        now = self._now_ns if self._now_ns is not None else time.time_ns()
+        start = self._t_first_ns if self._t_first_ns is not None else now
+        since = self._last_status_ns if self._last_status_ns is not None else start
+        interval_s = max(now - since, 0) / 1e9
+        lat = np.asarray(self._interval_latency_ms)
+        c = self.counters
+        hk_age = {}
+        for sensor, series in self._hk.items():
+            if len(series):
+                hk_age[sensor] = (now - series.newest_t_ns) / 1e9
+        return StatusMessage(
+            setup=self.config.setup,
+            service=self.config.service,
+            t_ns=max(now, 0),
+            uptime_s=max(now - start, 0) / 1e9,
+            interval_s=interval_s,
+            chunks_received=c["chunks_received"],
+            chunks_converted=c["chunks_converted"],
+            chunks_pending=len(self._pending),
+            samples_converted=c["samples_converted"],
+            chunks_lost=max(c["chunks_lost"], 0),
+            chunks_duplicated=c["chunks_duplicated"],
+            chunks_out_of_order=c["chunks_out_of_order"],
+            hk_received=c["hk_received"],
+            hk_stale_samples=c["hk_stale_samples"],
+            hk_missing_samples=c["hk_missing_samples"],
+            unknown_channel_samples=c["unknown_channel_samples"],
+            bad_messages=dict(self.bad_messages),
+            flag_counts={name: self.flag_counts.get(name, 0) for name in fl.NAMES.values()},
+            hk_age_s=hk_age,
+            rate_chunks_per_s=self._interval_chunks / interval_s if interval_s > 0 else 0.0,
+            rate_msamples_per_s=self._interval_samples / interval_s / 1e6 if interval_s > 0 else 0.0,
+            latency_p50_ms=float(np.percentile(lat, 50)) if lat.size else None,
+            latency_p99_ms=float(np.percentile(lat, 99)) if lat.size else None,
+            latency_max_ms=float(lat.max()) if lat.size else None,
+            last_error=self.last_error,
+        )
+
+    def provenance(self) -> Provenance:
+        """Parameters (TOML text), table identity, converter kind and software version."""
+        from mntes_stream.io.paramfile import params_to_toml
+
+        return Provenance(
+            setup=self.config.setup,
+            params_toml=params_to_toml(self._params) if self._params else "",
+            table_identity=str(self.converter.identity),
+            converter_kind=str(self.converter.kind),
+            software_version=__version__,
+            t_ns=self._t_created_ns,
+        )
+
+    def provenance_bytes(self) -> bytes:
+        """:meth:`provenance` encoded once: identical bytes on every publication."""
+        if self._provenance is None:
+            self._provenance = self.provenance().to_bytes()
+        return self._provenance
+
+    # ------------------------------------------------------------------ internals
+
+    def _advance(self, t_ns: int) -> None:
+        t_ns = int(t_ns)
+        if self._t_first_ns is None:
+            self._t_first_ns = t_ns
+            self._last_status_ns = t_ns
+            self._next_status_ns = t_ns + self._status_ns
+        self._now_ns = t_ns if self._now_ns is None else max(self._now_ns, t_ns)
+
+    def _stamp(self) -> int:
+        return int(self._clock()) if self._clock is not None else int(self._now_ns)
+
+    def _bad(self, reason: str, detail: str, key: str) -> None:
+        self.bad_messages[reason] += 1
+        self.last_error = f"{reason} on {key}: {detail}"[:500]
+        n = self.bad_messages[reason]
+        if n <= 10 or n % 1000 == 0:  # log, but never flood the log
+            log.warning("bad message #%d (%s) on %s: %s", n, reason, key, detail)
+
+    def _dispatch(self, key: str, payload: bytes, t_recv_ns: int) -> None:
+        try:
+            info = keys.parse_key(key)
+        except ConfigError as exc:
+            self._bad("wrong_key", str(exc), key)
+            return
+        if info["setup"] != self.config.setup:
+            self._bad("wrong_key", f"setup {info['setup']!r} is not {self.config.setup!r}", key)
+            return
+        kind = info["kind"]
+        try:
+            if kind == "counts":
+                self._on_counts(info, CountsChunk.from_bytes(payload), key, t_recv_ns)
+            elif kind == "hk":
+                self._on_hk(info, HousekeepingChunk.from_bytes(payload), key)
+            else:
+                self._bad("wrong_key", f"the converter does not consume {kind!r} messages", key)
+        except SchemaError as exc:
+            self._bad(reason_of(exc), str(exc), key)
+
+    def _on_counts(self, info: dict, chunk: CountsChunk, key: str, t_recv_ns: int) -> None:
+        if chunk.setup != self.config.setup or info["board"] != str(chunk.board) or info["module"] != str(chunk.module):
+            self._bad("wrong_key", f"payload is setup {chunk.setup} board {chunk.board} module {chunk.module}", key)
+            return
+        self.counters["chunks_received"] += 1
+        if not self._sequence((chunk.board, chunk.module), chunk.seq):
+            return
+        t = chunk.times_ns()
+        self._pending.append(_Pending(chunk, t_recv_ns, t, int(t.max()) if t.size else None))
+
+    def _sequence(self, stream_id: tuple[int, int], seq: int) -> bool:
+        """Book-keep a sequence number; False for a duplicate (to drop)."""
+        s = self._streams.get(stream_id)
+        if s is None:
+            s = self._streams[stream_id] = _Stream()
+        c = self.counters
+        if seq in s.recent_set:
+            c["chunks_duplicated"] += 1
+            return False
+        if s.next is None or seq >= s.next:
+            if s.next is not None and seq > s.next:
+                c["chunks_lost"] += seq - s.next
+                for missing in range(max(s.next, seq - _SEQ_MISSING), seq):
+                    s.missing[missing] = None
+                while len(s.missing) > _SEQ_MISSING:
+                    s.missing.popitem(last=False)
+            s.next = seq + 1
+        elif seq in s.missing:
+            del s.missing[seq]
+            c["chunks_lost"] -= 1
+            c["chunks_out_of_order"] += 1
+        else:
+            # Older than anything remembered (e.g. a restarted source): convert it, count it.
+            c["chunks_out_of_order"] += 1
+        s.remember(seq)
+        return True
+
+    def _on_hk(self, info: dict, hk: HousekeepingChunk, key: str) -> None:
+        sensor = info["sensor"]
+        expected = hk.sensor if hk.sensor != "bias" else f"bias/{hk.board}/{hk.module}"
+        if hk.setup != self.config.setup or sensor != expected:
+            self._bad("wrong_key", f"payload is setup {hk.setup} sensor {expected}", key)
+            return
+        self.counters["hk_received"] += 1
+        if hk.sensor == "bias":
+            module = (hk.board, hk.module)
+            entry = self._bias.get(module)
+            if entry is None or not np.array_equal(entry[0], hk.channels):
+                # A new channel list starts a new history: columns must line up.
+                entry = (hk.channels.copy(), HkSeries(hk.channels.size, _ns(self.config.hk_retention_s)))
+                self._bias[module] = entry
+            entry[1].add(hk.t_ns, hk.value)
+        else:
+            self._hk[hk.sensor].add(hk.t_ns, hk.value)
+
+    def _bracketed(self, p: _Pending) -> bool:
+        if p.t_last_ns is None:
+            return True
+        for sensor in self.config.required_hk:
+            newest = self._hk[sensor].newest_t_ns
+            if newest is None or newest < p.t_last_ns:
+                return False
+        return True
+
+    def _release(self, out: list, force: bool = False) -> None:
+        if not self._pending:
+            return
+        now = self._now_ns
+        keep: collections.deque[_Pending] = collections.deque()
+        overflow = len(self._pending) - int(self.config.max_pending)
+        for i, p in enumerate(self._pending):
+            if force or i < overflow or self._bracketed(p) or now - p.t_recv_ns >= self._wait_ns:
+                out.append(self._convert(p))
+            else:
+                keep.append(p)
+        self._pending = keep
+
+    def _scalar_env(self, sensor: str, t: np.ndarray, default: float, valid_range) -> tuple[np.ndarray, np.ndarray]:
+        series = self._hk[sensor]
+        required = sensor in self.config.required_hk
+        if not len(series):
+            flags = np.full(t.size, fl.HK_MISSING if required else 0, dtype=fl.FLAG_DTYPE)
+            return np.full(t.size, default), flags
+        a = series.align(t, self._staleness_ns, valid_range)
+        missing = (a.flags & fl.HK_MISSING) != 0
+        flags = a.flags if required else a.flags & ~np.uint16(fl.HK_MISSING)
+        return np.where(missing, default, a.value), flags
+
+    def _rows_for(self, chunk: CountsChunk) -> tuple:
+        """Detector ids of the rows and which the converter knows (cached per channel list)."""
+        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes())
+        rows = self._rows.get(cache_key)
+        if rows is None:
+            ids = detector_ids_for(chunk.board, chunk.module, chunk.channels)
+            known = np.array([d in self._known for d in ids], dtype=bool)
+            if len(self._rows) > 4096:
+                self._rows.clear()
+            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
+        return rows
+
+    def _bias_env(self, chunk: CountsChunk, t: np.ndarray, ids) -> tuple[np.ndarray | None, np.ndarray | None]:
+        entry = self._bias.get((chunk.board, chunk.module))
+        if entry is None or not len(entry[1]):
+            return None, None
+        channels, series = entry
+        a = series.align(t, self._bias_staleness_ns, self.config.bias_range_v)
+        n_ch, n = chunk.channels.size, t.size
+        v = np.empty((n_ch, n))
+        col = {int(c): j for j, c in enumerate(channels.tolist())}
+        for r, c in enumerate(chunk.channels.tolist()):
+            j = col.get(int(c))
+            v[r] = self._nominal_bias.get(ids[r], np.nan) if j is None else a.value[:, j]
+        missing = (a.flags & fl.HK_MISSING) != 0
+        flags = a.flags & ~np.uint16(fl.HK_MISSING)
+        if missing.any():  # before any bias reading: the nominal bias
+            nominal = np.array([self._nominal_bias.get(d, np.nan) for d in ids])[:, None]
+            v = np.where(missing[None, :], nominal, v)
+        return v, np.broadcast_to(flags, (n_ch, n))
+
+    def _convert(self, p: _Pending) -> tuple[str, bytes]:
+        chunk, t = p.chunk, p.t_ns
+        cfg = self.config
+        n_ch, n = chunk.channels.size, t.size
+        t_bath, f_tb = self._scalar_env("t_bath", t, cfg.t_bath_default_k, cfg.t_bath_range_k)
+        b_field, f_b = self._scalar_env("b_field", t, cfg.b_field_default_t, cfg.b_field_range_t)
+        env_flags_t = f_tb | f_b
+        ids, known, n_unknown = self._rows_for(chunk)
+        v_bias, f_bias = self._bias_env(chunk, t, ids)
+        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
+        try:
+            # The converter flags rows it has no parameters for (UNKNOWN_CHANNEL) itself.
+            env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
+            block = self.converter.convert(ids, chunk.counts_i, chunk.counts_q, env)
+            p_opt, flags = np.asarray(block.p_opt_w, dtype=float), np.asarray(block.flags, dtype=fl.FLAG_DTYPE)
+            if p_opt.shape != (n_ch, n) or flags.shape != (n_ch, n):
+                raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {(n_ch, n)}")
+        except Exception as exc:  # one bad block must not stop the stream
+            p_opt = np.full((n_ch, n), np.nan)
+            flags = np.full((n_ch, n), fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
+            self._bad("convert_failed", f"{type(exc).__name__}: {exc}", keys.counts_key(cfg.setup, chunk.board, chunk.module))
+        # Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
+        flags = flags | env_flags
+        if n_unknown:
+            flags[~known] |= fl.UNKNOWN_CHANNEL
+            self.counters["unknown_channel_samples"] += n_unknown * n
+        p_opt = np.where((flags & fl.UNUSABLE) != 0, np.nan, p_opt)
+        t_pub = self._stamp()
+        power = PowerChunk(
+            setup=cfg.setup,
+            board=chunk.board,
+            module=chunk.module,
+            channels=chunk.channels,
+            detector_ids=ids,
+            seq=chunk.seq,
+            t0_ns=chunk.t0_ns,
+            sample_rate_hz=chunk.sample_rate_hz,
+            p_opt_w=p_opt,
+            flags=flags,
+            table_identity=str(self.converter.identity),
+            converter_kind=str(self.converter.kind),
+            source_t_pub_ns=chunk.t_pub_ns,
+            t_pub_ns=t_pub,
+            t_ns=chunk.t_ns,
+        )
+        c = self.counters
+        c["chunks_converted"] += 1
+        c["samples_converted"] += n_ch * n
+        c["hk_stale_samples"] += int(np.count_nonzero(env_flags_t & fl.HK_STALE))
+        c["hk_missing_samples"] += int(np.count_nonzero(env_flags_t & fl.HK_MISSING))
+        if flags.any():
+            self.flag_counts.update(fl.counts_by_flag(flags))
+        self._interval_chunks += 1
+        self._interval_samples += n_ch * n
+        self._interval_latency_ms.append((t_pub - chunk.t_pub_ns) / 1e6)
+        return keys.power_key(cfg.setup, chunk.board, chunk.module), power.to_bytes()
+
+    def _maybe_status(self, out: list) -> None:
+        if self._now_ns is not None and self._now_ns >= self._next_status_ns:
+            out.append(self._emit_status())
+            # Skip missed slots rather than bursting after a pause.
+            while self._next_status_ns <= self._now_ns:
+                self._next_status_ns += self._status_ns
+
+    def _emit_status(self) -> tuple[str, bytes]:
+        msg = self.status()
+        self._last_status_ns = self._now_ns
+        self._interval_latency_ms = []
+        self._interval_chunks = 0
+        self._interval_samples = 0
+        return keys.status_key(self.config.setup, self.config.service), msg.to_bytes()

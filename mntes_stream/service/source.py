@@ -1,0 +1,315 @@
+"""A minimal data source: counts and housekeeping from the physics model, published over zenoh.
+
+The *generator* contract (shared with the richer ``service/simulator.py``):
+an iterable of batches ``(t_pub_ns, [(key, payload), ...])`` in publication
+order, ``t_pub_ns`` being when the batch is due on the data clock.
+:func:`publish` sends them, paced to real time (or a multiple), through BLOCK
+publishers.
+
+:class:`MinimalSource` is deliberately simple: Table-1-like detectors with a
+small seeded scatter, bias tuned to R = 0.7 R_n, a constant optical loading
+plus a 2f HWP sinusoid, bath temperature and field as triangle waves
+(when the housekeeping interval divides a quarter cycle, readings fall on
+the corners and linear interpolation is exact). The forward model is solved once for
+one cycle per module and the cycle repeats (the 2f frequency is rounded to a
+whole number of periods per cycle).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, fields
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from mntes_stream.core.ids import detector_id
+from mntes_stream.core.params import DetectorParams, ParamArray, table1_params
+from mntes_stream.errors import ConfigError
+from mntes_stream.io import keys
+from mntes_stream.io.messages import SENSOR_UNITS, CountsChunk, HousekeepingChunk
+
+__all__ = ["SourceConfig", "MinimalSource", "publish", "Batch"]
+
+log = logging.getLogger("mntes_stream.source")
+
+Batch = tuple[int, list[tuple[str, bytes]]]
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """The minimal source's array and signals (the ``[source]`` table).
+
+    Attributes
+    ----------
+    setup : str
+    boards, modules, channels : int
+        Array size: boards x modules per board x channels per module.
+    sample_rate_hz, chunk_s : float
+        One counts chunk per module every ``chunk_s`` (rounded to whole samples).
+    hk_interval_s : float
+        Housekeeping cadence (t_bath and b_field).
+    p_opt_w, hwp_2f_amplitude_w, f_hwp_hz : float
+        Optical loading and its 2f_HWP modulation (phase differs per detector).
+    t_bath_k, t_bath_swing_k, b_field_swing_t : float
+        Bath temperature triangle wave around ``t_bath_k``; field triangle around 0.
+    cycle_s : float
+        Length of the repeated cycle.
+    scatter : float
+        Fractional 1-sigma spread of T_c, K and R_n between detectors.
+    seed : int
+    """
+
+    setup: str = "lab"
+    boards: int = 1
+    modules: int = 2
+    channels: int = 16
+    sample_rate_hz: float = 152.59
+    chunk_s: float = 0.1
+    hk_interval_s: float = 0.1
+    p_opt_w: float = 0.5e-12
+    hwp_2f_amplitude_w: float = 0.02e-12
+    f_hwp_hz: float = 0.77
+    t_bath_k: float = 0.100
+    t_bath_swing_k: float = 0.5e-3
+    b_field_swing_t: float = 20e-6
+    cycle_s: float = 2.0
+    scatter: float = 0.01
+    seed: int = 0
+
+    def __post_init__(self):
+        keys.counts_key(self.setup)
+        for name in ("boards", "modules", "channels"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"source: {name} must be >= 1")
+        for name in ("sample_rate_hz", "chunk_s", "hk_interval_s", "cycle_s"):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"source: {name} must be > 0")
+        if self.chunk_samples < 1:
+            raise ConfigError("source: chunk_s * sample_rate_hz must give at least one sample")
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "[source]") -> "SourceConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
+        return cls(**d)
+
+    @property
+    def chunk_samples(self) -> int:
+        return int(round(self.chunk_s * self.sample_rate_hz))
+
+    @property
+    def cycle_chunks(self) -> int:
+        return max(1, int(math.ceil(self.cycle_s * self.sample_rate_hz / self.chunk_samples)))
+
+    @property
+    def cycle_samples(self) -> int:
+        return self.cycle_chunks * self.chunk_samples
+
+    @property
+    def n_detectors(self) -> int:
+        return self.boards * self.modules * self.channels
+
+
+def _triangle(phase: np.ndarray) -> np.ndarray:
+    """Triangle wave of period 1: 0 at phase 0, +1 at 1/4, -1 at 3/4."""
+    x = np.mod(phase, 1.0)
+    return np.where(x < 0.25, 4 * x, np.where(x < 0.75, 2 - 4 * x, 4 * x - 4))
+
+
+class MinimalSource:
+    """Counts + housekeeping batches from the forward model (see module docstring).
+
+    Parameters
+    ----------
+    config : SourceConfig
+    params : list of DetectorParams, optional
+        The truth; default: Table-1-like detectors with seeded scatter.
+    """
+
+    def __init__(self, config: SourceConfig | None = None, params: list[DetectorParams] | None = None):
+        self.config = cfg = config or SourceConfig()
+        self.params = list(params) if params is not None else default_params(cfg)
+        by_id = {p.detector_id: p for p in self.params}
+        self._modules = []
+        for b in range(cfg.boards):
+            for m in range(cfg.modules):
+                ids = [detector_id(b, m, c) for c in range(cfg.channels)]
+                missing = [d for d in ids if d not in by_id]
+                if missing:
+                    raise ConfigError(f"source: no parameters for {missing[:3]}{'...' if len(missing) > 3 else ''}")
+                self._modules.append((b, m, [by_id[d] for d in ids]))
+        self._cycles: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._period_s = cfg.cycle_samples / cfg.sample_rate_hz
+        n2f = max(1, round(2 * cfg.f_hwp_hz * self._period_s))
+        self.f_2f_hz = n2f / self._period_s
+
+    # Environment as functions of time since the start (s): triangle waves whose
+    # corners fall on housekeeping reading times when hk_interval_s divides cycle/4.
+    def t_bath_k(self, t_s) -> np.ndarray:
+        return self.config.t_bath_k + self.config.t_bath_swing_k * _triangle(np.asarray(t_s) / self._period_s)
+
+    def b_field_t(self, t_s) -> np.ndarray:
+        return self.config.b_field_swing_t * _triangle(np.asarray(t_s) / self._period_s + 0.25)
+
+    def p_opt_w(self, params: list[DetectorParams], t_s) -> np.ndarray:
+        """Optical power truth, shape (n_det, n_samp)."""
+        cfg = self.config
+        phase = np.array([_stable_phase(p.detector_id) for p in params])[:, None]
+        return cfg.p_opt_w + cfg.hwp_2f_amplitude_w * np.cos(2 * np.pi * self.f_2f_hz * np.asarray(t_s)[None, :] + phase)
+
+    def _cycle(self, board: int, module: int, params: list[DetectorParams]):
+        key = (board, module)
+        if key not in self._cycles:
+            from mntes_stream.core import model
+
+            cfg = self.config
+            t_s = np.arange(cfg.cycle_samples) / cfg.sample_rate_hz
+            pa = ParamArray.from_params(params)
+            t_bath, b = self.t_bath_k(t_s), self.b_field_t(t_s)
+            op = model.solve_operating_point(pa, self.p_opt_w(params, t_s), t_bath, b)
+            i_meas = model.readout_current_a(pa, op.i_a, b)
+            counts = i_meas / pa.gain_a_per_count
+            self._cycles[key] = (np.rint(counts.real).astype(np.int32), np.rint(counts.imag).astype(np.int32))
+        return self._cycles[key]
+
+    def batches(self, t_start_ns: int, duration_s: float = 0.0) -> Iterator[Batch]:
+        """Batches from ``t_start_ns`` on (for ``duration_s`` of data; 0: forever).
+
+        Each step publishes, at the end of a chunk, the housekeeping read since
+        the previous step and then one counts chunk per module (housekeeping
+        first so it is there when the chunk arrives).
+        """
+        cfg = self.config
+        rate, n = cfg.sample_rate_hz, cfg.chunk_samples
+        hk_dt_ns = int(round(cfg.hk_interval_s * 1e9))
+        channels = np.arange(cfg.channels, dtype=np.int32)
+        next_hk_ns = int(t_start_ns)
+        hk_seq = 0
+        step = 0
+        while True:
+            t0_ns = int(t_start_ns) + int(round(step * n * 1e9 / rate))
+            t_pub_ns = int(t_start_ns) + int(round((step + 1) * n * 1e9 / rate))
+            if duration_s and t0_ns - t_start_ns >= duration_s * 1e9:
+                return
+            batch: list[tuple[str, bytes]] = []
+            hk_t = []
+            while next_hk_ns <= t_pub_ns:
+                hk_t.append(next_hk_ns)
+                next_hk_ns += hk_dt_ns
+            if hk_t:
+                t_arr = np.array(hk_t, dtype=np.int64)
+                t_rel = (t_arr - int(t_start_ns)) / 1e9
+                for sensor, value in (("t_bath", self.t_bath_k(t_rel)), ("b_field", self.b_field_t(t_rel))):
+                    hk = HousekeepingChunk(cfg.setup, sensor, hk_seq, t_arr, value, SENSOR_UNITS[sensor])
+                    batch.append((keys.hk_key(cfg.setup, sensor), hk.to_bytes()))
+                hk_seq += 1
+            k = step % cfg.cycle_chunks
+            for board, module, params in self._modules:
+                ci, cq = self._cycle(board, module, params)
+                chunk = CountsChunk(
+                    setup=cfg.setup, board=board, module=module, channels=channels, seq=step,
+                    t0_ns=t0_ns, sample_rate_hz=rate,
+                    counts_i=ci[:, k * n:(k + 1) * n], counts_q=cq[:, k * n:(k + 1) * n], t_pub_ns=t_pub_ns,
+                )
+                batch.append((keys.counts_key(cfg.setup, board, module), chunk.to_bytes()))
+            yield t_pub_ns, batch
+            step += 1
+
+    def truth_p_opt_w(self, board: int, module: int, t_ns: np.ndarray, t_start_ns: int) -> np.ndarray:
+        """Optical power truth of one module at sample times (n_ch, n_samp)."""
+        params = next(p for b, m, p in self._modules if (b, m) == (board, module))
+        t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_start_ns)) / 1e9
+        return self.p_opt_w(params, np.mod(t_s, self._period_s))
+
+
+def _stable_phase(det_id: str) -> float:
+    # Python's hash() is salted per process; the phase must be reproducible.
+    return (sum((i + 1) * ord(ch) for i, ch in enumerate(det_id)) % 997) / 997 * 2 * np.pi
+
+
+def default_params(cfg: SourceConfig) -> list[DetectorParams]:
+    """Table-1-like detectors with seeded scatter, bias tuned to R = 0.7 R_n at the loading."""
+    from mntes_stream.core import model
+
+    rng = np.random.default_rng(cfg.seed)
+    base = table1_params()
+    out = []
+    for b in range(cfg.boards):
+        for m in range(cfg.modules):
+            for c in range(cfg.channels):
+                s = 1 + cfg.scatter * rng.standard_normal(3)
+                p = base.replace(
+                    detector_id=detector_id(b, m, c),
+                    t_c_k=base.transition.t_c_k * s[0],
+                    k_w_per_k_n=base.k_w_per_k_n * s[1],
+                    r_n_ohm=base.transition.r_n_ohm * s[2],
+                    t_bath_k=cfg.t_bath_k,
+                    p_opt_w=cfg.p_opt_w,
+                )
+                out.append(p)
+    pa = ParamArray.from_params(out)
+    v = np.asarray(model.tune_bias_v(pa, 0.7)).reshape(-1)
+    return [p.replace(v_thev_v=float(vi)) for p, vi in zip(out, v)]
+
+
+def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None, wait_keys: Iterable[str] = (),
+            wait_s: float = 10.0, progress=None) -> dict:
+    """Publish batches on ``session`` paced by their ``t_pub_ns`` (``speed`` x real time; 0: flat out).
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    batches : iterable of (t_pub_ns, [(key, payload), ...])
+    speed : float
+    stop : Event-like, optional
+        Checked between batches.
+    wait_keys : keys that must have a subscriber before the first batch (up to ``wait_s``).
+    progress : callable(dict), optional
+        Called about once a second with the running counters.
+
+    Returns
+    -------
+    dict
+        ``batches``, ``messages``, ``bytes``, ``behind_max_ms`` (worst lateness
+        against the schedule), ``matched`` (whether the wait succeeded).
+    """
+    from mntes_stream.io.transport import Publishers
+
+    pubs = Publishers(session)
+    matched = True
+    if wait_keys:
+        matched = pubs.wait_matching(wait_keys, wait_s, stop)
+        if not matched:
+            log.warning("no subscriber yet for some of %s; publishing anyway", list(wait_keys))
+    n_batches = 0
+    behind_max = 0.0
+    wall0 = t_first = None
+    next_progress = time.monotonic() + 1.0
+    try:
+        for t_pub_ns, batch in batches:
+            if stop is not None and stop.is_set():
+                break
+            if wall0 is None:
+                wall0, t_first = time.monotonic(), t_pub_ns
+            if speed > 0:
+                due = wall0 + (t_pub_ns - t_first) / 1e9 / speed
+                while (wait := due - time.monotonic()) > 0:
+                    time.sleep(min(wait, 0.05))
+                    if stop is not None and stop.is_set():
+                        break
+                behind_max = max(behind_max, time.monotonic() - due)
+            for key, payload in batch:
+                pubs.put(key, payload)
+            n_batches += 1
+            if progress is not None and time.monotonic() >= next_progress:
+                next_progress += 1.0
+                progress({"batches": n_batches, "messages": pubs.messages, "bytes": pubs.bytes})
+    finally:
+        pubs.close()
+    return {"batches": n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
+            "behind_max_ms": behind_max * 1e3, "matched": matched}
