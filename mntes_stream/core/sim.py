@@ -39,6 +39,7 @@ from scipy import integrate
 from scipy.signal import lfilter
 
 from mntes_stream.core import model
+from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
 from mntes_stream.core.params import PRESETS, DetectorParams, ParamArray
 from mntes_stream.core.transition import ArctanTransition
@@ -56,7 +57,6 @@ __all__ = [
     "ArraySimulator",
     "cmb_dpdt_w_per_k",
     "solve_quasi_static",
-    "sample_times_ns",
 ]
 
 # LiteBIRD half-wave-plate rotation frequencies per telescope.
@@ -110,7 +110,7 @@ class SimConfig:
     scatter_b_coeff_frac: float = 0.2
     saturated_per_module: int = 1       # channels per module with loading above saturation
     latched_per_module: int = 1         # channels per module biased into the superconducting state
-    saturated_loading_factor: float = 2.0  # x P_sat
+    saturated_loading_factor: float = 3.0  # x P_sat (arctan tails: R ~ 0.997 R_n, not exactly normal)
     latched_bias_factor: float = 0.25      # x tuned bias
     # --- optical signals ---------------------------------------------------------------
     f_hwp_hz: float = HWP_FREQUENCIES_HZ["LFT"]
@@ -260,7 +260,9 @@ class SimBlock:
     start_index : int
         Index of the first sample since the start of the run.
     t_ns : ndarray of int64, shape (n_samp,)
-        ``t0_ns + round(k * 1e9 / sample_rate_hz)``.
+        ``t_first + round(k * 1e9 / sample_rate_hz)`` with ``t_first`` the time of
+        sample ``start_index`` of the run: exactly what a counts chunk with
+        ``t0_ns = t_first`` and the sample rate describes.
     counts_i, counts_q : ndarray of int32, shape (n_det, n_samp)
         What the converter sees.
     hk : tuple of HkReadings
@@ -291,12 +293,6 @@ class SimBlock:
         return int(self.t_ns.shape[0])
 
 
-def sample_times_ns(t0_ns: int, sample_rate_hz: float, start: int, n: int) -> np.ndarray:
-    """``t0_ns + round(k * 1e9 / fs)`` for ``k = start .. start + n - 1`` (the counts-chunk rule)."""
-    k = np.arange(start, start + n, dtype=np.int64)
-    return np.int64(t0_ns) + np.round(k * (1e9 / sample_rate_hz)).astype(np.int64)
-
-
 def cmb_dpdt_w_per_k(band_center_hz: float, fractional_bandwidth: float, optical_efficiency: float,
                      t_cmb_k: float = T_CMB_K) -> float:
     """dP/dT_CMB of a single-mode, single-polarisation detector with a top-hat band.
@@ -318,11 +314,16 @@ def cmb_dpdt_w_per_k(band_center_hz: float, fractional_bandwidth: float, optical
 
 
 class _NoiseStream:
-    """Standard normals indexed by (row, sample), independent of how they are requested."""
+    """Standard normals indexed by (row, sample), independent of how they are requested.
 
-    def __init__(self, seed: int, stream: int, rows: int, block: int = _NOISE_BLOCK):
+    Drawn in blocks of samples keyed by ``(seed, stream, block index)``; the
+    block length shrinks for wide arrays so a cached block stays near 16 MB.
+    """
+
+    def __init__(self, seed: int, stream: int, rows: int):
         self._key = (int(seed) & 0xFFFFFFFF, int(stream))
-        self.rows, self.block = rows, block
+        self.rows = rows
+        self.block = int(np.clip(2 ** int(math.log2(max(1, (1 << 21) // max(rows, 1)))), 64, _NOISE_BLOCK))
         self._cache: dict[int, np.ndarray] = {}
 
     def _get(self, b: int) -> np.ndarray:
@@ -347,35 +348,36 @@ class _NoiseStream:
 
 
 class _PinkNoise:
-    """1/f noise as a sum of AR(1) (Lorentzian) processes, two per decade.
+    """Unit-white-referenced 1/f noise: a sum of independent AR(1) (Lorentzian) processes.
 
-    With poles log-spaced by ``d = ln(10)/2`` and each process of variance
-    ``s^2 = S_w f_knee d``, the one-sided PSD is ``S_w f_knee / f`` between the
-    lowest pole and ``f_max`` (``S_w = 2 sigma^2 / fs`` is the white level).
+    With poles log-spaced by ``d = ln 10`` (one per decade, +-6% ripple) and each
+    process of variance ``s^2 = S_w f_knee d``, the one-sided PSD is
+    ``S_w f_knee / f`` between the lowest pole and ``f_max``, where
+    ``S_w = 2 / fs`` is the PSD of unit white noise per sample. Each process
+    starts in its stationary distribution, so there is no warm-up transient.
     """
 
-    def __init__(self, seed: int, rows: int, fs: float, f_knee: float, sigma: np.ndarray):
-        self._white = _NoiseStream(seed, _S_PINK, rows)
-        self._pos = 0
+    def __init__(self, seed: int, rows: int, fs: float, f_knee: float):
         f_lo, f_hi = 1e-4, max(min(100.0 * f_knee, fs / 4.0), 2e-4)
-        d = math.log(10.0) / 2.0
+        d = math.log(10.0)
         n_poles = int(math.ceil(math.log(f_hi / f_lo) / d)) + 1
         poles = f_lo * np.exp(d * np.arange(n_poles))
         self._a = np.exp(-2.0 * np.pi * poles / fs)
-        s = np.asarray(sigma, dtype=float).reshape(rows, 1) * math.sqrt(2.0 * f_knee * d / fs)
-        self._b = s * np.sqrt(1.0 - self._a**2)[None, :]  # (rows, n_poles)
+        s = math.sqrt(2.0 * f_knee * d / fs)
+        self._b = s * np.sqrt(1.0 - self._a**2)
+        self._white = [_NoiseStream(seed, _S_PINK + 16 * (j + 1), rows) for j in range(n_poles)]
         rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, _S_PINK, 1 << 30])
-        # Start every process in its stationary distribution: no warm-up transient.
         self._zi = self._a[None, :] * s * rng.standard_normal((rows, n_poles))
+        self._pos = 0
 
     def next(self, n: int) -> np.ndarray:
-        w = self._white.take(self._pos, n)
-        self._pos += n
-        out = np.zeros_like(w)
+        out = np.zeros((self._zi.shape[0], n))
         for j, a in enumerate(self._a):
-            y, zf = lfilter([1.0], [1.0, -a], w * self._b[:, j : j + 1], axis=1, zi=self._zi[:, j : j + 1])
+            w = self._white[j].take(self._pos, n)
+            y, zf = lfilter([self._b[j]], [1.0, -a], w, axis=1, zi=self._zi[:, j : j + 1])
             self._zi[:, j : j + 1] = zf
             out += y
+        self._pos += n
         return out
 
 
@@ -394,7 +396,9 @@ class _Fluctuation:
         t = np.asarray(t_s, dtype=float)
         if not np.any(self.amp):
             return np.zeros_like(t)
-        return np.sin(2 * np.pi * np.multiply.outer(t, self.f) + self.phase) @ self.amp
+        # An explicit row sum, not a matrix product: BLAS may sum in a different order
+        # for a different number of rows, and the stream must not depend on block size.
+        return (np.sin(2 * np.pi * np.multiply.outer(t, self.f) + self.phase) * self.amp).sum(axis=-1)
 
 
 def _power_and_slope(p, r, t_bath, b, v):
@@ -626,7 +630,7 @@ class ArraySimulator:
         self._sigma_counts = (c.nei_a_rthz * math.sqrt(self.fs / 2.0)
                               / np.abs(self._pa.gain_a_per_count))  # (n_det, 1)
         self._photon = _NoiseStream(seed, _S_PHOTON, n_det)
-        self._pink = (_PinkNoise(seed, n_det, self.fs, c.f_knee_hz, np.full(n_det, self._sigma_p_w))
+        self._pink = (_PinkNoise(seed, n_det, self.fs, c.f_knee_hz)
                       if c.nep_w_rthz > 0 and c.f_knee_hz > 0 else None)
         self._read_i = _NoiseStream(seed, _S_READ_I, n_det)
         self._read_q = _NoiseStream(seed, _S_READ_Q, n_det)
@@ -634,7 +638,11 @@ class ArraySimulator:
         self._hk_b_noise = _NoiseStream(seed, _S_HK_B, 1)
         self._fluct_tb = _Fluctuation(seed, 0, c.t_bath_fluct_k)
         self._fluct_b = _Fluctuation(seed, 1, c.b_field_fluct_t)
-        self._step_ns = np.array([self.t0_ns + round(t * 1e9) for t, _ in c.bias_steps], dtype=np.int64)
+        # A bias step applies from the first sample at or after its time; its instant is
+        # put half a sample before that sample so no sample time is ambiguous.
+        self._step_index = np.array([math.ceil(t * self.fs - 1e-9) for t, _ in c.bias_steps], dtype=np.int64)
+        self._step_ns = np.array([self._time_ns(k) - round(0.5e9 / self.fs) for k in self._step_index],
+                                 dtype=np.int64)
         self._step_factor = np.cumprod([1.0 + f for _, f in c.bias_steps])
         self._pos = 0
         self._r_prev = c.r_frac * np.asarray(self._pa.transition.r_n_ohm, dtype=float)
@@ -672,10 +680,18 @@ class ArraySimulator:
                 if c.b_field_amp_t and c.b_field_period_s > 0 else 0.0)
         return c.b_field_t + c.b_field_ramp_t_per_s * t + spin + self._fluct_b(t)
 
+    def _time_ns(self, k: int) -> int:
+        """Time of sample ``k`` of the run."""
+        return self.t0_ns + int(round(k * 1e9 / self.fs))
+
     def bias_factor(self, t_ns) -> np.ndarray:
         """Product of the bias steps in effect at each time (1 before the first)."""
         t = np.asarray(t_ns, dtype=np.int64)
         n_applied = np.searchsorted(self._step_ns, t, side="right")
+        return np.concatenate([[1.0], self._step_factor])[n_applied]
+
+    def _bias_factor_of_samples(self, k: np.ndarray) -> np.ndarray:
+        n_applied = np.searchsorted(self._step_index, k, side="right")
         return np.concatenate([[1.0], self._step_factor])[n_applied]
 
     # --- optical signal ------------------------------------------------------------------------
@@ -706,12 +722,13 @@ class ArraySimulator:
             raise ConfigError("simulator: block length must be >= 1")
         c = self.config
         start = self._pos
-        t_s = np.arange(start, start + n) / self.fs
-        t_ns = sample_times_ns(self.t0_ns, self.fs, start, n)
-        end_ns = int(sample_times_ns(self.t0_ns, self.fs, start + n, 1)[0])
+        k = np.arange(start, start + n)
+        t_s = k / self.fs
+        t_ns = sample_times_ns(self._time_ns(start), self.fs, n)
+        end_ns = self._time_ns(start + n)
         tb = self.t_bath_k(t_s)
         b = self.b_field_t(t_s)
-        v = self._v_set * self.bias_factor(t_ns)[None, :]
+        v = self._v_set * self._bias_factor_of_samples(k)[None, :]
         p_opt = self.optical_signal_w(t_s)
         if self._sigma_p_w > 0:
             noise = self._photon.take(start, n)
