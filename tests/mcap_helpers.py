@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
 
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance
+from mntes_stream.io.transport import free_tcp_port
 
 
 def free_endpoint() -> str:
     """A ``tcp/127.0.0.1:<port>`` endpoint on a port free right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    return f"tcp/127.0.0.1:{free_tcp_port()}"
 
 
 def counts_payload(seq: int, *, setup: str = "t", board: int = 0, module: int = 0, n_ch: int = 4, n_samp: int = 8) -> bytes:

@@ -17,7 +17,8 @@ from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_p
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
-from mntes_stream.service.recorder import RecorderConfig, ZenohSettings, open_zenoh_session, run_recorder
+from mntes_stream.io.transport import ZenohSettings, open_session
+from mntes_stream.service.recorder import RecorderConfig, run_recorder
 
 
 def _wait_for(pred, timeout_s=15.0, what="condition"):
@@ -55,7 +56,7 @@ def test_records_everything_verbatim_with_stats(tmp_path):
     th.start()
     sent = []
     try:
-        with open_zenoh_session(ZenohSettings(connect=(ep,))) as z:
+        with open_session(ZenohSettings(connect=(ep,))) as z:
             keys = ["mntes/t/provenance", "mntes/t/counts/0/0", "mntes/t/counts/0/1", "mntes/t/hk/t_bath", "other/t/x"]
             pubs = _publishers(z, keys[:4])
             plan = [("mntes/t/provenance", provenance_payload("a"))]
@@ -93,7 +94,7 @@ def test_duration_stops_by_itself_and_counts_gaps(tmp_path):
     result = {}
     th = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg)))
     th.start()
-    with open_zenoh_session(ZenohSettings(connect=(ep,))) as z:
+    with open_session(ZenohSettings(connect=(ep,))) as z:
         pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
         for seq in (0, 1, 5, 6, 6, 3):  # 3 missing after 1, then a repeat and a step back
             pub.put(counts_payload(seq))
@@ -115,7 +116,7 @@ def test_sigterm_finishes_the_file(tmp_path):
     ep = free_endpoint()
     proc = _start_recorder_process(tmp_path, ep, 0.5)
     try:
-        with open_zenoh_session(ZenohSettings(connect=(ep,))) as z:
+        with open_session(ZenohSettings(connect=(ep,))) as z:
             pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
             sent = [counts_payload(i) for i in range(40)]
             for p in sent:
@@ -140,7 +141,7 @@ def test_sigkill_loses_at_most_the_flush_interval(tmp_path):
     proc = _start_recorder_process(tmp_path, ep, flush_s)
     sent = []
     try:
-        with open_zenoh_session(ZenohSettings(connect=(ep,))) as z:
+        with open_session(ZenohSettings(connect=(ep,))) as z:
             pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
             for i in range(300):  # ~3 s at 100 Hz
                 payload = counts_payload(i)

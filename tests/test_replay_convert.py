@@ -16,7 +16,8 @@ from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_p
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
-from mntes_stream.service.recorder import RecorderConfig, ZenohSettings, open_zenoh_session, run_recorder
+from mntes_stream.io.transport import ZenohSettings, open_session
+from mntes_stream.service.recorder import RecorderConfig, run_recorder
 from mntes_stream.service.replay import ReplayConfig, parse_time, run_replay
 
 
@@ -65,7 +66,7 @@ def session_a(tmp_path_factory):
         if i % 8 == 0:
             plan.append(("mntes/t/power/0/0", counts_payload(1000 + i)))  # stands in for an output
     with recording(directory, ep):
-        with open_zenoh_session(ZenohSettings(connect=(ep,))) as z:
+        with open_session(ZenohSettings(connect=(ep,))) as z:
             pubs = {k: z.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, _ in plan}
             for p in pubs.values():
                 wait_matching(p, 30.0)

@@ -1,17 +1,18 @@
 """Recorder service: everything under ``mntes/<setup>/**`` into rotated MCAP files.
 
-The zenoh callback only timestamps the sample and puts it on a queue; the
-calling thread of :func:`run_recorder` drains the queue into a
+The zenoh callback only timestamps the sample and puts it on a bounded queue
+(:class:`~mntes_stream.io.transport.QueueSubscriber`); the calling thread of
+:func:`run_recorder` drains it into a
 :class:`~mntes_stream.io.mcap_io.RotatingMcapWriter`, flushing every
 ``flush_interval_s`` so a killed recorder loses at most that span (plus what
-was still queued). Nothing is dropped on purpose: the queue is unbounded and
-its high-water mark is reported, so a recorder that cannot keep up shows it.
+was still queued). Nothing is dropped: a full queue makes the callback wait,
+which BLOCK publishers feel as back-pressure; the high-water mark is reported
+so a recorder that cannot keep up shows it.
 """
 
 from __future__ import annotations
 
 import logging
-import queue
 import signal
 import threading
 import time
@@ -21,52 +22,11 @@ from pathlib import Path
 
 from mntes_stream.errors import ConfigError, MntesError, TransportError
 from mntes_stream.io import keys
+from mntes_stream.io.transport import ZenohSettings, open_session
 
-__all__ = ["RecorderConfig", "RecorderStats", "ZenohSettings", "open_zenoh_session", "run_recorder"]
+__all__ = ["RecorderConfig", "RecorderStats", "run_recorder"]
 
 log = logging.getLogger("mntes_stream.recorder")
-
-
-@dataclass(frozen=True)
-class ZenohSettings:
-    """How to join the zenoh network.
-
-    ``mode`` is "peer" or "client" (or "router"); ``connect``/``listen`` are
-    endpoints such as ``tcp/127.0.0.1:7447``; ``config_file`` (JSON5) is read
-    first and the other fields override it. Scouting is off unless enabled:
-    explicit endpoints behave the same on every network.
-    """
-
-    mode: str = "peer"
-    connect: tuple[str, ...] = ()
-    listen: tuple[str, ...] = ()
-    config_file: str = ""
-    scouting: bool = False
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str = "[zenoh]") -> ZenohSettings:
-        return _from_dict(cls, d, source, tuples=("connect", "listen"))
-
-
-def open_zenoh_session(z: ZenohSettings):
-    """Open a zenoh session; the caller closes it (context manager or ``close()``)."""
-    import json
-
-    import zenoh
-
-    try:
-        conf = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
-        conf.insert_json5("mode", json.dumps(z.mode))
-        if z.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(list(z.connect)))
-        if z.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(list(z.listen)))
-        if not z.config_file or not z.scouting:
-            conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(z.scouting)))
-            conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(z.scouting)))
-        return zenoh.open(conf)
-    except Exception as exc:  # zenoh raises its own ZError for config and network failures
-        raise TransportError(f"cannot open zenoh session ({z.mode}, connect={list(z.connect)}, listen={list(z.listen)}): {exc}") from None
 
 
 def _from_dict(cls, d: dict, source: str, tuples: tuple[str, ...] = ()):
@@ -108,6 +68,9 @@ class RecorderConfig:
         Stop by itself after this long (0: run until stopped).
     log_interval_s : float
         Progress log line cadence.
+    queue_messages : int
+        Messages buffered between the zenoh callback and the writer; when full,
+        the callback waits (back-pressure on BLOCK publishers, no loss).
     """
 
     setup: str = "lab"
@@ -122,6 +85,7 @@ class RecorderConfig:
     fsync: bool = False
     duration_s: float = 0.0
     log_interval_s: float = 10.0
+    queue_messages: int = 4096
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
 
     def __post_init__(self):
@@ -130,6 +94,8 @@ class RecorderConfig:
             raise ConfigError(f"flush_interval_s must be > 0, got {self.flush_interval_s}")
         if self.rotate_mb < 0 or self.rotate_s < 0 or self.duration_s < 0:
             raise ConfigError("rotate_mb, rotate_s and duration_s must be >= 0 (0 disables)")
+        if self.queue_messages < 1:
+            raise ConfigError(f"queue_messages must be >= 1, got {self.queue_messages}")
         if self.chunk_size_kb < 1:
             raise ConfigError(f"chunk_size_kb must be >= 1, got {self.chunk_size_kb}")
         if self.compression not in ("zstd", "lz4", "none"):
@@ -146,15 +112,15 @@ class RecorderConfig:
             doc = tomllib.loads(Path(path).read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise ConfigError(f"{path}: {exc}") from None
-        return cls.from_dict(doc, str(path))
+        return cls.from_dict(doc, str(path), base_dir=str(Path(path).parent))
 
     @classmethod
-    def from_dict(cls, doc: dict, source: str = "<config>") -> RecorderConfig:
+    def from_dict(cls, doc: dict, source: str = "<config>", base_dir: str | None = None) -> RecorderConfig:
         unknown = set(doc) - {"recorder", "zenoh"}
         if unknown:
             raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [recorder], [zenoh])")
         rec = dict(doc.get("recorder", {}))
-        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]")
+        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
         if "zenoh" in rec:
             raise ConfigError(f"{source}: put zenoh settings in the [zenoh] table")
         return _from_dict(cls, {**rec, "zenoh": z}, f"{source} [recorder]")
@@ -178,7 +144,8 @@ class RecorderStats:
     topic (messages the recorder never received), ``seq_repeats`` the
     messages whose ``seq`` did not increase (duplicates, reordering, a
     restarted publisher); ``invalid`` the payloads that were not a valid
-    envelope (recorded anyway).
+    envelope (recorded anyway); ``dropped_on_close`` the samples a full
+    queue could not take while the subscriber was being closed.
     """
 
     messages: int
@@ -190,6 +157,7 @@ class RecorderStats:
     files: tuple[str, ...]
     flushes: int
     queue_high_water: int
+    dropped_on_close: int
     duration_s: float
 
 
@@ -231,12 +199,7 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
         After the last file is finished (summary and footer written).
     """
     from mntes_stream.io.mcap_io import RotatingMcapWriter
-
-    q: queue.SimpleQueue = queue.SimpleQueue()
-
-    def on_sample(sample) -> None:
-        # Runs on a zenoh thread: timestamp and hand over, nothing else.
-        q.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+    from mntes_stream.io.transport import QueueSubscriber
 
     writer = RotatingMcapWriter(
         config.directory,
@@ -251,7 +214,7 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
     )
     last_seq: dict[str, int] = {}
     by_kind: dict[str, int] = {}
-    gaps = repeats = high_water = 0
+    gaps = repeats = 0
     t_start = time.monotonic()
     next_log = t_start + config.log_interval_s
 
@@ -270,29 +233,23 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
                     repeats += 1
             last_seq[topic] = env.seq
 
-    session = None
+    session = sub = None
     error: BaseException | None = None
     with _SignalStop() as sig:
         try:
-            session = open_zenoh_session(config.zenoh)
-            session.declare_subscriber(config.subscription, on_sample)
+            session = open_session(config.zenoh)
+            # The callback only timestamps and queues; a full queue makes it wait,
+            # which BLOCK publishers feel as back-pressure (nothing is dropped).
+            sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages)
             log.info("recording %s into %s", config.subscription, writer.current_path)
             while not (sig.event.is_set() or (stop_event is not None and stop_event.is_set())):
                 if config.duration_s and time.monotonic() - t_start >= config.duration_s:
                     break
-                try:
-                    item = q.get(timeout=min(0.1, max(writer.next_tick_s(), 0.005)))
-                except queue.Empty:
-                    item = None
+                item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
                 if item is not None:
-                    high_water = max(high_water, q.qsize() + 1)
                     write(item)
-                    # Drain what is there; check the stop flags once per batch.
-                    for _ in range(10_000):
-                        try:
-                            write(q.get_nowait())
-                        except queue.Empty:
-                            break
+                    for item in sub.drain(10_000):  # then check the stop flags once per batch
+                        write(item)
                 writer.tick()
                 if time.monotonic() >= next_log:
                     next_log += config.log_interval_s
@@ -300,17 +257,17 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
         except BaseException as exc:  # finish the file whatever happened, then re-raise
             error = exc
         finally:
-            if session is not None:
-                try:
-                    session.close()  # also undeclares the subscriber: no callback after this
-                except Exception as exc:  # closing twice or a dead network must not lose the file
-                    log.warning("closing zenoh session: %s", exc)
             try:
-                while True:
-                    write(q.get_nowait())
-            except queue.Empty:
-                pass
-            except BaseException as exc:
+                if sub is not None:
+                    for item in sub.drain():
+                        write(item)
+                    sub.close()
+                if session is not None:
+                    session.close()
+                if sub is not None:
+                    for item in sub.drain():
+                        write(item)
+            except BaseException as exc:  # a dead network or a full disk must not lose the file
                 error = error or exc
             writer.close()
     if error is not None:
@@ -326,7 +283,8 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
         seq_repeats=repeats,
         files=tuple(str(p) for p in writer.files),
         flushes=writer.flushes,
-        queue_high_water=high_water,
+        queue_high_water=sub.high_water,
+        dropped_on_close=sub.dropped_on_close,
         duration_s=time.monotonic() - t_start,
     )
     log.info("recorder stopped: %s", stats)

@@ -16,7 +16,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from mntes_stream.errors import ConfigError
-from mntes_stream.service.recorder import ZenohSettings, _from_dict, _SignalStop, open_zenoh_session
+from mntes_stream.io.transport import ZenohSettings, open_session
+from mntes_stream.service.recorder import _from_dict, _SignalStop
 
 __all__ = ["INPUT_TOPICS", "ReplayConfig", "ReplayStats", "parse_time", "run_replay"]
 
@@ -74,7 +75,7 @@ class ReplayConfig:
         unknown = set(doc) - {"replay", "zenoh"}
         if unknown:
             raise ConfigError(f"{path}: unknown table(s) {sorted(unknown)} (expected [replay], [zenoh])")
-        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{path} [zenoh]")
+        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{path} [zenoh]", base_dir=str(Path(path).parent))
         d = {**doc.get("replay", {}), "zenoh": z, **overrides}
         return _from_dict(cls, d, f"{path} [replay]", tuples=("source", "topics"))
 
@@ -132,7 +133,7 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
     behind_max = 0.0
     first_log = last_log = None
     t_begin = time.monotonic()
-    with _SignalStop() as sig, open_zenoh_session(config.zenoh) as z:
+    with _SignalStop() as sig, open_session(config.zenoh) as z:
         pubs = {t: z.declare_publisher(t, congestion_control=zenoh.CongestionControl.BLOCK) for t in topics}
         deadline = time.monotonic() + config.wait_subscribers_s
         while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
