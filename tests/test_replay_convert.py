@@ -136,3 +136,106 @@ def test_parse_time_and_config_errors():
         ReplayConfig(speed=-1)
     cfg = ReplayConfig.from_toml("services/replay.toml", source=("x.mcap",))
     assert cfg.topics == ("mntes/*/counts/**", "mntes/*/hk/**") and cfg.source == ("x.mcap",)
+
+
+# ---------------------------------------------------------------------------- offline conversion
+
+T0 = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope="module")
+def source_recording(tmp_path_factory):
+    """A recording of the minimal source plus what a converter pipeline made of it.
+
+    Written directly (no zenoh): log time = publication time + 1 ms, the
+    pipeline's outputs stamped and logged at that time, as the recorder would.
+    """
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.io import keys
+    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.source import MinimalSource, SourceConfig
+
+    src = MinimalSource(SourceConfig(setup="t", modules=2, channels=8))
+    params = {p.detector_id: p for p in src.params}
+    pipe = ConverterPipeline(make_converter("table", params), PipelineConfig(setup="t"), params=params, clock=None)
+    path = tmp_path_factory.mktemp("src") / "in.mcap"
+    with mio.McapFileWriter(path) as w:
+        w.write(keys.provenance_key("t"), pipe.provenance_bytes(), T0)
+        for t_pub, batch in src.batches(T0, 3.0):
+            t_log = t_pub + 1_000_000
+            for key, payload in batch:
+                w.write(key, payload, t_log)
+                for k2, p2 in pipe.handle(key, payload, t_log):
+                    w.write(k2, p2, t_log)
+        for k2, p2 in pipe.flush():
+            w.write(k2, p2, t_log)
+    return path, src
+
+
+def _power(source):
+    from mntes_stream.io.messages import PowerChunk
+
+    return [PowerChunk.from_bytes(m.payload) for m in mio.iter_messages(source, topics="mntes/*/power/**")]
+
+
+def test_offline_convert_reproduces_the_recorded_conversion(source_recording, tmp_path):
+    import numpy as np
+
+    from mntes_stream.service.offline import convert_recording
+
+    path, src = source_recording
+    out = tmp_path / "out.mcap"
+    stats = convert_recording(path, out, progress=False)
+    rec, new = _power(path), _power(out)
+    assert len(new) == len(rec) == stats.power_chunks == mio.Session(path).count("mntes/t/counts/**") > 50
+    for a, b in zip(rec, new):
+        assert (a.board, a.module, a.seq, a.t0_ns) == (b.board, b.module, b.seq, b.t0_ns)
+        assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True) and np.array_equal(a.flags, b.flags)
+    assert stats.table_identity == stats.recorded_table_identity and stats.bad_messages == {}
+    # Physics: against the source's optical-power truth. Counts are integer-rounded, and the
+    # linearly interpolated housekeeping misses the triangle waves' corners by a little, hence
+    # a sharp median and a looser maximum (6e-4 of the 0.5 pW loading).
+    err = np.concatenate([np.abs(b.p_opt_w - src.truth_p_opt_w(b.board, b.module, b.times_ns(), T0)).ravel() for b in new])
+    assert np.median(err) < 1e-18 and err.max() < 5e-16 and not any(b.flags.any() for b in new)
+    # The output holds the inputs verbatim and explains itself like a recording.
+    inputs = [m.payload for m in mio.iter_messages(path, topics=["mntes/t/counts/**", "mntes/t/hk/**"])]
+    assert [m.payload for m in mio.iter_messages(out, topics=["mntes/t/counts/**", "mntes/t/hk/**"])] == inputs
+    meta = {m.name: m.data for m in mio.read_metadata(out)}
+    assert meta["mntes.recording"]["mode"] == "offline conversion"
+    assert meta["mntes.provenance"]["table_identity"] == stats.table_identity
+
+
+def test_offline_convert_with_new_parameters_via_cli(source_recording, tmp_path):
+    import numpy as np
+
+    from mntes_stream.io.paramfile import dump_params
+
+    path, src = source_recording
+    newer = [p.replace(t_c_k=p.transition.t_c_k * 1.001) for p in src.params]  # a "newer calibration"
+    dump_params(newer, tmp_path / "newer.toml")
+    out = tmp_path / "out.mcap"
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "convert", str(path), str(out),
+                          "--params", str(tmp_path / "newer.toml"), "--json", "-q"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    stats = json.loads(res.stdout)
+    assert stats["params_source"].endswith("newer.toml") and stats["table_identity"] != stats["recorded_table_identity"]
+    rec, new = _power(path), _power(out)
+    assert len(new) == len(rec)
+    # A higher T_c means a higher TES temperature at the same resistance, so more total power
+    # K (T^n - T_bath^n): the new parameters infer more optical power from the same counts.
+    shift = np.mean([np.nanmean(b.p_opt_w - a.p_opt_w) for a, b in zip(rec, new)])
+    assert shift > 1e-15
+    # Running it again is a refusal, not an overwrite.
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "convert", str(path), str(out), "-q"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "cannot create" in res.stderr
+
+
+def test_offline_convert_needs_parameters(tmp_path):
+    from mntes_stream.service.offline import convert_recording
+
+    path = tmp_path / "bare.mcap"
+    with mio.McapFileWriter(path) as w:
+        w.write("mntes/t/counts/0/0", counts_payload(0), T0)
+    with pytest.raises(ConfigError, match="no provenance"):
+        convert_recording(path, tmp_path / "out.mcap", progress=False)
