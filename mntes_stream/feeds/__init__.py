@@ -1,0 +1,31 @@
+"""Feeds for downstream mapmaking: recorded or live power as numpy, and HDF5 export.
+
+- :func:`read_power`, :class:`RecordedPower`, :func:`iter_power_blocks`: MCAP
+  sessions (a file, rotated files, a directory) to :class:`PowerBlock`
+  (``p_opt_w`` detectors x samples in W, ``t_ns``, ``flags``, ``detectors``).
+- :class:`LivePowerFeed`: the same blocks from zenoh as they are published.
+- :func:`export_hdf5` / :func:`read_hdf5`: one HDF5 group per observation
+  (module) with ``tod``, ``time``, ``time_ns``, ``flags``, ``detectors`` and
+  provenance attributes.
+
+Missing chunks are NaN + ``flags.GAP`` and absent detectors NaN +
+``flags.UNKNOWN_CHANNEL``: never silent zeros.
+"""
+
+from mntes_stream.feeds.blocks import PowerBlock, StreamId, StreamStats
+from mntes_stream.feeds.hdf5 import ExportSummary, export_hdf5, read_hdf5
+from mntes_stream.feeds.live import LivePowerFeed
+from mntes_stream.feeds.recorded import RecordedPower, iter_power_blocks, read_power
+
+__all__ = [
+    "PowerBlock",
+    "StreamId",
+    "StreamStats",
+    "RecordedPower",
+    "read_power",
+    "iter_power_blocks",
+    "LivePowerFeed",
+    "ExportSummary",
+    "export_hdf5",
+    "read_hdf5",
+]

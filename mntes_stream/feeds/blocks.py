@@ -1,0 +1,405 @@
+"""Power blocks and the per-stream assembly of chunks into gap-explicit time series (pure numpy).
+
+A *stream* is the power of one module: ``(setup, board, module)``. Its chunks
+are assembled in sample-time order by :class:`StreamAssembler`, which makes
+every irregularity explicit instead of silent:
+
+- **gap** (missing chunk, or missing sequence numbers that left a hole in
+  time): the hole is filled with NaN power and ``flags.GAP`` on the regular
+  sample grid continued from the last sample (``t_last + round(k * period)``);
+  a hole is a step larger than 1.5 sample periods;
+- **absent detector** (a row of the stream that a chunk does not carry, or a
+  selected detector that is not there): NaN and ``flags.UNKNOWN_CHANNEL``;
+- **duplicate chunk** (same ``seq`` and first sample time as one already
+  taken): dropped and counted;
+- **overlap** (samples at or before the last sample already emitted, e.g. a
+  late chunk whose span was already filled as a gap): dropped and counted, so
+  output times are strictly increasing.
+
+Power values are copied, never recomputed: what comes out is bitwise what the
+converter published.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+from mntes_stream.errors import ConfigError
+
+__all__ = ["PowerBlock", "StreamId", "StreamStats", "StreamAssembler", "BlockBuffer", "concat_blocks", "stream_name"]
+
+GAP_FACTOR = 1.5  # a step longer than this many sample periods is a hole
+_RECENT_KEYS = 1024  # (seq, t_first) pairs remembered per stream to spot duplicates
+
+
+@dataclass(frozen=True, order=True)
+class StreamId:
+    """One module's power stream."""
+
+    setup: str
+    board: int
+    module: int
+
+    @property
+    def name(self) -> str:
+        return stream_name(self.setup, self.board, self.module)
+
+
+def stream_name(setup: str, board: int, module: int) -> str:
+    """Observation name of a stream: ``<setup>_b<board>m<module>`` (HDF5 group name)."""
+    return f"{setup}_b{int(board)}m{int(module)}"
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class PowerBlock:
+    """Power of one module stream over consecutive samples.
+
+    Attributes
+    ----------
+    setup : str
+    board, module : int
+    detectors : tuple of str, length n_det
+        Detector ids of the rows.
+    channels : ndarray of int32, shape (n_det,)
+    t_ns : ndarray of int64, shape (n_samp,)
+        Sample times, ns since the Unix epoch, strictly increasing.
+    p_opt_w : ndarray of float64, shape (n_det, n_samp)
+        Optical power (W); NaN wherever no usable power (see ``flags``).
+    flags : ndarray of uint16, shape (n_det, n_samp)
+        ``core.flags`` bits; ``GAP`` in missing chunks, ``UNKNOWN_CHANNEL`` where
+        a detector is absent.
+    first_sample : int
+        Index of ``t_ns[0]`` in the assembled stream (0 for a whole stream).
+
+    Arrays are read-only; ``np.array(block.p_opt_w)`` gives a writable copy.
+    """
+
+    setup: str
+    board: int
+    module: int
+    detectors: tuple
+    channels: np.ndarray
+    t_ns: np.ndarray
+    p_opt_w: np.ndarray
+    flags: np.ndarray
+    first_sample: int = 0
+
+    def __post_init__(self) -> None:
+        dets = tuple(str(d) for d in self.detectors)
+        ch = np.asarray(self.channels, dtype=np.int32)
+        t = np.asarray(self.t_ns, dtype=np.int64)
+        p = np.asarray(self.p_opt_w, dtype=np.float64)
+        f = np.asarray(self.flags, dtype=fl.FLAG_DTYPE)
+        shape = (len(dets), t.size)
+        if ch.shape != (len(dets),) or t.ndim != 1 or p.shape != shape or f.shape != shape:
+            raise ConfigError(
+                f"PowerBlock: {len(dets)} detectors, channels {ch.shape}, t_ns {t.shape}, "
+                f"p_opt_w {p.shape}, flags {f.shape} are inconsistent (want (n_det, n_samp) = {shape})"
+            )
+        for name, value in (("detectors", dets), ("channels", ch), ("t_ns", t), ("p_opt_w", p), ("flags", f)):
+            object.__setattr__(self, name, value if name == "detectors" else _readonly(value))
+
+    @property
+    def stream(self) -> StreamId:
+        return StreamId(self.setup, self.board, self.module)
+
+    @property
+    def name(self) -> str:
+        """Observation name (``<setup>_b<board>m<module>``)."""
+        return stream_name(self.setup, self.board, self.module)
+
+    @property
+    def n_detectors(self) -> int:
+        return len(self.detectors)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.t_ns.size)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """Sample times in float64 seconds since the epoch (sub-microsecond resolution)."""
+        return self.t_ns / 1e9
+
+    def select(self, detectors: Iterable[str]) -> "PowerBlock":
+        """The rows of ``detectors`` (in that order); ConfigError for an id not here."""
+        row = {d: r for r, d in enumerate(self.detectors)}
+        want = list(detectors)
+        missing = [d for d in want if d not in row]
+        if missing:
+            raise ConfigError(f"{self.name}: no detector(s) {missing}")
+        idx = np.array([row[d] for d in want], dtype=np.intp)
+        return PowerBlock(self.setup, self.board, self.module, tuple(want), self.channels[idx], self.t_ns,
+                          self.p_opt_w[idx], self.flags[idx], self.first_sample)
+
+
+def concat_blocks(blocks: list[PowerBlock]) -> PowerBlock:
+    """Consecutive blocks of one stream (same rows) as one block."""
+    if not blocks:
+        raise ConfigError("no blocks to concatenate")
+    b0 = blocks[0]
+    if len(blocks) == 1:
+        return b0
+    for b in blocks[1:]:
+        if b.stream != b0.stream or b.detectors != b0.detectors:
+            raise ConfigError("concat_blocks: blocks of different streams or rows")
+    return PowerBlock(b0.setup, b0.board, b0.module, b0.detectors, b0.channels,
+                      np.concatenate([b.t_ns for b in blocks]), np.concatenate([b.p_opt_w for b in blocks], axis=1),
+                      np.concatenate([b.flags for b in blocks], axis=1), b0.first_sample)
+
+
+@dataclass
+class StreamStats:
+    """What assembling one stream found (counts, cumulative).
+
+    Attributes
+    ----------
+    chunks : int
+        Chunks whose samples were used.
+    samples : int
+        Samples emitted per detector row (data and gap fill).
+    duplicate_chunks : int
+        Same ``seq`` and first sample time as a chunk already taken: dropped.
+    overlap_samples : int
+        Samples at or before the last one emitted (late chunks): dropped.
+    gaps, gap_samples : int
+        Holes in time and the samples filled with NaN + GAP.
+    seq_gaps : int
+        Sequence numbers skipped between consecutive chunks.
+    absent_samples : int
+        Detector-samples filled with NaN + UNKNOWN_CHANNEL (absent detectors).
+    invalid_messages : int
+        Payloads that did not decode as a power chunk (skipped).
+    table_identities, converter_kinds : list of str
+        Distinct values of the chunks used, in order of first appearance.
+    """
+
+    chunks: int = 0
+    samples: int = 0
+    duplicate_chunks: int = 0
+    overlap_samples: int = 0
+    gaps: int = 0
+    gap_samples: int = 0
+    seq_gaps: int = 0
+    absent_samples: int = 0
+    invalid_messages: int = 0
+    table_identities: list = field(default_factory=list)
+    converter_kinds: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, list) else v) for k, v in self.__dict__.items()}
+
+
+Piece = tuple  # (t_ns (n,), p_opt_w (n_rows, n), flags (n_rows, n))
+
+
+class StreamAssembler:
+    """Chunks of one stream in, gap-explicit pieces on fixed detector rows out.
+
+    Parameters
+    ----------
+    detectors : sequence of str
+        The output rows (n_rows).
+    start_ns, end_ns : int, optional
+        Keep samples with ``start_ns <= t < end_ns`` (gap fill included).
+    """
+
+    def __init__(self, detectors, channels, start_ns: int | None = None, end_ns: int | None = None):
+        self.detectors = tuple(detectors)
+        self.channels = np.asarray(channels, dtype=np.int32)
+        self._row = {d: r for r, d in enumerate(self.detectors)}
+        self._lo = -(1 << 63) if start_ns is None else int(start_ns)
+        self._hi = (1 << 63) - 1 if end_ns is None else int(end_ns)
+        self.last_t_ns: int | None = None
+        self.last_seq: int | None = None
+        self.period_ns: float | None = None
+        self._recent: collections.deque = collections.deque(maxlen=_RECENT_KEYS)
+        self._recent_set: set = set()
+        self._maps: dict[tuple, tuple] = {}
+        self.stats = StreamStats()
+
+    def _map(self, ids: tuple) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(source rows, destination rows, complete) for a chunk's detector ids."""
+        m = self._maps.get(ids)
+        if m is None:
+            pairs = [(i, self._row[d]) for i, d in enumerate(ids) if d in self._row]
+            src = np.array([i for i, _ in pairs], dtype=np.intp)
+            dst = np.array([r for _, r in pairs], dtype=np.intp)
+            m = self._maps[ids] = (src, dst, len(pairs) == len(self.detectors) and np.array_equal(src, dst))
+        return m
+
+    def add_rows(self, detector_ids, channels) -> bool:
+        """Extend the rows with detectors not yet there (kept sorted by channel); True if any."""
+        new = [(int(c), d) for c, d in zip(np.asarray(channels).tolist(), detector_ids) if d not in self._row]
+        if not new:
+            return False
+        rows = sorted(list(zip(self.channels.tolist(), self.detectors)) + new)
+        self.channels = np.array([c for c, _ in rows], dtype=np.int32)
+        self.detectors = tuple(d for _, d in rows)
+        self._row = {d: r for r, d in enumerate(self.detectors)}
+        self._maps.clear()
+        return True
+
+    def _remember(self, key: tuple) -> None:
+        if len(self._recent) == self._recent.maxlen:
+            self._recent_set.discard(self._recent[0])
+        self._recent.append(key)
+        self._recent_set.add(key)
+
+    def push(self, seq: int, t_ns: np.ndarray, sample_rate_hz: float | None, detector_ids: tuple,
+             p_opt_w: np.ndarray, flags: np.ndarray) -> list[Piece]:
+        """Add the next chunk (in sample-time order); returns the pieces to append.
+
+        Parameters
+        ----------
+        seq : int
+        t_ns : ndarray of int64, shape (n,)
+        sample_rate_hz : float or None
+            None for chunks with explicit times (the period is then their median step).
+        detector_ids : tuple of str, length n_ch
+        p_opt_w : ndarray of float64, shape (n_ch, n)
+        flags : ndarray of uint16, shape (n_ch, n)
+        """
+        st = self.stats
+        n = int(t_ns.size)
+        if n == 0:
+            return []
+        key = (int(seq), int(t_ns[0]))
+        if key in self._recent_set:
+            st.duplicate_chunks += 1
+            return []
+        self._remember(key)
+        if sample_rate_hz:
+            period = 1e9 / float(sample_rate_hz)
+        elif n >= 2:
+            period = float(np.median(np.diff(t_ns)))
+        else:
+            period = self.period_ns
+        out: list[Piece] = []
+        keep = slice(None)
+        if self.last_t_ns is not None:
+            n_old = int(np.searchsorted(t_ns, self.last_t_ns, side="right"))
+            if n_old:
+                st.overlap_samples += n_old
+                if n_old == n:
+                    return []
+                keep = slice(n_old, None)
+            step = int(t_ns[n_old]) - self.last_t_ns
+            p_ref = period if period else self.period_ns
+            if p_ref and step > GAP_FACTOR * p_ref:
+                n_fill = int(round(step / p_ref)) - 1
+                t_fill = self.last_t_ns + np.rint(np.arange(1, n_fill + 1) * p_ref).astype(np.int64)
+                t_fill = t_fill[(t_fill < int(t_ns[n_old])) & (t_fill >= self._lo) & (t_fill < self._hi)]
+                if t_fill.size:
+                    st.gaps += 1
+                    st.gap_samples += int(t_fill.size)
+                    shape = (len(self.detectors), t_fill.size)
+                    out.append((t_fill, np.full(shape, np.nan), np.full(shape, fl.GAP, dtype=fl.FLAG_DTYPE)))
+            if self.last_seq is not None and seq > self.last_seq + 1:
+                st.seq_gaps += int(seq) - self.last_seq - 1
+        t = t_ns[keep]
+        sel = (t >= self._lo) & (t < self._hi)
+        if not sel.all():
+            cols = np.flatnonzero(sel)
+            t = t[cols]
+        else:
+            cols = None
+        self.last_t_ns = int(t_ns[-1])
+        self.last_seq = int(seq)
+        if period:
+            self.period_ns = period
+        if t.size == 0:
+            return out
+        src, dst, complete = self._map(tuple(detector_ids))
+        p = p_opt_w[:, keep]
+        f = flags[:, keep]
+        if cols is not None:
+            p, f = p[:, cols], f[:, cols]
+        if complete:
+            p_out, f_out = np.array(p, dtype=np.float64), np.array(f, dtype=fl.FLAG_DTYPE)
+        else:
+            shape = (len(self.detectors), t.size)
+            p_out = np.full(shape, np.nan)
+            f_out = np.full(shape, fl.UNKNOWN_CHANNEL, dtype=fl.FLAG_DTYPE)
+            p_out[dst] = p[src]
+            f_out[dst] = f[src]
+            st.absent_samples += (len(self.detectors) - dst.size) * int(t.size)
+        st.chunks += 1
+        out.append((np.array(t, dtype=np.int64), p_out, f_out))
+        return out
+
+    def note(self, table_identity: str, converter_kind: str) -> None:
+        """Record the table identity and converter kind of a chunk that was used."""
+        if table_identity not in self.stats.table_identities:
+            self.stats.table_identities.append(table_identity)
+        if converter_kind not in self.stats.converter_kinds:
+            self.stats.converter_kinds.append(converter_kind)
+
+
+class BlockBuffer:
+    """Collects pieces of one stream and cuts them into blocks of ``block_samples``.
+
+    Parameters
+    ----------
+    stream : StreamId
+    detectors, channels
+        The rows (as the assembler's).
+    block_samples : int
+        Samples per block (the last block may be shorter).
+    """
+
+    def __init__(self, stream: StreamId, detectors, channels, block_samples: int):
+        if int(block_samples) < 1:
+            raise ConfigError(f"block_samples must be >= 1, got {block_samples}")
+        self.stream = stream
+        self.detectors = tuple(detectors)
+        self.channels = np.asarray(channels, dtype=np.int32)
+        self.block_samples = int(block_samples)
+        self._pieces: list[Piece] = []
+        self._n = 0
+        self.emitted = 0
+
+    def add(self, pieces: list[Piece]) -> Iterator[PowerBlock]:
+        for piece in pieces:
+            self._pieces.append(piece)
+            self._n += int(piece[0].size)
+        while self._n >= self.block_samples:
+            yield self._cut(self.block_samples)
+
+    def flush(self) -> Iterator[PowerBlock]:
+        if self._n:
+            yield self._cut(self._n)
+
+    def _cut(self, n: int) -> PowerBlock:
+        take, rest, got = [], [], 0
+        for t, p, f in self._pieces:
+            if got >= n:
+                rest.append((t, p, f))
+                continue
+            k = min(n - got, t.size)
+            take.append((t[:k], p[:, :k], f[:, :k]))
+            if k < t.size:
+                rest.append((t[k:], p[:, k:], f[:, k:]))
+            got += k
+        self._pieces = rest
+        self._n -= n
+        if len(take) == 1:
+            t, p, f = take[0]
+        else:
+            t = np.concatenate([x[0] for x in take])
+            p = np.concatenate([x[1] for x in take], axis=1)
+            f = np.concatenate([x[2] for x in take], axis=1)
+        s = self.stream
+        block = PowerBlock(s.setup, s.board, s.module, self.detectors, self.channels, t, p, f, self.emitted)
+        self.emitted += n
+        return block

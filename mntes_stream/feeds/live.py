@@ -1,0 +1,184 @@
+"""Live power over zenoh as numpy blocks, for a selection of detectors.
+
+:class:`LivePowerFeed` subscribes to ``mntes/<setup>/power/<board>/<module>``
+(only the modules of the selected detectors, when a selection is given) and
+yields one :class:`~mntes_stream.feeds.blocks.PowerBlock` per received chunk,
+assembled per stream exactly like a recording
+(:class:`~mntes_stream.feeds.blocks.StreamAssembler`): a hole in time comes
+as its own block of NaN + GAP before the chunk after it; a chunk that arrives
+after its span was already given out (late, or a duplicate) is dropped and
+counted; an absent detector is NaN + UNKNOWN_CHANNEL. Without a selection the
+rows are every detector seen so far on that stream (a block's ``detectors``
+says which).
+
+The feed is bounded: it stops after ``max_blocks`` blocks, ``duration_s``
+seconds, or ``idle_timeout_s`` without a power chunk, whichever comes first,
+and always closes its zenoh session (use it as a context manager, or let the
+iteration finish).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+
+from mntes_stream.core.ids import parse_detector_id
+from mntes_stream.errors import ConfigError, SchemaError
+from mntes_stream.feeds.blocks import PowerBlock, StreamAssembler, StreamId, StreamStats
+from mntes_stream.io import keys
+
+__all__ = ["LivePowerFeed"]
+
+
+class LivePowerFeed:
+    """Iterate live power blocks.
+
+    Parameters
+    ----------
+    zenoh : mntes_stream.io.transport.ZenohSettings
+        How to join the network (e.g. ``transport.loopback(connect_ports=[port])``).
+    setup : str
+    detectors : iterable of str, optional
+        Only these detectors (rows in this order, per module); default all.
+    board, module : int or "*"
+        Streams to subscribe to when no detectors are given.
+    max_blocks : int, optional
+        Stop after this many blocks (gap blocks included).
+    duration_s : float, optional
+        Stop after this long.
+    idle_timeout_s : float
+        Stop after this long without a power chunk.
+    queue_size : int
+        Received chunks buffered; when full, BLOCK publishers wait (no loss).
+
+    Attributes
+    ----------
+    stats : dict of str to StreamStats
+        Per observation name (``<setup>_b<board>m<module>``).
+    invalid_messages : int
+        Payloads that did not decode as power chunks (skipped).
+    """
+
+    def __init__(self, zenoh, setup: str, *, detectors: Iterable[str] | None = None, board: int | str = "*",
+                 module: int | str = "*", max_blocks: int | None = None, duration_s: float | None = None,
+                 idle_timeout_s: float = 10.0, queue_size: int = 1024):
+        self.settings = zenoh
+        self.setup = setup
+        self._dets = None if detectors is None else tuple(dict.fromkeys(str(d) for d in detectors))
+        if self._dets is not None:
+            if not self._dets:
+                raise ConfigError("an empty detector selection selects nothing")
+            mods = sorted({parse_detector_id(d)[:2] for d in self._dets})
+            self.key_exprs = [keys.power_key(setup, b, m) for b, m in mods]
+        else:
+            self.key_exprs = [keys.power_key(setup, board, module)]
+        for name, v in (("max_blocks", max_blocks), ("duration_s", duration_s), ("idle_timeout_s", idle_timeout_s)):
+            if v is not None and not v > 0:
+                raise ConfigError(f"{name} must be > 0, got {v!r}")
+        self.max_blocks = max_blocks
+        self.duration_s = duration_s
+        self.idle_timeout_s = float(idle_timeout_s)
+        self.queue_size = int(queue_size)
+        self._session = None
+        self._sub = None
+        self._asm: dict[StreamId, StreamAssembler] = {}
+        self._emitted: dict[StreamId, int] = {}
+        self.stats: dict[str, StreamStats] = {}
+        self.invalid_messages = 0
+        self.blocks = 0
+
+    # ------------------------------------------------------------------ session
+
+    def open(self) -> "LivePowerFeed":
+        """Open the zenoh session and subscribe (idempotent)."""
+        from mntes_stream.io.transport import QueueSubscriber, open_session
+
+        if self._session is None:
+            self._session = open_session(self.settings)
+            try:
+                self._sub = QueueSubscriber(self._session, self.key_exprs, maxsize=self.queue_size)
+            except BaseException:
+                self.close()
+                raise
+        return self
+
+    def close(self) -> None:
+        """Undeclare the subscriber and close the session (idempotent)."""
+        sub, session = self._sub, self._session
+        self._sub = self._session = None
+        try:
+            if sub is not None:
+                sub.close()
+        finally:
+            if session is not None:
+                session.close()
+
+    def __enter__(self) -> "LivePowerFeed":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ blocks
+
+    def _assembler(self, sid: StreamId, chunk) -> StreamAssembler | None:
+        asm = self._asm.get(sid)
+        if asm is None:
+            if self._dets is None:
+                asm = StreamAssembler((), ())
+            else:
+                mine = [d for d in self._dets if parse_detector_id(d)[:2] == (sid.board, sid.module)]
+                if not mine:
+                    return None
+                asm = StreamAssembler(mine, [parse_detector_id(d)[2] for d in mine])
+            self._asm[sid] = asm
+            self._emitted[sid] = 0
+            self.stats[sid.name] = asm.stats
+        if self._dets is None:
+            asm.add_rows(chunk.detector_ids, chunk.channels)
+        return asm
+
+    def _blocks_of(self, chunk) -> list[PowerBlock]:
+        sid = StreamId(chunk.setup, chunk.board, chunk.module)
+        asm = self._assembler(sid, chunk)
+        if asm is None:
+            return []
+        pieces = asm.push(chunk.seq, chunk.times_ns(), chunk.sample_rate_hz, chunk.detector_ids, chunk.p_opt_w, chunk.flags)
+        if pieces:
+            asm.note(chunk.table_identity, chunk.converter_kind)
+        out = []
+        for t, p, f in pieces:
+            out.append(PowerBlock(sid.setup, sid.board, sid.module, asm.detectors, asm.channels, t, p, f, self._emitted[sid]))
+            self._emitted[sid] += int(t.size)
+            asm.stats.samples = self._emitted[sid]
+        return out
+
+    def __iter__(self) -> Iterator[PowerBlock]:
+        from mntes_stream.io.messages import PowerChunk
+
+        self.open()
+        t_start = last = time.monotonic()
+        try:
+            while True:
+                now = time.monotonic()
+                if self.duration_s is not None and now - t_start >= self.duration_s:
+                    return
+                if now - last >= self.idle_timeout_s:
+                    return
+                item = self._sub.get(timeout_s=0.05)
+                if item is None:
+                    continue
+                last = time.monotonic()
+                _, payload, _ = item
+                try:
+                    chunk = PowerChunk.from_bytes(payload)
+                except SchemaError:
+                    self.invalid_messages += 1
+                    continue
+                for block in self._blocks_of(chunk):
+                    yield block
+                    self.blocks += 1
+                    if self.max_blocks is not None and self.blocks >= self.max_blocks:
+                        return
+        finally:
+            self.close()
