@@ -1,0 +1,1 @@
+"""Ground calibration (paper section 4): measurements, simulation, per-detector fits."""
