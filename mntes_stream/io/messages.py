@@ -497,11 +497,8 @@ class StatusMessage(_Message):
                 if v < 0:
                     raise _error("invalid", f"{f.name} must be >= 0")
                 object.__setattr__(self, f.name, v)
-            elif f.type == "float | None":
-                v = _float(value, f.name, optional=True)
-                if v is not None and v < 0:
-                    raise _error("invalid", f"{f.name} must be >= 0")
-                object.__setattr__(self, f.name, v)
+            elif f.type == "float | None":  # latencies: negative when clocks disagree
+                object.__setattr__(self, f.name, _float(value, f.name, optional=True))
         object.__setattr__(self, "bad_messages", _count_map(self.bad_messages, "bad_messages"))
         object.__setattr__(self, "flag_counts", _count_map(self.flag_counts, "flag_counts"))
         if not isinstance(self.hk_age_s, dict):

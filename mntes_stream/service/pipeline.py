@@ -234,22 +234,25 @@ class ConverterPipeline:
         """Process one received message; returns ``(key, payload)`` messages to publish."""
         out: list[tuple[str, bytes]] = []
         self._advance(t_recv_ns)
-        try:
-            self._dispatch(str(key), payload, int(t_recv_ns))
-        except Exception as exc:  # the service must survive its own bugs too; counted and shown
-            self._bad("internal_error", f"{type(exc).__name__}: {exc}", key)
-            log.exception("internal error handling %s", key)
-        self._release(out)
-        self._maybe_status(out)
+        self._guarded(self._dispatch, key, str(key), payload, int(t_recv_ns))
+        self._guarded(self._release, key, out)
+        self._guarded(self._maybe_status, key, out)
         return out
 
     def tick(self, t_now_ns: int) -> list[tuple[str, bytes]]:
         """Let time pass without a message: release chunks that waited long enough, status when due."""
         out: list[tuple[str, bytes]] = []
         self._advance(t_now_ns)
-        self._release(out)
-        self._maybe_status(out)
+        self._guarded(self._release, "tick", out)
+        self._guarded(self._maybe_status, "tick", out)
         return out
+
+    def _guarded(self, step, key, *args) -> None:
+        try:
+            step(*args)
+        except Exception as exc:  # the service must survive its own bugs too: counted and shown
+            self._bad("internal_error", f"{type(exc).__name__}: {exc}", str(key))
+            log.exception("internal error (%s) handling %s", getattr(step, "__name__", step), key)
 
     def flush(self) -> list[tuple[str, bytes]]:
         """Convert everything still held (with what housekeeping there is) and emit a final status."""

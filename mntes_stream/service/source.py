@@ -21,7 +21,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, fields
-from typing import Iterable, Iterator
+from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
@@ -31,7 +31,10 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import SENSOR_UNITS, CountsChunk, HousekeepingChunk
 
-__all__ = ["SourceConfig", "MinimalSource", "publish", "Batch"]
+__all__ = ["SourceConfig", "SourceService", "MinimalSource", "default_params", "publish", "run_source", "Batch"]
+
+if TYPE_CHECKING:
+    from mntes_stream.io.transport import ZenohSettings
 
 log = logging.getLogger("mntes_stream.source")
 
@@ -177,6 +180,11 @@ class MinimalSource:
             self._cycles[key] = (np.rint(counts.real).astype(np.int32), np.rint(counts.imag).astype(np.int32))
         return self._cycles[key]
 
+    def prepare(self) -> None:
+        """Solve the forward model for every module now (else lazily on first use)."""
+        for board, module, params in self._modules:
+            self._cycle(board, module, params)
+
     def batches(self, t_start_ns: int, duration_s: float = 0.0) -> Iterator[Batch]:
         """Batches from ``t_start_ns`` on (for ``duration_s`` of data; 0: forever).
 
@@ -258,7 +266,7 @@ def default_params(cfg: SourceConfig) -> list[DetectorParams]:
 
 
 def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None, wait_keys: Iterable[str] = (),
-            wait_s: float = 10.0, progress=None) -> dict:
+            wait_s: float = 10.0, progress=None, t_ref_ns: int | None = None) -> dict:
     """Publish batches on ``session`` paced by their ``t_pub_ns`` (``speed`` x real time; 0: flat out).
 
     Parameters
@@ -271,6 +279,11 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
     wait_keys : keys that must have a subscriber before the first batch (up to ``wait_s``).
     progress : callable(dict), optional
         Called about once a second with the running counters.
+    t_ref_ns : int, optional
+        Data time that corresponds to "now" when publishing starts (default:
+        the first batch's time). With the data clock started now, a batch then
+        goes out when its ``t_pub_ns`` comes, so latencies measured from
+        ``t_pub_ns`` are honest.
 
     Returns
     -------
@@ -295,14 +308,20 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
             if stop is not None and stop.is_set():
                 break
             if wall0 is None:
-                wall0, t_first = time.monotonic(), t_pub_ns
+                wall0, t_first = time.monotonic(), (t_pub_ns if t_ref_ns is None else t_ref_ns)
             if speed > 0:
-                due = wall0 + (t_pub_ns - t_first) / 1e9 / speed
-                while (wait := due - time.monotonic()) > 0:
+                if t_ref_ns is not None:
+                    # Data clock started at t_ref_ns = wall clock then: pace on the wall clock itself.
+                    due = (t_ref_ns + (t_pub_ns - t_ref_ns) / speed) / 1e9
+                    clock = time.time
+                else:
+                    due = wall0 + (t_pub_ns - t_first) / 1e9 / speed
+                    clock = time.monotonic
+                while (wait := due - clock()) > 0:
                     time.sleep(min(wait, 0.05))
                     if stop is not None and stop.is_set():
                         break
-                behind_max = max(behind_max, time.monotonic() - due)
+                behind_max = max(behind_max, clock() - due)
             for key, payload in batch:
                 pubs.put(key, payload)
             n_batches += 1
@@ -313,3 +332,67 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
         pubs.close()
     return {"batches": n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
             "behind_max_ms": behind_max * 1e3, "matched": matched}
+
+
+@dataclass(frozen=True)
+class SourceService:
+    """The ``[source]`` table: the array (:class:`SourceConfig`) plus how to run it.
+
+    ``params`` is a detector parameter file used as the truth (default: the
+    generated Table-1-like detectors); ``speed`` a multiple of real time (0:
+    flat out); ``duration_s`` of data to publish (0: until stopped).
+    """
+
+    source: SourceConfig
+    zenoh: "ZenohSettings"
+    params: str = ""
+    speed: float = 1.0
+    duration_s: float = 0.0
+
+    @classmethod
+    def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SourceService":
+        from pathlib import Path
+
+        from mntes_stream.io.transport import ZenohSettings
+
+        unknown = set(doc) - {"source", "zenoh"}
+        if unknown:
+            raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [source], [zenoh])")
+        table = dict(doc.get("source", {}))
+        run = {k: table.pop(k) for k in ("params", "speed", "duration_s") if k in table}
+        if run.get("params") and base_dir is not None and not Path(run["params"]).is_absolute():
+            run["params"] = str(Path(base_dir) / run["params"])
+        return cls(
+            source=SourceConfig.from_dict(table, f"{source} [source]"),
+            zenoh=ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir),
+            **run,
+        )
+
+
+def run_source(svc: SourceService, stop=None, ready=None, t_start_ns: int | None = None) -> dict:
+    """Publish :class:`MinimalSource` batches until done or stopped; returns :func:`publish`'s counters."""
+    from mntes_stream.io.transport import open_session
+    from mntes_stream.service import stop_on_signals
+
+    params = None
+    if svc.params:
+        from mntes_stream.io.paramfile import load_params
+
+        params = list(load_params(svc.params).values())
+    src = MinimalSource(svc.source, params)
+    cfg = svc.source
+    counts_keys = [keys.counts_key(cfg.setup, b, m) for b in range(cfg.boards) for m in range(cfg.modules)]
+    with stop_on_signals(stop) as stopping, open_session(svc.zenoh) as session:
+        if ready is not None:
+            ready.set()
+        from mntes_stream.io.transport import Publishers
+
+        # Wait for the converter before the data clock starts, so waiting is not latency.
+        if not Publishers(session).wait_matching(counts_keys, 30.0, stopping):
+            log.warning("source: no subscriber for the counts yet; publishing anyway")
+        src.prepare()
+        start = t_start_ns if t_start_ns is not None else time.time_ns()
+        log.info("source: %d detectors, %d modules, %.2f Hz, publishing", cfg.n_detectors, cfg.boards * cfg.modules, cfg.sample_rate_hz)
+        result = publish(session, src.batches(start, svc.duration_s), speed=svc.speed, stop=stopping, t_ref_ns=start)
+    log.info("source stopped: %s", result)
+    return result
