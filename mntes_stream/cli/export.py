@@ -1,0 +1,84 @@
+"""``mntes-stream export SESSION --out FILE``: recorded power to HDF5 for mapmakers."""
+
+from __future__ import annotations
+
+import json
+import re
+from datetime import datetime, timezone
+
+from mntes_stream.errors import ConfigError
+
+_ISO = re.compile(r"^\d{4}-\d{2}-\d{2}[T ]")
+
+
+def parse_time_ns(text: str) -> int:
+    """``--start``/``--end``: integer ns since the epoch, or an ISO 8601 time (UTC unless it says otherwise)."""
+    text = text.strip()
+    if re.fullmatch(r"-?\d+", text):
+        return int(text)
+    if _ISO.match(text):
+        try:
+            dt = datetime.fromisoformat(text.replace("Z", "+00:00"))
+        except ValueError as exc:
+            raise ConfigError(f"cannot read time {text!r}: {exc}") from None
+        if dt.tzinfo is None:
+            dt = dt.replace(tzinfo=timezone.utc)
+        delta = dt - datetime(1970, 1, 1, tzinfo=timezone.utc)
+        return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1_000
+    raise ConfigError(f"time {text!r}: give integer ns since the epoch or ISO 8601 (2025-01-31T12:00:00Z)")
+
+
+def _detectors(values) -> list[str] | None:
+    if not values:
+        return None
+    return [d for v in values for d in (s.strip() for s in v.split(",")) if d]
+
+
+def run_export(args) -> int:
+    from mntes_stream.feeds.hdf5 import export_hdf5
+
+    selection = {
+        "setup": args.setup,
+        "detectors": _detectors(args.detectors),
+        "start_ns": None if args.start is None else parse_time_ns(args.start),
+        "end_ns": None if args.end is None else parse_time_ns(args.end),
+        "board": args.board,
+        "module": args.module,
+    }
+    summary = export_hdf5(args.session, args.out, compression=args.compression, block_samples=args.block_samples,
+                          overwrite=args.overwrite, progress=not args.json, **selection)
+    result = {
+        "path": summary.path,
+        "observations": list(summary.observations),
+        "detector_samples": summary.samples,
+        "gap_samples": summary.gap_samples,
+        "absent_detector_samples": summary.absent_samples,
+        "duplicate_chunks": summary.duplicate_chunks,
+        "file_bytes": summary.file_bytes,
+        "seconds": round(summary.seconds, 3),
+        "samples_per_s": round(summary.samples_per_s),
+    }
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        for k, v in result.items():
+            print(f"{k:>24s}: {v}")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("export", help="export recorded power to HDF5 (one group per module: tod, time, flags, detectors)")
+    p.add_argument("session", nargs="+", help="MCAP file(s) or a directory of rotated files")
+    p.add_argument("--out", required=True, help="HDF5 file to write")
+    p.add_argument("--start", help="first sample time: integer ns since the epoch or ISO 8601 (UTC)")
+    p.add_argument("--end", help="end (exclusive) sample time, same forms as --start")
+    p.add_argument("--detectors", action="append", metavar="IDS", help="comma-separated detector ids (repeatable)")
+    p.add_argument("--setup", help="only this setup's streams")
+    p.add_argument("--board", type=int, help="only this board")
+    p.add_argument("--module", type=int, help="only this module")
+    p.add_argument("--compression", default="gzip", choices=("gzip", "lzf", "none"),
+                   help="gzip (default) is readable everywhere; lzf is faster but h5py-only")
+    p.add_argument("--block-samples", type=int, default=8192, help="samples per write and per HDF5 chunk")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
+    p.set_defaults(func=run_export)
