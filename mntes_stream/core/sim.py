@@ -134,12 +134,14 @@ class SimConfig:
     nei_a_rthz: float = 10e-12          # readout noise current per quadrature
     quantise: bool = True
     # --- environment -------------------------------------------------------------------
-    t_bath_k: float = 0.100
+    t_bath_k: float = 0.100             # nominal (tuning point)
+    t_bath_offset_k: float = 0.0        # environment offset from nominal at t = 0: not re-tuned
     t_bath_ramp_k_per_s: float = 0.0
     t_bath_wander_k: float = 0.2e-3     # slow sinusoidal drift amplitude
     t_bath_wander_period_s: float = 1800.0
     t_bath_fluct_k: float = 5e-6        # rms of fluctuations between 1 mHz and 1 Hz
-    b_field_t: float = 0.0              # static field
+    b_field_t: float = 0.0              # static field (the tuning point)
+    b_field_offset_t: float = 0.0       # offset from it at t = 0: not re-tuned
     b_field_amp_t: float = 10e-6        # spin-synchronous amplitude
     b_field_period_s: float = 1200.0
     b_field_ramp_t_per_s: float = 0.0
@@ -671,14 +673,14 @@ class ArraySimulator:
         t = np.asarray(t_s, dtype=float)
         wander = (c.t_bath_wander_k * np.sin(2 * np.pi * t / c.t_bath_wander_period_s)
                   if c.t_bath_wander_k and c.t_bath_wander_period_s > 0 else 0.0)
-        return c.t_bath_k + c.t_bath_ramp_k_per_s * t + wander + self._fluct_tb(t)
+        return c.t_bath_k + c.t_bath_offset_k + c.t_bath_ramp_k_per_s * t + wander + self._fluct_tb(t)
 
     def b_field_t(self, t_s) -> np.ndarray:
         c = self.config
         t = np.asarray(t_s, dtype=float)
         spin = (c.b_field_amp_t * np.sin(2 * np.pi * t / c.b_field_period_s)
                 if c.b_field_amp_t and c.b_field_period_s > 0 else 0.0)
-        return c.b_field_t + c.b_field_ramp_t_per_s * t + spin + self._fluct_b(t)
+        return c.b_field_t + c.b_field_offset_t + c.b_field_ramp_t_per_s * t + spin + self._fluct_b(t)
 
     def _time_ns(self, k: int) -> int:
         """Time of sample ``k`` of the run."""
@@ -695,24 +697,35 @@ class ArraySimulator:
         return np.concatenate([[1.0], self._step_factor])[n_applied]
 
     # --- optical signal ------------------------------------------------------------------------
-    def optical_signal_w(self, t_s) -> np.ndarray:
-        """Noise-free optical power, shape ``(n_det, n_samp)``."""
+    def optical_components_w(self, t_s) -> dict:
+        """Noise-free optical power by component, each of shape ``(n_det, n_samp)``.
+
+        Keys: ``loading``, ``hwp``, ``jupiter``, ``dipole`` (zeros where off).
+        """
         c = self.config
         t = np.asarray(t_s, dtype=float)[None, :]
-        p = np.repeat(self._load_w, t.shape[1], axis=1)
+        shape = (len(self.channels), t.shape[1])
+        out = {"loading": np.broadcast_to(self._load_w, shape).copy(), "hwp": np.zeros(shape),
+               "jupiter": np.zeros(shape), "dipole": np.zeros(shape)}
         theta = 2 * np.pi * c.f_hwp_hz * t
         for j, (harm, amp) in enumerate(((1, c.hwp_1f_w), (2, c.hwp_2f_w), (4, c.hwp_4f_w))):
             if amp:
-                p += amp * np.cos(harm * theta + self._hwp_phase[:, j : j + 1])
+                out["hwp"] += amp * np.cos(harm * theta + self._hwp_phase[:, j : j + 1])
         if c.jupiter_peak_w:
             sigma = c.jupiter_fwhm_s / (2 * math.sqrt(2 * math.log(2)))
             rel = t - c.jupiter_t_s - self._jup_delay
             if c.jupiter_period_s > 0:
                 rel = rel - np.maximum(np.round(rel / c.jupiter_period_s), 0) * c.jupiter_period_s
-            p += self._jup_peak * np.exp(-0.5 * (rel / sigma) ** 2)
+            out["jupiter"] = self._jup_peak * np.exp(-0.5 * (rel / sigma) ** 2)
         if c.dipole_k:
-            p += self.dpdt_cmb_w_per_k * c.dipole_k * np.cos(2 * np.pi * t / c.dipole_period_s)
-        return p
+            out["dipole"] = np.broadcast_to(
+                self.dpdt_cmb_w_per_k * c.dipole_k * np.cos(2 * np.pi * t / c.dipole_period_s), shape).copy()
+        return out
+
+    def optical_signal_w(self, t_s) -> np.ndarray:
+        """Noise-free optical power, shape ``(n_det, n_samp)``: the sum of the components."""
+        parts = self.optical_components_w(t_s)
+        return parts["loading"] + parts["hwp"] + parts["jupiter"] + parts["dipole"]
 
     # --- the stream ----------------------------------------------------------------------------
     def next_block(self, n: int) -> SimBlock:
