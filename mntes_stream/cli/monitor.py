@@ -1,0 +1,91 @@
+"""``mntes-stream monitor``: the quick-look page (or a terminal table) of a running setup."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+
+def _f_hwp(text: str):
+    if text == "auto":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise SystemExit(f"mntes-stream monitor: --f-hwp takes a frequency in Hz or 'auto', got {text!r}") from None
+    return value
+
+
+def _settings(args):
+    from mntes_stream.cli.record import _zenoh_overrides
+    from mntes_stream.io.transport import ZenohSettings
+    from mntes_stream.monitor.aggregate import MonitorConfig
+
+    config = MonitorConfig(history_s=args.history_s, f_hwp_hz=args.f_hwp, silent_s=args.silent_s, hk_stale_s=args.hk_stale_s)
+    return config, _zenoh_overrides(args, ZenohSettings())
+
+
+def _run_text(sub, args) -> int:
+    from mntes_stream.monitor.text import render_text
+
+    clear = sys.stdout.isatty()
+    t_end = time.monotonic() + args.duration if args.duration > 0 else None
+    period = max(args.update_s, 0.1)
+    time.sleep(min(period, 1.0))  # let a first interval of data arrive
+    while True:
+        with sub.lock:
+            tick = sub.aggregator.tick(time.time_ns())
+            screen = render_text(sub.aggregator, tick)
+        print(("\x1b[H\x1b[2J" if clear else "") + screen + ("" if clear else "\n"), flush=True)
+        if t_end is not None and time.monotonic() >= t_end:
+            return 0
+        time.sleep(period if t_end is None else max(min(period, t_end - time.monotonic()), 0.0))
+
+
+def run_monitor(args) -> int:
+    from mntes_stream.monitor.subscriber import MonitorSubscriber
+
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    config, zenoh = _settings(args)
+    with MonitorSubscriber(args.setup, zenoh, config) as sub:
+        try:
+            if args.text:
+                return _run_text(sub, args)
+            from mntes_stream.monitor.server import serve
+
+            def ready(host, port):
+                shown = f"[{host}]" if ":" in host else host
+                print(f"mntes-stream monitor: serving http://{shown}:{port}/ (setup {args.setup})", flush=True)
+
+            serve(sub, args.bind, args.port, args.update_s, args.duration, ready)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def register(sub) -> None:
+    from mntes_stream.cli.record import _add_zenoh_args
+
+    p = sub.add_parser(
+        "monitor",
+        help="quick-look web page (or --text table) of power, housekeeping and service health",
+        description="Subscribe to mntes/<setup>/{power,hk,status} and serve a live page on 127.0.0.1 "
+        "(time streams, spectrum with HWP harmonics, channel-state grid, housekeeping, service health). "
+        "Works the same on a live converter and on `mntes-stream replay`.",
+    )
+    p.add_argument("--setup", default="lab", help="setup name (default: lab)")
+    p.add_argument("--bind", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1; anything else exposes the page beyond this machine)")
+    p.add_argument("--port", type=int, default=8050, help="HTTP port (default 8050; 0 picks a free one)")
+    p.add_argument("--text", action="store_true", help="print a live terminal table instead of serving the page")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
+    p.add_argument("--update-s", type=float, default=0.5, help="update period of the page / table (s, default 0.5)")
+    p.add_argument("--f-hwp", type=_f_hwp, default=0.77, metavar="HZ|auto",
+                   help="HWP frequency whose 1f/2f/4f are marked (default 0.77 Hz, LFT); 'auto' estimates it")
+    p.add_argument("--history-s", type=float, default=30.0, help="power history kept and plotted (s, default 30)")
+    p.add_argument("--silent-s", type=float, default=3.0, help="a module without data this long is silent (s)")
+    p.add_argument("--hk-stale-s", type=float, default=2.0, help="housekeeping not received this long is stale (s)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    _add_zenoh_args(p)
+    p.set_defaults(func=run_monitor)

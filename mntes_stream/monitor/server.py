@@ -1,0 +1,288 @@
+"""The monitor's web edge: an aiohttp server pushing updates to the page over a websocket.
+
+Routes::
+
+    GET /                   the page (static/index.html)
+    GET /static/<file>      its script and style; plotly.min.js comes from the
+                            installed ``plotly`` package (no CDN, works offline)
+    GET /api/state          the latest shared update (JSON), for scripts and curl
+    GET /api/view?ch=ID&ch=ID[&f_hwp=0.77|auto]   time streams + spectra (JSON)
+    GET /ws                 websocket: the server sends ``update`` messages every
+                            ``update_s``; the page sends ``select``, ``f_hwp``
+                            and ``rendered`` (see static/monitor.js)
+
+One ticker classifies the channels and builds the shared part of the update
+once per period; each page then gets its own selected channels reduced on the
+server (:meth:`Aggregator.view`), so what travels is what is drawn.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import json
+import logging
+import math
+import signal
+import socket
+import time
+from importlib import resources
+from pathlib import Path
+
+from mntes_stream.errors import ConfigError
+
+__all__ = ["is_loopback", "plotly_js_path", "make_app", "serve"]
+
+log = logging.getLogger("mntes_stream.monitor")
+
+STATIC = Path(__file__).resolve().parent / "static"
+_STATIC_FILES = {"monitor.js": "text/javascript", "monitor.css": "text/css"}
+
+
+def is_loopback(host: str) -> bool:
+    """True for localhost, 127.0.0.0/8 and ::1."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def plotly_js_path() -> Path:
+    """The plotly.js bundle shipped inside the ``plotly`` pip package."""
+    try:
+        path = Path(str(resources.files("plotly") / "package_data" / "plotly.min.js"))
+    except ModuleNotFoundError:
+        raise ConfigError("the monitor needs plotly: pip install 'mntes-stream[monitor]'") from None
+    if not path.is_file():
+        raise ConfigError(f"plotly is installed but {path} is missing")
+    return path
+
+
+def _dumps(obj) -> str:
+    # allow_nan=False: a NaN that slipped through is a bug, not invalid JSON for the page.
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+
+
+class _Hub:
+    """The ticker's latest shared update and a way to wait for the next one."""
+
+    def __init__(self):
+        self.seq = 0
+        self.tick: dict | None = None
+        self._event = asyncio.Event()
+
+    def publish(self, tick: dict) -> None:
+        self.seq += 1
+        self.tick = tick
+        self._event.set()
+        self._event = asyncio.Event()
+
+    async def wait(self, seen: int) -> None:
+        """Return once an update newer than ``seen`` exists."""
+        while self.seq == seen:
+            await self._event.wait()
+
+
+def _parse_f_hwp(value):
+    """"auto" -> None (estimate), a positive number -> float, "config" stays."""
+    if value in ("config", None, ""):
+        return "config"
+    if value == "auto":
+        return None
+    f = float(value)
+    if not (math.isfinite(f) and f > 0):
+        raise ValueError("f_HWP must be a positive number or 'auto'")
+    return f
+
+
+def make_app(subscriber, update_s: float = 0.5):
+    """The aiohttp application serving ``subscriber`` (a :class:`MonitorSubscriber`).
+
+    Parameters
+    ----------
+    subscriber : MonitorSubscriber
+        Anything with ``tick()``, ``view(selection, f_hwp)``, ``lock`` and ``aggregator``.
+    update_s : float
+        Update period of the page (the ticker's period).
+    """
+    from aiohttp import WSMsgType, web
+
+    plotly_js = plotly_js_path()
+    hub_key = web.AppKey("hub", _Hub)
+    ticker_key = web.AppKey("ticker", asyncio.Task)
+    clients: set = set()
+
+    async def ticker(app):
+        hub = app[hub_key]
+        try:
+            while True:
+                t0 = time.monotonic()
+                hub.publish(await asyncio.to_thread(subscriber.tick))
+                await asyncio.sleep(max(update_s - (time.monotonic() - t0), 0.01))
+        except asyncio.CancelledError:
+            pass
+
+    async def on_startup(app):
+        app[hub_key] = _Hub()
+        app[ticker_key] = asyncio.create_task(ticker(app))
+
+    async def on_shutdown(app):
+        app[ticker_key].cancel()
+        for ws in list(clients):
+            await ws.close()
+
+    async def index(request):
+        return web.FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+    async def static(request):
+        name = request.match_info["name"]
+        if name == "plotly.min.js":
+            return web.FileResponse(plotly_js, headers={"Cache-Control": "max-age=86400"})
+        if name not in _STATIC_FILES:
+            raise web.HTTPNotFound()
+        return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-cache", "Content-Type": _STATIC_FILES[name]})
+
+    async def api_state(request):
+        hub = request.app[hub_key]
+        with subscriber.lock:
+            layout = subscriber.aggregator.layout()
+        return web.Response(text=_dumps({"seq": hub.seq, "layout": layout, **(hub.tick or {})}), content_type="application/json")
+
+    async def api_view(request):
+        try:
+            f_hwp = _parse_f_hwp(request.query.get("f_hwp"))
+        except ValueError as exc:
+            raise web.HTTPBadRequest(text=str(exc)) from None
+        view = await asyncio.to_thread(subscriber.view, request.query.getall("ch", []), f_hwp)
+        return web.Response(text=_dumps(view), content_type="application/json")
+
+    async def ws_handler(request):
+        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=1 << 16)
+        await ws.prepare(request)
+        clients.add(ws)
+        hub = request.app[hub_key]
+        client = {"selection": None, "f_hwp": "config", "layout_version": -1, "wake": asyncio.Event()}
+
+        async def send_loop():
+            seen = 0
+            while not ws.closed:
+                # Wait for the next tick or a change of this page's selection, whichever first.
+                wake = asyncio.create_task(client["wake"].wait())
+                tick = asyncio.create_task(hub.wait(seen))
+                await asyncio.wait({wake, tick}, return_when=asyncio.FIRST_COMPLETED)
+                for task in (wake, tick):
+                    task.cancel()
+                client["wake"].clear()
+                if hub.tick is None:
+                    continue
+                seen = hub.seq
+                await ws.send_str(await asyncio.to_thread(_update, hub, client))
+
+        def _update(hub, client) -> str:
+            tick = hub.tick
+            with subscriber.lock:
+                agg = subscriber.aggregator
+                if client["selection"] is None and agg.modules:
+                    client["selection"] = agg.default_selection()
+                view = agg.view(client["selection"] or [], client["f_hwp"])
+                msg = {"type": "update", "seq": hub.seq, "t_server_ns": time.time_ns(), **tick, **view}
+                if client["layout_version"] != agg.layout_version:
+                    msg["layout"] = agg.layout()
+                    client["layout_version"] = agg.layout_version
+            return _dumps(msg)
+
+        sender = asyncio.create_task(send_loop())
+        try:
+            async for raw in ws:
+                if raw.type != WSMsgType.TEXT:
+                    continue
+                try:
+                    req = json.loads(raw.data)
+                    kind = req.get("type")
+                    if kind == "select":
+                        chans = req.get("channels")
+                        if not isinstance(chans, list) or not all(isinstance(c, str) for c in chans):
+                            raise ValueError("channels must be a list of detector ids")
+                        client["selection"] = chans
+                        client["wake"].set()
+                    elif kind == "f_hwp":
+                        client["f_hwp"] = _parse_f_hwp(req.get("value"))
+                        client["wake"].set()
+                    elif kind == "rendered":
+                        t_pub, t_render = int(req["newest_t_pub_ns"]), int(req["t_render_ns"])
+                        if t_pub > 0:
+                            with subscriber.lock:
+                                subscriber.aggregator.report_render(t_pub, t_render)
+                    else:
+                        raise ValueError(f"unknown message type {kind!r}")
+                except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                    await ws.send_str(_dumps({"type": "error", "message": str(exc)}))
+        finally:
+            sender.cancel()
+            clients.discard(ws)
+        return ws
+
+    app = web.Application()
+    app.on_startup.append(on_startup)
+    app.on_shutdown.append(on_shutdown)
+    app.router.add_get("/", index)
+    app.router.add_get("/static/{name}", static)
+    app.router.add_get("/api/state", api_state)
+    app.router.add_get("/api/view", api_view)
+    app.router.add_get("/ws", ws_handler)
+    return app
+
+
+def _listen_socket(bind: str, port: int) -> socket.socket:
+    family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((bind, port))
+    except OSError as exc:
+        sock.close()
+        raise ConfigError(f"cannot listen on {bind}:{port}: {exc}") from None
+    sock.listen(128)
+    sock.setblocking(False)
+    return sock
+
+
+async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: float, on_ready) -> None:
+    from aiohttp import web
+
+    app = make_app(subscriber, update_s)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    sock = _listen_socket(bind, port)
+    site = web.SockSite(runner, sock)
+    await site.start()
+    host, real_port = sock.getsockname()[:2]
+    on_ready(host, real_port)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    try:
+        if duration_s > 0:
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stop.wait(), duration_s)
+        else:
+            await stop.wait()
+    finally:
+        await runner.cleanup()
+
+
+def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float = 0.5,
+          duration_s: float = 0.0, on_ready=None) -> None:
+    """Serve the page until SIGINT/SIGTERM (or ``duration_s``); returns after a clean shutdown.
+
+    ``on_ready(host, port)`` is called once listening (``port=0`` picks a free port).
+    """
+    if not is_loopback(bind):
+        log.warning("monitor listening on %s, beyond loopback: anyone who can reach it sees the stream "
+                    "(there is no authentication)", bind)
+    asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None)))

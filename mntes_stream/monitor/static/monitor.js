@@ -1,0 +1,228 @@
+// mntes-stream quick-look page: draws what the server pushes over /ws (see monitor/server.py).
+// Everything arrives already reduced on the server; this file only lays it out with plotly.
+// window.mntesMonitor exposes the page's state (updates drawn, render latencies) for tests.
+"use strict";
+
+const STATE_COLORS = {
+  transition: "#2ca02c", saturated: "#d62728", superconducting: "#1f77b4",
+  flagged: "#ff7f0e", silent: "#9e9e9e",
+};
+const CONFIG = { displaylogo: false, responsive: true };
+const M = (window.mntesMonitor = {
+  updates: 0,          // updates drawn
+  renders: [],         // {t_pub_ns, t_render_ms, latency_ms} per newly drawn power chunk
+  last: null,          // the last update message
+  layout: null,        // [{board, module, channels}] grid rows
+  selection: [],
+  errors: [],
+  ws: null,
+});
+let lastPubNs = 0;
+let gridGeom = null;   // {rows, cols, ids, offsets}
+
+const $ = (id) => document.getElementById(id);
+const fmt = (v, d = 2) => (v === null || v === undefined || Number.isNaN(v) ? "–" : Number(v).toFixed(d));
+
+function send(obj) {
+  if (M.ws && M.ws.readyState === WebSocket.OPEN) M.ws.send(JSON.stringify(obj));
+}
+
+function connect() {
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  M.ws = ws;
+  ws.onopen = () => { setConn("connected", "ok"); if (M.selection.length) send({ type: "select", channels: M.selection }); };
+  ws.onclose = () => { setConn("disconnected", "bad"); setTimeout(connect, 1000); };
+  ws.onmessage = (ev) => {
+    const msg = JSON.parse(ev.data);
+    if (msg.type === "update") draw(msg).catch((e) => { M.errors.push(String(e)); console.error(e); });
+    else if (msg.type === "error") { M.errors.push(msg.message); setConn(msg.message, "warn"); }
+  };
+}
+
+function setConn(text, cls) { const c = $("conn"); c.textContent = text; c.className = "pill " + cls; }
+
+// ---------------------------------------------------------------- channel picking
+
+function idOf(b, m, c) { return `b${b}m${m}c${String(c).padStart(3, "0")}`; }
+
+function fillPicker() {
+  const boards = [...new Set(M.layout.map((r) => r.board))];
+  const bSel = $("pick-board");
+  const keep = bSel.value;
+  bSel.innerHTML = boards.map((b) => `<option>${b}</option>`).join("");
+  if (boards.includes(Number(keep))) bSel.value = keep;
+  fillModules();
+}
+function fillModules() {
+  const b = Number($("pick-board").value);
+  const mods = M.layout.filter((r) => r.board === b).map((r) => r.module);
+  const mSel = $("pick-module");
+  const keep = mSel.value;
+  mSel.innerHTML = mods.map((m) => `<option>${m}</option>`).join("");
+  if (mods.includes(Number(keep))) mSel.value = keep;
+  fillChannels();
+}
+function fillChannels() {
+  const b = Number($("pick-board").value), m = Number($("pick-module").value);
+  const row = M.layout.find((r) => r.board === b && r.module === m);
+  $("pick-channel").innerHTML = (row ? row.channels : []).map((c) => `<option value="${c}">${c}</option>`).join("");
+}
+function select(ids) {
+  M.selection = [...new Set(ids)];
+  renderSelected();
+  send({ type: "select", channels: M.selection });
+}
+function renderSelected() {
+  $("selected").innerHTML = M.selection.map((id) => `<span>${id}<b data-id="${id}">×</b></span>`).join("");
+}
+$("pick-board").onchange = fillModules;
+$("pick-module").onchange = fillChannels;
+$("add").onclick = () => {
+  const b = $("pick-board").value, m = $("pick-module").value;
+  const chans = [...$("pick-channel").selectedOptions].map((o) => idOf(b, m, o.value));
+  select(M.selection.concat(chans));
+};
+$("clear").onclick = () => select([]);
+$("selected").onclick = (ev) => { const id = ev.target.dataset.id; if (id) select(M.selection.filter((s) => s !== id)); };
+$("f-hwp").onchange = () => { $("f-hwp-auto").checked = false; send({ type: "f_hwp", value: $("f-hwp").value }); };
+$("f-hwp-auto").onchange = () => send({ type: "f_hwp", value: $("f-hwp-auto").checked ? "auto" : ($("f-hwp").value || "config") });
+
+// ---------------------------------------------------------------- drawing
+
+function timeStreams(msg) {
+  const traces = msg.streams.map((s) => ({
+    type: "scatter", mode: "lines", name: `${s.id} (${s.state})`, x: s.t_ms, y: s.p_pw,
+    line: { width: 1 }, connectgaps: false,
+  }));
+  const layout = {
+    uirevision: "ts", margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.12 },
+    xaxis: { type: "date", title: "time (UTC)" }, yaxis: { title: "P_opt [pW]", exponentformat: "none" },
+  };
+  return Plotly.react("timestreams", traces, layout, CONFIG);
+}
+
+function spectrum(msg) {
+  const sp = msg.spectrum;
+  const traces = sp.channels.map((c) => ({
+    type: "scatter", mode: "lines", name: c.id, x: c.f_hz, y: c.log10_asd.map((v) => (v === null ? null : 10 ** v)),
+    line: { width: 1 },
+  }));
+  const labels = ["1f", "2f", "4f"];
+  const shapes = sp.harmonics_hz.map((f) => ({
+    type: "line", xref: "x", yref: "paper", x0: f, x1: f, y0: 0, y1: 1, line: { color: "#c62828", width: 1, dash: "dot" },
+  }));
+  const annotations = sp.harmonics_hz.map((f, i) => ({
+    x: Math.log10(f), xref: "x", y: 1, yref: "paper", text: labels[i], showarrow: false, yanchor: "bottom", font: { color: "#c62828" },
+  }));
+  const layout = {
+    uirevision: "sp", margin: { l: 60, r: 10, t: 20, b: 40 }, showlegend: false, shapes, annotations,
+    xaxis: { type: "log", title: "frequency [Hz]" }, yaxis: { type: "log", title: "ASD [aW/√Hz]" },
+  };
+  $("f-hwp-info").textContent = sp.f_hwp_hz === null ? `(${sp.f_hwp_source})` : `${fmt(sp.f_hwp_hz, 3)} Hz, ${sp.f_hwp_source}`;
+  if (!$("f-hwp").value && sp.f_hwp_hz !== null && sp.f_hwp_source === "configured") $("f-hwp").value = sp.f_hwp_hz;
+  return Plotly.react("spectrum", traces, layout, CONFIG);
+}
+
+function buildGridGeometry() {
+  const cols = Math.max(1, ...M.layout.map((r) => r.channels.length));
+  const ids = [], offsets = [];
+  let off = 0;
+  for (const r of M.layout) {
+    offsets.push(off);
+    off += r.channels.length;
+    const row = r.channels.map((c) => idOf(r.board, r.module, c));
+    while (row.length < cols) row.push(null);
+    ids.push(row);
+  }
+  gridGeom = { rows: M.layout.length, cols, ids, offsets, labels: M.layout.map((r) => `b${r.board}m${r.module}`) };
+}
+
+function grid(msg) {
+  const names = msg.state_names, codes = msg.codes, g = gridGeom;
+  const z = [], text = [];
+  M.layout.forEach((r, i) => {
+    const zr = new Array(g.cols).fill(null), tr = new Array(g.cols).fill("");
+    for (let j = 0; j < r.channels.length; j++) {
+      const k = codes.charCodeAt(g.offsets[i] + j) - 48;
+      zr[j] = k;
+      tr[j] = `${g.ids[i][j]}: ${names[k]}`;
+    }
+    z.push(zr); text.push(tr);
+  });
+  const n = names.length, colorscale = [];
+  names.forEach((name, k) => { colorscale.push([k / n, STATE_COLORS[name]], [(k + 1) / n, STATE_COLORS[name]]); });
+  const trace = {
+    type: "heatmap", z, text, hoverinfo: "text", zmin: -0.5, zmax: n - 0.5, colorscale, showscale: false,
+    y: g.labels, xgap: 1, ygap: 1,
+  };
+  const layout = {
+    uirevision: "grid", margin: { l: 60, r: 10, t: 10, b: 30 },
+    xaxis: { title: "channel slot", showgrid: false }, yaxis: { autorange: "reversed", showgrid: false, type: "category" },
+  };
+  $("legend").innerHTML = names.map((name) => `<span><i style="background:${STATE_COLORS[name]}"></i>${name} <b>${msg.state_counts[name]}</b></span>`).join("");
+  return Plotly.react("grid", [trace], layout, CONFIG);
+}
+
+function housekeeping(msg) {
+  const tb = msg.hk.t_bath || { t_ms: [], value: [] }, bf = msg.hk.b_field || { t_ms: [], value: [] };
+  const traces = [
+    { type: "scatter", mode: "lines", name: "T_bath [mK]", x: tb.t_ms, y: tb.value.map((v) => (v === null ? null : v * 1e3)), line: { width: 1 } },
+    { type: "scatter", mode: "lines", name: "B [µT]", x: bf.t_ms, y: bf.value.map((v) => (v === null ? null : v * 1e6)), yaxis: "y2", line: { width: 1 } },
+  ];
+  const layout = {
+    uirevision: "hk", margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.12 },
+    grid: { rows: 2, columns: 1, subplots: [["xy"], ["xy2"]], roworder: "top to bottom" },
+    xaxis: { type: "date" }, yaxis: { title: "T_bath [mK]", exponentformat: "none" }, yaxis2: { title: "B [µT]" },
+  };
+  return Plotly.react("hk", traces, layout, CONFIG);
+}
+
+function health(msg) {
+  const h = msg.health, mon = h.monitor, pl = h.page_latency_ms;
+  const cell = (v, bad) => `<td class="${bad ? "bad-cell" : ""}">${v}</td>`;
+  let rows = "<tr><th>source</th><th>in [chunks/s]</th><th>out [chunks/s]</th><th>out [Msamples/s]</th><th>latency p50 / p99 / max [ms]</th><th>lost chunks</th><th>pending</th><th>stale hk samples</th><th>bad msgs</th><th>status age [s]</th></tr>";
+  for (const s of h.services) {
+    rows += `<tr><td>${s.service}</td>${cell(fmt(s.in_chunks_per_s, 1))}${cell(fmt(s.out_chunks_per_s, 1))}${cell(fmt(s.out_msamples_per_s, 3))}` +
+      `${cell(`${fmt(s.latency_p50_ms, 1)} / ${fmt(s.latency_p99_ms, 1)} / ${fmt(s.latency_max_ms, 1)}`)}` +
+      `${cell(s.chunks_lost, s.chunks_lost > 0)}${cell(s.chunks_pending)}${cell(s.hk_stale_samples, s.hk_stale_samples > 0)}` +
+      `${cell(s.bad_messages, s.bad_messages > 0)}${cell(fmt(s.age_s, 1), s.stale)}</tr>`;
+  }
+  const bad = Object.values(mon.bad_messages).reduce((a, b) => a + b, 0);
+  rows += `<tr><td>monitor (received)</td>${cell(fmt(mon.chunks_per_s, 1))}${cell("")}${cell(fmt(mon.msamples_per_s, 3))}` +
+    `${cell(`${fmt(mon.latency_p50_ms, 1)} / – / ${fmt(mon.latency_max_ms, 1)}`)}${cell(mon.lost_chunks, mon.lost_chunks > 0)}` +
+    `${cell(`dropped ${mon.dropped}`, mon.dropped > 0)}${cell("")}${cell(bad, bad > 0)}${cell("")}</tr>`;
+  rows += `<tr><td>page (publication → drawn)</td>${cell("")}${cell("")}${cell("")}${cell(`${fmt(pl.p50, 0)} / – / ${fmt(pl.max, 0)}`)}${cell("")}${cell("")}${cell("")}${cell("")}${cell("")}</tr>`;
+  let hk = "";
+  for (const [name, s] of Object.entries(h.hk)) {
+    const v = s.value === null ? "–" : name === "t_bath" ? `${fmt(s.value * 1e3, 4)} mK` : `${fmt(s.value * 1e6, 3)} µT`;
+    hk += `<span class="${s.stale ? "bad-cell" : ""}">${name}: ${v} (received ${fmt(s.age_s, 1)} s ago${s.stale ? ", STALE" : ""})</span> &nbsp; `;
+  }
+  $("health").innerHTML = `<table>${rows}</table><p>${hk} &nbsp; channels: ${mon.channels} in ${mon.modules} modules</p>`;
+}
+
+async function draw(msg) {
+  if (msg.layout) { M.layout = msg.layout; fillPicker(); buildGridGeometry(); }
+  if (!M.layout) return;
+  if (JSON.stringify(msg.selection) !== JSON.stringify(M.selection) && msg.unknown.length === 0) {
+    M.selection = msg.selection;
+    renderSelected();
+  }
+  health(msg);
+  await Promise.all([timeStreams(msg), spectrum(msg), grid(msg), housekeeping(msg)]);
+  // The next frame is when the browser has painted what was just drawn.
+  await new Promise((resolve) => requestAnimationFrame(() => setTimeout(resolve, 0)));
+  const tRenderMs = performance.timeOrigin + performance.now();
+  M.updates += 1;
+  M.last = msg;
+  $("updated").textContent = `updated ${new Date(tRenderMs).toISOString().slice(11, 19)} UTC`;
+  if (msg.newest_t_pub_ns > lastPubNs) {
+    lastPubNs = msg.newest_t_pub_ns;
+    const latency = tRenderMs - msg.newest_t_pub_ns / 1e6;
+    M.renders.push({ t_pub_ns: msg.newest_t_pub_ns, t_render_ms: tRenderMs, latency_ms: latency });
+    if (M.renders.length > 1000) M.renders.shift();
+    $("latency").textContent = `publication → drawn ${fmt(latency, 0)} ms`;
+    send({ type: "rendered", newest_t_pub_ns: msg.newest_t_pub_ns, t_render_ns: Math.round(tRenderMs * 1e6) });
+  }
+}
+
+connect();

@@ -1,0 +1,151 @@
+"""The monitor's zenoh edge: power, housekeeping and status in, an :class:`Aggregator` fed.
+
+The zenoh callback only stamps the receive time and queues the payload;
+decoding and aggregation run on one ingest thread. The queue is bounded and
+a full queue *drops* (counted, shown as "dropped" in the health panel)
+instead of blocking: the converter publishes with BLOCK congestion control,
+so a monitor that blocked its callback would slow the conversion it is
+watching.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+
+from mntes_stream.errors import SchemaError
+from mntes_stream.io import keys
+from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage, reason_of
+from mntes_stream.io.transport import ZenohSettings, open_session
+from mntes_stream.monitor.aggregate import Aggregator, MonitorConfig
+
+__all__ = ["MonitorSubscriber"]
+
+log = logging.getLogger("mntes_stream.monitor")
+
+_DECODERS = {"power": PowerChunk, "hk": HousekeepingChunk, "status": StatusMessage}
+
+
+class MonitorSubscriber:
+    """Subscribe to ``mntes/<setup>/{power,hk,status}/**`` and keep an :class:`Aggregator` up to date.
+
+    Use as a context manager (the zenoh session is always closed). All access
+    to :attr:`aggregator` from other threads goes through :attr:`lock`.
+
+    Parameters
+    ----------
+    setup : str
+    zenoh : ZenohSettings
+    config : MonitorConfig, optional
+    queue_size : int
+        Messages held between the zenoh callback and the ingest thread.
+    """
+
+    def __init__(self, setup: str, zenoh: ZenohSettings, config: MonitorConfig | None = None, queue_size: int = 8192):
+        self.setup = setup
+        self.key_exprs = (keys.power_key(setup), keys.hk_key(setup), keys.status_key(setup))
+        self.zenoh = zenoh
+        self.aggregator = Aggregator(config)
+        self.lock = threading.Lock()
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._stop = threading.Event()
+        self._session = None
+        self._subs: list = []
+        self._thread: threading.Thread | None = None
+        self._dropped = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def __enter__(self) -> "MonitorSubscriber":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def start(self) -> None:
+        self._session = open_session(self.zenoh)
+        try:
+            for expr in self.key_exprs:
+                self._subs.append(self._session.declare_subscriber(expr, self._on_sample))
+        except Exception:
+            self.close()
+            raise
+        self._thread = threading.Thread(target=self._ingest, name="monitor-ingest", daemon=True)
+        self._thread.start()
+        log.info("monitor subscribed to %s", ", ".join(self.key_exprs))
+
+    def close(self) -> None:
+        self._stop.set()
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._subs.clear()
+        if self._session is not None:
+            with contextlib.suppress(Exception):
+                self._session.close()
+            self._session = None
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    # ------------------------------------------------------------------ data path
+
+    def _on_sample(self, sample) -> None:
+        # zenoh thread: stamp and hand over, never block (see the module docstring).
+        try:
+            self._queue.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        except queue.Full:
+            self._dropped += 1
+
+    def _ingest(self) -> None:
+        while not self._stop.is_set():
+            try:
+                first = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            batch = [first]
+            # A bounded batch per lock hold, so ticks are never starved.
+            with contextlib.suppress(queue.Empty):
+                while len(batch) < 64:
+                    batch.append(self._queue.get_nowait())
+            with self.lock:
+                for key, payload, t_recv_ns in batch:
+                    self.handle(key, payload, t_recv_ns)
+                self.aggregator.dropped = self._dropped
+
+    def handle(self, key: str, payload: bytes, t_recv_ns: int) -> None:
+        """Decode one message and feed it to the aggregator (caller holds :attr:`lock`)."""
+        agg = self.aggregator
+        kind = key.split("/")[2] if key.count("/") >= 2 else ""
+        cls = _DECODERS.get(kind)
+        if cls is None:
+            agg.add_bad("wrong_key")
+            return
+        try:
+            msg = cls.from_bytes(payload)
+        except SchemaError as exc:
+            agg.add_bad(reason_of(exc))
+            log.debug("rejected %s: %s", key, exc)
+            return
+        if kind == "power":
+            agg.add_power(msg, t_recv_ns)
+        elif kind == "hk":
+            agg.add_hk(msg, t_recv_ns)
+        else:
+            agg.add_status(msg, t_recv_ns)
+
+    # ------------------------------------------------------------------ convenience
+
+    def tick(self, now_ns: int | None = None) -> dict:
+        """:meth:`Aggregator.tick` under the lock."""
+        with self.lock:
+            return self.aggregator.tick(time.time_ns() if now_ns is None else now_ns)
+
+    def view(self, selection, f_hwp_hz="config") -> dict:
+        """:meth:`Aggregator.view` under the lock."""
+        with self.lock:
+            return self.aggregator.view(selection, f_hwp_hz)

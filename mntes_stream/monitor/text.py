@@ -1,0 +1,61 @@
+"""The monitor as a terminal table (``mntes-stream monitor --text``): pure formatting."""
+
+from __future__ import annotations
+
+import datetime as _dt
+
+from mntes_stream.monitor.aggregate import STATE_NAMES, Aggregator
+
+__all__ = ["render_text"]
+
+
+def _f(v, fmt: str = "{:.1f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
+    """One screen: rates, latency, housekeeping, channel states and the channels not in transition.
+
+    Parameters
+    ----------
+    agg : Aggregator
+        After ``tick = agg.tick(now)`` (the caller holds the lock).
+    tick : dict
+    max_listed : int
+        Channels listed at most (the count of the rest is given): the table stays bounded.
+    """
+    h = tick["health"]
+    mon = h["monitor"]
+    when = _dt.datetime.fromtimestamp(tick["t_ns"] / 1e9, _dt.timezone.utc).strftime("%H:%M:%S UTC")
+    lines = [f"mntes-stream monitor  {when}  channels {mon['channels']} in {mon['modules']} modules"]
+    lines.append(f"{'source':<12}{'in/s':>8}{'out/s':>8}{'Msamp/s':>9}{'lat p50':>9}{'p99':>8}{'max ms':>8}"
+                 f"{'lost':>6}{'pend':>6}{'hk stale':>10}{'bad':>5}{'age s':>7}")
+    for s in h["services"]:
+        lines.append(
+            f"{s['service'][:11]:<12}{_f(s['in_chunks_per_s']):>8}{_f(s['out_chunks_per_s']):>8}"
+            f"{_f(s['out_msamples_per_s'], '{:.3f}'):>9}{_f(s['latency_p50_ms']):>9}{_f(s['latency_p99_ms']):>8}"
+            f"{_f(s['latency_max_ms']):>8}{s['chunks_lost']:>6}{s['chunks_pending']:>6}{s['hk_stale_samples']:>10}"
+            f"{s['bad_messages']:>5}{_f(s['age_s']):>7}{'  STALE' if s['stale'] else ''}"
+        )
+    bad = sum(mon["bad_messages"].values())
+    lines.append(
+        f"{'monitor':<12}{_f(mon['chunks_per_s']):>8}{'':>8}{_f(mon['msamples_per_s'], '{:.3f}'):>9}"
+        f"{_f(mon['latency_p50_ms']):>9}{'':>8}{_f(mon['latency_max_ms']):>8}{mon['lost_chunks']:>6}"
+        f"{'':>6}{'':>10}{bad:>5}   dropped {mon['dropped']}"
+    )
+    hk = []
+    for name, s in h["hk"].items():
+        if s["value"] is None:
+            value = "-"
+        elif name == "t_bath":
+            value = f"{s['value'] * 1e3:.4f} mK"
+        else:
+            value = f"{s['value'] * 1e6:.3f} uT"
+        hk.append(f"{name} {value} (age {_f(s['age_s'])} s{', STALE' if s['stale'] else ''})")
+    lines.append("housekeeping: " + "   ".join(hk))
+    lines.append("states: " + "  ".join(f"{n} {tick['state_counts'][n]}" for n in STATE_NAMES))
+    listed, total = agg.channels_not_in_transition(max_listed)
+    if total:
+        more = f" (+{total - len(listed)} more)" if total > len(listed) else ""
+        lines.append("not in transition: " + ", ".join(f"{d} {s}" for d, s in listed) + more)
+    return "\n".join(lines)
