@@ -180,7 +180,8 @@ class Publishers:
         pubs = [self.publisher(k) for k in keys]
         deadline = time.monotonic() + timeout_s
         while True:
-            if all(p.matching_status for p in pubs):
+            # matching_status is a MatchingStatus object (always truthy): read .matching.
+            if all(p.matching_status.matching for p in pubs):
                 return True
             if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
                 return False
