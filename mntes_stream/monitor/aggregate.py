@@ -10,11 +10,9 @@ channel, flag counters since the last :meth:`Aggregator.tick`, from which the
 channel's state is classified (:data:`STATE_NAMES`):
 
 - ``silent``: no power chunk from its module for ``silent_s`` (receive clock);
-- ``saturated``: at least ``state_majority`` of its samples flagged SATURATED
-  (TES normal);
-- ``superconducting``: the same with SUPERCONDUCTING;
-- ``flagged``: at least ``flagged_frac`` of its samples carry any other flag
-  (or are NaN without a flag);
+- ``saturated`` (TES normal), ``superconducting`` or ``flagged`` (any other
+  flag, or NaN without a flag): whichever of these three the most samples
+  carry, provided at least ``flag_frac`` of the samples do;
 - ``transition``: otherwise, i.e. usable power.
 
 A tick with no samples from a module keeps its channels' states (chunks may
@@ -79,10 +77,9 @@ class MonitorConfig:
         from the spectra (:func:`~mntes_stream.monitor.analysis.estimate_f_hwp`).
     silent_s : float
         A module with no power chunk for this long shows its channels silent.
-    state_majority : float
-        Fraction of samples flagged saturated/superconducting that sets the state.
-    flagged_frac : float
-        Fraction of samples with other flags that makes a channel "flagged".
+    flag_frac : float
+        Fraction of a channel's samples (since the last tick) that must be
+        saturated, superconducting or otherwise flagged for it to leave "transition".
     hk_stale_s : float
         Housekeeping (or a service status) not received for this long is stale.
     max_selected : int
@@ -96,8 +93,7 @@ class MonitorConfig:
     spectrum_points: int = 400
     f_hwp_hz: float | None = 0.77
     silent_s: float = 3.0
-    state_majority: float = 0.5
-    flagged_frac: float = 0.1
+    flag_frac: float = 0.1
     hk_stale_s: float = 2.0
     max_selected: int = 16
     latency_reports: int = 600
@@ -107,10 +103,8 @@ class MonitorConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"monitor: {name} must be a finite number > 0, got {v!r}")
-        for name in ("state_majority", "flagged_frac"):
-            v = getattr(self, name)
-            if not 0 < v <= 1:
-                raise ConfigError(f"monitor: {name} must be in (0, 1], got {v!r}")
+        if not 0 < self.flag_frac <= 1:
+            raise ConfigError(f"monitor: flag_frac must be in (0, 1], got {self.flag_frac!r}")
         if self.f_hwp_hz is not None and not (math.isfinite(self.f_hwp_hz) and self.f_hwp_hz > 0):
             raise ConfigError(f"monitor: f_hwp_hz must be > 0 (or None to estimate), got {self.f_hwp_hz!r}")
         for name in ("max_points", "spectrum_points", "max_selected", "latency_reports"):
@@ -204,11 +198,11 @@ class ModuleBuffer:
         if self.last_recv_ns is None or now_ns - self.last_recv_ns > config.silent_s * 1e9:
             self.state[:] = STATE_SILENT
         elif self._n > 0:
-            n = self._n
-            state = np.full(self.channels.size, STATE_TRANSITION, dtype=np.uint8)
-            state[self._n_other >= config.flagged_frac * n] = STATE_FLAGGED
-            state[self._n_sc >= config.state_majority * n] = STATE_SUPERCONDUCTING
-            state[self._n_sat >= config.state_majority * n] = STATE_SATURATED
+            counts = np.stack([self._n_sat, self._n_sc, self._n_other])  # (3, n_ch)
+            worst = np.argmax(counts, axis=0)  # ties go to the first: saturated, superconducting, flagged
+            codes = np.array([STATE_SATURATED, STATE_SUPERCONDUCTING, STATE_FLAGGED], dtype=np.uint8)
+            state = codes[worst]
+            state[counts.max(axis=0) < config.flag_frac * self._n] = STATE_TRANSITION
             self.state = state
         self._reset_counters()
 
