@@ -1,0 +1,103 @@
+"""Live power feed over real zenoh on 127.0.0.1: what a publisher sends is what the iterator yields."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+from test_feeds import N, bits, chunk
+
+from mntes_stream.core import flags as fl
+from mntes_stream.feeds import LivePowerFeed
+from mntes_stream.io import keys
+from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
+
+
+class _Publisher(threading.Thread):
+    """Publishes ``plan`` once the feed subscribed; keeps its session open until told (no loss at close)."""
+
+    def __init__(self, port: int, plan: list[tuple[str, bytes]], wait_keys):
+        super().__init__(daemon=True)
+        self.port, self.plan, self.wait_keys = port, plan, list(wait_keys)
+        self.done = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            with open_session(loopback(connect_ports=[self.port])) as z:
+                pubs = Publishers(z)
+                try:
+                    if not pubs.wait_matching(self.wait_keys, 20.0):
+                        raise TimeoutError("the feed never subscribed")
+                    for key, payload in self.plan:
+                        pubs.put(key, payload)
+                    self.done.wait(30.0)
+                finally:
+                    pubs.close()
+        except BaseException as exc:  # reported by the test
+            self.error = exc
+
+
+def _run(feed, port, plan, wait_keys) -> list:
+    pub = _Publisher(port, plan, wait_keys)
+    with feed:
+        pub.start()
+        try:
+            blocks = list(feed)
+        finally:
+            pub.done.set()
+            pub.join(30)
+    assert pub.error is None, pub.error
+    return blocks
+
+
+def test_live_feed_yields_what_was_published_with_gaps_and_selection():
+    port = free_tcp_port()
+    dets = ["b0m0c002", "b0m0c000", "b0m1c001"]
+    feed = LivePowerFeed(loopback(listen_port=port), "t", detectors=dets, idle_timeout_s=1.5, duration_s=60)
+    sent0 = [0, 1, 2, 4, 4, 5, 3]  # module 0: seq 3 lost, 4 repeated, then 3 arrives late
+    plan = []
+    for step in range(7):
+        plan.append((keys.power_key("t", 0, 0), chunk(sent0[step], 0).to_bytes()))
+        if step < 3:
+            plan.append((keys.power_key("t", 0, 1), chunk(step, 1).to_bytes()))
+            plan.append((keys.power_key("t", 0, 2), chunk(step, 2).to_bytes()))
+    plan.insert(3, (keys.power_key("t", 0, 0), b"\x92not a power chunk"))
+    t0 = time.monotonic()
+    blocks = _run(feed, port, plan, [keys.power_key("t", 0, 0), keys.power_key("t", 0, 1)])
+    assert time.monotonic() - t0 < 30 and feed._session is None  # bounded, and closed
+    m0 = [b for b in blocks if b.module == 0]
+    m1 = [b for b in blocks if b.module == 1]
+    assert not [b for b in blocks if b.module == 2]  # not subscribed
+    assert [b.n_samples for b in m0] == [N] * 6 and [b.n_samples for b in m1] == [N] * 3
+    assert all(b.detectors == ("b0m0c002", "b0m0c000") for b in m0) and m1[0].detectors == ("b0m1c001",)
+    expect = [0, 1, 2, None, 4, 5]  # None: the hole left by seq 3
+    for b, s in zip(m0, expect):
+        assert b.first_sample == m0.index(b) * N
+        if s is None:
+            assert np.all(b.flags == fl.GAP) and np.all(np.isnan(b.p_opt_w))
+            np.testing.assert_array_equal(b.t_ns, chunk(3).times_ns())
+        else:
+            c = chunk(s)
+            np.testing.assert_array_equal(b.t_ns, c.times_ns())
+            np.testing.assert_array_equal(bits(b.p_opt_w), bits(c.p_opt_w[[2, 0]]))
+            np.testing.assert_array_equal(b.flags, c.flags[[2, 0]])
+    for b, s in zip(m1, range(3)):
+        np.testing.assert_array_equal(bits(b.p_opt_w), bits(chunk(s, 1).p_opt_w[[1]]))
+    st = feed.stats["t_b0m0"]
+    assert (st.duplicate_chunks, st.overlap_samples, st.gap_samples, st.seq_gaps) == (1, N, N, 1)
+    assert feed.invalid_messages == 1
+
+
+def test_live_feed_without_selection_grows_rows_and_stops_at_max_blocks():
+    port = free_tcp_port()
+    plan = [(keys.power_key("t", 0, 0), chunk(s, channels=(0, 1) if s < 2 else (0, 1, 3)).to_bytes()) for s in range(6)]
+    feed = LivePowerFeed(loopback(listen_port=port), "t", max_blocks=4, idle_timeout_s=10)
+    blocks = _run(feed, port, plan, [plan[0][0]])
+    assert len(blocks) == 4
+    assert blocks[1].detectors == ("b0m0c000", "b0m0c001")
+    assert blocks[2].detectors == blocks[3].detectors == ("b0m0c000", "b0m0c001", "b0m0c003")
+    c = chunk(3, channels=(0, 1, 3))
+    np.testing.assert_array_equal(bits(blocks[3].p_opt_w), bits(c.p_opt_w))
+    assert feed._session is None
