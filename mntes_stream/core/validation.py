@@ -543,11 +543,13 @@ def run_study(cfg: StudyConfig | None = None, converter_factory: Callable | None
         "mntes_kind": mntes,
         "expected_linear_nonlinearity_per_pw": abs(expected_linear_nonlinearity_per_w(det)) * 1e-12,
     }
+    flat_names = {"leak_4f_w": "4f_leak_w"}
     for metric in ("nonlinearity_per_pw", "leak_4f_w", "jupiter_peak_frac_error", "dipole_gain_bias",
                    "drift_gain_per_mk", "drift_gain_per_ut", "drift_offset_w_per_mk", "drift_offset_w_per_ut",
                    "jupiter_fwhm_frac_error", "jupiter_shape_rms_frac", "hwp_gain_error"):
-        summary[f"linear_{metric}"] = per_kind["linear"][metric] if "linear" in per_kind else None
-        summary[f"mntes_{metric}"] = per_kind[mntes][metric]
+        name = flat_names.get(metric, metric)
+        summary[f"linear_{name}"] = per_kind["linear"][metric] if "linear" in per_kind else None
+        summary[f"mntes_{name}"] = per_kind[mntes][metric]
     summary["converters"] = per_kind
     summary["robustness"] = robustness
     summary["assumptions"] = {
