@@ -148,7 +148,13 @@ def run_inspect(args) -> int:
 def run_convert(args) -> int:
     from mntes_stream.service.offline import convert_recording
 
-    stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, progress=not args.quiet)
+    pipeline = None
+    if args.config:
+        from mntes_stream.service.converter import ConverterConfig
+
+        pipeline = ConverterConfig.from_toml(args.config).pipeline
+    stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, pipeline_config=pipeline,
+                              progress=not args.quiet)
     if args.json:
         print(json.dumps(dataclasses.asdict(stats), indent=2))
     else:
@@ -203,6 +209,8 @@ def register(sub) -> None:
     p.add_argument("output", metavar="OUT.mcap")
     p.add_argument("--tables", metavar="FILE", help="response tables to use instead of the recorded ones")
     p.add_argument("--params", metavar="FILE", help="detector parameter TOML to use instead of the recorded one")
+    p.add_argument("--config", metavar="FILE", help="converter TOML whose [alignment]/[status] settings to use "
+                                                    "(default: the pipeline defaults for the recorded setup)")
     p.add_argument("--json", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_convert)

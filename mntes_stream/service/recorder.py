@@ -13,8 +13,6 @@ so a recorder that cannot keep up shows it.
 from __future__ import annotations
 
 import logging
-import signal
-import threading
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, fields
@@ -23,6 +21,7 @@ from pathlib import Path
 from mntes_stream.errors import ConfigError, MntesError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
+from mntes_stream.service import stop_on_signals
 
 __all__ = ["RecorderConfig", "RecorderStats", "run_recorder"]
 
@@ -166,25 +165,7 @@ def _kind(topic: str) -> str:
     return parts[2] if len(parts) > 2 and parts[0] == keys.PREFIX else "other"
 
 
-class _SignalStop:
-    """Turn SIGINT/SIGTERM into a stop request while recording (main thread only)."""
-
-    def __init__(self):
-        self.event = threading.Event()
-        self._old = {}
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, lambda *_: self.event.set())
-        return self
-
-    def __exit__(self, *exc):
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-
-
-def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
+def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> RecorderStats:
     """Record until ``stop_event`` is set, SIGINT/SIGTERM arrives, or ``duration_s`` passes.
 
     Parameters
@@ -192,6 +173,9 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
     config : RecorderConfig
     stop_event : threading.Event or multiprocessing.Event, optional
         Anything with ``is_set()``; safe to launch in a spawned process.
+        SIGINT/SIGTERM also stop it when it runs in the main thread.
+    ready : Event-like, optional
+        Set once subscribed.
 
     Returns
     -------
@@ -235,14 +219,16 @@ def run_recorder(config: RecorderConfig, stop_event=None) -> RecorderStats:
 
     session = sub = None
     error: BaseException | None = None
-    with _SignalStop() as sig:
+    with stop_on_signals(stop_event) as stopping:
         try:
             session = open_session(config.zenoh)
             # The callback only timestamps and queues; a full queue makes it wait,
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
             sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages)
             log.info("recording %s into %s", config.subscription, writer.current_path)
-            while not (sig.event.is_set() or (stop_event is not None and stop_event.is_set())):
+            if ready is not None:
+                ready.set()
+            while not stopping.is_set():
                 if config.duration_s and time.monotonic() - t_start >= config.duration_s:
                     break
                 item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))

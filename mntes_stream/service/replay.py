@@ -17,7 +17,8 @@ from pathlib import Path
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.recorder import _from_dict, _SignalStop
+from mntes_stream.service import stop_on_signals
+from mntes_stream.service.recorder import _from_dict
 
 __all__ = ["INPUT_TOPICS", "ReplayConfig", "ReplayStats", "parse_time", "run_replay"]
 
@@ -112,15 +113,10 @@ def parse_time(text: str, session_start_ns: int | None) -> int:
     return session_start_ns + int(round(rel * 1e9))
 
 
-def _stopped(stop_event, sig) -> bool:
-    return sig.event.is_set() or (stop_event is not None and stop_event.is_set())
-
-
 def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) -> ReplayStats:
     """Publish the selected messages of ``config.source``; returns when done or stopped."""
-    import zenoh
-
     from mntes_stream.io.mcap_io import Session, topic_matcher
+    from mntes_stream.io.transport import Publishers
 
     if not config.source:
         raise ConfigError("nothing to replay: no source files")
@@ -132,15 +128,12 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
     n = nbytes = 0
     behind_max = 0.0
     first_log = last_log = None
+    unmatched: tuple[str, ...] = ()
     t_begin = time.monotonic()
-    with _SignalStop() as sig, open_session(config.zenoh) as z:
-        pubs = {t: z.declare_publisher(t, congestion_control=zenoh.CongestionControl.BLOCK) for t in topics}
-        deadline = time.monotonic() + config.wait_subscribers_s
-        while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
-            if _stopped(stop_event, sig):
-                break
-            time.sleep(0.01)
-        unmatched = tuple(t for t, p in pubs.items() if not p.matching_status.matching)
+    with stop_on_signals(stop_event) as stopping, open_session(config.zenoh) as z:
+        pubs = Publishers(z)  # BLOCK congestion control
+        if not pubs.wait_matching(topics, config.wait_subscribers_s, stopping):
+            unmatched = tuple(t for t in topics if not pubs.publisher(t).matching_status.matching)
         if unmatched:
             log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(unmatched), len(pubs), unmatched[0])
         bar = None
@@ -150,19 +143,17 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
             bar = tqdm(total=total, unit="msg", desc="replay")
         wall0 = time.monotonic()
         for msg in session_in.iter_messages(topics, config.start_ns, config.end_ns):
-            if n % 64 == 0 and _stopped(stop_event, sig):
-                break
             if first_log is None:
                 first_log = msg.log_time_ns
-            last_log = msg.log_time_ns
             if config.speed > 0:
                 due = wall0 + (msg.log_time_ns - first_log) / 1e9 / config.speed
-                while (wait := due - time.monotonic()) > 0:
-                    time.sleep(min(wait, 0.1))
-                    if _stopped(stop_event, sig):
-                        break
+                while (wait := due - time.monotonic()) > 0 and not stopping.is_set():
+                    time.sleep(min(wait, 0.05))
                 behind_max = max(behind_max, time.monotonic() - due)
-            pubs[msg.topic].put(msg.payload)
+            if (config.speed > 0 or n % 64 == 0) and stopping.is_set():
+                break
+            last_log = msg.log_time_ns
+            pubs.put(msg.topic, msg.payload)
             n += 1
             nbytes += len(msg.payload)
             kind = msg.topic.split("/")[2] if msg.topic.count("/") >= 2 else "other"
@@ -172,8 +163,7 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
         if bar is not None:
             bar.close()
         time.sleep(config.linger_s)
-        for p in pubs.values():
-            p.undeclare()
+        pubs.close()
     stats = ReplayStats(
         messages=n,
         payload_bytes=nbytes,
