@@ -252,3 +252,22 @@ def test_assembler_property_every_kept_sample_exact_every_hole_flagged(present, 
             assert np.all(f[:, cols] == fl.GAP) and np.all(np.isnan(p[:, cols]))
     assert asm.stats.duplicate_chunks == len(feed) - len(kept)
     assert asm.stats.gap_samples == N * (hi - lo - len(kept))
+
+
+def test_file_of_a_killed_recorder_reads_up_to_its_last_flush(tmp_path):
+    import shutil
+
+    from mntes_stream.io.mcap_io import TruncatedFileWarning
+
+    w = McapFileWriter(tmp_path / "live.mcap", chunk_size_bytes=1024)
+    for s in range(8):
+        w.write(keys.power_key("t", 0, 0), chunk(s).to_bytes(), T0 + (s + 1) * STEP)
+        w.flush()
+    shutil.copy(tmp_path / "live.mcap", tmp_path / "cut.mcap")  # as a SIGKILL would leave it: no summary, no footer
+    w.write(keys.power_key("t", 0, 0), chunk(8).to_bytes(), T0 + 9 * STEP)  # never flushed before the "kill"
+    w.close()
+    with pytest.warns(TruncatedFileWarning):
+        b = read_power(tmp_path / "cut.mcap")
+    assert b.n_samples == 8 * N
+    for s in range(8):
+        assert_chunk_in(b, chunk(s), s * N)
