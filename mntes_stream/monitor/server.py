@@ -30,6 +30,8 @@ import time
 from importlib import resources
 from pathlib import Path
 
+from aiohttp import WSMsgType, web
+
 from mntes_stream.errors import ConfigError
 
 __all__ = ["is_loopback", "plotly_js_path", "make_app", "serve"]
@@ -86,6 +88,10 @@ class _Hub:
             await self._event.wait()
 
 
+_HUB = web.AppKey("hub", _Hub)
+_TICKER = web.AppKey("ticker", asyncio.Task)
+
+
 def _parse_f_hwp(value):
     """"auto" -> None (estimate), a positive number -> float, "config" stays."""
     if value in ("config", None, ""):
@@ -108,15 +114,11 @@ def make_app(subscriber, update_s: float = 0.5):
     update_s : float
         Update period of the page (the ticker's period).
     """
-    from aiohttp import WSMsgType, web
-
     plotly_js = plotly_js_path()
-    hub_key = web.AppKey("hub", _Hub)
-    ticker_key = web.AppKey("ticker", asyncio.Task)
     clients: set = set()
 
     async def ticker(app):
-        hub = app[hub_key]
+        hub = app[_HUB]
         try:
             while True:
                 t0 = time.monotonic()
@@ -126,11 +128,11 @@ def make_app(subscriber, update_s: float = 0.5):
             pass
 
     async def on_startup(app):
-        app[hub_key] = _Hub()
-        app[ticker_key] = asyncio.create_task(ticker(app))
+        app[_HUB] = _Hub()
+        app[_TICKER] = asyncio.create_task(ticker(app))
 
     async def on_shutdown(app):
-        app[ticker_key].cancel()
+        app[_TICKER].cancel()
         for ws in list(clients):
             await ws.close()
 
@@ -146,7 +148,7 @@ def make_app(subscriber, update_s: float = 0.5):
         return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-cache", "Content-Type": _STATIC_FILES[name]})
 
     async def api_state(request):
-        hub = request.app[hub_key]
+        hub = request.app[_HUB]
         with subscriber.lock:
             layout = subscriber.aggregator.layout()
         return web.Response(text=_dumps({"seq": hub.seq, "layout": layout, **(hub.tick or {})}), content_type="application/json")
@@ -163,7 +165,7 @@ def make_app(subscriber, update_s: float = 0.5):
         ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=1 << 16)
         await ws.prepare(request)
         clients.add(ws)
-        hub = request.app[hub_key]
+        hub = request.app[_HUB]
         client = {"selection": None, "f_hwp": "config", "layout_version": -1, "wake": asyncio.Event()}
 
         async def send_loop():
@@ -250,9 +252,7 @@ def _listen_socket(bind: str, port: int) -> socket.socket:
     return sock
 
 
-async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: float, on_ready) -> None:
-    from aiohttp import web
-
+async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: float, on_ready, stop_event) -> None:
     app = make_app(subscriber, update_s)
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
@@ -264,25 +264,25 @@ async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):  # not the main thread
             loop.add_signal_handler(sig, stop.set)
+    t_end = time.monotonic() + duration_s if duration_s > 0 else math.inf
     try:
-        if duration_s > 0:
+        while not stop.is_set() and time.monotonic() < t_end and not (stop_event is not None and stop_event.is_set()):
             with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(stop.wait(), duration_s)
-        else:
-            await stop.wait()
+                await asyncio.wait_for(stop.wait(), min(0.1, max(t_end - time.monotonic(), 0.0)))
     finally:
         await runner.cleanup()
 
 
 def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float = 0.5,
-          duration_s: float = 0.0, on_ready=None) -> None:
-    """Serve the page until SIGINT/SIGTERM (or ``duration_s``); returns after a clean shutdown.
+          duration_s: float = 0.0, on_ready=None, stop_event=None) -> None:
+    """Serve the page until SIGINT/SIGTERM, ``duration_s`` or ``stop_event``; returns after a clean shutdown.
 
     ``on_ready(host, port)`` is called once listening (``port=0`` picks a free port).
+    ``stop_event`` (anything with ``is_set()``) lets another thread stop it.
     """
     if not is_loopback(bind):
         log.warning("monitor listening on %s, beyond loopback: anyone who can reach it sees the stream "
                     "(there is no authentication)", bind)
-    asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None)))
+    asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None), stop_event))

@@ -1,0 +1,199 @@
+"""The monitor's edges without a browser: real zenoh messages in, the real aiohttp server out.
+
+Power, housekeeping, status and a malformed message go over a zenoh session on
+127.0.0.1 to a :class:`MonitorSubscriber`; the page's server runs on a free
+loopback port and is read with aiohttp's client (HTTP and the websocket
+protocol the page speaks). ``mntes-stream monitor --text`` runs as a process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("aiohttp", reason="the monitor extra is not installed")
+import aiohttp  # noqa: E402
+
+from mntes_stream.core import flags as fl  # noqa: E402
+from mntes_stream.io import keys  # noqa: E402
+from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage, detector_ids_for  # noqa: E402
+from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session  # noqa: E402
+from mntes_stream.monitor.aggregate import MonitorConfig  # noqa: E402
+from mntes_stream.monitor.server import is_loopback, serve  # noqa: E402
+from mntes_stream.monitor.subscriber import MonitorSubscriber  # noqa: E402
+
+FS = 100.0
+N = 20  # samples per chunk: 0.2 s
+
+
+def chunk_bytes(module: int, seq: int, t0_ns: int) -> bytes:
+    ch = np.arange(16, dtype=np.int32)
+    k = seq * N + np.arange(N)
+    p = 0.5e-12 + 1e-14 * np.sin(2 * np.pi * 1.54 * k / FS) * np.ones((16, 1))
+    f = np.zeros((16, N), np.uint16)
+    f[3] = fl.SATURATED
+    p[3] = np.nan
+    t = t0_ns + int(seq * N / FS * 1e9)
+    return PowerChunk("lab", 0, module, ch, detector_ids_for(0, module, ch), seq, t, FS, p, f,
+                      "tables-x", "table", t, time.time_ns()).to_bytes()
+
+
+def publish_stream(port: int, stop: threading.Event, modules=(0, 1)) -> None:
+    """Power for two modules, housekeeping and a status, paced in real time; one malformed message."""
+    with open_session(loopback(None, [port])) as z:
+        pubs = Publishers(z)
+        assert pubs.wait_matching([keys.power_key("lab", 0, 0)], 10, stop)
+        pubs.put(keys.power_key("lab", 0, 9), b"\x93not a message")
+        t0 = time.time_ns()
+        seq = 0
+        while not stop.is_set():
+            for m in modules:
+                pubs.put(keys.power_key("lab", 0, m), chunk_bytes(m, seq, t0))
+            t = np.array([t0 + int(seq * N / FS * 1e9)])
+            pubs.put(keys.hk_key("lab", "t_bath"), HousekeepingChunk("lab", "t_bath", seq, t, np.array([0.1]), "K").to_bytes())
+            pubs.put(keys.hk_key("lab", "b_field"), HousekeepingChunk("lab", "b_field", seq, t, np.array([2e-6]), "T").to_bytes())
+            pubs.put(keys.status_key("lab", "converter"), StatusMessage(
+                "lab", "converter", time.time_ns(), 1.0, 0.2, chunks_received=2 * seq, rate_chunks_per_s=10.0).to_bytes())
+            seq += 1
+            stop.wait(max(t0 + seq * N / FS * 1e9 - time.time_ns(), 0) / 1e9)
+
+
+@contextlib.contextmanager
+def monitor_with_stream():
+    zport = free_tcp_port()
+    stop = threading.Event()
+    info: dict = {}
+    ready = threading.Event()
+    with MonitorSubscriber("lab", loopback(zport), MonitorConfig(history_s=10.0)) as sub:
+        server = threading.Thread(target=serve, args=(sub, "127.0.0.1", 0, 0.2, 60.0,
+                                                      lambda h, p: (info.update(port=p), ready.set()), stop), daemon=True)
+        server.start()
+        pub = threading.Thread(target=publish_stream, args=(zport, stop), daemon=True)
+        pub.start()
+        try:
+            assert ready.wait(15), "server did not start"
+            yield sub, f"http://127.0.0.1:{info['port']}"
+        finally:
+            stop.set()
+            pub.join(10)
+            server.join(10)
+    assert not server.is_alive() and not pub.is_alive()
+
+
+async def _until(fn, timeout_s=15.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        result = await fn()
+        if result:
+            return result
+        await asyncio.sleep(0.1)
+    pytest.fail("condition not met in time")
+
+
+def test_page_assets_state_and_websocket_protocol():
+    async def scenario(base):
+        async with aiohttp.ClientSession() as http:
+            async with http.get(base + "/") as r:
+                page = await r.text()
+                assert r.status == 200 and "/static/plotly.min.js" in page and "/static/monitor.js" in page
+            async with http.get(base + "/static/plotly.min.js") as r:
+                js = await r.read()
+                assert r.status == 200 and len(js) > 1_000_000 and b"plotly" in js[:2000].lower()
+            async with http.get(base + "/static/../server.py") as r:
+                assert r.status == 404
+
+            async def state():
+                async with http.get(base + "/api/state") as r:
+                    s = await r.json()
+                    return s if s.get("health", {}).get("monitor", {}).get("channels") == 32 and s["health"]["services"] else None
+
+            s = await _until(state)
+            assert [(row["board"], row["module"]) for row in s["layout"]] == [(0, 0), (0, 1)]
+            assert s["codes"][3] == "1" and s["codes"][16 + 3] == "1"  # the saturated channel of each module
+            assert s["state_counts"]["saturated"] == 2
+            assert s["health"]["monitor"]["bad_messages"] == {"malformed": 1}
+            assert s["health"]["hk"]["t_bath"]["value"] == 0.1
+
+            async with http.ws_connect(base + "/ws") as ws:
+                first = json.loads((await ws.receive(timeout=5)).data)
+                assert first["type"] == "update" and first["layout"] and len(first["codes"]) == 32
+                assert first["selection"] == ["b0m0c000", "b0m1c000", "b0m0c001"]  # default: in transition
+                await ws.send_str(json.dumps({"type": "select", "channels": ["b0m1c005", "b0m0c003", "bogus"]}))
+                await ws.send_str(json.dumps({"type": "f_hwp", "value": "auto"}))
+
+                async def selected():
+                    msg = json.loads((await ws.receive(timeout=5)).data)
+                    ok = msg.get("selection") == ["b0m1c005", "b0m0c003"] and msg["spectrum"]["f_hwp_source"] != "configured"
+                    return msg if ok else None
+
+                msg = await _until(selected)
+                assert "layout" not in msg  # sent once per layout change
+                assert msg["unknown"] == ["bogus"]
+                live, sat = msg["streams"]
+                assert live["state"] == "transition" and len(live["t_ms"]) > 10
+                assert max(live["p_pw"]) == pytest.approx(0.51, abs=1e-3)
+                assert sat["state"] == "saturated" and all(v is None for v in sat["p_pw"])
+                assert [c["id"] for c in msg["spectrum"]["channels"]] == ["b0m1c005"]  # no spectrum from NaN
+                await ws.send_str(json.dumps({"type": "rendered", "newest_t_pub_ns": msg["newest_t_pub_ns"],
+                                              "t_render_ns": time.time_ns()}))
+                await ws.send_str("{not json")
+                while True:
+                    err = json.loads((await ws.receive(timeout=5)).data)
+                    if err["type"] == "error":
+                        break
+
+            async def rendered():
+                async with http.get(base + "/api/state") as r:
+                    s = await r.json()
+                    return s if s["health"]["page_latency_ms"]["n"] == 1 else None
+
+            s = await _until(rendered)
+            assert 0 < s["health"]["page_latency_ms"]["p50"] < 2000
+            async with http.get(base + "/api/view", params=[("ch", "b0m0c001"), ("f_hwp", "1.02")]) as r:
+                view = await r.json()
+                assert view["spectrum"]["harmonics_hz"] == pytest.approx([1.02, 2.04, 4.08])
+            async with http.get(base + "/api/view", params=[("ch", "b0m0c001"), ("f_hwp", "-1")]) as r:
+                assert r.status == 400
+
+    with monitor_with_stream() as (_, base):
+        asyncio.run(scenario(base))
+
+
+def test_text_mode_prints_a_bounded_live_table():
+    zport = free_tcp_port()
+    stop = threading.Event()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mntes_stream", "monitor", "--text", "--duration", "4", "--update-s", "1",
+         "--listen", f"tcp/127.0.0.1:{zport}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    pub = threading.Thread(target=publish_stream, args=(zport, stop), daemon=True)
+    pub.start()
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        stop.set()
+        pub.join(10)
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    screens = [s for s in out.split("\n\n") if s.strip()]
+    assert 3 <= len(screens) <= 6  # about one per second, and it stopped by itself
+    last = screens[-1]
+    assert "channels 32 in 2 modules" in last
+    assert "saturated 2" in last and "b0m0c003 saturated, b0m1c003 saturated" in last
+    assert "t_bath 100.0000 mK" in last and "b_field 2.000 uT" in last
+    row = next(line for line in last.splitlines() if line.startswith("monitor"))
+    assert float(row.split()[1]) == pytest.approx(10.0, rel=0.3)  # chunks/s received: 2 modules x 5 chunks/s
+
+
+def test_only_loopback_counts_as_loopback():
+    assert is_loopback("127.0.0.1") and is_loopback("127.3.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.5") and not is_loopback("example.org")
