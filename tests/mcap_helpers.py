@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 
+from mntes_stream.io import mcap_io
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance
 from mntes_stream.io.transport import free_tcp_port
 
@@ -48,3 +50,13 @@ def wait_matching(publisher, timeout_s: float = 10.0) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError(f"no subscriber for {publisher.key_expr} after {timeout_s} s")
         time.sleep(0.01)
+
+
+def readable_messages(source) -> list:
+    """Messages readable right now from a recording that may still be growing (never raises)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", mcap_io.TruncatedFileWarning)
+        try:
+            return list(mcap_io.iter_messages(source))
+        except Exception:  # the file may not exist yet, or be mid-write at its very start
+            return []

@@ -8,12 +8,11 @@ import subprocess
 import sys
 import threading
 import time
-import warnings
 
 import pytest
 import zenoh
 from mcap.reader import make_reader
-from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_payload, wait_matching
+from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_payload, readable_messages, wait_matching
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
@@ -27,16 +26,6 @@ def _wait_for(pred, timeout_s=15.0, what="condition"):
         if time.monotonic() > deadline:
             raise TimeoutError(what)
         time.sleep(0.05)
-
-
-def _recorded(directory):
-    """Payloads readable right now (the file may still be open)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", mio.TruncatedFileWarning)
-        try:
-            return list(mio.iter_messages(directory))
-        except Exception:
-            return []
 
 
 def _publishers(z, keys):
@@ -70,7 +59,7 @@ def test_records_everything_verbatim_with_stats(tmp_path):
                 sent.append((key, payload))
             z.put("other/t/x", b"not under the setup")  # outside mntes/t/**: not recorded
             # Read the growing file until the last message has been flushed to it.
-            _wait_for(lambda: len(_recorded(tmp_path)) == len(sent), what="all messages flushed")
+            _wait_for(lambda: len(readable_messages(tmp_path)) == len(sent), what="all messages flushed")
     finally:
         stop.set()
         th.join(30)
@@ -121,7 +110,7 @@ def test_sigterm_finishes_the_file(tmp_path):
             sent = [counts_payload(i) for i in range(40)]
             for p in sent:
                 pub.put(p)
-            _wait_for(lambda: len(_recorded(tmp_path)) == len(sent), what="flushed")
+            _wait_for(lambda: len(readable_messages(tmp_path)) == len(sent), what="flushed")
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=20)
     finally:

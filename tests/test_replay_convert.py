@@ -7,12 +7,11 @@ import subprocess
 import sys
 import threading
 import time
-import warnings
 from contextlib import contextmanager
 
 import pytest
 import zenoh
-from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_payload, wait_matching
+from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_payload, readable_messages, wait_matching
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
@@ -36,18 +35,9 @@ def recording(directory, ep):
         th.join(30)
 
 
-def _readable(directory):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", mio.TruncatedFileWarning)
-        try:
-            return list(mio.iter_messages(directory))
-        except Exception:
-            return []
-
-
 def _wait_count(directory, n, timeout_s=20.0):
     deadline = time.monotonic() + timeout_s
-    while len(_readable(directory)) < n:
+    while len(readable_messages(directory)) < n:
         if time.monotonic() > deadline:
             raise TimeoutError(f"{directory}: fewer than {n} messages recorded")
         time.sleep(0.05)
@@ -277,7 +267,7 @@ def test_offline_convert_matches_the_live_converter(tmp_path):
         n_chunks = 2 * 20
 
         def power_recorded():
-            return sum(m.topic.startswith("mntes/t/power/") for m in _readable(rec_dir))
+            return sum(m.topic.startswith("mntes/t/power/") for m in readable_messages(rec_dir))
 
         deadline = time.monotonic() + 30
         while power_recorded() < n_chunks and time.monotonic() < deadline:
