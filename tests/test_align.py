@@ -171,3 +171,16 @@ def test_sample_times():
     t = sample_times_ns(T0, 152.59, 1000)
     assert t.dtype == np.int64 and t[0] == T0
     np.testing.assert_array_equal(t - T0, np.rint(np.arange(1000) * 1e9 / 152.59).astype(np.int64))
+
+
+@settings(max_examples=200)
+@given(scenarios())
+def test_series_window_gives_the_same_result_as_the_whole_history(sc):
+    t, ht, hv, staleness = sc
+    s = HkSeries(retention_ns=10**12)
+    s.add(ht, hv)
+    whole = align(t, ht, hv, staleness, (-0.5, 0.5))
+    windowed = s.align(t, staleness, (-0.5, 0.5))
+    np.testing.assert_array_equal(windowed.flags, whole.flags)
+    np.testing.assert_array_equal(windowed.value, whole.value)
+    np.testing.assert_array_equal(windowed.age_ns, whole.age_ns)

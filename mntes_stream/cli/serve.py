@@ -82,45 +82,6 @@ def run_serve(args) -> int:
 # ------------------------------------------------------------------------------ up
 
 
-def _child(target: str, cfg, stop, ready, results) -> None:
-    """Entry of every ``up`` child process (spawned, so importable here)."""
-    # Own process group: Ctrl-C in the terminal reaches only the parent, which
-    # stops the children in order; the parent watcher covers a parent killed hard.
-    os.setpgrp()
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(processName)s %(name)s: %(message)s")
-    import multiprocessing
-
-    from mntes_stream.service import StopFlag
-
-    parent = multiprocessing.parent_process()
-
-    class _Stop(StopFlag):
-        def is_set(self) -> bool:
-            return super().is_set() or (parent is not None and not parent.is_alive())
-
-    flag = _Stop(stop)
-    try:
-        if target == "converter":
-            from mntes_stream.service.converter import run_converter
-
-            result = run_converter(cfg, flag, ready)
-        elif target == "source":
-            from mntes_stream.service.source import run_source
-
-            result = run_source(cfg, flag, ready)
-        else:
-            from dataclasses import asdict
-
-            from mntes_stream.service.recorder import RecorderConfig, run_recorder
-
-            ready.set()
-            result = asdict(run_recorder(RecorderConfig.from_dict(cfg, "up"), flag))
-        results.put((target, "ok", result))
-    except BaseException as exc:
-        results.put((target, "error", f"{type(exc).__name__}: {exc}"))
-        raise
-
-
 def _pick_source(setup: str, args):
     """The simulator's generator when installed, else the minimal physics source."""
     from mntes_stream.service.source import SourceConfig
@@ -138,14 +99,11 @@ def _mcap_bytes(directory: Path) -> tuple[int, int]:
 
 
 def run_up(args) -> int:
-    import multiprocessing as mp
-
-    from mntes_stream.errors import MntesError
     from mntes_stream.io import keys
     from mntes_stream.io.messages import StatusMessage
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
-    from mntes_stream.service import stop_on_signals
+    from mntes_stream.service import Services, stop_on_signals
     from mntes_stream.service.converter import ConverterConfig
     from mntes_stream.service.pipeline import PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceService
@@ -168,10 +126,7 @@ def run_up(args) -> int:
                                zenoh=loopback(p_conv, [p_rec]))
     src_svc = SourceService(source=src_cfg, zenoh=loopback(p_src, [p_conv, p_rec]), params=str(params_file))
 
-    ctx = mp.get_context("spawn")
-    results = ctx.Queue()
-    procs = {}
-    stops = {}
+    services = Services()
     print(f"mntes-stream up: {src_cfg.n_detectors} detectors ({src_cfg.modules} modules x {src_cfg.channels} channels) "
           f"at {src_cfg.sample_rate_hz} Hz, {args.kind} conversion; recording into {rec_dir}")
     print(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
@@ -180,53 +135,38 @@ def run_up(args) -> int:
     failed = False
     with stop_on_signals() as stopping:
         try:
-            for name, cfg in (("recorder", recorder_doc), ("converter", conv_cfg), ("source", src_svc)):
-                stops[name], ready = ctx.Event(), ctx.Event()
-                procs[name] = ctx.Process(target=_child, name=f"up-{name}", args=(name, cfg, stops[name], ready, results))
-                procs[name].start()
-                deadline = time.monotonic() + 120
-                while not ready.wait(0.1):
-                    if not procs[name].is_alive() or time.monotonic() > deadline or stopping.is_set():
-                        raise MntesError(f"{name} did not start (exit code {procs[name].exitcode})")
+            services.start("recorder", "mntes_stream.service:run_recorder_doc", recorder_doc, abort=stopping)
+            services.start("converter", "mntes_stream.service.converter:run_converter", conv_cfg, abort=stopping)
+            services.start("source", "mntes_stream.service.source:run_source", src_svc, abort=stopping)
             with open_session(loopback(None, [p_rec, p_conv, p_src])) as session:
                 sub = QueueSubscriber(session, [status_key])
                 t_end = time.monotonic() + args.duration if args.duration else float("inf")
                 while not stopping.is_set() and time.monotonic() < t_end:
-                    if any(not p.is_alive() for p in procs.values()):
+                    if not services.alive():
                         failed = True
                         print("a service stopped unexpectedly; shutting down", file=sys.stderr)
                         break
                     item = sub.get(timeout_s=0.2)
-                    if item is None:
+                    if item is None or args.quiet:
                         continue
                     st = StatusMessage.from_bytes(item[1])
                     n_files, size = _mcap_bytes(rec_dir)
                     p50 = "-" if st.latency_p50_ms is None else f"{st.latency_p50_ms:.1f}"
                     p99 = "-" if st.latency_p99_ms is None else f"{st.latency_p99_ms:.1f}"
-                    if not args.quiet:
-                        print(f"  t={st.uptime_s:6.1f} s  power chunks {st.chunks_converted:7d}  "
-                              f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
-                              f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
-                              f"MCAP {n_files} file(s) {size / 1e6:.2f} MB", flush=True)
+                    print(f"  t={st.uptime_s:6.1f} s  power chunks {st.chunks_converted:7d}  "
+                          f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
+                          f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
+                          f"MCAP {n_files} file(s) {size / 1e6:.2f} MB", flush=True)
                 sub.close()
         finally:
             # Ordered stop: no new data, then the converter empties, then the recorder finishes its file.
-            for name in ("source", "converter", "recorder"):
-                if name in procs:
-                    stops[name].set()
-                    procs[name].join(timeout=30)
-                    if procs[name].is_alive():
-                        print(f"{name} did not stop within 30 s; terminating it", file=sys.stderr)
-                        procs[name].terminate()
-                        procs[name].join(5)
-                        failed = True
-                    if name == "source":
-                        time.sleep(0.5)  # let the last chunks reach the converter and the recorder
-    summary = {}
-    while not results.empty():
-        name, state, result = results.get()
-        summary[name] = result
-        failed |= state != "ok"
+            failed |= not services.stop("source")
+            time.sleep(0.5)  # the last chunks reach the converter and the recorder
+            failed |= not services.stop("converter")
+            time.sleep(0.3)
+            failed |= not services.stop("recorder")
+    summary, ok = services.collect()
+    failed |= not ok
     n_files, size = _mcap_bytes(rec_dir)
     conv = summary.get("converter", {})
     rec = summary.get("recorder", {})

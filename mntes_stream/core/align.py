@@ -142,7 +142,7 @@ class HkSeries:
     """A growing, bounded history of one sensor's readings (pure state, no I/O).
 
     Readings may arrive in any order; a reading at an existing time replaces
-    the old one. Readings older than ``retention_ns`` before the newest are
+    the old one. Non-finite readings (failed sensor reads) are dropped. Readings older than ``retention_ns`` before the newest are
     pruned, so memory stays bounded in a long run.
 
     Parameters
@@ -173,6 +173,12 @@ class HkSeries:
         want = (t.size,) if self.width is None else (t.size, self.width)
         if v.shape != want:
             raise ConfigError(f"HkSeries.add: value shape {v.shape}, expected {want}")
+        if v.ndim == 1:
+            finite = np.isfinite(v)
+        else:
+            finite = np.all(np.isfinite(v), axis=1)
+        if not finite.all():  # align() would ignore them anyway; dropping them here keeps windows exact
+            t, v = t[finite], v[finite]
         if t.size == 0:
             return
         if self.t_ns.size and t.min() > self.t_ns[-1] and np.all(np.diff(t) > 0):
@@ -192,4 +198,12 @@ class HkSeries:
             self.t_ns, self.value = self.t_ns[cut:], self.value[cut:]
 
     def align(self, t_ns, staleness_ns: int, valid_range=None) -> Aligned:
-        return align(t_ns, self.t_ns, self.value, staleness_ns, valid_range)
+        """:func:`align` against this history; only the readings that can matter are looked at."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        if t.size == 0 or self.t_ns.size == 0:
+            return align(t, self.t_ns, self.value, staleness_ns, valid_range)
+        # The newest reading at or before min(t) and the oldest at or after max(t)
+        # bound everything align() uses (non-finite readings were dropped on add).
+        i0 = max(int(np.searchsorted(self.t_ns, t.min(), side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(self.t_ns, t.max(), side="left")) + 1, self.t_ns.size)
+        return align(t, self.t_ns[i0:i1], self.value[i0:i1], staleness_ns, valid_range)

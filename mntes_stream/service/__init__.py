@@ -4,16 +4,20 @@
 - ``converter``: the live converter service around it;
 - ``source``: a minimal counts/housekeeping publisher from the physics model;
 - ``recorder``, ``replay``: MCAP recording and re-publication;
-- ``up``-style orchestration lives in ``cli/serve.py``.
+- :class:`Services`: several of them as spawned processes (``up``, ``bench stream``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
+import os
 import signal
+import sys
 import threading
+import time
 
-__all__ = ["StopFlag", "stop_on_signals"]
+__all__ = ["StopFlag", "stop_on_signals", "Services", "child_main", "run_recorder_doc"]
 
 
 class StopFlag:
@@ -56,3 +60,101 @@ def stop_on_signals(outer=None):
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def child_main(name: str, target: str, cfg, stop, ready, results) -> None:
+    """Entry of a spawned service process: ``target`` is ``"module:function"``.
+
+    The function is called as ``function(cfg, stop, ready) -> dict``; its
+    result (or its error) goes to the ``results`` queue as ``(name, "ok"|"error", value)``.
+    """
+    import importlib
+    import multiprocessing
+
+    from mntes_stream.service import StopFlag
+
+    # Own process group: Ctrl-C in the terminal reaches only the parent, which
+    # stops the children in order; the parent watch covers a parent killed hard.
+    os.setpgrp()
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(processName)s %(name)s: %(message)s")
+    parent = multiprocessing.parent_process()
+
+    class _Stop(StopFlag):
+        def is_set(self) -> bool:
+            return super().is_set() or (parent is not None and not parent.is_alive())
+
+    module, func = target.split(":")
+    wall0, cpu0 = time.monotonic(), time.process_time()
+    try:
+        result = getattr(importlib.import_module(module), func)(cfg, _Stop(stop), ready)
+        if isinstance(result, dict):  # what the process cost, for benchmarks
+            result = {**result, "process_cpu_s": time.process_time() - cpu0, "process_wall_s": time.monotonic() - wall0}
+        results.put((name, "ok", result))
+    except BaseException as exc:
+        results.put((name, "error", f"{type(exc).__name__}: {exc}"))
+        raise
+
+
+def run_recorder_doc(doc: dict, stop=None, ready=None) -> dict:
+    """The recorder from a config document, in the ``function(cfg, stop, ready)`` form."""
+    from dataclasses import asdict
+
+    from mntes_stream.service.recorder import RecorderConfig, run_recorder
+
+    cfg = RecorderConfig.from_dict(doc, "recorder")
+    if ready is not None:
+        ready.set()  # subscribes within milliseconds; callers wait for a matching publisher anyway
+    return asdict(run_recorder(cfg, stop))
+
+
+class Services:
+    """Spawned service processes, started in order (each waits until ready) and stopped in reverse dependency order."""
+
+    def __init__(self):
+        import multiprocessing as mp
+
+        self._ctx = mp.get_context("spawn")  # never fork: a zenoh session may be open
+        self.results = self._ctx.Queue()
+        self.procs: dict = {}
+        self._stops: dict = {}
+
+    def start(self, name: str, target: str, cfg, timeout_s: float = 180.0, abort=None) -> None:
+        from mntes_stream.errors import MntesError
+
+        stop, ready = self._ctx.Event(), self._ctx.Event()
+        proc = self._ctx.Process(target=child_main, name=name, args=(name, target, cfg, stop, ready, self.results))
+        proc.start()
+        self.procs[name], self._stops[name] = proc, stop
+        deadline = time.monotonic() + timeout_s
+        while not ready.wait(0.1):
+            if not proc.is_alive() or time.monotonic() > deadline or (abort is not None and abort.is_set()):
+                raise MntesError(f"{name} did not start (exit code {proc.exitcode})")
+
+    def alive(self) -> bool:
+        return all(p.is_alive() for p in self.procs.values())
+
+    def stop(self, name: str, timeout_s: float = 30.0) -> bool:
+        """Stop one service; False if it had to be terminated."""
+        proc = self.procs.get(name)
+        if proc is None:
+            return True
+        self._stops[name].set()
+        proc.join(timeout_s)
+        if proc.is_alive():
+            print(f"{name} did not stop within {timeout_s:g} s; terminating it", file=sys.stderr)
+            proc.terminate()
+            proc.join(5)
+            return False
+        return proc.exitcode == 0
+
+    def collect(self) -> tuple[dict, bool]:
+        """Results by service name, and whether every service ended well."""
+        out, ok = {}, True
+        while True:
+            try:
+                name, state, value = self.results.get(timeout=0.5)
+            except Exception:  # queue.Empty
+                break
+            out[name] = value
+            ok &= state == "ok"
+        return out, ok and len(out) == len(self.procs)

@@ -198,17 +198,13 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -
                 if cfg.duration_s and time.monotonic() - t_start >= cfg.duration_s:
                     break
                 item = sub.get(timeout_s=0.05)
-                if item is None:
-                    outs = pipe.tick(time.time_ns())
-                else:
-                    outs = pipe.handle(*item)
-                    for more in sub.drain(256):
-                        outs.extend(pipe.handle(*more))
+                # Each output goes out as soon as it exists: a burst of chunks must not wait for its last one.
+                outs = pipe.tick(time.time_ns()) if item is None else pipe.handle(*item)
                 for key, payload in outs:
                     pubs.put(key, payload)
                 if time.monotonic() >= next_prov:
                     pubs.put(prov_key, pipe.provenance_bytes())
-                    next_prov += cfg.provenance_interval_s
+                    next_prov = time.monotonic() + cfg.provenance_interval_s
             # Stop receiving, convert what is already here, say so, then close.
             sub.close()
             for item in sub.drain():

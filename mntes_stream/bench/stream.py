@@ -1,0 +1,228 @@
+"""Streaming benchmark: source -> zenoh -> converter -> zenoh -> recorder (MCAP), on this machine.
+
+Four spawned processes, zenoh peers on 127.0.0.1: the minimal physics source,
+the converter service, the MCAP recorder, and a plain subscriber for the
+yardstick. Two phases in one run:
+
+1. passthrough: the source publishes pre-encoded counts chunks flat out to the
+   plain subscriber, which decodes each one: what zenoh + msgpack carry with
+   no conversion (``passthrough_msamples_per_s``);
+2. stream: ``--duration`` seconds of the array in real time (or flat out with
+   ``--flat-out``) through the converter into the recorder. Figures come from
+   the recording itself: every power chunk's latency (``t_pub_ns`` of the
+   power minus ``t_pub_ns`` of its counts chunk, both stamped at publication),
+   and chunks lost = counts chunks sent minus power chunks recorded. The first
+   ``--warmup`` seconds are left out of rates and latencies, not of counts.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+HELP = "source -> zenoh -> converter -> zenoh -> MCAP recorder: sustained rate, latency, loss"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--modules", type=int, default=40, help="readout modules (default 40)")
+    p.add_argument("--channels", type=int, default=128, help="channels per module (default 128)")
+    p.add_argument("--sample-rate", type=float, default=200.0, metavar="HZ", help="default 200")
+    p.add_argument("--chunk-s", type=float, default=0.1, help="chunk length (default 0.1 s)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="stream phase length (default 20 s)")
+    p.add_argument("--warmup", type=float, default=2.0, metavar="S", help="left out of rates and latencies (default 2 s)")
+    p.add_argument("--passthrough-s", type=float, default=3.0, metavar="S", help="passthrough phase length (default 3 s)")
+    p.add_argument("--kind", default="table", help="conversion kind (default table)")
+    p.add_argument("--flat-out", action="store_true", help="stream phase as fast as possible instead of real time")
+    p.add_argument("--keep", metavar="DIR", help="keep the recording and parameters in DIR")
+
+
+def _sink(cfg: dict, stop, ready) -> dict:
+    """Plain subscriber: decode every counts chunk, count samples (the passthrough yardstick)."""
+    from mntes_stream.io.messages import CountsChunk
+    from mntes_stream.io.transport import QueueSubscriber, open_session
+
+    n = samples = 0
+    t_first = t_last = None
+    with open_session(cfg["zenoh"]) as z:
+        sub = QueueSubscriber(z, [cfg["key"]], maxsize=1 << 16)
+        ready.set()
+        while not stop.is_set():
+            item = sub.get(timeout_s=0.05)
+            while item is not None:
+                c = CountsChunk.from_bytes(item[1])
+                n += 1
+                samples += c.counts_i.size
+                t_first = item[2] if t_first is None else t_first
+                t_last = item[2]
+                item = sub.get()
+        sub.close()
+    span = (t_last - t_first) / 1e9 if n > 1 else 0.0
+    return {"messages": n, "samples": samples, "span_s": span,
+            "msamples_per_s": samples / span / 1e6 if span > 0 else 0.0}
+
+
+def _source(cfg: dict, stop, ready) -> dict:
+    """Both phases of the source side (one session, one process)."""
+    from mntes_stream.io import keys
+    from mntes_stream.io.paramfile import load_params
+    from mntes_stream.io.transport import Publishers, open_session
+    from mntes_stream.service.source import MinimalSource, publish
+
+    src = MinimalSource(cfg["source"], list(load_params(cfg["params"]).values()))
+    src.prepare()
+    sc = cfg["source"]
+    counts_keys = [keys.counts_key(sc.setup, b, m) for b in range(sc.boards) for m in range(sc.modules)]
+    out: dict = {}
+    with open_session(cfg["zenoh"]) as z:
+        ready.set()
+        # Phase 1: the same counts messages, re-keyed to the plain subscriber, flat out.
+        pass_msgs = []
+        for _, batch in src.batches(time.time_ns(), duration_s=2.0):
+            pass_msgs += [(k.replace(f"/{sc.setup}/", f"/{cfg['pass_setup']}/", 1), p) for k, p in batch if "/counts/" in k]
+        pubs = Publishers(z)
+        pass_keys = sorted({k for k, _ in pass_msgs})
+        pubs.wait_matching(pass_keys, 30.0, stop)
+        n = 0
+        t_end = time.monotonic() + cfg["passthrough_s"]
+        while time.monotonic() < t_end and not stop.is_set():
+            for k, p in pass_msgs:
+                pubs.put(k, p)
+            n += len(pass_msgs)
+        out["passthrough_sent"] = n
+        # Phase 2: the array through the converter, into the recorder.
+        if not pubs.wait_matching(counts_keys, 60.0, stop):
+            raise RuntimeError("converter not subscribed")
+        pubs.close()
+        time.sleep(0.5)  # let the passthrough messages drain before the clock starts
+        start = time.time_ns()
+        res = publish(z, src.batches(start, cfg["duration_s"]), speed=0.0 if cfg["flat_out"] else 1.0,
+                      stop=stop, t_ref_ns=start)
+        out.update(res, t_start_ns=start, t_end_ns=time.time_ns(), chunks_sent=res["batches"] * len(counts_keys))
+    return out
+
+
+def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window_end_ns: int | None):
+    from mntes_stream.io.mcap_io import iter_messages
+    from mntes_stream.io.messages import PowerChunk
+
+    lat_ms, seen = [], set()
+    counts = power = samples_window = 0
+    t_first = t_last = None
+    t_from = t_start_ns + int(warmup_s * 1e9)
+    for m in iter_messages(rec_dir):
+        if f"/{setup}/counts/" in m.topic:
+            counts += 1
+        elif f"/{setup}/power/" in m.topic:
+            pw = PowerChunk.from_bytes(m.payload)
+            power += 1
+            seen.add((pw.board, pw.module, pw.seq))
+            if pw.source_t_pub_ns >= t_from and (window_end_ns is None or pw.source_t_pub_ns < window_end_ns):
+                lat_ms.append((pw.t_pub_ns - pw.source_t_pub_ns) / 1e6)
+                samples_window += pw.p_opt_w.size
+                t_first = pw.t_pub_ns if t_first is None else min(t_first, pw.t_pub_ns)
+                t_last = pw.t_pub_ns if t_last is None else max(t_last, pw.t_pub_ns)
+    return lat_ms, len(seen), power, counts, samples_window, t_first, t_last
+
+
+def run(args) -> dict:
+    from mntes_stream.io import keys
+    from mntes_stream.io.paramfile import dump_params
+    from mntes_stream.io.transport import free_tcp_port, loopback
+    from mntes_stream.service import Services
+    from mntes_stream.service.converter import ConverterConfig
+    from mntes_stream.service.pipeline import PipelineConfig
+    from mntes_stream.service.source import MinimalSource, SourceConfig
+
+    setup, pass_setup = "bench", "benchpass"
+    n = max(1, round(args.chunk_s * args.sample_rate))
+    sc = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
+                      sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate,
+                      cycle_s=1.0)
+    tmp = None
+    if args.keep:
+        work = Path(args.keep)
+        work.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp = tempfile.TemporaryDirectory(prefix="mntes-bench-stream-")
+        work = Path(tmp.name)
+    rec_dir = work / "recordings"
+    params_file = work / "params.toml"
+    dump_params(MinimalSource(sc).params, params_file)
+    p_rec, p_conv, p_src, p_sink = (free_tcp_port() for _ in range(4))
+    recorder_doc = {
+        "recorder": {"setup": setup, "directory": str(rec_dir), "flush_interval_s": 1.0, "rotate_s": 0, "log_interval_s": 3600},
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{p_rec}"]},
+    }
+    conv_cfg = ConverterConfig(params=str(params_file), kind=args.kind, provenance_interval_s=0,
+                               pipeline=PipelineConfig(setup=setup, status_interval_s=1.0),
+                               zenoh=loopback(p_conv, [p_rec]))
+    src_cfg = {"source": sc, "params": str(params_file), "zenoh": loopback(p_src, [p_conv, p_rec, p_sink]),
+               "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
+               "flat_out": args.flat_out}
+    sink_cfg = {"zenoh": loopback(p_sink), "key": keys.counts_key(pass_setup, "*", "*")}
+    services = Services()
+    try:
+        services.start("recorder", "mntes_stream.service:run_recorder_doc", recorder_doc)
+        services.start("converter", "mntes_stream.service.converter:run_converter", conv_cfg)
+        services.start("sink", "mntes_stream.bench.stream:_sink", sink_cfg)
+        services.start("source", "mntes_stream.bench.stream:_source", src_cfg)
+        deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
+        while services.procs["source"].is_alive() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        ok_src = services.stop("source")
+        time.sleep(1.0)  # the converter and recorder drain what is in flight
+        ok = services.stop("converter") & services.stop("recorder") & services.stop("sink") & ok_src
+    finally:
+        for name in ("source", "converter", "recorder", "sink"):
+            services.stop(name, timeout_s=10)
+    results, ok_all = services.collect()
+    src, conv, rec, sink = (results.get(k, {}) for k in ("source", "converter", "recorder", "sink"))
+    if not isinstance(src, dict) or "t_start_ns" not in src:
+        raise RuntimeError(f"benchmark source failed: {src}; converter: {conv}; recorder: {rec}")
+    window_end = None if args.flat_out else src["t_start_ns"] + int(args.duration * 1e9)
+    lat, unique_power, power_msgs, counts_msgs, samples_window, t_first, t_last = _analyse(
+        rec_dir, setup, src["t_start_ns"], args.warmup, window_end)
+    if args.flat_out:
+        span = (t_last - src["t_start_ns"]) / 1e9 if t_last else 0.0
+        msps = unique_power * args.channels * n / span / 1e6 if span > 0 else 0.0
+    else:
+        span = args.duration - args.warmup
+        msps = samples_window / span / 1e6 if span > 0 else 0.0
+    q = statistics.quantiles(lat, n=100, method="inclusive") if len(lat) >= 2 else [float("nan")] * 99
+    stream_wall = (src["t_end_ns"] - src["t_start_ns"]) / 1e9
+
+    def cpu(r):
+        return round(r.get("process_cpu_s", 0.0) / r.get("process_wall_s", 1.0), 3) if isinstance(r, dict) else None
+
+    out = {
+        "channels": args.modules * args.channels,
+        "modules": args.modules,
+        "sample_rate_hz": args.sample_rate,
+        "chunk_s": n / args.sample_rate,
+        "mode": "flat-out" if args.flat_out else "real time",
+        "duration_s": args.duration,
+        "offered_msamples_per_s": round(args.modules * args.channels * args.sample_rate / 1e6, 4),
+        "msamples_per_s": round(msps, 4),
+        "latency_p50_ms": round(q[49], 2),
+        "latency_p99_ms": round(q[98], 2),
+        "latency_max_ms": round(max(lat), 2) if lat else None,
+        "chunks_sent": src["chunks_sent"],
+        "chunks_converted": conv.get("chunks_converted") if isinstance(conv, dict) else None,
+        "chunks_recorded": unique_power,
+        "counts_recorded": counts_msgs,
+        "power_duplicates_recorded": power_msgs - unique_power,
+        "lost": src["chunks_sent"] - unique_power,
+        "converter_lost": conv.get("chunks_lost") if isinstance(conv, dict) else None,
+        "source_behind_max_ms": round(src.get("behind_max_ms", 0.0), 2),
+        "stream_wall_s": round(stream_wall, 2),
+        "passthrough_msamples_per_s": round(sink.get("msamples_per_s", 0.0), 3) if isinstance(sink, dict) else None,
+        "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "recorder": cpu(rec), "sink": cpu(sink)},
+        "recording_mb": round(sum(f.stat().st_size for f in rec_dir.glob("*.mcap")) / 1e6, 1),
+        "kind": args.kind,
+        "all_services_ok": bool(ok and ok_all),
+    }
+    if tmp is not None:
+        tmp.cleanup()
+    return out
