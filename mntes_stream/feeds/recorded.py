@@ -17,7 +17,9 @@ Two passes over the session's ``mntes/<setup>/power/<board>/<module>`` messages:
    session.
 
 Time selection is on *sample* time (``start_ns <= t < end_ns``); the second
-pass only reads the receive-time span of the selected chunks.
+pass only reads the receive-time span of the selected chunks. Holes are filled
+only between chunks of a stream: each stream starts at its first selected
+sample and ends at its last (``t_start_ns``/``t_end_ns`` show where).
 """
 
 from __future__ import annotations
