@@ -352,7 +352,7 @@ def fit_detector(det: DetectorCalibration, options: FitOptions = FitOptions()) -
         with np.errstate(all="ignore"):
             sol = least_squares(
                 prob.fun, np.zeros(N_PARAMS), jac=prob.jac, bounds=(prob.u_lo, prob.u_hi), method="trf",
-                x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-10, max_nfev=options.max_nfev,
+                x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=options.max_nfev,
             )
         jac = prob.jac(sol.x, central=True)
         resid = prob.fun(sol.x)
