@@ -236,59 +236,79 @@ def test_offline_convert_needs_parameters(tmp_path):
         convert_recording(path, tmp_path / "out.mcap", progress=False)
 
 
-def test_offline_convert_matches_the_live_converter(tmp_path):
-    """source -> zenoh -> live converter -> zenoh -> recorder; then the recording re-converted offline."""
-    import numpy as np
+def _live_run(tmp_path, name, params_file, feed, n_power):
+    """A live converter and a recorder of its inputs and outputs; ``feed(endpoints)`` publishes the inputs.
 
-    from mntes_stream.io import keys
-    from mntes_stream.io.messages import PowerChunk
-    from mntes_stream.io.paramfile import dump_params
+    Returns the recording directory once ``n_power`` power chunks are in it and
+    both services have stopped (converter first, so it converts what it holds).
+    """
     from mntes_stream.io.transport import free_tcp_port, loopback
     from mntes_stream.service.converter import ConverterConfig, run_converter
-    from mntes_stream.service.offline import convert_recording
     from mntes_stream.service.pipeline import PipelineConfig
-    from mntes_stream.service.source import MinimalSource, SourceConfig, publish
 
-    src = MinimalSource(SourceConfig(setup="t", modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))
-    dump_params(src.params, tmp_path / "params.toml")
     p_rec, p_conv = free_tcp_port(), free_tcp_port()
-    rec_dir = tmp_path / "rec"
+    rec_dir = tmp_path / name
     rec_cfg = RecorderConfig(setup="t", directory=str(rec_dir), flush_interval_s=0.1, zenoh=loopback(p_rec))
-    conv_cfg = ConverterConfig(params=str(tmp_path / "params.toml"), kind="table", pipeline=PipelineConfig(setup="t"),
+    conv_cfg = ConverterConfig(params=str(params_file), kind="table", pipeline=PipelineConfig(setup="t"),
                                zenoh=loopback(p_conv, [p_rec]))
     stop_rec, stop_conv = threading.Event(), threading.Event()
     ready_rec, ready_conv = threading.Event(), threading.Event()
-    threads = [threading.Thread(target=run_recorder, args=(rec_cfg, stop_rec, ready_rec)),
-               threading.Thread(target=run_converter, args=(conv_cfg, stop_conv, ready_conv))]
-    threads[0].start()
+    rec = threading.Thread(target=run_recorder, args=(rec_cfg, stop_rec, ready_rec))
+    conv = threading.Thread(target=run_converter, args=(conv_cfg, stop_conv, ready_conv))
+    rec.start()
     try:
         assert ready_rec.wait(30)
-        threads[1].start()
+        conv.start()
         assert ready_conv.wait(60)
-        with open_session(loopback(None, [p_conv, p_rec])) as z:
-            wait = [keys.counts_key("t", 0, m) for m in range(2)] + [keys.hk_key("t", s) for s in ("t_bath", "b_field")]
-            sent = publish(z, src.batches(time.time_ns(), 2.0), speed=0, wait_keys=wait, wait_s=30)
-        assert sent["matched"]
-        n_chunks = 2 * 20
-
-        def power_recorded():
-            return sum(m.topic.startswith("mntes/t/power/") for m in readable_messages(rec_dir))
-
+        feed(loopback(None, [p_conv, p_rec]))
         deadline = time.monotonic() + 30
-        while power_recorded() < n_chunks and time.monotonic() < deadline:
+        while time.monotonic() < deadline:
+            if sum(m.topic.startswith("mntes/t/power/") for m in readable_messages(rec_dir)) >= n_power:
+                break
             time.sleep(0.1)
     finally:
-        stop_conv.set()  # the converter first: it converts what it holds, the recorder gets it
-        if threads[1].ident is not None:
-            threads[1].join(30)
+        stop_conv.set()
+        if conv.ident is not None:
+            conv.join(30)
         stop_rec.set()
-        threads[0].join(30)
-    live = {(p.module, p.seq): p for p in _power(rec_dir)}
-    assert len(live) == n_chunks
-    stats = convert_recording(rec_dir, tmp_path / "offline.mcap", progress=False)
-    offline = {(p.module, p.seq): p for p in _power(tmp_path / "offline.mcap")}
-    assert offline.keys() == live.keys() and stats.table_identity == stats.recorded_table_identity
-    for k, a in live.items():
-        b = offline[k]
-        assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True) and np.array_equal(a.flags, b.flags), k
-    assert all(np.isfinite(p.p_opt_w).all() for p in offline.values())
+        rec.join(30)
+    return rec_dir
+
+
+def test_live_replayed_and_offline_conversions_agree(tmp_path):
+    """source -> live converter -> recorder; replay of that recording -> live converter -> recorder;
+    offline conversion of the first recording: the same power and flags, sample for sample."""
+    import numpy as np
+
+    from mntes_stream.io import keys
+    from mntes_stream.io.paramfile import dump_params
+    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.service.source import MinimalSource, SourceConfig, publish
+
+    src = MinimalSource(SourceConfig(setup="t", modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))
+    params_file = tmp_path / "params.toml"
+    dump_params(src.params, params_file)
+    n_power = 2 * 20  # 2 s of 0.1 s chunks on two modules
+
+    def from_source(z_settings):
+        with open_session(z_settings) as z:
+            wait = [keys.counts_key("t", 0, m) for m in range(2)] + [keys.hk_key("t", s) for s in ("t_bath", "b_field")]
+            assert publish(z, src.batches(time.time_ns(), 2.0), speed=0, wait_keys=wait, wait_s=30)["matched"]
+
+    live_dir = _live_run(tmp_path, "live", params_file, from_source, n_power)
+
+    def from_recording(z_settings):
+        stats = run_replay(ReplayConfig(source=(str(live_dir),), speed=0, zenoh=z_settings, wait_subscribers_s=30))
+        assert stats.messages == 2 * 20 + 2 * 20 and not stats.unmatched_topics  # counts + hk (t_bath, b_field)
+
+    replay_dir = _live_run(tmp_path, "replayed", params_file, from_recording, n_power)
+    stats = convert_recording(live_dir, tmp_path / "offline.mcap", progress=False)
+    assert stats.table_identity == stats.recorded_table_identity
+    runs = [{(p.module, p.seq): p for p in _power(d)} for d in (live_dir, replay_dir, tmp_path / "offline.mcap")]
+    live = runs[0]
+    assert len(live) == n_power and all(np.isfinite(p.p_opt_w).all() for p in live.values())
+    for other in runs[1:]:
+        assert other.keys() == live.keys()
+        for k, a in live.items():
+            b = other[k]
+            assert np.array_equal(a.p_opt_w, b.p_opt_w) and np.array_equal(a.flags, b.flags), k
