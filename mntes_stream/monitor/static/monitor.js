@@ -50,7 +50,7 @@ function fillPicker() {
   const bSel = $("pick-board");
   const keep = bSel.value;
   bSel.innerHTML = boards.map((b) => `<option>${b}</option>`).join("");
-  if (boards.includes(Number(keep))) bSel.value = keep;
+  if (keep !== "" && boards.includes(Number(keep))) bSel.value = keep;
   fillModules();
 }
 function fillModules() {
@@ -59,7 +59,7 @@ function fillModules() {
   const mSel = $("pick-module");
   const keep = mSel.value;
   mSel.innerHTML = mods.map((m) => `<option>${m}</option>`).join("");
-  if (mods.includes(Number(keep))) mSel.value = keep;
+  if (keep !== "" && mods.includes(Number(keep))) mSel.value = keep;
   fillChannels();
 }
 function fillChannels() {

@@ -1,0 +1,188 @@
+"""``mntes-stream bench monitor``: can the quick-look monitor keep up with a full focal plane?
+
+Two parts, both on ``--modules`` 128-channel modules (default 40 = 5120 channels)
+at ``--rate-hz`` in ``--chunk-s`` chunks:
+
+- in process (no I/O): decoding and aggregating the power stream, as a
+  fraction of one core per second of data; the cost of one tick (channel
+  states, housekeeping, health) and of one page's view (time streams and
+  spectra of the selected channels); the size of one page update;
+- ``--browser``: the real thing on loopback: a publisher process puts the
+  power stream on zenoh in real time, ``mntes-stream monitor`` serves it and
+  headless Chromium draws it; reported are the page's update rate, the
+  publication-to-drawn latency it measures, and the monitor's CPU use.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HELP = "quick-look monitor: aggregation cost and page latency for a full focal plane"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--modules", type=int, default=40, help="128-channel modules (default 40 = 5120 channels)")
+    p.add_argument("--rate-hz", type=float, default=152.59)
+    p.add_argument("--chunk-s", type=float, default=0.1)
+    p.add_argument("--seconds", type=float, default=20.0, help="stream time")
+    p.add_argument("--selected", type=int, default=4, help="channels plotted by the page")
+    p.add_argument("--browser", action="store_true", help="also run publisher + monitor + headless Chromium live")
+
+
+def _chunks(modules: int, n_samp: int, rate_hz: float, n_chunks: int, t0_ns: int, setup: str = "bench"):
+    """Encoded power chunks, chunk-major: a 2f line, white noise, one saturated channel per module."""
+    from mntes_stream.core import flags as fl
+    from mntes_stream.io.messages import PowerChunk, detector_ids_for
+
+    rng = np.random.default_rng(0)
+    ch = np.arange(128, dtype=np.int32)
+    for k in range(n_chunks):
+        t = (k * n_samp + np.arange(n_samp)) / rate_hz
+        out = []
+        for m in range(modules):
+            p = 0.5e-12 + 1e-14 * np.sin(2 * np.pi * 1.54 * t) + 1e-16 * rng.standard_normal((128, n_samp))
+            f = np.zeros((128, n_samp), np.uint16)
+            f[7] = fl.SATURATED
+            p[7] = np.nan
+            t0 = t0_ns + int(round(k * n_samp / rate_hz * 1e9))
+            out.append((m, PowerChunk(setup, 0, m, ch, detector_ids_for(0, m, ch), k, t0, rate_hz, p, f,
+                                      "bench", "table", t0, t0).to_bytes()))
+        yield k, out
+
+
+def _in_process(args) -> dict:
+    from mntes_stream.io import keys
+    from mntes_stream.monitor.aggregate import MonitorConfig
+    from mntes_stream.monitor.subscriber import MonitorSubscriber
+    from mntes_stream.io.transport import ZenohSettings
+
+    n_samp = max(1, int(round(args.rate_hz * args.chunk_s)))
+    n_chunks = int(round(args.seconds / args.chunk_s))
+    sub = MonitorSubscriber("bench", ZenohSettings(), MonitorConfig())  # not started: no session, handle() only
+    t_ns = time.time_ns()
+    busy = 0.0
+    ticks, views, sizes = [], [], []
+    for k, batch in _chunks(args.modules, n_samp, args.rate_hz, n_chunks, t_ns):
+        now = t_ns + int(k * args.chunk_s * 1e9)
+        t0 = time.perf_counter()
+        for m, payload in batch:
+            sub.handle(keys.power_key("bench", 0, m), payload, now)
+        busy += time.perf_counter() - t0
+        if k % max(1, int(round(0.5 / args.chunk_s))) == 0:  # the page's default 0.5 s period
+            t0 = time.perf_counter()
+            tick = sub.aggregator.tick(now)
+            ticks.append(time.perf_counter() - t0)
+            sel = sub.aggregator.default_selection(args.selected)
+            t0 = time.perf_counter()
+            view = sub.aggregator.view(sel)
+            views.append(time.perf_counter() - t0)
+            sizes.append(len(json.dumps({**tick, **view}, separators=(",", ":"))))
+    late = len(ticks) // 2  # once the 30 s history has filled as far as it will
+    return {
+        "ingest_core_fraction": round(busy / args.seconds, 4),
+        "tick_ms_median": round(float(np.median(ticks[late:])) * 1e3, 2),
+        "view_ms_median": round(float(np.median(views[late:])) * 1e3, 2),
+        "update_kb_median": round(float(np.median(sizes[late:])) / 1e3, 1),
+    }
+
+
+def _publish(port: int, modules: int, rate_hz: float, chunk_s: float, seconds: float) -> None:
+    """Publisher process: the power stream on zenoh, paced in real time."""
+    from mntes_stream.io import keys
+    from mntes_stream.io.transport import Publishers, loopback, open_session
+
+    n_samp = max(1, int(round(rate_hz * chunk_s)))
+    n_chunks = int(round(seconds / chunk_s))
+    with open_session(loopback(port)) as z:
+        pubs = Publishers(z)
+        pubs.wait_matching([keys.power_key("bench", 0, 0)], 30)
+        t0 = time.time_ns()
+        gen = _chunks(modules, n_samp, rate_hz, n_chunks, t0)
+        for k, batch in gen:
+            due = t0 + int(round((k + 1) * n_samp / rate_hz * 1e9))  # a chunk goes out once its last sample is taken
+            time.sleep(max(due - time.time_ns(), 0) / 1e9)
+            for m, payload in batch:
+                # Stamp publication now: PowerChunk.t_pub_ns is what the page's latency counts from.
+                pubs.put(keys.power_key("bench", 0, m), _restamp(payload))
+
+
+def _restamp(payload: bytes) -> bytes:
+    from mntes_stream.io.messages import PowerChunk
+
+    c = PowerChunk.from_bytes(payload)
+    object.__setattr__(c, "t_pub_ns", time.time_ns())
+    return c.to_bytes()
+
+
+def _cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _browser(args) -> dict:
+    import multiprocessing as mp
+    import urllib.request
+
+    from mntes_stream.io.transport import free_tcp_port
+    from mntes_stream.monitor.browser import headless_chromium, page_state
+
+    zport = free_tcp_port()
+    warmup_s = 8.0
+    pub = mp.get_context("spawn").Process(target=_publish, args=(zport, args.modules, args.rate_hz, args.chunk_s,
+                                                                  args.seconds + warmup_s + 5), daemon=True)
+    mon = subprocess.Popen([sys.executable, "-m", "mntes_stream", "monitor", "--setup", "bench", "--port", "0",
+                            "--connect", f"tcp/127.0.0.1:{zport}"], stdout=subprocess.PIPE, text=True)
+    driver = None
+    try:
+        line = mon.stdout.readline()
+        url = line.split("serving ", 1)[1].split()[0]
+        pub.start()
+        driver = headless_chromium()
+        driver.get(url)
+        time.sleep(warmup_s)  # history fills, the page settles
+        s0, cpu0, t0 = page_state(driver), _cpu_s(mon.pid), time.monotonic()
+        time.sleep(args.seconds)
+        s1, cpu1, t1 = page_state(driver), _cpu_s(mon.pid), time.monotonic()
+        with urllib.request.urlopen(url + "api/state", timeout=10) as r:
+            state = json.loads(r.read())
+    finally:
+        if driver is not None:
+            driver.quit()
+        mon.terminate()
+        mon.wait(20)
+        pub.terminate()
+        pub.join(10)
+    t_first = s0["renders"][-1]["t_render_ms"] if s0["renders"] else 0
+    lat = np.array([r["latency_ms"] for r in s1["renders"] if r["t_render_ms"] > t_first])
+    return {
+        "page_updates_per_s": round((s1["updates"] - s0["updates"]) / (t1 - t0), 2),
+        "page_latency_ms_median": round(float(np.median(lat)), 1) if lat.size else None,
+        "page_latency_ms_p95": round(float(np.percentile(lat, 95)), 1) if lat.size else None,
+        "page_latency_ms_max": round(float(lat.max()), 1) if lat.size else None,
+        "monitor_cpu_core_fraction": round((cpu1 - cpu0) / (t1 - t0), 3),
+        "monitor_dropped": state["health"]["monitor"]["dropped"],
+        "monitor_lost_chunks": state["health"]["monitor"]["lost_chunks"],
+        "channels_on_page": len(s1["grid"]),
+        "page_errors": s1["errors"],
+    }
+
+
+def run(args) -> dict:
+    out = {
+        "channels": args.modules * 128,
+        "sample_rate_hz": args.rate_hz,
+        "chunk_s": args.chunk_s,
+        "stream_seconds": args.seconds,
+        "selected": args.selected,
+        **_in_process(args),
+    }
+    if args.browser:
+        out["browser"] = _browser(args)
+    return out
