@@ -224,3 +224,18 @@ def test_damaged_chunk_is_skipped_with_a_warning(chunked, tmp_path):
         got = [m.payload for m in mio.iter_messages(path)]
     assert got == sent[:30] + sent[40:]
     assert any("damaged chunk" in str(w.message) for w in caught)
+
+
+def test_messages_whose_channel_was_lost_are_counted_not_silently_dropped(chunked, tmp_path):
+    data, sent, idx = chunked
+    bad = bytearray(data[: idx[-1].chunk_start_offset + idx[-1].chunk_length])  # unfinished: scan path
+    c = idx[0]  # the chunk that defines the counts and hk channels
+    bad[c.chunk_start_offset + c.chunk_length - 20] ^= 0xFF
+    path = tmp_path / "orphans.mcap"
+    path.write_bytes(bytes(bad))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = [m.payload for m in mio.iter_messages(path)]
+    assert got == [provenance_payload()]  # its channel is defined in the last, intact chunk
+    assert any("110 messages skipped" in str(w.message) for w in caught)
+    assert any("damaged chunk" in str(w.message) for w in caught)

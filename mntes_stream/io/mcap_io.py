@@ -823,7 +823,7 @@ class Session:
         refs.sort(key=lambda r: r[:3])
         handles: dict[int, object] = {}
         heap: list = []
-        i = 0
+        i = orphans = 0
         try:
             while i < len(refs) or heap:
                 # Load every chunk that may hold a message older than the heap's head.
@@ -833,7 +833,10 @@ class Session:
                     ix = self._index[fi]
                     for j, msg in enumerate(self._load(ix, fi, ref, handles)):
                         ch = ix.channels.get(msg.channel_id)
-                        if ch is None or not match(ch.topic) or not lo <= msg.log_time < hi:
+                        if ch is None:  # its channel record was in a damaged chunk
+                            orphans += 1
+                            continue
+                        if not match(ch.topic) or not lo <= msg.log_time < hi:
                             continue
                         heapq.heappush(heap, (msg.log_time, fi, k, j, ch, msg))
                 if heap:
@@ -844,6 +847,9 @@ class Session:
         finally:
             for h in handles.values():
                 h.close()
+        if orphans:
+            warnings.warn(f"{orphans} messages skipped: their channel was defined in a damaged chunk",
+                          TruncatedFileWarning, stacklevel=2)
 
     def _load(self, ix: _FileIndex, fi: int, ref, handles) -> list[Message]:
         if isinstance(ref, list):
