@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
@@ -41,7 +41,7 @@ from scipy.signal import lfilter
 from mntes_stream.core import model
 from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
-from mntes_stream.core.params import PRESETS, DetectorParams, ParamArray
+from mntes_stream.core.params import PRESETS, ParamArray
 from mntes_stream.core.transition import ArctanTransition
 from mntes_stream.errors import ConfigError
 
@@ -643,7 +643,7 @@ class ArraySimulator:
         # A bias step applies from the first sample at or after its time; its instant is
         # put half a sample before that sample so no sample time is ambiguous.
         self._step_index = np.array([math.ceil(t * self.fs - 1e-9) for t, _ in c.bias_steps], dtype=np.int64)
-        self._step_ns = np.array([self._time_ns(k) - round(0.5e9 / self.fs) for k in self._step_index],
+        self._step_ns = np.array([self.sample_time_ns(k) - round(0.5e9 / self.fs) for k in self._step_index],
                                  dtype=np.int64)
         self._step_factor = np.cumprod([1.0 + f for _, f in c.bias_steps])
         self._pos = 0
@@ -682,7 +682,7 @@ class ArraySimulator:
                 if c.b_field_amp_t and c.b_field_period_s > 0 else 0.0)
         return c.b_field_t + c.b_field_offset_t + c.b_field_ramp_t_per_s * t + spin + self._fluct_b(t)
 
-    def _time_ns(self, k: int) -> int:
+    def sample_time_ns(self, k: int) -> int:
         """Time of sample ``k`` of the run."""
         return self.t0_ns + int(round(k * 1e9 / self.fs))
 
@@ -737,8 +737,8 @@ class ArraySimulator:
         start = self._pos
         k = np.arange(start, start + n)
         t_s = k / self.fs
-        t_ns = sample_times_ns(self._time_ns(start), self.fs, n)
-        end_ns = self._time_ns(start + n)
+        t_ns = sample_times_ns(self.sample_time_ns(start), self.fs, n)
+        end_ns = self.sample_time_ns(start + n)
         tb = self.t_bath_k(t_s)
         b = self.b_field_t(t_s)
         v = self._v_set * self._bias_factor_of_samples(k)[None, :]
