@@ -53,6 +53,12 @@ class ZenohSettings:
         the fields above override it where given.
     scouting : bool
         Multicast and gossip scouting; off by default.
+    gossip : bool
+        Gossip scouting only (no multicast): peers learn each other's
+        endpoints through the peers they are connected to and connect
+        directly, so services that all connect to one peer form a full mesh.
+        Without it (and without a router) a peer receives only from peers it
+        is itself connected to: peers do not forward for each other.
     """
 
     mode: str = "peer"
@@ -60,6 +66,7 @@ class ZenohSettings:
     listen: tuple[str, ...] = ()
     config_file: str = ""
     scouting: bool = False
+    gossip: bool = False
 
     def __post_init__(self):
         if self.mode not in _MODES:
@@ -101,7 +108,7 @@ def zenoh_config(settings: ZenohSettings):
         if settings.listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(settings.scouting)))
-        conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(settings.scouting)))
+        conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(settings.scouting or settings.gossip)))
     except Exception as exc:  # zenoh raises ZError for unreadable files and bad values
         raise ConfigError(f"zenoh config ({settings}): {exc}") from None
     return conf
