@@ -249,7 +249,7 @@ def write_report(directory: str | Path, campaign: Campaign, fits: dict[str, Dete
         lines += [""]
     lines += ["## Fit quality per measurement", "",
               "Residuals are weighted by the known noise; the covariance is `(J^T J)^-1` with no chi2 rescaling.",
-              f"Median chi2/ndf over usable detectors: {_fmt(s.get('chi2_per_ndf_median', math.nan))}.", "",
+              f"Median chi2/ndf over usable detectors: {s.get('chi2_per_ndf_median', math.nan):.3f}.", "",
               "| measurement | sweeps | median chi2 per point | figure |", "|---|---|---|---|"]
     for kind in KINDS:
         c = [float(np.mean(np.abs(res) ** 2) / 2) for _, rows in per_det.values() for sw, _, res in rows if sw.kind == kind]
@@ -277,7 +277,7 @@ def write_report(directory: str | Path, campaign: Campaign, fits: dict[str, Dete
             lines.append(f"| MNTES, tabulated R(T) | {_fmt(s['eps_eff_tabulated_median_per_pw'])} | "
                          f"{_fmt(s['eps_eff_tabulated_max_per_pw'])} | x{_fmt(s['margin_factor_tabulated'])} |")
         lin = s["eps_eff_linear_median_per_pw"]
-        lines.append(f"| linear conversion (for scale) | {_fmt(lin)} | | {'above' if lin > req else 'below'} |")
+        lines.append(f"| linear conversion (for scale) | {_fmt(lin)} | | {'above' if lin > req else 'below'} (x{_fmt(lin / req)}) |")
         verdict = "meets" if s["eps_eff_max_per_pw"] < req else "does NOT meet"
         lines += ["", f"The fitted calibration {verdict} the 0.014 /pW requirement on every usable detector: the worst "
                       f"detector is a factor {_fmt(s['margin_factor'])} below it.", "", "![nonlinearity](nonlinearity.png)"]
