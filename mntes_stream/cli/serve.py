@@ -1,7 +1,8 @@
 """``mntes-stream serve --config FILE`` (one service) and ``mntes-stream up`` (all of them, one machine).
 
 ``serve`` picks the service from the config's table: ``[converter]``,
-``[source]``, ``[recorder]`` or ``[replay]`` (see ``services/``).
+``[source]`` (minimal source), ``[simulator]`` (array simulator),
+``[recorder]`` or ``[replay]`` (see ``services/``).
 
 ``up`` runs source -> converter -> recorder on embedded defaults, each in its
 own process (``multiprocessing`` *spawn*: no process ever forks with a zenoh
@@ -23,7 +24,7 @@ import time
 import tomllib
 from pathlib import Path
 
-SERVICES = ("converter", "source", "recorder", "replay")
+SERVICES = ("converter", "source", "simulator", "recorder", "replay")
 
 
 def _logging(verbose: bool) -> None:
@@ -62,6 +63,10 @@ def run_serve(args) -> int:
         from mntes_stream.service.source import SourceService, run_source
 
         result = run_source(SourceService.from_dict(doc, args.config, base_dir=base))
+    elif kind == "simulator":
+        from mntes_stream.service.simulator import SimulatorService, run_simulator
+
+        result = run_simulator(SimulatorService.from_dict(doc, args.config, base_dir=base))
     elif kind == "recorder":
         from dataclasses import asdict
 
@@ -82,15 +87,49 @@ def run_serve(args) -> int:
 # ------------------------------------------------------------------------------ up
 
 
-def _pick_source(setup: str, args):
-    """The simulator's generator when installed, else the minimal physics source."""
-    from mntes_stream.service.source import SourceConfig
+def _up_simulator(svc, stop, ready) -> dict:
+    """The array simulator in the ``function(cfg, stop, ready)`` form of a service process."""
+    from mntes_stream.service.simulator import run_simulator
 
+    ready.set()  # run_simulator waits for the converter's subscription before its clock starts
+    return run_simulator(svc, stop)
+
+
+def _pick_source(setup: str, args, zenoh):
+    """The array simulator when installed (unless ``--minimal``), else the minimal physics source.
+
+    Returns
+    -------
+    (description, truth parameters, process target, its config)
+    """
     n = max(1, round(args.chunk_s * args.sample_rate))
+    if not args.minimal:
+        try:
+            from mntes_stream.core.sim import SimConfig
+            from mntes_stream.service.simulator import SimulatorService, SimulatorSource
+        except ImportError:
+            pass
+        else:
+            cfg = SimConfig(boards=1, modules=args.modules, channels=args.channels, sample_rate_hz=args.sample_rate)
+            params = SimulatorSource(cfg, setup, args.chunk_s).params
+            svc = SimulatorService(cfg, zenoh, setup=setup, chunk_s=args.chunk_s)
+            return "array simulator", params, "mntes_stream.cli.serve:_up_simulator", svc
+    from mntes_stream.service.source import MinimalSource, SourceConfig, SourceService
+
     # Housekeeping once per chunk, read at the chunk boundaries: every chunk is
     # bracketed when it arrives, so nothing waits (see README: latency).
-    return SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
-                        sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate)
+    cfg = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
+                       sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate)
+    return ("minimal source", MinimalSource(cfg).params, "mntes_stream.service.source:run_source",
+            SourceService(source=cfg, zenoh=zenoh))
+
+
+def _flagged(st) -> str:
+    """``  flagged: saturated 1.6%, ...`` (share of converted samples), or nothing."""
+    if not st.samples_converted:
+        return ""
+    parts = [f"{name} {100 * n / st.samples_converted:.1f}%" for name, n in st.flag_counts.items() if n]
+    return f"  flagged: {', '.join(parts)}" if parts else ""
 
 
 def _mcap_bytes(directory: Path) -> tuple[int, int]:
@@ -106,17 +145,17 @@ def run_up(args) -> int:
     from mntes_stream.service import Services, stop_on_signals
     from mntes_stream.service.converter import ConverterConfig
     from mntes_stream.service.pipeline import PipelineConfig
-    from mntes_stream.service.source import MinimalSource, SourceService
 
     _logging(args.verbose)
     setup = args.setup
     out = Path(args.out).resolve()
     rec_dir = out / "recordings"
     rec_dir.mkdir(parents=True, exist_ok=True)
-    src_cfg = _pick_source(setup, args)
-    params_file = out / "params.toml"
-    dump_params(MinimalSource(src_cfg).params, params_file, metadata={"source": "mntes-stream up (generated truth)"})
     p_rec, p_conv, p_src = free_tcp_port(), free_tcp_port(), free_tcp_port()
+    what, truth, src_target, src_svc = _pick_source(setup, args, loopback(p_src, [p_conv, p_rec]))
+    params_file = out / "params.toml"
+    # The truth is the converter's calibration here: what it converts should match what was simulated.
+    dump_params(truth, params_file, metadata={"source": f"mntes-stream up ({what}, truth)"})
     recorder_doc = {
         "recorder": {"setup": setup, "directory": str(rec_dir), "flush_interval_s": 1.0, "rotate_s": 0, "log_interval_s": 3600},
         "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{p_rec}"]},
@@ -124,11 +163,10 @@ def run_up(args) -> int:
     conv_cfg = ConverterConfig(params=str(params_file), kind=args.kind,
                                pipeline=PipelineConfig(setup=setup, status_interval_s=1.0),
                                zenoh=loopback(p_conv, [p_rec]))
-    src_svc = SourceService(source=src_cfg, zenoh=loopback(p_src, [p_conv, p_rec]), params=str(params_file))
 
     services = Services()
-    print(f"mntes-stream up: {src_cfg.n_detectors} detectors ({src_cfg.modules} modules x {src_cfg.channels} channels) "
-          f"at {src_cfg.sample_rate_hz} Hz, {args.kind} conversion; recording into {rec_dir}")
+    print(f"mntes-stream up: {what}, {len(truth)} detectors ({args.modules} modules x {args.channels} channels) "
+          f"at {args.sample_rate} Hz -> {args.kind} conversion -> MCAP in {rec_dir}")
     print(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
           f"{'until Ctrl-C' if not args.duration else f'for {args.duration:g} s (Ctrl-C stops earlier)'}")
     status_key = keys.status_key(setup, conv_cfg.pipeline.service)
@@ -137,7 +175,7 @@ def run_up(args) -> int:
         try:
             services.start("recorder", "mntes_stream.service:run_recorder_doc", recorder_doc, abort=stopping)
             services.start("converter", "mntes_stream.service.converter:run_converter", conv_cfg, abort=stopping)
-            services.start("source", "mntes_stream.service.source:run_source", src_svc, abort=stopping)
+            services.start("source", src_target, src_svc, abort=stopping)
             with open_session(loopback(None, [p_rec, p_conv, p_src])) as session:
                 sub = QueueSubscriber(session, [status_key])
                 t_end = time.monotonic() + args.duration if args.duration else float("inf")
@@ -156,7 +194,7 @@ def run_up(args) -> int:
                     print(f"  t={st.uptime_s:6.1f} s  power chunks {st.chunks_converted:7d}  "
                           f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
                           f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
-                          f"MCAP {n_files} file(s) {size / 1e6:.2f} MB", flush=True)
+                          f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}", flush=True)
                 sub.close()
         finally:
             # Ordered stop: no new data, then the converter empties, then the recorder finishes its file.
@@ -180,7 +218,7 @@ def run_up(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("serve", help="run one service from its config file (services/*.toml)",
-                       description="Run the service a config describes: [converter], [source], [recorder] or [replay]. "
+                       description="Run the service a config describes: [converter], [source], [simulator], [recorder] or [replay]. "
                                    "Stops cleanly on SIGINT/SIGTERM.")
     p.add_argument("--config", required=True, metavar="FILE", help="e.g. services/converter.toml")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (overrides duration_s)")
@@ -199,6 +237,7 @@ def register(sub) -> None:
     p.add_argument("--sample-rate", type=float, default=152.59, metavar="HZ", help="default 152.59 (DfMux ground rate)")
     p.add_argument("--chunk-s", type=float, default=0.1, help="counts chunk length (s)")
     p.add_argument("--kind", default="table", help="conversion kind (table, grid, exact, linear, electrical)")
+    p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")
     p.add_argument("--json", action="store_true", help="print the services' final statistics as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-second lines")
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
