@@ -77,7 +77,7 @@ def headline_markdown(summary: dict) -> str:
 
 
 def _robustness_markdown(rob: dict) -> str:
-    rows = [["parameter", "assumed 1-sigma error", "residual nonlinearity at it [1/pW]", "2f gain error at it",
+    rows = [["parameter", "assumed 1-sigma error", "residual nonlinearity at it [1/pW]", "abs. 2f gain error at it",
              "largest error meeting 0.014/pW", "margin (largest / assumed)"]]
     for r in rob["one_at_a_time"]:
         def err(x):
@@ -89,7 +89,7 @@ def _robustness_markdown(rob: dict) -> str:
         elif r["bound"] == "below":
             largest = "< " + largest
         rows.append([r["label"], err(r["realistic_error"]), _fmt(r["nonlinearity_at_realistic_per_pw"]),
-                     _fmt(r["gain_error_at_realistic"], "pct"), largest, _fmt(r["margin"])])
+                     f"{100 * r['gain_error_at_realistic']:.2g} %", largest, _fmt(r["margin"])])
     a = rob["all_together"]
     rows.append(["all together (random draws)", "as above", f"median {_fmt(a['median_per_pw'])}, "
                  f"95% {_fmt(a['p95_per_pw'])}", "", f"{_fmt(a['largest_scale_p95_meeting_requirement'])} x assumed "

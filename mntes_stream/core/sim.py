@@ -132,7 +132,6 @@ class SimConfig:
     nep_w_rthz: float = 1.0e-17         # photon NEP (one-sided PSD = NEP^2)
     f_knee_hz: float = 0.02             # 1/f knee of the optical noise
     nei_a_rthz: float = 10e-12          # readout noise current per quadrature
-    quantise: bool = True
     # --- environment -------------------------------------------------------------------
     t_bath_k: float = 0.100             # nominal (tuning point)
     t_bath_offset_k: float = 0.0        # environment offset from nominal at t = 0: not re-tuned
@@ -757,11 +756,10 @@ class ArraySimulator:
         if c.nei_a_rthz > 0:
             ci = ci + self._sigma_counts * self._read_i.take(start, n)
             cq = cq + self._sigma_counts * self._read_q.take(start, n)
-        if c.quantise:
-            ci, cq = np.rint(ci), np.rint(cq)
+        # Counts are int32 (the readout's word): round, and pin to the rails like an ADC.
         lim = float(np.iinfo(np.int32).max)
-        ci = np.clip(ci, -lim, lim).astype(np.int32)
-        cq = np.clip(cq, -lim, lim).astype(np.int32)
+        ci = np.clip(np.rint(ci), -lim, lim).astype(np.int32)
+        cq = np.clip(np.rint(cq), -lim, lim).astype(np.int32)
         hk = self._housekeeping(int(t_ns[0]), end_ns)
         self._pos += n
         return SimBlock(

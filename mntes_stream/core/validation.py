@@ -76,8 +76,8 @@ CALIBRATION_ERRORS: dict[str, tuple[str, float, str, str]] = {
     "t_c_shift_k_per_t": ("c1 (T_c shift per B)", 0.1, "frac", ""),
     "t_c_shift_k_per_t2": ("c2 (T_c shift per B^2)", 0.1, "frac", ""),
     "pickup_a_per_t": ("m (readout pickup)", 0.1, "frac", ""),
-    "gain_a_per_count": ("|g| (counts to current)", 0.005, "frac", ""),
-    "gain_phase_rad": ("arg g (demodulation phase)", 1e-3, "abs", "rad"),
+    "gain_a_per_count": ("gain magnitude (counts to current)", 0.005, "frac", ""),
+    "gain_phase_rad": ("gain phase (demodulation)", 1e-3, "abs", "rad"),
 }
 
 # Keys of the study's JSON that downstream tools rely on.
