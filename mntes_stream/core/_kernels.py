@@ -121,7 +121,7 @@ def table_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, c
             t = ts + ph[:, 8] * bb + ph[:, 9] * bb * bb - ph[:, 10] * iabs
             tn = np.where(t > 0, np.exp(ph[:, 7] * np.log(np.maximum(t, 1e-300))), 0.0)
             p = ph[:, 6] * (tn - np.exp(ph[:, 7] * ltb[r0:r1])) - vv * vv * r / ((r + ph[:, 4]) ** 2 + ph[:, 5] ** 2)
-        out_p[r0:r1] = p
+        out_p[r0:r1] = np.where((f & _UNUSABLE) != 0, np.nan, p)
         out_f[r0:r1] = f
 
 
@@ -163,7 +163,7 @@ def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cp
                                + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
             ph = phys[rk][:, :, None]
             p = acc + k_tref_n[rk][:, None] - ph[:, 6] * np.exp(ph[:, 7] * ltb[r0:r1])
-        out_p[r0:r1] = p
+        out_p[r0:r1] = np.where((f & _UNUSABLE) != 0, np.nan, p)
         out_f[r0:r1] = f
 
 
@@ -176,14 +176,22 @@ except ImportError:  # the numpy twins above still work
 
 if numba is not None:
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    # Helpers are inlined in numba IR: a real call would incref/decref every
+    # array argument (atomic operations) per sample and cost ~6x in speed.
+    _inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 
-    @_jit
-    def _front(xi, xq, tb, b, v, hk, phys, d, dom):
-        """One sample: flags so far, R, |i| and whether R is on the stable branch."""
+    @_inline
+    def _front(xi, xq, tb, b, v, hk, det, dom):
+        """One sample: flags so far, R, |i| and whether R is on the stable branch.
+
+        ``det`` = (g_re, g_im, m_re, m_im, z_re, 1/v_nom, lo, hi) and ``dom``
+        the 6 domain bounds, both as tuples of scalars hoisted out of the
+        sample loop (array reads here were reloaded every sample: ~8x slower).
+        """
         f = hk
         env_ok = tb > 0.0 and abs(b) < math.inf and v > 0.0 and v < math.inf
         if env_ok:
-            vf = v / phys[d, 11]
+            vf = v * det[5]
             if not (dom[0] <= tb <= dom[1] and dom[2] <= b <= dom[3] and dom[4] <= vf <= dom[5]):
                 f |= _ENV
         if not (abs(xi) < RAIL and abs(xq) < RAIL):
@@ -192,33 +200,26 @@ if numba is not None:
             if (hk & _HK_MISSING) == 0:
                 f |= _INVALID
             return f, 0.0, 0.0, False
-        ire = phys[d, 0] * xi - phys[d, 1] * xq - phys[d, 2] * b
-        iim = phys[d, 0] * xq + phys[d, 1] * xi - phys[d, 3] * b
+        ire = det[0] * xi - det[1] * xq - det[2] * b
+        iim = det[0] * xq + det[1] * xi - det[3] * b
         m2 = ire * ire + iim * iim
         if not m2 > 0.0:
             return f | _INVALID, 0.0, 0.0, False
-        r = SQRT2 * v * ire / m2 - phys[d, 4]
-        if r >= phys[d, 13]:
+        r = SQRT2 * v * ire / m2 - det[4]
+        if r >= det[7]:
             return f | _SAT, r, 0.0, False
-        if not r > phys[d, 12]:
+        if not r > det[6]:
             return f | _SC, r, 0.0, False
         return f, r, math.sqrt(m2), True
 
-    @_jit
-    def _interval(r, d, ko, x, co, cidx, cpo):
-        """Global knot index of the interval holding r, or -1 outside the table."""
-        k0 = ko[d]
-        last = ko[d + 1] - 1
-        if not (x[k0] <= r <= x[last]):
-            return -1
-        nc = co[d + 1] - co[d]
-        cell = int((r - x[k0]) * cpo[d])
-        if cell >= nc:
-            cell = nc - 1
-        j = k0 + cidx[co[d] + cell]
-        while j + 1 < last and r >= x[j + 1]:
-            j += 1
-        return j
+    @_inline
+    def _det(phys, d):
+        return (phys[d, 0], phys[d, 1], phys[d, 2], phys[d, 3], phys[d, 4], 1.0 / phys[d, 11],
+                phys[d, 12], phys[d, 13])
+
+    @_inline
+    def _dom(dom):
+        return (dom[0], dom[1], dom[2], dom[3], dom[4], dom[5])
 
     @_jit
     def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
@@ -227,6 +228,8 @@ if numba is not None:
         Writes ``out_p`` (float64, NaN where unusable) and ``out_f`` (uint16).
         """
         n_rows, n_samp = out_p.shape
+        dm = _dom(dom)
+        joule = np.empty(n_samp)
         for row in range(n_rows):
             d = rows[row]
             if d < 0:
@@ -234,34 +237,52 @@ if numba is not None:
                     out_f[row, s] = hk[row, s] | _UNKNOWN
                     out_p[row, s] = math.nan
                 continue
+            det = _det(phys, d)
+            k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
+            x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]
             zr, zi = phys[d, 4], phys[d, 5]
             for s in range(n_samp):
                 bs = b[row, s]
                 vs = v[row, s]
                 f, r, iabs, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
-                                        int(hk[row, s]), phys, d, dom)
+                                        int(hk[row, s]), det, dm)
                 p = math.nan
                 if ok:
-                    j = _interval(r, d, ko, x, co, cidx, cpo)
+                    j = -1
+                    if x_lo <= r <= x_hi:
+                        # O(1) lookup cell, then a few steps right. Written out here:
+                        # array arguments to a helper leave per-sample refcount calls.
+                        cell = min(int((r - x_lo) * cells_per_ohm), n_cells - 1)
+                        j = k0 + cidx[c0 + cell]
+                        while j + 1 < last and r >= x[j + 1]:
+                            j += 1
                     if j < 0:
                         f |= _OOT
                     else:
                         u = r - x[j]
                         ts = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
                         t = ts + c1 * bs + c2 * bs * bs - gamma * iabs
-                        tn = math.exp(n * math.log(t)) if t > 0.0 else 0.0
-                        p = k * (tn - math.exp(n * ltb[row, s])) - vs * vs * r / ((r + zr) ** 2 + zi * zi)
+                        p = t  # finished below
+                        joule[s] = vs * vs * r / ((r + zr) ** 2 + zi * zi)
                 if f & _UNUSABLE:
                     p = math.nan
                 out_p[row, s] = p
                 out_f[row, s] = f
+            # Transcendentals in a tight second loop: around libm calls in the
+            # branchy loop above every live register is spilled (~1.5x slower).
+            for s in range(n_samp):
+                t = out_p[row, s]
+                if t == t:
+                    tn = math.exp(n * math.log(t)) if t > 0.0 else 0.0
+                    out_p[row, s] = k * (tn - math.exp(n * ltb[row, s])) - joule[s]
 
     @_jit
     def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
                    p_w, dp_w, bias_v, b_nodes, k_tref_n, bias_rtol, out_p, out_f):
         """Grid-table conversion: bias state, cubic in B, Hermite in R, exact bath term."""
         n_rows, n_samp = out_p.shape
+        dm = _dom(dom)
         nb = b_nodes.size
         n_bias = bias_v.shape[1]
         b0 = b_nodes[0]
@@ -273,15 +294,23 @@ if numba is not None:
                     out_f[row, s] = hk[row, s] | _UNKNOWN
                     out_p[row, s] = math.nan
                 continue
+            det = _det(phys, d)
+            k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
+            x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n = phys[d, 6], phys[d, 7]
             for s in range(n_samp):
                 bs = b[row, s]
                 vs = v[row, s]
                 f, r, iabs, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
-                                        int(hk[row, s]), phys, d, dom)
+                                        int(hk[row, s]), det, dm)
                 p = math.nan
                 if ok:
-                    j = _interval(r, d, ko, x, co, cidx, cpo)
+                    j = -1
+                    if x_lo <= r <= x_hi:
+                        cell = min(int((r - x_lo) * cells_per_ohm), n_cells - 1)
+                        j = k0 + cidx[c0 + cell]
+                        while j + 1 < last and r >= x[j + 1]:
+                            j += 1
                     state = -1
                     for q in range(n_bias):
                         if abs(vs - bias_v[d, q]) <= bias_rtol * bias_v[d, q]:
@@ -314,10 +343,14 @@ if numba is not None:
                             wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
                             acc += wq * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
                                          + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
-                        p = acc + k_tref_n[d] - k * math.exp(n * ltb[row, s])
+                        p = acc + k_tref_n[d]
                 if f & _UNUSABLE:
                     p = math.nan
                 out_p[row, s] = p
                 out_f[row, s] = f
+            for s in range(n_samp):
+                p = out_p[row, s]
+                if p == p:
+                    out_p[row, s] = p - k * math.exp(n * ltb[row, s])
 else:  # pragma: no cover - exercised only without numba
     table_numba = grid_numba = None

@@ -278,7 +278,7 @@ def _state_flags(phys: np.ndarray, rows: np.ndarray, r: np.ndarray, valid: np.nd
 
 
 def _finish(p: np.ndarray, flags: np.ndarray) -> None:
-    p[(flags & fl.UNUSABLE) != 0] = np.nan
+    np.copyto(p, np.nan, where=(flags & fl.UNUSABLE) != 0)
 
 
 _CHUNK_ELEMENTS = 1 << 20
@@ -329,7 +329,6 @@ class _Base:
         p = np.empty((n_det, n_samp))
         f = np.empty((n_det, n_samp), dtype=np.uint16)
         self._convert(inp, p, f)
-        _finish(p, f)
         return PowerBlock(p_opt_w=p, flags=f, identity=self.identity)
 
     def _convert(self, inp: _Inputs, p: np.ndarray, f: np.ndarray) -> None:
@@ -361,6 +360,7 @@ class ExactConverter(_Base):
                 flags[k - r0][ok & (inv.state == model.STATE_NORMAL)] |= fl.SATURATED
                 flags[k - r0][ok & (inv.state == model.STATE_SUPERCONDUCTING)] |= fl.SUPERCONDUCTING
             f[r0:r1] = flags
+        _finish(p, f)
 
 
 class LinearConverter(_Base):
@@ -395,6 +395,7 @@ class LinearConverter(_Base):
             f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
             with np.errstate(invalid="ignore", over="ignore"):
                 p[r0:r1] = self.p0_w[rows, None] + np.real((i - self.i0_a[rows, None]) / self.responsivity_a_per_w[rows, None])
+        _finish(p, f)
 
 
 class ElectricalConverter(_Base):
@@ -431,6 +432,7 @@ class ElectricalConverter(_Base):
             with np.errstate(invalid="ignore", over="ignore"):
                 p_el = np.real((v - z * i_rms) * np.conj(i_rms))
                 p[r0:r1] = self.p_total_w[rows, None] - p_el
+        _finish(p, f)
 
 
 class TableConverter(_Base):

@@ -214,6 +214,15 @@ def _eval_pieces(x: np.ndarray, c: np.ndarray, j: np.ndarray, xe: np.ndarray) ->
     return c[j, 0] + s * (c[j, 1] + s * (c[j, 2] + s * c[j, 3]))
 
 
+def _breakpoints(transition_or_params, r_lo: float, r_hi: float) -> np.ndarray:
+    """Resistances inside ``(r_lo, r_hi)`` where a tabulated transition's cubic pieces join."""
+    tr = getattr(transition_or_params, "transition", transition_or_params)
+    if not isinstance(tr, TabulatedTransition):
+        return np.empty(0)
+    pts = np.asarray(tr.r_ohm, dtype=float)
+    return pts[(pts > r_lo) & (pts < r_hi)]
+
+
 def transition_knots(
     transition, r_lo: float, r_hi: float, tol_t_k: float, max_knots: int = 20000
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -229,10 +238,7 @@ def transition_knots(
     r_knot_ohm : ndarray, shape (m + 1,)
     coeffs : ndarray, shape (m + 1, 4)
     """
-    x = np.linspace(r_lo, r_hi, _INITIAL_INTERVALS + 1)
-    if isinstance(transition, TabulatedTransition):
-        pts = np.asarray(transition.r_ohm, dtype=float)
-        x = np.union1d(x, pts[(pts > r_lo) & (pts < r_hi)])
+    x = np.union1d(np.linspace(r_lo, r_hi, _INITIAL_INTERVALS + 1), _breakpoints(transition, r_lo, r_hi))
     frac = np.array([0.25, 0.5, 0.75])
     for _ in range(_MAX_REFINE):
         y = np.asarray(transition.temperature_k(x), dtype=float)
@@ -590,17 +596,18 @@ def _build_grid(plist, domain, bias_frac, n_b_nodes, n_power, progress) -> Table
         p_ends = model.power_of_resistance_w(p, np.array([r_lo, r_hi]), p.t_bath_k, 0.0, p.v_thev_v)
         p_grid = np.linspace(p_ends[0], p_ends[1], int(n_power))[1:-1]
         op = model.solve_operating_point(p, p_grid, p.t_bath_k, 0.0, p.v_thev_v)
-        x = np.concatenate([[r_lo], op.r_ohm[op.state == model.STATE_TRANSITION], [r_hi]])
+        x = np.concatenate([[r_lo], op.r_ohm[op.state == model.STATE_TRANSITION], [r_hi], _breakpoints(p, r_lo, r_hi)])
         x = np.unique(x)
         v_states = bias_frac * p.v_thev_v
-        # P(R) at every (bias state, B node), bath at the reference temperature.
-        pw = model.power_of_resistance_w(
-            p, x[:, None, None], p.t_bath_k, b_nodes[None, None, :], v_states[None, :, None]
-        )
-        spline = CubicSpline(x, pw, axis=0)
+        # P(R) at every (bias state, B node), bath at the reference temperature,
+        # with the exact slope dP/dR = (dI/dR) / (dI/dP) from the small-signal model.
+        xr, vs, bn = x[:, None, None], v_states[None, :, None], b_nodes[None, None, :]
+        pw = model.power_of_resistance_w(p, xr, p.t_bath_k, bn, vs)
+        di_dr = -model.SQRT2 * vs / (xr + p.z_thev_ohm) ** 2
+        slope = np.real(di_dr / model.small_signal(p, xr, p.t_bath_k, bn, vs).di_dp_a_per_w)
         knots.append(x)
         values.append(np.ascontiguousarray(pw))
-        slopes.append(np.ascontiguousarray(spline(x, 1)))
+        slopes.append(np.ascontiguousarray(slope))
         bias_v.append(v_states)
         t_ref.append(p.t_bath_k)
         if progress is not None:
@@ -619,6 +626,7 @@ def grid_bank_from_curves(
     t_ref_k: np.ndarray,
     domain: TableDomain | None = None,
     options: Mapping | None = None,
+    dp_dr_w_per_ohm: Sequence[np.ndarray] | None = None,
 ) -> TableBank:
     """A ``"grid"`` bank from response curves measured or computed elsewhere.
 
@@ -631,6 +639,9 @@ def grid_bank_from_curves(
     bias_v : (n_det, n_bias) bias state voltages (RMS)
     b_nodes_t : (n_b,) uniform B nodes
     t_ref_k : (n_det,) bath temperature of the curves
+    dp_dr_w_per_ohm : per detector, like ``p_w``, optional
+        Slopes at the knots; by default those of a not-a-knot cubic spline
+        through the values (right for curves smooth between the knots).
     """
     plist = _check_params(list(params))
     knots = [np.asarray(x, dtype=float) for x in r_knot_ohm]
@@ -640,7 +651,10 @@ def grid_bank_from_curves(
     b_nodes_t = np.asarray(b_nodes_t, dtype=float)
     if b_nodes_t.size >= 2 and not np.allclose(np.diff(b_nodes_t), b_nodes_t[1] - b_nodes_t[0], rtol=1e-9, atol=0):
         raise ConfigError("B nodes must be uniformly spaced")
-    slopes = [np.ascontiguousarray(CubicSpline(x, v, axis=0)(x, 1)) for x, v in zip(knots, values)]
+    if dp_dr_w_per_ohm is None:
+        slopes = [np.ascontiguousarray(CubicSpline(x, v, axis=0)(x, 1)) for x, v in zip(knots, values)]
+    else:
+        slopes = [np.asarray(d, dtype=float) for d in dp_dr_w_per_ohm]
     extra = {
         "bias_v": np.asarray(bias_v, dtype=float),
         "b_nodes_t": b_nodes_t,

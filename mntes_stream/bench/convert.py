@@ -1,0 +1,225 @@
+"""``mntes-stream bench convert``: counts-to-power speed and accuracy.
+
+A realistic block (default 512 detectors x 10,000 samples): heterogeneous
+detectors (T_c, IQR, K, n, z, field coefficients, pickup, current
+dependence and gain phase all scattered), optical power 0.05-1.0 pW, bath
+temperature and field varying every sample, biases at +-5% states, and 0.1% of
+the samples invalid (counts at the int32 rail) so the flag path is exercised.
+
+Speed is the median of repeated full conversions (wall clock, and CPU time
+of this process, which is less disturbed by other load on a shared machine),
+beside numpy's ``a * x + b`` over the same counts array in the same run.
+Accuracy is against the exact per-sample inverse on the same counts.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+HELP = "table conversion: Msamples/s vs numpy axpy, accuracy vs the exact inverse, build time, bank size"
+
+_BIAS_STATES = (0.95, 1.0, 1.05)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--detectors", type=int, default=512)
+    p.add_argument("--samples", type=int, default=10_000)
+    p.add_argument("--repeats", type=int, default=7, help="timed conversions (median reported)")
+    p.add_argument("--build-detectors", type=int, default=1000, help="detectors in the build-time measurement")
+    p.add_argument("--quick", action="store_true", help="small sizes for a smoke run (64 x 2000, 3 repeats)")
+    p.add_argument("--no-numpy", action="store_true", help="skip timing the numpy backend")
+    p.add_argument("--png", metavar="FILE", help="write a figure of the errors against the exact inverse")
+    p.add_argument("--seed", type=int, default=3)
+
+
+def synthetic_params(n_det: int, seed: int = 0, start: int = 0) -> dict:
+    """Heterogeneous Table-1-like detectors, bias tuned to R = 0.7 R_n at 0.5 pW."""
+    from mntes_stream.core import model
+    from mntes_stream.core.ids import detector_id
+    from mntes_stream.core.params import table1_params
+
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k in range(start, start + n_det):
+        p = table1_params(
+            detector_id(k // 512, (k // 128) % 4, k % 128),
+            t_c_k=0.180 * (1 + rng.normal(0, 0.01)),
+            iqr_k=1.143e-3 * (1 + rng.normal(0, 0.1)),
+            k_w_per_k_n=6.84e-10 * (1 + rng.normal(0, 0.03)),
+            n=3.6 + rng.normal(0, 0.05),
+            z_thev_ohm=complex(0.05 * (1 + rng.normal(0, 0.1)), 0.05 * (1 + rng.normal(0, 0.1))),
+            t_c_shift_k_per_t=rng.normal(0, 0.2),
+            t_c_shift_k_per_t2=rng.normal(0, 100.0),
+            pickup_a_per_t=complex(*rng.normal(0, 1e-4, 2)),
+            current_shift_k_per_a=abs(rng.normal(300.0, 100.0)),
+            gain_a_per_count=1e-12 * np.exp(1j * rng.uniform(-np.pi, np.pi)),
+        )
+        out[p.detector_id] = p.replace(v_thev_v=float(model.tune_bias_v(p, 0.7)))
+    return out
+
+
+def tabulated_params(detector_id: str = "b0m0c100"):
+    """A detector with a measured-looking R(T): nonuniform points of a skewed
+    logistic with flat tails, field and current dependence, bias tuned to 0.7 R_n."""
+    from mntes_stream.core import model
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.core.transition import TabulatedTransition
+
+    t = np.concatenate([[0.160, 0.170], np.linspace(0.1745, 0.1865, 41) + 1e-5 * np.sin(np.arange(41)), [0.195, 0.210]])
+    x = (t - 0.1800) / 0.0011
+    r = 1.0 / (1.0 + np.exp(-x - 0.15 * x * np.abs(x) / (1 + np.abs(x))))
+    r = np.where(t < 0.171, 0.0, np.where(t > 0.19, 1.0, r))
+    p = table1_params(
+        detector_id, t_c_shift_k_per_t=0.3, t_c_shift_k_per_t2=-80.0, pickup_a_per_t=3e-5 - 7e-5j,
+        current_shift_k_per_a=250.0, gain_a_per_count=1e-12 * np.exp(0.7j),
+    ).replace(transition=TabulatedTransition(t_k=tuple(t), r_ohm=tuple(r)))
+    return p.replace(v_thev_v=float(model.tune_bias_v(p, 0.7)))
+
+
+def synthetic_block(params: dict, n_samp: int, seed: int = 0, bad_fraction: float = 1e-3):
+    """Counts and environment for ``params``: returns ``(ids, counts_i, counts_q, env)``."""
+    from mntes_stream.core import model
+    from mntes_stream.core.convert import EnvironmentBlock
+    from mntes_stream.core.tables import TableDomain, resistance_range_ohm
+
+    rng = np.random.default_rng(seed)
+    plist = list(params.values())
+    n_det = len(plist)
+    s = np.arange(n_samp)
+    tb = 0.100 + 0.004 * np.sin(2 * np.pi * s / 3001.0) + rng.normal(0, 2e-5, n_samp)
+    b = 80e-6 * np.sin(2 * np.pi * s / 1303.0) + rng.normal(0, 2e-6, n_samp)
+    v = np.array([p.v_thev_v for p in plist]) * rng.choice(_BIAS_STATES, n_det)
+    ci = np.empty((n_det, n_samp), dtype=np.int32)
+    cq = np.empty_like(ci)
+    domain = TableDomain()
+    for k, p in enumerate(plist):
+        # Optical power 0.05-1 pW through the response at the nominal bath and zero field.
+        r_lo, r_hi = resistance_range_ohm(p, domain)
+        r_grid = np.linspace(r_lo, r_hi, 4000)
+        p_grid = model.power_of_resistance_w(p, r_grid, p.t_bath_k, 0.0, v[k])
+        r = np.interp(rng.uniform(0.05e-12, 1.0e-12, n_samp), p_grid, r_grid)
+        i = model.readout_current_a(p, model.tes_current_a(p, r, v[k]), b) / p.gain_a_per_count
+        ci[k] = np.rint(i.real)
+        cq[k] = np.rint(i.imag)
+    bad = rng.random(ci.shape) < bad_fraction
+    ci[bad] = np.iinfo(np.int32).max
+    return list(params), ci, cq, EnvironmentBlock(t_bath_k=tb, b_field_t=b, v_thev_v=v)
+
+
+def _timed(fn, repeats: int) -> tuple[float, float]:
+    """Median wall and CPU seconds of ``fn()``."""
+    wall, cpu = [], []
+    for _ in range(repeats):
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall)), float(np.median(cpu))
+
+
+def _max_err(a: np.ndarray, ref: np.ndarray) -> float:
+    both = np.isfinite(a) & np.isfinite(ref)
+    return float(np.max(np.abs(a[both] - ref[both]))) if np.any(both) else float("nan")
+
+
+def run(args) -> dict:
+    from mntes_stream.core import flags as fl
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.core.tables import build_bank
+
+    if args.quick:
+        args.detectors, args.samples, args.repeats = min(args.detectors, 64), min(args.samples, 2000), min(args.repeats, 3)
+        args.build_detectors = min(args.build_detectors, 100)
+    n_det, n_samp = args.detectors, args.samples
+    n = n_det * n_samp
+    params = synthetic_params(n_det, seed=args.seed)
+    ids, ci, cq, env = synthetic_block(params, n_samp, seed=args.seed + 1)
+
+    # Build time on detectors not seen before (nothing cached).
+    build_params = synthetic_params(args.build_detectors, seed=args.seed + 2, start=n_det)
+    t0 = time.perf_counter()
+    build_bank(build_params, kind="table")
+    build_s = time.perf_counter() - t0
+
+    bank = build_bank(params, kind="table")
+    conv = make_converter("table", None, bank=bank, backend="auto")
+    conv.convert(ids[:1], ci[:1, :10], cq[:1, :10], env.__class__(env.t_bath_k[:10], env.b_field_t[:10], env.v_thev_v[:1]))
+    out = conv.convert(ids, ci, cq, env)
+    wall, cpu = _timed(lambda: conv.convert(ids, ci, cq, env), args.repeats)
+    axpy_wall, _ = _timed(lambda: 1.5 * ci + 2.0, args.repeats)
+
+    exact = make_converter("exact", params)
+    t0 = time.perf_counter()
+    ref = exact.convert(ids, ci, cq, env)
+    exact_s = time.perf_counter() - t0
+    lin = make_converter("linear", params).convert(ids, ci, cq, env)
+    ele = make_converter("electrical", params).convert(ids, ci, cq, env)
+
+    result = {
+        "detectors": n_det,
+        "samples": n_samp,
+        "backend": conv.backend,
+        "msamples_per_s": n / wall / 1e6,
+        "cpu_msamples_per_s": n / cpu / 1e6,
+        "axpy_msamples_per_s": n / axpy_wall / 1e6,
+        "ratio_to_axpy": axpy_wall / wall,
+        "exact_msamples_per_s": n / exact_s / 1e6,
+        "max_abs_error_w": _max_err(out.p_opt_w, ref.p_opt_w),
+        "flags_identical_to_exact": bool(np.array_equal(out.flags, ref.flags)),
+        "linear_max_abs_error_w": _max_err(lin.p_opt_w, ref.p_opt_w),
+        "electrical_max_abs_error_w": _max_err(ele.p_opt_w, ref.p_opt_w),
+        "flagged_samples": {k: v for k, v in fl.counts_by_flag(out.flags).items() if v},
+        "build_s_per_1000_detectors": build_s * 1000.0 / args.build_detectors,
+        "build_detectors": args.build_detectors,
+        "bank_bytes": bank.nbytes,
+        "bank_mib_per_5000_detectors": bank.nbytes / n_det * 5000 / 2**20,
+        "knots_per_detector_median": float(np.median(np.diff(bank.arrays["knot_offset"]))),
+        "identity": bank.identity,
+    }
+    if not args.no_numpy:
+        conv_np = make_converter("table", None, bank=bank, backend="numpy")
+        np_wall, _ = _timed(lambda: conv_np.convert(ids, ci, cq, env), max(1, min(args.repeats, 3)))
+        result["numpy_msamples_per_s"] = n / np_wall / 1e6
+        result["numba_speedup_over_numpy"] = np_wall / wall
+
+    grid_bank = build_bank(params, kind="grid", bias_frac=_BIAS_STATES)
+    grid = make_converter("grid", None, bank=grid_bank)
+    grid.convert(ids, ci, cq, env)
+    g_wall, _ = _timed(lambda: grid.convert(ids, ci, cq, env), args.repeats)
+    g_out = grid.convert(ids, ci, cq, env)
+    result.update({
+        "grid_msamples_per_s": n / g_wall / 1e6,
+        "grid_max_abs_error_w": _max_err(g_out.p_opt_w, ref.p_opt_w),
+        "grid_bank_mib_per_5000_detectors": grid_bank.nbytes / n_det * 5000 / 2**20,
+    })
+    if args.png:
+        _figure(args.png, ref.p_opt_w, {"table": out.p_opt_w, "grid": g_out.p_opt_w, "linear": lin.p_opt_w,
+                                        "electrical": ele.p_opt_w})
+        result["figure"] = args.png
+    return result
+
+
+def _figure(path: str, ref: np.ndarray, kinds: dict) -> None:
+    from mntes_stream.plots import pyplot
+
+    plt = pyplot()
+    rng = np.random.default_rng(0)
+    pick = rng.choice(ref.size, size=min(ref.size, 20000), replace=False)
+    x = ref.ravel()[pick] * 1e12
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for name, marker in (("table", "."), ("grid", ".")):
+        err = np.abs(kinds[name].ravel()[pick] - ref.ravel()[pick])
+        axes[0].semilogy(x, np.maximum(err, 1e-24), marker, ms=1.5, alpha=0.5, label=name)
+    axes[0].axhline(1e-19, color="k", lw=1, ls="--", label="1e-19 W target")
+    axes[0].set(xlabel="optical power (pW)", ylabel="|P - P_exact| (W)", title="MNTES tables vs exact inverse")
+    axes[0].legend(markerscale=6)
+    for name in ("linear", "electrical"):
+        err = kinds[name].ravel()[pick] - ref.ravel()[pick]
+        axes[1].plot(x, err * 1e12, ".", ms=1.5, alpha=0.5, label=name)
+    axes[1].set(xlabel="optical power (pW)", ylabel="P - P_exact (pW)", title="Baselines vs exact inverse")
+    axes[1].legend(markerscale=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,70 @@
+"""``mntes-stream tables build|info``: response tables for a parameter file."""
+
+from __future__ import annotations
+
+import json
+
+
+def _build(args) -> int:
+    from tqdm import tqdm
+
+    from mntes_stream.core.tables import TableDomain, build_bank
+    from mntes_stream.io.paramfile import load_params
+    from mntes_stream.io.tablefile import save_bank
+
+    params = load_params(args.params)
+    domain = TableDomain(
+        p_opt_w=tuple(args.p_opt_w), t_bath_k=tuple(args.t_bath_k),
+        b_field_t=tuple(args.b_field_t), v_frac=tuple(args.v_frac),
+    )
+    options = {}
+    if args.kind == "table":
+        options["p_tol_w"] = args.p_tol_w
+    else:
+        options.update(bias_frac=tuple(args.bias_frac), n_b_nodes=args.n_b_nodes, n_power=args.n_power)
+    with tqdm(total=len(params), unit="det", desc=f"tables ({args.kind})", disable=args.quiet) as bar:
+        bank = build_bank(params, kind=args.kind, domain=domain, progress=bar.update, **options)
+    save_bank(bank, args.out)
+    if not args.quiet:
+        print(f"wrote {args.out}: {len(bank)} detectors, {bank.nbytes / 2**20:.1f} MiB, identity {bank.identity}")
+    return 0
+
+
+def _info(args) -> int:
+    from mntes_stream.io.tablefile import load_bank
+
+    summary = load_bank(args.file).summary()
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    for key, value in summary.items():
+        print(f"{key:>20s}: {value}")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("tables", help="build or inspect response tables (one file per array)")
+    tsub = p.add_subparsers(dest="tables_command", metavar="ACTION")
+    b = tsub.add_parser("build", help="build the response tables of every detector in a parameter file")
+    b.add_argument("--params", required=True, metavar="FILE", help="detector parameter file (TOML)")
+    b.add_argument("--out", required=True, metavar="FILE", help="table file to write (.npz)")
+    b.add_argument("--kind", choices=("table", "grid"), default="table",
+                   help="table: structured, exact in environment (default); grid: the paper's route")
+    b.add_argument("--p-opt-w", nargs=2, type=float, default=(0.0, 1.2e-12), metavar=("LO", "HI"),
+                   help="optical power range to cover (W)")
+    b.add_argument("--t-bath-k", nargs=2, type=float, default=(0.090, 0.110), metavar=("LO", "HI"))
+    b.add_argument("--b-field-t", nargs=2, type=float, default=(-2e-4, 2e-4), metavar=("LO", "HI"))
+    b.add_argument("--v-frac", nargs=2, type=float, default=(0.9, 1.1), metavar=("LO", "HI"),
+                   help="bias range relative to each detector's nominal")
+    b.add_argument("--p-tol-w", type=float, default=1e-20, help="table: interpolation tolerance in power (W)")
+    b.add_argument("--bias-frac", nargs="+", type=float, default=(0.95, 1.0, 1.05),
+                   help="grid: discrete bias states relative to nominal")
+    b.add_argument("--n-b-nodes", type=int, default=7, help="grid: uniform B nodes across --b-field-t")
+    b.add_argument("--n-power", type=int, default=256, help="grid: knots per detector")
+    b.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    b.set_defaults(func=_build)
+    i = tsub.add_parser("info", help="describe a table file (verifies its hash)")
+    i.add_argument("file", metavar="FILE")
+    i.add_argument("--json", action="store_true", help="print one JSON object")
+    i.set_defaults(func=_info)
+    p.set_defaults(func=lambda args: p.print_help() or 2)

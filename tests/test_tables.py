@@ -1,0 +1,254 @@
+"""Response tables: interpolation accuracy, exact coverage, one-file banks with identity, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mntes_stream.bench.convert import synthetic_params, tabulated_params
+from mntes_stream.cli import main
+from mntes_stream.core import model
+from mntes_stream.core.convert import EnvironmentBlock, make_converter
+from mntes_stream.core.params import table1_params
+from mntes_stream.core.tables import (
+    TableBank,
+    TableDomain,
+    build_bank,
+    grid_bank_from_curves,
+    hermite_coefficients,
+    lookup_cells,
+    resistance_range_ohm,
+    transition_knots,
+)
+from mntes_stream.errors import ConfigError, SchemaError
+from mntes_stream.io.paramfile import dump_params
+from mntes_stream.io.tablefile import load_bank, read_header, save_bank
+
+
+@pytest.fixture(scope="module")
+def params():
+    out = synthetic_params(3, seed=21)
+    tab = tabulated_params("b0m0c050")
+    out[tab.detector_id] = tab
+    return out
+
+
+@pytest.fixture(scope="module")
+def bank(params):
+    return build_bank(params)
+
+
+def eval_table(x, c, r):
+    j = np.clip(np.searchsorted(x, r, side="right") - 1, 0, x.size - 2)
+    s = r - x[j]
+    return c[j, 0] + s * (c[j, 1] + s * (c[j, 2] + s * c[j, 3]))
+
+
+def test_hermite_pieces_reproduce_cubics_exactly():
+    x = np.array([0.0, 0.3, 0.35, 1.0])
+    f = lambda r: 2.0 - r + 3.0 * r**2 - 0.5 * r**3  # noqa: E731
+    df = lambda r: -1.0 + 6.0 * r - 1.5 * r**2  # noqa: E731
+    c = hermite_coefficients(x, f(x), df(x))
+    r = np.linspace(0, 1, 101)
+    np.testing.assert_allclose(eval_table(x, c, r), f(r), rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("which", ["arctan", "tabulated"])
+def test_transition_table_meets_its_temperature_tolerance(params, which):
+    p = next(q for q in params.values() if (q.transition.kind == which))
+    r_lo, r_hi = resistance_range_ohm(p, TableDomain())
+    tol = 1e-11
+    x, c = transition_knots(p.transition, r_lo, r_hi, tol)
+    r = np.linspace(r_lo, r_hi, 200_001)
+    err = np.abs(eval_table(x, c, r) - p.transition.temperature_k(r)).max()
+    if which == "tabulated":
+        # Its knots include the measured points, so the PCHIP pieces are reproduced to rounding.
+        assert err < 1e-15
+    else:
+        assert err < tol
+
+
+def test_resistance_range_is_exactly_what_the_domain_reaches(params):
+    """Random env points inside the domain stay inside [r_lo, r_hi]; the two extreme corners touch it."""
+    domain = TableDomain(p_opt_w=(0.05e-12, 1.0e-12), t_bath_k=(0.095, 0.105), b_field_t=(-1e-4, 1e-4),
+                         v_frac=(0.95, 1.05))
+    rng = np.random.default_rng(4)
+    for p in params.values():
+        r_lo, r_hi = resistance_range_ohm(p, domain)
+        n = 400
+        op = model.solve_operating_point(
+            p, rng.uniform(*domain.p_opt_w, n), rng.uniform(*domain.t_bath_k, n),
+            rng.uniform(*domain.b_field_t, n), p.v_thev_v * rng.uniform(*domain.v_frac, n),
+        )
+        assert np.all((op.r_ohm >= r_lo) & (op.r_ohm <= r_hi))
+        # Lowest R: least power, coldest bath, lowest bias, largest T_c shift. Highest: the opposite.
+        b = np.linspace(*domain.b_field_t, 2001)
+        shift = p.t_c_shift_k_per_t * b + p.t_c_shift_k_per_t2 * b * b
+        lo = model.solve_operating_point(p, domain.p_opt_w[0], 0.095, b[np.argmax(shift)], 0.95 * p.v_thev_v)
+        hi = model.solve_operating_point(p, domain.p_opt_w[1], 0.105, b[np.argmin(shift)], 1.05 * p.v_thev_v)
+        assert abs(float(lo.r_ohm) - r_lo) < 1e-6 and abs(float(hi.r_ohm) - r_hi) < 1e-6
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(1e-6, 1.0), min_size=2, max_size=40), st.floats(0.0, 1.0))
+def test_lookup_cells_find_the_right_interval(widths, u):
+    x = np.concatenate([[0.0], np.cumsum(widths)])
+    cells, per = lookup_cells(x, max_cells_per_interval=4)
+    r = u * x[-1]
+    cell = min(int((r - x[0]) * per), cells.size - 1)
+    j = int(cells[cell])
+    while j + 1 < x.size - 1 and r >= x[j + 1]:
+        j += 1
+    assert x[j] <= r and (r < x[j + 1] or j == x.size - 2)
+
+
+def test_build_rejects_bad_input():
+    with pytest.raises(ConfigError):
+        build_bank({})
+    with pytest.raises(ConfigError, match="unknown table kind"):
+        build_bank([table1_params("b0m0c000")], kind="cubic")
+    with pytest.raises(ConfigError, match="key"):
+        build_bank({"x": table1_params("b0m0c000")})
+    with pytest.raises(ConfigError):
+        TableDomain(t_bath_k=(0.11, 0.09))
+    with pytest.raises(ConfigError, match="above saturation"):  # a measured transition ends at R_n
+        build_bank([tabulated_params()], domain=TableDomain(p_opt_w=(5e-12, 6e-12)))
+    with pytest.raises(ConfigError, match="n_b_nodes"):
+        build_bank([table1_params("b0m0c000")], kind="grid", n_b_nodes=3)
+
+
+def test_bank_memory_scales_to_5000_detectors_under_1_gib(bank):
+    assert bank.nbytes / len(bank) * 5000 < 2**30 / 4
+
+
+# --- files ----------------------------------------------------------------------------------
+
+def test_save_load_round_trip_keeps_identity_and_results(tmp_path, params, bank):
+    path = save_bank(bank, tmp_path / "bank.npz")
+    loaded = load_bank(path)
+    assert loaded.identity == bank.identity
+    assert loaded.params == bank.params and loaded.domain == bank.domain
+    for name, a in bank.arrays.items():
+        assert np.array_equal(loaded.arrays[name], a)
+    assert read_header(path)["identity"] == bank.identity
+    ids = list(params)
+    ci = np.full((len(ids), 3), 1_200_000, np.int32)
+    env = EnvironmentBlock(np.full(3, 0.1), np.zeros(3))
+    a = make_converter("table", None, bank=bank).convert(ids, ci, ci // 10, env)
+    b = make_converter("table", params, bank=loaded).convert(ids, ci, ci // 10, env)
+    assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True) and b.identity == bank.identity
+
+
+def test_grid_bank_round_trip_and_curves_constructor(tmp_path, params):
+    grid = build_bank(params, kind="grid", n_power=64, n_b_nodes=5)
+    loaded = load_bank(save_bank(grid, tmp_path / "grid.npz"))
+    assert loaded.identity == grid.identity and loaded.kind == "grid"
+    # The same curves handed in from outside give the same tables.
+    ko = grid.arrays["knot_offset"]
+    cut = lambda a: [a[ko[k]:ko[k + 1]] for k in range(len(grid))]  # noqa: E731
+    again = grid_bank_from_curves(
+        grid.params, cut(grid.arrays["r_knot_ohm"]), cut(grid.arrays["p_w"]), grid.arrays["bias_v"],
+        grid.arrays["b_nodes_t"], grid.arrays["t_ref_k"], grid.domain, grid.options,
+        dp_dr_w_per_ohm=cut(grid.arrays["dp_dr_w_per_ohm"]),
+    )
+    assert again.identity == grid.identity
+
+
+def _edited_copy(src, dst, edit):
+    """Rewrite a bank file with ``edit(members)`` applied to its decoded members."""
+    with np.load(src) as npz:
+        members = {name: npz[name].copy() for name in npz.files}
+    edit(members)
+    np.savez(dst, **members)
+    return dst
+
+
+def _header_version(members, version):
+    doc = json.loads(bytes(members["__header__"]).decode())
+    doc["version"] = version
+    members["__header__"] = np.frombuffer(json.dumps(doc).encode(), dtype=np.uint8)
+
+
+def test_corrupted_edited_and_foreign_files_are_refused(tmp_path, bank):
+    good = save_bank(bank, tmp_path / "good.npz")
+    raw = bytearray(good.read_bytes())
+
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(raw[: len(raw) // 2])
+    text = tmp_path / "text.npz"
+    text.write_text("not a table file")
+    flipped = tmp_path / "flipped.npz"
+    raw[len(raw) // 2] ^= 0x40  # inside some member's data: the zip CRC or the hash must catch it
+    flipped.write_bytes(bytes(raw))
+    for path in (truncated, text, flipped):
+        with pytest.raises(SchemaError):
+            load_bank(path)
+
+    def nudge(m):
+        m["ts_coeffs"][5, 0] = np.nextafter(m["ts_coeffs"][5, 0], 1.0)  # one ulp of one number
+
+    with pytest.raises(SchemaError, match="hash"):
+        load_bank(_edited_copy(good, tmp_path / "edited.npz", nudge))
+    with pytest.raises(SchemaError, match="version 99 is not supported"):
+        load_bank(_edited_copy(good, tmp_path / "future.npz", lambda m: _header_version(m, 99)))
+    with pytest.raises(SchemaError, match="not a table file"):
+        load_bank(_edited_copy(good, tmp_path / "headless.npz", lambda m: m.pop("__header__")))
+    with pytest.raises(ConfigError, match="not found"):
+        load_bank(tmp_path / "missing.npz")
+
+
+def test_inconsistent_arrays_are_refused(bank):
+    arrays = dict(bank.arrays)
+    arrays["cell_interval"] = arrays["cell_interval"] + 10_000
+    with pytest.raises(SchemaError, match="lookup cell"):
+        TableBank(kind="table", detector_ids=bank.detector_ids, params=bank.params, domain=bank.domain,
+                  options=bank.options, arrays=arrays)
+    arrays = dict(bank.arrays)
+    del arrays["ts_coeffs"]
+    with pytest.raises(SchemaError, match="expected"):
+        TableBank(kind="table", detector_ids=bank.detector_ids, params=bank.params, domain=bank.domain,
+                  options=bank.options, arrays=arrays)
+
+
+# --- CLI ------------------------------------------------------------------------------------
+
+def test_cli_build_and_info(tmp_path, params, capsys):
+    pfile = tmp_path / "params.toml"
+    dump_params(list(params.values()), pfile)
+    out = tmp_path / "tables.npz"
+    assert main(["tables", "build", "--params", str(pfile), "--out", str(out), "--quiet"]) == 0
+    assert main(["tables", "info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    bank = load_bank(out)
+    assert info["identity"] == bank.identity == build_bank(params).identity
+    assert info["detectors"] == len(params) and info["kind"] == "table"
+    gout = tmp_path / "grid.npz"
+    assert main(["tables", "build", "--params", str(pfile), "--out", str(gout), "--kind", "grid",
+                 "--n-power", "32", "--quiet"]) == 0
+    assert load_bank(gout).kind == "grid"
+    (tmp_path / "bad.npz").write_bytes(b"junk")
+    assert main(["tables", "info", str(tmp_path / "bad.npz")]) == 2
+    assert "not a readable table file" in capsys.readouterr().err
+
+
+def test_bench_convert_smoke():
+    import argparse
+
+    from mntes_stream.bench import convert as bench
+
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args(["--quick", "--detectors", "8", "--samples", "200", "--build-detectors", "4",
+                              "--repeats", "1", "--no-numpy"])
+    r = bench.run(args)
+    for key in ("detectors", "samples", "msamples_per_s", "axpy_msamples_per_s", "ratio_to_axpy",
+                "max_abs_error_w", "linear_max_abs_error_w", "build_s_per_1000_detectors",
+                "bank_mib_per_5000_detectors"):
+        assert key in r
+    assert r["detectors"] == 8 and r["samples"] == 200
+    assert r["max_abs_error_w"] <= 1e-19 < r["linear_max_abs_error_w"]
+    assert r["flags_identical_to_exact"]
