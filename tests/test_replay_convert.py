@@ -226,6 +226,31 @@ def test_offline_convert_with_new_parameters_via_cli(source_recording, tmp_path)
     assert res.returncode == 2 and "cannot create" in res.stderr
 
 
+def test_offline_convert_with_a_table_file(source_recording, tmp_path):
+    """--tables: a bank built elsewhere (newer calibration) gives the same power as rebuilding from --params."""
+    import numpy as np
+
+    from mntes_stream.core.tables import build_bank
+    from mntes_stream.io.paramfile import dump_params
+    from mntes_stream.io.tablefile import save_bank
+    from mntes_stream.service.offline import convert_recording
+
+    path, src = source_recording
+    newer = [p.replace(t_c_k=p.transition.t_c_k * 1.001) for p in src.params]
+    bank = build_bank({p.detector_id: p for p in newer})
+    save_bank(bank, tmp_path / "newer.npz")
+    dump_params(newer, tmp_path / "newer.toml")
+    by_tables = convert_recording(path, tmp_path / "t.mcap", tables=tmp_path / "newer.npz", progress=False)
+    by_params = convert_recording(path, tmp_path / "p.mcap", params=tmp_path / "newer.toml", progress=False)
+    assert by_tables.table_identity == bank.identity == by_params.table_identity != by_tables.recorded_table_identity
+    assert by_tables.tables_source.endswith("newer.npz")
+    for a, b in zip(_power(tmp_path / "t.mcap"), _power(tmp_path / "p.mcap"), strict=True):
+        assert np.array_equal(a.p_opt_w, b.p_opt_w) and np.array_equal(a.flags, b.flags)
+    assert mio.latest_provenance(tmp_path / "t.mcap") is not None  # the output records what it used
+    meta = [m.data for m in mio.read_metadata(tmp_path / "t.mcap") if m.name == "mntes.provenance"]
+    assert meta[-1]["table_identity"] == bank.identity
+
+
 def test_offline_convert_needs_parameters(tmp_path):
     from mntes_stream.service.offline import convert_recording
 
