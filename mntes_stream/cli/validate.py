@@ -11,7 +11,10 @@ def run(args) -> int:
     from mntes_stream.core.validation import JSON_KEYS, StudyConfig, run_study
     from mntes_stream.validation_report import headline_rows, to_jsonable, write_report
 
-    cfg = StudyConfig.quick_config(seed=args.seed) if args.quick else StudyConfig(seed=args.seed)
+    from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
+
+    opts = {"seed": args.seed, "sample_rate_hz": args.sample_rate, "f_hwp_hz": HWP_FREQUENCIES_HZ[args.telescope]}
+    cfg = StudyConfig.quick_config(**opts) if args.quick else StudyConfig(**opts)
     steps = ["hwp", "spectra", "jupiter", "dipole", "drift", "robustness"]
     with tqdm(total=len(steps) + 1, desc="validate", unit="step", disable=args.json or None) as bar:
         def progress(step):
@@ -49,4 +52,8 @@ def register(sub) -> None:
     p.add_argument("--out", default="validation", metavar="DIR", help="report directory (default: ./validation)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--seed", type=int, default=0, help="simulation seed")
+    p.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], default="LFT",
+                   help="HWP frequency: LFT 0.77, MFT 0.65, HFT 1.02 Hz (default LFT)")
+    p.add_argument("--sample-rate", type=float, default=152.59, metavar="HZ",
+                   help="default 152.59 (DfMux ground); 19.1 is flight-like")
     p.set_defaults(func=run)
