@@ -145,11 +145,6 @@ def prepare(det: DetectorCalibration, options: FitOptions = FitOptions()) -> tup
 # --------------------------------------------------------------------------- starting values
 
 
-def _zeta(s: Sweep, gain_abs: float) -> np.ndarray:
-    """``sqrt(2) bias_ratio / (|g| counts) = (R + z) exp(1j phi) / V0`` per point."""
-    return SQRT2 * s.condition("bias_ratio") / (gain_abs * s.counts)
-
-
 def _cat(sweeps, fn):
     return np.concatenate([fn(s) for s in sweeps]) if sweeps else np.array([])
 
@@ -162,9 +157,9 @@ def initial_guess(det: DetectorCalibration, sweeps: tuple[Sweep, ...]) -> np.nda
     by = {k: [s for s in sweeps if s.kind == k] for k in KINDS}
     g_abs, f0 = det.gain_abs_a_per_count, det.bias_freq_hz
     omega0 = 2 * np.pi * f0
-    # 1. Superconducting network: zeta = E z(omega), E = exp(1j phi)/V0. Over the
-    #    narrow band z is linear in delta = w - 1: z0 + (r1 + 1j (2 L omega0 - Im z0)) delta.
-    zeta = _cat(by["network_super"], lambda s: _zeta(s, g_abs))
+    # 1. Superconducting network: sqrt(2) bias_ratio / (|g| counts) = exp(1j phi) z(omega) / V0.
+    #    Over the narrow band z is linear in delta = w - 1: z0 + (r1 + 1j (2 L omega0 - Im z0)) delta.
+    zeta = _cat(by["network_super"], lambda s: _zeta_rot(s, g_abs, 0.0, 0j))
     delta = _cat(by["network_super"], lambda s: s.condition("freq_hz") / f0 - 1.0)
     a, *_ = np.linalg.lstsq(np.stack([np.ones_like(delta), delta], axis=1).astype(complex), zeta, rcond=None)
     phi = float(np.angle(a[1])) - np.pi / 2
@@ -264,7 +259,7 @@ def initial_guess(det: DetectorCalibration, sweeps: tuple[Sweep, ...]) -> np.nda
 
 
 def _zeta_rot(s: Sweep, g_abs: float, phi: float, pickup) -> np.ndarray:
-    """``(R + z) / V0`` per point, with the pickup (A/T) removed from the current."""
+    """``sqrt(2) bias_ratio / i``, i = counts |g| exp(1j phi) - m B: ``(R + z) / V0`` at the right phi."""
     i = s.counts * g_abs * np.exp(1j * phi)
     return SQRT2 * s.condition("bias_ratio") / (i - pickup * s.condition("b_field_t"))
 
