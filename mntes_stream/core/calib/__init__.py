@@ -1,1 +1,10 @@
-"""Ground calibration (paper section 4): measurements, simulation, per-detector fits."""
+"""Ground calibration (paper section 4), pure computation.
+
+- ``measurements``: the six sweeps as data (``Sweep``, ``DetectorCalibration``, ``Campaign``);
+- ``forward``: the measurement model (``predict_counts``), readout ``z(omega)``, parameter vector;
+- ``simulate``: campaigns with known truth (``simulate_campaign``);
+- ``fit``: per-detector joint fit with covariance and quality flags (``fit_detector``),
+  the tabulated-transition outcome (``tabulated_transition``);
+- ``campaign``: all detectors in parallel (``fit_campaign``), ``pulls`` against a truth;
+- ``endtoend``: HWP 2f -> 4f effective nonlinearity left by a calibration.
+"""
