@@ -282,3 +282,17 @@ def test_config_validation():
     with pytest.raises(ConfigError):
         PipelineConfig(setup="a/b")
     assert PipelineConfig.from_dict({"t_bath_range_k": [0.05, 0.2]}).t_bath_range_k == (0.05, 0.2)
+
+
+def test_housekeeping_arriving_between_modules_of_one_step_is_used(source, converter):
+    """Modules of a step share sample times (alignment is cached per step): new readings must still count."""
+    msgs = _messages(source, 3)
+    hk = [m for m in msgs if "/hk/" in m[0]]
+    c0, c1 = [m for m in msgs if "/counts/" in m[0]][-2:]   # both modules, last step
+    pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0, hk_staleness_s=0.01))
+    _run(pipe, hk[:2])                                     # readings up to 0.1 s only
+    (early,) = _split(pipe.handle(*c0))[0]
+    _run(pipe, hk[2:])                                     # the rest, up to 0.3 s
+    (late,) = _split(pipe.handle(*c1))[0]
+    assert np.all(early.flags & fl.HK_STALE)
+    assert not late.flags.any()

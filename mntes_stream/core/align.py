@@ -158,6 +158,7 @@ class HkSeries:
         self.retention_ns = int(retention_ns)
         self.t_ns = np.zeros(0, dtype=np.int64)
         self.value = np.zeros((0,) if width is None else (0, width))
+        self.version = 0  # incremented by every add(): lets callers cache alignments
 
     def __len__(self) -> int:
         return int(self.t_ns.size)
@@ -181,6 +182,7 @@ class HkSeries:
             t, v = t[finite], v[finite]
         if t.size == 0:
             return
+        self.version += 1
         if self.t_ns.size and t.min() > self.t_ns[-1] and np.all(np.diff(t) > 0):
             self.t_ns = np.concatenate([self.t_ns, t])
             self.value = np.concatenate([self.value, v])

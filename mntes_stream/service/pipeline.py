@@ -209,6 +209,7 @@ class ConverterPipeline:
         self._streams: dict[tuple[int, int], _Stream] = {}
         self._pending: collections.deque[_Pending] = collections.deque()
         self._rows: dict[tuple, tuple] = {}
+        self._env_cache: dict[tuple, tuple] = {}
         self._provenance: bytes | None = None
         self._t_created_ns = time.time_ns()
         self._t_first_ns: int | None = None
@@ -438,7 +439,23 @@ class ConverterPipeline:
                 keep.append(p)
         self._pending = keep
 
-    def _scalar_env(self, sensor: str, t: np.ndarray, default: float, valid_range) -> tuple[np.ndarray, np.ndarray]:
+    def _scalar_env(self, sensor: str, chunk: CountsChunk, t: np.ndarray, default: float, valid_range):
+        """Aligned value and flags, shape (n_samp,); cached, since every module of a step shares its times."""
+        series = self._hk[sensor]
+        times = (chunk.t0_ns, chunk.sample_rate_hz, t.size) if chunk.t_ns is None else t.tobytes()
+        key = (sensor, times)
+        hit = self._env_cache.get(key)
+        if hit is not None and hit[0] == series.version:
+            return hit[1], hit[2]
+        value, flags = self._scalar_env_uncached(sensor, t, default, valid_range)
+        value.setflags(write=False)
+        flags.setflags(write=False)
+        if len(self._env_cache) > 1024:
+            self._env_cache.clear()
+        self._env_cache[key] = (series.version, value, flags)
+        return value, flags
+
+    def _scalar_env_uncached(self, sensor: str, t: np.ndarray, default: float, valid_range):
         series = self._hk[sensor]
         required = sensor in self.config.required_hk
         if not len(series):
@@ -484,8 +501,8 @@ class ConverterPipeline:
         chunk, t = p.chunk, p.t_ns
         cfg = self.config
         n_ch, n = chunk.channels.size, t.size
-        t_bath, f_tb = self._scalar_env("t_bath", t, cfg.t_bath_default_k, cfg.t_bath_range_k)
-        b_field, f_b = self._scalar_env("b_field", t, cfg.b_field_default_t, cfg.b_field_range_t)
+        t_bath, f_tb = self._scalar_env("t_bath", chunk, t, cfg.t_bath_default_k, cfg.t_bath_range_k)
+        b_field, f_b = self._scalar_env("b_field", chunk, t, cfg.b_field_default_t, cfg.b_field_range_t)
         env_flags_t = f_tb | f_b
         ids, known, n_unknown = self._rows_for(chunk)
         v_bias, f_bias = self._bias_env(chunk, t, ids)
