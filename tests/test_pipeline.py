@@ -289,7 +289,7 @@ def test_housekeeping_arriving_between_modules_of_one_step_is_used(source, conve
     msgs = _messages(source, 3)
     hk = [m for m in msgs if "/hk/" in m[0]]
     c0, c1 = [m for m in msgs if "/counts/" in m[0]][-2:]   # both modules, last step
-    pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0, hk_staleness_s=0.01))
+    pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0, hk_staleness_s=0.06))
     _run(pipe, hk[:2])                                     # readings up to 0.1 s only
     (early,) = _split(pipe.handle(*c0))[0]
     _run(pipe, hk[2:])                                     # the rest, up to 0.3 s
