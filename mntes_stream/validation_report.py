@@ -107,12 +107,45 @@ def _harmonic_lines(ax, f_hwp, fmax):
             ax.text(f, 1.0, f"{h}f", transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=8)
 
 
+def _save(plt, fig, path, dpi: int = 100) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
 def _psd(x, fs):
     from scipy.signal import welch
 
     x = np.asarray(x) - np.mean(x)
     nper = min(len(x), 1 << 14)
     return welch(x, fs=fs, nperseg=nper)
+
+
+def _robustness_curves(ax, r: dict, legend_size: int = 7) -> None:
+    """One line per calibration parameter: residual nonlinearity against error / assumed error."""
+    from mntes_stream.core.validation import CALIBRATION_ERRORS
+
+    for i, (name, curve) in enumerate(r["curves"].items()):
+        c = np.where(np.isfinite(curve), curve, np.nan)
+        ax.loglog(r["multiples"], np.maximum(c, 1e-9), color=f"C{i % 10}", ls="-" if i < 10 else "--",
+                  lw=1, label=CALIBRATION_ERRORS[name][0])
+    ax.axhline(REQUIREMENT_PER_PW, color="k", ls=":", label="requirement 0.014 / pW")
+    ax.axvline(1.0, color="0.5", lw=0.8)
+    ax.set_xlabel("calibration error / assumed 1-sigma error")
+    ax.set_ylabel("residual effective nonlinearity [1/pW]")
+    ax.set_title("MNTES with one wrong calibration parameter")
+    ax.legend(fontsize=legend_size, ncol=2)
+
+
+def _residual_spectra(ax, s: dict) -> None:
+    """ASD of P_rec - P_true for each converter, HWP harmonics marked."""
+    for k, x in s["rec_w"].items():
+        f, p = _psd(np.asarray(x) - s["truth_w"], s["fs_hz"])
+        ax.loglog(f[1:], np.sqrt(p[1:]), color=_COLORS.get(k), lw=0.8, label=_LABELS.get(k, k))
+    _harmonic_lines(ax, s["f_hwp_hz"], s["fs_hz"] / 2)
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("ASD of P_rec - P [W/sqrt(Hz)]")
+    ax.legend(fontsize=7, loc="lower left")
 
 
 def figure_timestreams(res: StudyResult, path: Path) -> None:
@@ -138,9 +171,7 @@ def figure_timestreams(res: StudyResult, path: Path) -> None:
     axes[2].set_xlabel("time [s]")
     axes[2].set_title("HWP 2f signal: residual (linear conversion leaks 4f and a DC offset)")
     axes[2].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def figure_spectra(res: StudyResult, path: Path) -> None:
@@ -153,18 +184,13 @@ def figure_spectra(res: StudyResult, path: Path) -> None:
     for k, x in s["rec_w"].items():
         f, p = _psd(x, fs)
         a.loglog(f[1:], np.sqrt(p[1:]), color=_COLORS.get(k), lw=0.8, label=_LABELS.get(k, k))
-        f, p = _psd(np.asarray(x) - s["truth_w"], fs)
-        b.loglog(f[1:], np.sqrt(p[1:]), color=_COLORS.get(k), lw=0.8, label=_LABELS.get(k, k))
-    for ax in (a, b):
-        _harmonic_lines(ax, fh, fs / 2)
-        ax.set_ylabel("ASD [W/sqrt(Hz)]")
-        ax.legend(fontsize=8, loc="lower left")
+    _harmonic_lines(a, fh, fs / 2)
+    a.set_ylabel("ASD of P_rec [W/sqrt(Hz)]")
+    a.legend(fontsize=8, loc="lower left")
+    _residual_spectra(b, s)
     a.set_title("Reconstructed power (photon + 1/f + readout noise); HWP harmonics marked", pad=14)
     b.set_title("Residual P_rec - P_true (4f: the nonlinearity's up-conversion)", pad=14)
-    b.set_xlabel("frequency [Hz]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def _relative_gain(wg: dict, nominal: float) -> np.ndarray:
@@ -186,36 +212,21 @@ def figure_drift(res: StudyResult, path: Path) -> None:
         ax.set_ylabel("gain change from the tuning point [%]")
     axes[0].legend(fontsize=8)
     fig.suptitle("Gain drift (2f probe) while the environment drifts; bias tuned at 100 mK, 0 uT")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def figure_robustness(res: StudyResult, path: Path) -> None:
     plt = pyplot()
-    from mntes_stream.core.validation import CALIBRATION_ERRORS
-
     r = res.figures["robustness"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.8), gridspec_kw={"width_ratios": [2, 1]})
-    for i, (name, curve) in enumerate(r["curves"].items()):
-        c = np.where(np.isfinite(curve), curve, np.nan)
-        a.loglog(r["multiples"], np.maximum(c, 1e-9), color=f"C{i % 10}",
-                 ls="-" if i < 10 else "--", label=CALIBRATION_ERRORS[name][0])
-    a.axhline(REQUIREMENT_PER_PW, color="k", ls=":", label="requirement 0.014 / pW")
-    a.axvline(1.0, color="0.5", lw=0.8)
-    a.set_xlabel("calibration error / assumed 1-sigma error")
-    a.set_ylabel("residual effective nonlinearity [1/pW]")
-    a.set_title("MNTES with one wrong parameter")
-    a.legend(fontsize=7, ncol=2)
+    _robustness_curves(a, r)
     x = np.asarray(r["all_together"])
     x = x[np.isfinite(x)]
     b.hist(np.log10(np.maximum(x, 1e-9)), bins=20, color="C0")
     b.axvline(math.log10(REQUIREMENT_PER_PW), color="k", ls=":")
     b.set_xlabel("log10 residual nonlinearity [1/pW]")
     b.set_title("all errors at once (assumed levels)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def figure_jupiter_sweep(res: StudyResult, path: Path) -> None:
@@ -229,27 +240,17 @@ def figure_jupiter_sweep(res: StudyResult, path: Path) -> None:
     ax.set_ylabel("|peak error| (fraction)")
     ax.set_title("Compact-source peak error")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def figure_overview(res: StudyResult, path: Path) -> None:
     """Four panels for the README: 4f spectrum, Jupiter residual, bath drift, robustness."""
     plt = pyplot()
-    from mntes_stream.core.validation import CALIBRATION_ERRORS
-
     fig, ax = plt.subplots(2, 2, figsize=(12, 8.5))
     s = res.figures["spectra"]
-    for k, x in s["rec_w"].items():
-        f, p = _psd(np.asarray(x) - s["truth_w"], s["fs_hz"])
-        ax[0, 0].loglog(f[1:], np.sqrt(p[1:]), color=_COLORS.get(k), lw=0.8, label=_LABELS.get(k, k))
-    _harmonic_lines(ax[0, 0], s["f_hwp_hz"], s["fs_hz"] / 2)
+    _residual_spectra(ax[0, 0], s)
     ax[0, 0].set_xlim(0.05, s["fs_hz"] / 2)
     ax[0, 0].set_title("residual spectrum with a 2f HWP signal", pad=14)
-    ax[0, 0].set_xlabel("frequency [Hz]")
-    ax[0, 0].set_ylabel("ASD of P_rec - P [W/sqrt(Hz)]")
-    ax[0, 0].legend(fontsize=7, loc="lower left")
     j = res.figures["jupiter"]
     for k, p in j["rec_w"].items():
         ax[0, 1].plot(j["t_s"], p * 1e12, color=_COLORS.get(k), lw=1, label=_LABELS.get(k, k))
@@ -265,20 +266,8 @@ def figure_overview(res: StudyResult, path: Path) -> None:
     ax[1, 0].set_xlabel("bath temperature [mK]")
     ax[1, 0].set_ylabel("gain change from 100 mK [%]")
     ax[1, 0].legend(fontsize=7)
-    r = res.figures["robustness"]
-    for i, (name, curve) in enumerate(r["curves"].items()):
-        c = np.where(np.isfinite(curve), curve, np.nan)
-        ax[1, 1].loglog(r["multiples"], np.maximum(c, 1e-9), color=f"C{i % 10}", ls="-" if i < 10 else "--",
-                        lw=1, label=CALIBRATION_ERRORS[name][0])
-    ax[1, 1].axhline(REQUIREMENT_PER_PW, color="k", ls=":")
-    ax[1, 1].axvline(1.0, color="0.5", lw=0.8)
-    ax[1, 1].set_title("MNTES with one wrong calibration parameter")
-    ax[1, 1].set_xlabel("error / assumed 1-sigma error")
-    ax[1, 1].set_ylabel("residual nonlinearity [1/pW]")
-    ax[1, 1].legend(fontsize=6, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    _robustness_curves(ax[1, 1], res.figures["robustness"], legend_size=6)
+    _save(plt, fig, path, dpi=90)
 
 
 FIGURES = {
