@@ -43,7 +43,7 @@ from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
 from mntes_stream.core.params import PRESETS, ParamArray
 from mntes_stream.core.transition import ArctanTransition
-from mntes_stream.errors import ConfigError
+from mntes_stream.errors import ConfigError, MntesError
 
 __all__ = [
     "HWP_FREQUENCIES_HZ",
@@ -498,8 +498,8 @@ def solve_quasi_static(pa: ParamArray, p_opt_w, t_bath_k, b_field_t, v_thev_v, r
         with np.errstate(divide="ignore", invalid="ignore"):
             x_new = x + f / slope
         # Bisect where Newton leaves the bracket or shrinks it too slowly (rtsafe rule;
-        # near R_n the slope is huge and plain Newton would crawl).
-        # A step a rounding error past the bracket is a converging step: clip it.
+        # near R_n the slope is huge and plain Newton would crawl). A step a rounding
+        # error past the bracket is a converging step: clip it instead.
         bad = (~np.isfinite(x_new) | (x_new < a - tol) | (x_new > bnd + tol)
                | (np.abs(2 * f) > np.abs(dx_old * slope)))
         x_new = np.where(f == 0, x, np.where(bad, 0.5 * (a + bnd), np.clip(x_new, a, bnd)))
@@ -510,7 +510,7 @@ def solve_quasi_static(pa: ParamArray, p_opt_w, t_bath_k, b_field_t, v_thev_v, r
         x = np.where(active, x_new, x)
     else:
         if active.any():
-            raise ConfigError("solve_quasi_static: Newton iteration did not converge")
+            raise MntesError("solve_quasi_static: Newton iteration did not converge")
     r_min, r_max = pa.transition.r_domain_ohm()
     r = np.where(sc, np.broadcast_to(r_min, shape), np.broadcast_to(r_max, shape)).astype(float)
     r.ravel()[flat] = r_out
