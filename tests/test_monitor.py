@@ -111,10 +111,14 @@ def test_estimate_f_hwp_finds_the_comb(f_hwp, harmonics):
     assert est == pytest.approx(f_hwp, abs=0.2 * (f[1] - f[0]))
 
 
-def test_estimate_f_hwp_without_lines_finds_nothing():
+def test_estimate_f_hwp_without_lines_or_resolution_finds_nothing():
     rng = np.random.default_rng(4)
     f, p = welch_psd(rng.standard_normal((4, 6000)), FS)
     assert estimate_f_hwp(f, p) is None
+    # 6 s of a clear 2f line: bins of 0.2 Hz cannot tell 0.77 Hz from its neighbours.
+    t = np.arange(600) / FS
+    f, p = welch_psd(np.sin(2 * np.pi * 1.54 * t) + 0.1 * rng.standard_normal(600), FS, segments=1)
+    assert f[1] > 0.55 / 4 and estimate_f_hwp(f, p) is None
 
 
 # ------------------------------------------------------------------ aggregation

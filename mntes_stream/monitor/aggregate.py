@@ -534,7 +534,11 @@ class Aggregator:
         for det in chosen:
             key, row = self._index[det]
             by_module.setdefault(key, []).append((row, det))
-        streams, spectra, psds = {}, {}, []
+        if f_hwp_hz == "config":
+            f_hwp_hz = self.config.f_hwp_hz
+        source = "configured" if f_hwp_hz is not None else "not found"
+        estimates = []
+        streams, spectra = {}, {}
         newest_pub = 0
         for key, members in by_module.items():
             buf = self.modules[key]
@@ -544,8 +548,9 @@ class Aggregator:
             td, pd = decimate_minmax(t, p, self.config.max_points)
             f, psd = welch_psd(p, buf.sample_rate_hz)
             if f.size:
-                psds.append((f, psd))
                 fb, pb = log_bin(f, psd, self.config.spectrum_points)
+            if f_hwp_hz is None:  # finest resolution to locate the lines
+                estimates.append(estimate_f_hwp(*welch_psd(p, buf.sample_rate_hz, segments=1)))
             for i, (row, det) in enumerate(members):
                 streams[det] = {
                     "id": det,
@@ -555,16 +560,9 @@ class Aggregator:
                 }
                 if f.size and np.all(np.isfinite(pb[i])) and np.all(pb[i] > 0):
                     spectra[det] = {"id": det, "f_hz": _sig_list(fb, 5), "log10_asd": _round_list(np.log10(np.sqrt(pb[i]) * 1e18), 4)}
-        if f_hwp_hz == "config":
-            f_hwp_hz = self.config.f_hwp_hz
-        source = "configured"
-        if f_hwp_hz is None:
-            source = "estimated"
-            estimates = [estimate_f_hwp(f, psd) for f, psd in psds]
-            estimates = [e for e in estimates if e is not None]
-            f_hwp_hz = float(np.median(estimates)) if estimates else None
-            if f_hwp_hz is None:
-                source = "not found"
+        estimates = [e for e in estimates if e is not None]
+        if f_hwp_hz is None and estimates:
+            f_hwp_hz, source = float(np.median(estimates)), "estimated"
         return {
             "selection": chosen,
             "unknown": unknown,

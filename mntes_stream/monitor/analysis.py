@@ -69,7 +69,7 @@ def decimate_minmax(t: np.ndarray, y: np.ndarray, max_points: int) -> tuple[np.n
     return t_out, (y_out[0] if one else y_out)
 
 
-def welch_psd(y: np.ndarray, fs_hz: float, max_nperseg: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def welch_psd(y: np.ndarray, fs_hz: float, segments: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """One-sided Welch PSD of each row, Hann windows of a power-of-two length, 50% overlap.
 
     Parameters
@@ -78,8 +78,10 @@ def welch_psd(y: np.ndarray, fs_hz: float, max_nperseg: int | None = None) -> tu
         Power samples (W); NaN samples are replaced by the row's mean
         (rows with fewer than half their samples finite give NaN PSD).
     fs_hz : float
-    max_nperseg : int, optional
-        Cap on the segment length; default ``n // 2`` (so at least 3 segments).
+    segments : int
+        At least this many half-overlapping segments: the segment is the
+        longest power of two <= ``2 n / (segments + 1)``. 3 averages noise
+        for display; 1 gives the finest resolution (for locating lines).
 
     Returns
     -------
@@ -91,7 +93,7 @@ def welch_psd(y: np.ndarray, fs_hz: float, max_nperseg: int | None = None) -> tu
     n = y.shape[1]
     if n < 16:
         return np.zeros(0), np.zeros((y.shape[0], 0))
-    limit = n // 2 if max_nperseg is None else min(n // 2, int(max_nperseg))
+    limit = 2 * n // (max(int(segments), 1) + 1)
     nperseg = 1 << max(int(np.floor(np.log2(max(limit, 8)))), 3)
     finite = np.isfinite(y)
     good = finite.sum(axis=1) >= n / 2
@@ -150,6 +152,10 @@ def estimate_f_hwp(
 ) -> float | None:
     """The HWP frequency whose 1f/2f/4f comb stands highest above the noise floor.
 
+    None when there is no comb, or when the frequency resolution is coarser
+    than a quarter of the search range's low end (too little data: lines
+    would merge with each other and with DC).
+
     Score of a candidate f: the sum over h in (1, 2, 4) of ``log(P(h f) / floor(h f))``
     clipped at 0, with the floor a running median of P (lines are narrow, the
     floor is not) and P interpolated in log. Candidates step by a tenth of
@@ -176,6 +182,8 @@ def estimate_f_hwp(
     if p.shape[0] == 0 or f_hz.size < 32:
         return None
     df = f_hz[1] - f_hz[0]
+    if df > search_hz[0] / 4:
+        return None
     size = max(int(round(0.5 / df)) | 1, 9)  # a 0.5 Hz window: several times a line's width
     floor = median_filter(p, size=(1, size), mode="nearest")
     excess = np.log(np.median(p / floor, axis=0))

@@ -28,7 +28,7 @@ def find_chromium() -> tuple[str, str] | None:
     return (binary, driver) if binary and driver else None
 
 
-def headless_chromium(window: tuple[int, int] = (1400, 1150), profile_dir: str | None = None):
+def headless_chromium(window: tuple[int, int] = (1400, 1300), profile_dir: str | None = None):
     """A selenium ``webdriver.Chrome`` on headless Chromium with :data:`CHROMIUM_FLAGS`; call ``quit()``.
 
     Raises

@@ -96,7 +96,7 @@ function timeStreams(msg) {
   }));
   const layout = {
     uirevision: "ts", margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.12 },
-    xaxis: { type: "date", title: "time (UTC)" }, yaxis: { title: "P_opt [pW]", exponentformat: "none" },
+    xaxis: { type: "date", title: { text: "time (UTC)" } }, yaxis: { title: { text: "P_opt [pW]" }, exponentformat: "none" },
   };
   return Plotly.react("timestreams", traces, layout, CONFIG);
 }
@@ -116,9 +116,9 @@ function spectrum(msg) {
   }));
   const layout = {
     uirevision: "sp", margin: { l: 60, r: 10, t: 20, b: 40 }, showlegend: false, shapes, annotations,
-    xaxis: { type: "log", title: "frequency [Hz]" }, yaxis: { type: "log", title: "ASD [aW/√Hz]" },
+    xaxis: { type: "log", title: { text: "frequency [Hz]" } }, yaxis: { type: "log", title: { text: "ASD [aW/√Hz]" } },
   };
-  $("f-hwp-info").textContent = sp.f_hwp_hz === null ? `(${sp.f_hwp_source})` : `${fmt(sp.f_hwp_hz, 3)} Hz, ${sp.f_hwp_source}`;
+  $("f-hwp-info").textContent = sp.f_hwp_hz === null ? `(${sp.f_hwp_source})` : `(${fmt(sp.f_hwp_hz, 3)} Hz, ${sp.f_hwp_source})`;
   if (!$("f-hwp").value && sp.f_hwp_hz !== null && sp.f_hwp_source === "configured") $("f-hwp").value = sp.f_hwp_hz;
   return Plotly.react("spectrum", traces, layout, CONFIG);
 }
@@ -156,8 +156,8 @@ function grid(msg) {
     y: g.labels, xgap: 1, ygap: 1,
   };
   const layout = {
-    uirevision: "grid", margin: { l: 60, r: 10, t: 10, b: 30 },
-    xaxis: { title: "channel slot", showgrid: false }, yaxis: { autorange: "reversed", showgrid: false, type: "category" },
+    uirevision: "grid", margin: { l: 60, r: 10, t: 10, b: 45 },
+    xaxis: { title: { text: "channel slot" }, showgrid: false }, yaxis: { autorange: "reversed", showgrid: false, type: "category" },
   };
   $("legend").innerHTML = names.map((name) => `<span><i style="background:${STATE_COLORS[name]}"></i>${name} <b>${msg.state_counts[name]}</b></span>`).join("");
   return Plotly.react("grid", [trace], layout, CONFIG);
@@ -172,7 +172,7 @@ function housekeeping(msg) {
   const layout = {
     uirevision: "hk", margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.12 },
     grid: { rows: 2, columns: 1, subplots: [["xy"], ["xy2"]], roworder: "top to bottom" },
-    xaxis: { type: "date" }, yaxis: { title: "T_bath [mK]", exponentformat: "none" }, yaxis2: { title: "B [µT]" },
+    xaxis: { type: "date" }, yaxis: { title: { text: "T_bath [mK]" }, exponentformat: "none" }, yaxis2: { title: { text: "B [µT]" } },
   };
   return Plotly.react("hk", traces, layout, CONFIG);
 }

@@ -1,0 +1,205 @@
+"""The quick-look page in a real browser, on a real pipeline (all on 127.0.0.1).
+
+``mntes-stream simulate`` (2 modules x 16 channels: per module one channel
+driven into saturation, one latched superconducting) -> ``mntes-stream serve``
+(the converter) -> ``mntes-stream monitor`` -> headless Chromium. A small
+publisher in this process adds one more module with a TES that is normal
+(R above R_n), through the same converter. Everything is checked through the
+page itself: what its plotly charts hold, what its channel grid says, what it
+measured as publication-to-drawn latency. A screenshot is saved (set
+``MNTES_MONITOR_SCREENSHOT=docs/monitor.png`` to refresh the README's).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mntes_stream.core.sim import ArraySimulator, SimConfig
+from mntes_stream.io import keys
+from mntes_stream.io.messages import CountsChunk
+from mntes_stream.io.paramfile import dump_params
+from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
+
+SIM = SimConfig(modules=2, channels=16)  # what `simulate --modules 2 --channels 16` runs (default seed)
+RATE_HZ = 152.59
+NORMAL_ID = "b0m2c000"
+
+
+def _browser_or_skip():
+    """Chromium + chromedriver + selenium, or a clear failure in CI / a clear skip elsewhere."""
+    from mntes_stream.monitor.browser import find_chromium
+
+    missing = []
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        missing.append("selenium (pip install -e '.[test]')")
+    if find_chromium() is None:
+        missing.append("chromium + chromedriver (apt-get install -y chromium chromium-driver)")
+    if missing:
+        why = "monitor browser test needs " + " and ".join(missing)
+        if os.environ.get("CI"):
+            pytest.fail(why + ": .ci/run installs them, so CI must have them")
+        pytest.skip(why)
+
+
+def _normal_tes_counts(p, n: int) -> np.ndarray:
+    """Complex counts of a TES above its transition: R = 1.001 R_n at the nominal bias, no pickup."""
+    r = 1.001 * p.r_normal_ohm
+    i = math.sqrt(2) * p.v_thev_v / (r + p.z_thev_ohm)
+    c = i / p.gain_a_per_count
+    return np.full(n, complex(round(c.real), round(c.imag)))
+
+
+def _publish_normal_channel(port: int, p, stop: threading.Event) -> None:
+    """Counts for b0m2c000 every 0.1 s, sample times on the wall clock like the simulator's."""
+    n = 15
+    c = _normal_tes_counts(p, n)
+    with open_session(loopback(None, [port])) as z:
+        pubs = Publishers(z)
+        pubs.wait_matching([keys.counts_key("lab", 0, 2)], 30, stop)
+        t0 = time.time_ns()
+        seq = 0
+        while not stop.is_set():
+            t_first = t0 + int(round(seq * n / RATE_HZ * 1e9))
+            stop.wait(max(t_first + n / RATE_HZ * 1e9 - time.time_ns(), 0) / 1e9)
+            chunk = CountsChunk("lab", 0, 2, np.array([0], np.int32), seq, t_first, RATE_HZ,
+                                c.real.astype(np.int32)[None, :], c.imag.astype(np.int32)[None, :], time.time_ns())
+            pubs.put(keys.counts_key("lab", 0, 2), chunk.to_bytes())
+            seq += 1
+
+
+@contextlib.contextmanager
+def _process(args, log_path: Path):
+    log = open(log_path, "w")
+    proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", *args], stdout=subprocess.PIPE,
+                            stderr=log, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+        log.close()
+
+
+def _wait(driver, predicate, timeout_s: float, what: str):
+    from mntes_stream.monitor.browser import page_state
+
+    deadline = time.monotonic() + timeout_s
+    state = None
+    while time.monotonic() < deadline:
+        state = page_state(driver)
+        if predicate(state):
+            return state
+        time.sleep(0.5)
+    short = {k: v for k, v in (state or {}).items() if k not in ("grid", "renders")}
+    pytest.fail(f"page never showed {what} within {timeout_s} s; last page state: {json.dumps(short)[:1500]}")
+
+
+@pytest.mark.slow
+def test_page_shows_live_pipeline_states_and_latency(tmp_path):
+    _browser_or_skip()
+    from mntes_stream.monitor.browser import headless_chromium, page_state
+
+    sim = ArraySimulator(SIM)
+    kinds = {ch.detector_id: ch.kind for ch in sim.channels}
+    normal = sim.truth_params[0].replace(detector_id=NORMAL_ID, pickup_a_per_t=0j)
+    dump_params(list(sim.truth_params) + [normal], tmp_path / "params.toml")
+    p_sim, p_conv = free_tcp_port(), free_tcp_port()
+    (tmp_path / "converter.toml").write_text(
+        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\n[status]\ninterval_s = 1.0\n'
+        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{p_conv}"]\nconnect = ["tcp/127.0.0.1:{p_sim}"]\n')
+    stop = threading.Event()
+    driver = None
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_process(
+            ["simulate", "--listen", f"tcp/127.0.0.1:{p_sim}", "--setup", "lab", "--modules", "2", "--channels", "16",
+             "--duration", "120", "--no-truth", "--params-out", str(tmp_path / "sim-params.toml")],
+            tmp_path / "simulate.log"))
+        stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration", "120"],
+                                     tmp_path / "converter.log"))
+        monitor = stack.enter_context(_process(
+            ["monitor", "--port", "0", "--setup", "lab", "--duration", "120",
+             "--connect", f"tcp/127.0.0.1:{p_conv}", "--connect", f"tcp/127.0.0.1:{p_sim}"], tmp_path / "monitor.log"))
+        publisher = threading.Thread(target=_publish_normal_channel, args=(p_conv, normal, stop), daemon=True)
+        publisher.start()
+        stack.callback(lambda: (stop.set(), publisher.join(10)))
+        line = monitor.stdout.readline()
+        assert "serving http://127.0.0.1:" in line, f"monitor did not start: {line!r} {(tmp_path / 'monitor.log').read_text()}"
+        url = line.split("serving ", 1)[1].split()[0]
+        driver = headless_chromium(profile_dir=str(tmp_path / "chromium-profile"))
+        stack.callback(driver.quit)
+        driver.get(url)
+
+        expected = {d: {"ok": "transition", "latched": "superconducting"}.get(k) for d, k in kinds.items()}
+        saturated_by_sim = [d for d, k in kinds.items() if k == "saturated"]
+
+        def grid_complete(s):
+            g = s["grid"]
+            return (all(g.get(d, {}).get("state") == want for d, want in expected.items() if want)
+                    and g.get(NORMAL_ID, {}).get("state") == "saturated"
+                    and all(g.get(d, {}).get("state") not in (None, "transition", "silent") for d in saturated_by_sim))
+
+        s = _wait(driver, grid_complete, 90, "every simulated channel in its state")
+        # Charts hold live points: time streams and spectra of the default selection, housekeeping.
+        s = _wait(driver, lambda s: len(s["timestreams"]) >= 3 and min(t["finite"] for t in s["timestreams"]) > 300
+                  and s["spectrum"] and min(t["finite"] for t in s["spectrum"]) > 20
+                  and all(h["n"] > 5 for h in s["hk"]), 60, "filled time-stream, spectrum and housekeeping charts")
+        assert all("(transition)" in t["name"] for t in s["timestreams"])
+        assert s["harmonics"] == pytest.approx([0.77, 1.54, 3.08])  # 1f, 2f, 4f of the LFT default
+        assert "converter" in s["health"] and "monitor (received)" in s["health"]
+        # Live: the page keeps redrawing (at least once a second) and the points move on.
+        n0, newest0 = s["updates"], s["renders"][-1]["t_pub_ns"]
+        time.sleep(3.0)
+        s = page_state(driver)
+        assert s["updates"] - n0 >= 3 and s["renders"][-1]["t_pub_ns"] > newest0
+        assert s["errors"] == []
+        # The saturated cells are coloured as such: z is the state's code in the heatmap.
+        assert s["grid"][NORMAL_ID]["z"] == 1 and s["grid"]["b0m0c015"]["z"] == 2
+        # Publication (PowerChunk.t_pub_ns, by the converter) to drawn on the page, same machine's clock.
+        lat = np.array([r["latency_ms"] for r in s["renders"][2:]])  # the first two: page still loading
+        assert lat.size >= 5
+        result = {"n": int(lat.size), "median_ms": float(np.median(lat)), "p95_ms": float(np.percentile(lat, 95)),
+                  "max_ms": float(lat.max())}
+        print(f"\npublication -> drawn latency: {json.dumps(result)}")
+        (tmp_path / "latency.json").write_text(json.dumps(result))
+        assert 0 < result["median_ms"] < 2000
+        # The page's controls: estimate f_HWP from the spectra (the simulator runs 0.77 Hz).
+        driver.find_element("id", "f-hwp-auto").click()
+        s = _wait(driver, lambda s: s["harmonics"] and "estimated" in driver.find_element("id", "f-hwp-info").text,
+                  30, "an estimated f_HWP")  # once ~14 s of data resolve the lines
+        spectra = driver.execute_script("return document.getElementById('spectrum').data.map(t => [t.name, t.x, t.y])")
+        assert s["harmonics"][0] == pytest.approx(0.77, abs=0.05), json.dumps(spectra)
+        # Pick a channel with the board/module/channel selectors: the saturated one joins the plot.
+        from selenium.webdriver.support.ui import Select
+
+        driver.find_element("id", "f-hwp-auto").click()
+        Select(driver.find_element("id", "pick-module")).select_by_visible_text("2")
+        Select(driver.find_element("id", "pick-channel")).select_by_value("0")
+        driver.find_element("id", "add").click()
+        s = _wait(driver, lambda s: any(t["name"] == f"{NORMAL_ID} (saturated)" for t in s["timestreams"]), 10,
+                  "the picked channel in the time streams")
+        assert next(t for t in s["timestreams"] if t["name"].startswith(NORMAL_ID))["finite"] == 0  # NaN: flagged
+        time.sleep(1.0)
+        shot = tmp_path / "monitor.png"
+        driver.save_screenshot(str(shot))
+        assert shot.stat().st_size > 20_000
+        if os.environ.get("MNTES_MONITOR_SCREENSHOT"):
+            shutil.copy(shot, os.environ["MNTES_MONITOR_SCREENSHOT"])
