@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import threading
 import time
 import warnings
 
@@ -43,10 +45,13 @@ def provenance_payload(tag: str = "a", *, setup: str = "t") -> bytes:
     ).to_bytes()
 
 
-def wait_matching(publisher, timeout_s: float = 10.0) -> None:
-    """Block until a zenoh publisher has a matching subscriber (fail after ``timeout_s``)."""
+def wait_matching(publisher, timeout_s: float = 10.0, alive=None) -> None:
+    """Block until a zenoh publisher has a matching subscriber (fail after ``timeout_s``,
+    or at once when ``alive()``, the subscriber's liveness, turns False)."""
     deadline = time.monotonic() + timeout_s
     while not publisher.matching_status.matching:
+        if alive is not None and not alive():
+            raise RuntimeError(f"the subscriber for {publisher.key_expr} died before subscribing")
         if time.monotonic() > deadline:
             raise TimeoutError(f"no subscriber for {publisher.key_expr} after {timeout_s} s")
         time.sleep(0.01)
@@ -60,3 +65,45 @@ def readable_messages(source) -> list:
             return list(mcap_io.iter_messages(source))
         except Exception:  # the file may not exist yet, or be mid-write at its very start
             return []
+
+
+@contextlib.contextmanager
+def running_recorder(directory, *, attempts: int = 3, **config):
+    """``run_recorder`` in a thread, listening on a free loopback port; yields ``(endpoint, result)``.
+
+    ``result`` gets ``stats`` when the recorder has stopped (at the end of the
+    block, or earlier with ``duration_s``). A port taken by another process
+    between choosing and binding it is retried with a new one; any other
+    start-up failure is raised at once instead of surfacing as a timeout.
+    """
+    from mntes_stream.io.transport import ZenohSettings
+    from mntes_stream.service.recorder import RecorderConfig, run_recorder
+
+    config = {"setup": "t", "flush_interval_s": 0.1, **config}
+    for attempt in range(attempts):
+        ep = free_endpoint()
+        cfg = RecorderConfig(directory=str(directory), zenoh=ZenohSettings(listen=(ep,)), **config)
+        stop, ready, result = threading.Event(), threading.Event(), {}
+
+        def target():
+            try:
+                result["stats"] = run_recorder(cfg, stop, ready)
+            except Exception as exc:  # handed to the test thread below
+                result["error"] = exc
+
+        thread = threading.Thread(target=target)
+        thread.start()
+        while not ready.wait(0.05) and thread.is_alive():
+            pass
+        if ready.is_set():
+            break
+        thread.join()
+        if attempt == attempts - 1 or "cannot open zenoh session" not in str(result.get("error")):
+            raise result["error"]
+    try:
+        yield ep, result
+    finally:
+        stop.set()
+        thread.join(30)
+    if "error" in result:
+        raise result["error"]

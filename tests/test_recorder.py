@@ -6,18 +6,25 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
 import zenoh
 from mcap.reader import make_reader
-from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_payload, readable_messages, wait_matching
+from mcap_helpers import (
+    counts_payload,
+    free_endpoint,
+    hk_payload,
+    provenance_payload,
+    readable_messages,
+    running_recorder,
+    wait_matching,
+)
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.recorder import RecorderConfig, run_recorder
+from mntes_stream.service.recorder import RecorderConfig
 
 
 def _wait_for(pred, timeout_s=15.0, what="condition"):
@@ -28,23 +35,17 @@ def _wait_for(pred, timeout_s=15.0, what="condition"):
         time.sleep(0.05)
 
 
-def _publishers(z, keys):
+def _publishers(z, keys, proc=None):
     pubs = {k: z.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k in keys}
+    alive = None if proc is None else (lambda: proc.poll() is None)
     for p in pubs.values():
-        wait_matching(p, 30.0)
+        wait_matching(p, 30.0, alive)
     return pubs
 
 
 def test_records_everything_verbatim_with_stats(tmp_path):
-    ep = free_endpoint()
-    cfg = RecorderConfig(setup="t", directory=str(tmp_path), prefix="rec", flush_interval_s=0.1,
-                         zenoh=ZenohSettings(listen=(ep,)))
-    stop = threading.Event()
-    result = {}
-    th = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg, stop)))
-    th.start()
     sent = []
-    try:
+    with running_recorder(tmp_path, prefix="rec") as (ep, result):
         with open_session(ZenohSettings(connect=(ep,))) as z:
             keys = ["mntes/t/provenance", "mntes/t/counts/0/0", "mntes/t/counts/0/1", "mntes/t/hk/t_bath", "other/t/x"]
             pubs = _publishers(z, keys[:4])
@@ -60,9 +61,6 @@ def test_records_everything_verbatim_with_stats(tmp_path):
             z.put("other/t/x", b"not under the setup")  # outside mntes/t/**: not recorded
             # Read the growing file until the last message has been flushed to it.
             _wait_for(lambda: len(readable_messages(tmp_path)) == len(sent), what="all messages flushed")
-    finally:
-        stop.set()
-        th.join(30)
     stats = result["stats"]
     got = list(mio.iter_messages(tmp_path))  # now finished: no warning
     assert mio.Session(tmp_path).complete
@@ -78,17 +76,12 @@ def test_records_everything_verbatim_with_stats(tmp_path):
 
 
 def test_duration_stops_by_itself_and_counts_gaps(tmp_path):
-    ep = free_endpoint()
-    cfg = RecorderConfig(setup="t", directory=str(tmp_path), duration_s=2.0, zenoh=ZenohSettings(listen=(ep,)))
-    result = {}
-    th = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg)))
-    th.start()
-    with open_session(ZenohSettings(connect=(ep,))) as z:
-        pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
-        for seq in (0, 1, 5, 6, 6, 3):  # 3 missing after 1, then a repeat and a step back
-            pub.put(counts_payload(seq))
-    th.join(30)
-    assert not th.is_alive()
+    with running_recorder(tmp_path, duration_s=2.0) as (ep, result):
+        with open_session(ZenohSettings(connect=(ep,))) as z:
+            pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
+            for seq in (0, 1, 5, 6, 6, 3):  # 3 missing after 1, then a repeat and a step back
+                pub.put(counts_payload(seq))
+        _wait_for(lambda: "stats" in result, what="the recorder to stop by itself")
     stats = result["stats"]
     assert stats.messages == 6 and stats.seq_gaps == 3 and stats.seq_repeats == 2
     with open(stats.files[0], "rb") as f:
@@ -106,7 +99,7 @@ def test_sigterm_finishes_the_file(tmp_path):
     proc = _start_recorder_process(tmp_path, ep, 0.5)
     try:
         with open_session(ZenohSettings(connect=(ep,))) as z:
-            pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
+            pub = _publishers(z, ["mntes/t/counts/0/0"], proc)["mntes/t/counts/0/0"]
             sent = [counts_payload(i) for i in range(40)]
             for p in sent:
                 pub.put(p)
@@ -131,7 +124,7 @@ def test_sigkill_loses_at_most_the_flush_interval(tmp_path):
     sent = []
     try:
         with open_session(ZenohSettings(connect=(ep,))) as z:
-            pub = _publishers(z, ["mntes/t/counts/0/0"])["mntes/t/counts/0/0"]
+            pub = _publishers(z, ["mntes/t/counts/0/0"], proc)["mntes/t/counts/0/0"]
             for i in range(300):  # ~3 s at 100 Hz
                 payload = counts_payload(i)
                 pub.put(payload)

@@ -7,32 +7,15 @@ import subprocess
 import sys
 import threading
 import time
-from contextlib import contextmanager
 
 import pytest
 import zenoh
-from mcap_helpers import counts_payload, free_endpoint, hk_payload, provenance_payload, readable_messages, wait_matching
+from mcap_helpers import counts_payload, hk_payload, provenance_payload, readable_messages, running_recorder, wait_matching
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.recorder import RecorderConfig, run_recorder
 from mntes_stream.service.replay import ReplayConfig, parse_time, run_replay
-
-
-@contextmanager
-def recording(directory, ep):
-    """A recorder of mntes/t/** listening on ``ep`` for the duration of the block."""
-    cfg = RecorderConfig(setup="t", directory=str(directory), flush_interval_s=0.1, zenoh=ZenohSettings(listen=(ep,)))
-    stop = threading.Event()
-    out = {}
-    th = threading.Thread(target=lambda: out.update(stats=run_recorder(cfg, stop)))
-    th.start()
-    try:
-        yield out
-    finally:
-        stop.set()
-        th.join(30)
 
 
 def _wait_count(directory, n, timeout_s=20.0):
@@ -47,7 +30,6 @@ def _wait_count(directory, n, timeout_s=20.0):
 def session_a(tmp_path_factory):
     """A live recording: counts on two modules, housekeeping, power-like and provenance traffic."""
     directory = tmp_path_factory.mktemp("a")
-    ep = free_endpoint()
     plan = [("mntes/t/provenance", provenance_payload("a"))]
     for i in range(80):
         plan.append((f"mntes/t/counts/0/{i % 2}", counts_payload(i // 2, module=i % 2)))
@@ -55,7 +37,7 @@ def session_a(tmp_path_factory):
             plan.append(("mntes/t/hk/t_bath", hk_payload(i // 4)))
         if i % 8 == 0:
             plan.append(("mntes/t/power/0/0", counts_payload(1000 + i)))  # stands in for an output
-    with recording(directory, ep):
+    with running_recorder(directory) as (ep, _):
         with open_session(ZenohSettings(connect=(ep,))) as z:
             pubs = {k: z.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, _ in plan}
             for p in pubs.values():
@@ -68,8 +50,7 @@ def session_a(tmp_path_factory):
 
 
 def _replay_into(tmp_path, source, **kw):
-    ep = free_endpoint()
-    with recording(tmp_path, ep) as out:
+    with running_recorder(tmp_path) as (ep, out):
         cfg = ReplayConfig(source=(str(source),), zenoh=ZenohSettings(connect=(ep,)), wait_subscribers_s=30.0, linger_s=0.2, **kw)
         stats = run_replay(cfg)
         _wait_count(tmp_path, stats.messages)
@@ -104,8 +85,7 @@ def test_replay_cli_time_range(session_a, tmp_path):
     lo, hi = parse_time("0.1", t0), parse_time("0.3", t0)
     expected = [m for m in recorded if lo <= m.log_time_ns < hi and "/counts/" in m.topic]
     assert expected
-    ep = free_endpoint()
-    with recording(tmp_path, ep):
+    with running_recorder(tmp_path) as (ep, _):
         out = subprocess.run(
             [sys.executable, "-m", "mntes_stream", "replay", str(src), "--afap", "--start", "0.1", "--end", "0.3",
              "--topics", "mntes/t/counts/**", "--connect", ep, "--wait-s", "30", "--json", "-q"],
@@ -262,41 +242,35 @@ def test_offline_convert_needs_parameters(tmp_path):
 
 
 def _live_run(tmp_path, name, params_file, feed, n_power):
-    """A live converter and a recorder of its inputs and outputs; ``feed(endpoints)`` publishes the inputs.
+    """A live converter and a recorder of its inputs and outputs; ``feed(zenoh settings)`` publishes the inputs.
 
     Returns the recording directory once ``n_power`` power chunks are in it and
     both services have stopped (converter first, so it converts what it holds).
     """
-    from mntes_stream.io.transport import free_tcp_port, loopback
+    from mntes_stream.io.transport import free_tcp_port
     from mntes_stream.service.converter import ConverterConfig, run_converter
     from mntes_stream.service.pipeline import PipelineConfig
 
-    p_rec, p_conv = free_tcp_port(), free_tcp_port()
     rec_dir = tmp_path / name
-    rec_cfg = RecorderConfig(setup="t", directory=str(rec_dir), flush_interval_s=0.1, zenoh=loopback(p_rec))
-    conv_cfg = ConverterConfig(params=str(params_file), kind="table", pipeline=PipelineConfig(setup="t"),
-                               zenoh=loopback(p_conv, [p_rec]))
-    stop_rec, stop_conv = threading.Event(), threading.Event()
-    ready_rec, ready_conv = threading.Event(), threading.Event()
-    rec = threading.Thread(target=run_recorder, args=(rec_cfg, stop_rec, ready_rec))
-    conv = threading.Thread(target=run_converter, args=(conv_cfg, stop_conv, ready_conv))
-    rec.start()
-    try:
-        assert ready_rec.wait(30)
+    with running_recorder(rec_dir) as (ep_rec, _):
+        ep_conv = f"tcp/127.0.0.1:{free_tcp_port()}"
+        conv_cfg = ConverterConfig(params=str(params_file), kind="table", pipeline=PipelineConfig(setup="t"),
+                                   zenoh=ZenohSettings(listen=(ep_conv,), connect=(ep_rec,)))
+        stop, ready = threading.Event(), threading.Event()
+        conv = threading.Thread(target=run_converter, args=(conv_cfg, stop, ready))
         conv.start()
-        assert ready_conv.wait(60)
-        feed(loopback(None, [p_conv, p_rec]))
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            if sum(m.topic.startswith("mntes/t/power/") for m in readable_messages(rec_dir)) >= n_power:
-                break
-            time.sleep(0.1)
-    finally:
-        stop_conv.set()
-        if conv.ident is not None:
+        try:
+            while not ready.wait(0.05):
+                assert conv.is_alive(), "the converter failed to start"
+            feed(ZenohSettings(connect=(ep_conv, ep_rec)))
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                if sum(m.topic.startswith("mntes/t/power/") for m in readable_messages(rec_dir)) >= n_power:
+                    break
+                time.sleep(0.1)
+        finally:
+            stop.set()
             conv.join(30)
-        stop_rec.set()
-        rec.join(30)
     return rec_dir
 
 
