@@ -211,6 +211,21 @@ def test_structured_table_stays_exact_outside_the_env_domain(params, bank):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_large_transition_shifts_leave_the_series_for_the_exact_power(backend):
+    """|delta / T_s| > 0.05 (a 12 mK field shift here) takes the exact-power branch."""
+    p = table1_params("b0m0c007", t_c_shift_k_per_t=60.0)
+    params = {p.detector_id: p}
+    bank = build_bank(params)
+    b = np.array([-2e-4, -1e-4, 0.0, 1.5e-4, 2e-4])
+    ci, cq = forward_counts(p, np.full(5, 0.4e-12), np.full(5, 0.1), b, p.v_thev_v)
+    env = EnvironmentBlock(np.full(5, 0.1), b)
+    ex = make_converter("exact", params).convert([p.detector_id], ci[None], cq[None], env)
+    tb = make_converter("table", None, bank=bank, backend=backend).convert([p.detector_id], ci[None], cq[None], env)
+    assert np.all(tb.flags == 0)
+    assert np.abs(tb.p_opt_w - ex.p_opt_w).max() <= TARGET_W
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_backends_agree_on_a_realistic_block(params, bank, backend):
     from mntes_stream.bench.convert import synthetic_block
 

@@ -58,18 +58,19 @@ def test_hermite_pieces_reproduce_cubics_exactly():
 
 
 @pytest.mark.parametrize("which", ["arctan", "tabulated"])
-def test_transition_table_meets_its_temperature_tolerance(params, which):
+def test_response_table_meets_its_tolerances(params, which):
+    """W = K T_s^n within p_tol and T_s (from U = 1/T_s) within t_tol, densely between knots."""
     p = next(q for q in params.values() if (q.transition.kind == which))
     r_lo, r_hi = resistance_range_ohm(p, TableDomain())
-    tol = 1e-11
-    x, c = transition_knots(p.transition, r_lo, r_hi, tol)
+    p_tol, t_tol = 1e-21, 1e-11
+    x, c = transition_knots(p, r_lo, r_hi, p_tol, t_tol)
     r = np.linspace(r_lo, r_hi, 200_001)
-    err = np.abs(eval_table(x, c, r) - p.transition.temperature_k(r)).max()
-    if which == "tabulated":
-        # Its knots include the measured points, so the PCHIP pieces are reproduced to rounding.
-        assert err < 1e-15
-    else:
-        assert err < tol
+    t = p.transition.temperature_k(r)
+    assert np.abs(eval_table(x, c[:, :4], r) - p.k_w_per_k_n * t**p.n).max() < p_tol
+    assert np.abs(1.0 / eval_table(x, c[:, 4:], r) - t).max() < t_tol
+    if which == "tabulated":  # every measured point inside the range is a knot
+        pts = np.asarray(p.transition.r_ohm)
+        assert np.all(np.isin(pts[(pts > r_lo) & (pts < r_hi)], x))
 
 
 def test_resistance_range_is_exactly_what_the_domain_reaches(params):
@@ -189,7 +190,7 @@ def test_corrupted_edited_and_foreign_files_are_refused(tmp_path, bank):
             load_bank(path)
 
     def nudge(m):
-        m["ts_coeffs"][5, 0] = np.nextafter(m["ts_coeffs"][5, 0], 1.0)  # one ulp of one number
+        m["coeffs"][5, 0] = np.nextafter(m["coeffs"][5, 0], 1.0)  # one ulp of one number
 
     with pytest.raises(SchemaError, match="hash"):
         load_bank(_edited_copy(good, tmp_path / "edited.npz", nudge))
@@ -208,7 +209,7 @@ def test_inconsistent_arrays_are_refused(bank):
         TableBank(kind="table", detector_ids=bank.detector_ids, params=bank.params, domain=bank.domain,
                   options=bank.options, arrays=arrays)
     arrays = dict(bank.arrays)
-    del arrays["ts_coeffs"]
+    del arrays["coeffs"]
     with pytest.raises(SchemaError, match="expected"):
         TableBank(kind="table", detector_ids=bank.detector_ids, params=bank.params, domain=bank.domain,
                   options=bank.options, arrays=arrays)

@@ -221,8 +221,8 @@ def _prepare(index: Mapping[str, int], v_nominal: np.ndarray, detector_ids, coun
 
 
 def _phys(params: Sequence[DetectorParams]) -> np.ndarray:
-    """Per-detector scalars for the kernels, shape (n_det, 14) (see ``_kernels``)."""
-    out = np.empty((len(params), 14))
+    """Per-detector scalars for the kernels, shape (n_det, 15) (see ``_kernels``)."""
+    out = np.empty((len(params), 15))
     for k, p in enumerate(params):
         lo, hi = model._branch_bounds(p)
         out[k] = (
@@ -230,7 +230,7 @@ def _phys(params: Sequence[DetectorParams]) -> np.ndarray:
             p.pickup_a_per_t.real, p.pickup_a_per_t.imag,
             p.z_thev_ohm.real, p.z_thev_ohm.imag,
             p.k_w_per_k_n, p.n, p.t_c_shift_k_per_t, p.t_c_shift_k_per_t2,
-            p.current_shift_k_per_a, p.v_thev_v, float(lo), float(hi),
+            p.current_shift_k_per_a, p.v_thev_v, float(lo), float(hi), p.t_bath_k,
         )
     return out
 
@@ -247,7 +247,7 @@ def _currents(inp: _Inputs, phys: np.ndarray, r0: int, r1: int):
     """
     rows = inp.rows[r0:r1]
     known = (rows >= 0)[:, None]
-    ph = phys[np.maximum(rows, 0)][:, :, None] if phys.size else np.full((r1 - r0, 14, 1), np.nan)
+    ph = phys[np.maximum(rows, 0)][:, :, None] if phys.size else np.full((r1 - r0, 15, 1), np.nan)
     xi = np.asarray(inp.counts_i[r0:r1], dtype=np.float64)
     xq = np.asarray(inp.counts_q[r0:r1], dtype=np.float64)
     tb, b, v = inp.t_bath_k[r0:r1], inp.b_field_t[r0:r1], inp.v_thev_v[r0:r1]
@@ -478,7 +478,7 @@ class TableConverter(_Base):
                   a["cell_interval"], a["cell_per_ohm"])
         if self.kind == "table":
             kernel = _kernels.table_numba if self.backend == "numba" else _kernels.table_numpy
-            kernel(*common, a["ts_coeffs"], p, f)
+            kernel(*common, a["coeffs"], p, f)
         else:
             kernel = _kernels.grid_numba if self.backend == "numba" else _kernels.grid_numpy
             kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], self._k_tref_n,

@@ -6,13 +6,16 @@ Two table kinds, both behind :func:`mntes_stream.core.convert.make_converter`:
     The MNTES inverse is analytic except for the transition shape: from a
     measured current ``R = Re(sqrt(2) V / i - z)`` exactly, then
     ``P = K (T^n - T_bath^n) - V^2 R / |R + z|^2`` with
-    ``T = T_s(R) + c1 B + c2 B^2 - gamma |i|``. Only ``T_s(R)`` is tabulated,
-    as a cubic Hermite interpolant (exact values and slopes at the knots) on
-    knots refined adaptively until the interpolation error is below
-    ``p_tol_w / G_max`` in temperature. Bath temperature, bias and field stay
-    exact. For a :class:`~mntes_stream.core.transition.TabulatedTransition`
-    the measured resistances are knots, so the table reproduces its PCHIP
-    interpolant piece for piece.
+    ``T = T_s(R) + delta``, ``delta = c1 B + c2 B^2 - gamma |i|``. Only
+    functions of R are tabulated: ``W = K T_s^n`` and ``U = 1 / T_s``, as
+    cubic Hermite interpolants (exact values and slopes at the knots) on knots
+    refined adaptively until W is within ``p_tol_w`` and T_s within
+    ``p_tol_w / G_max``. Then ``K T^n = W (1 + delta U)^n`` (an 8-term
+    binomial series, exact to 1e-14 relative for ``|delta U| <= 0.05``, with
+    the exact power beyond), so bath temperature, bias and field stay exact
+    and no logarithm is taken per sample. For a
+    :class:`~mntes_stream.core.transition.TabulatedTransition` the measured
+    resistances are knots, so no interval straddles a joint of its PCHIP pieces.
 
 ``"grid"`` (the paper's general route)
     Knots in R come from a forward (bracketed, Brent-type) solve of the power
@@ -36,7 +39,8 @@ Layout (flat arrays, concatenated over detectors, for the compiled kernels)::
     cell_offset  (n_det + 1,) int64   O(1) lookup cells of detector d
     cell_interval(n_cell,)    int32   first interval touching each cell
     cell_per_ohm (n_det,)     float64 cells per ohm
-    "table":  ts_coeffs (n_knot, 4)  T_s = c0 + s (c1 + s (c2 + s c3)), s = R - r_knot
+    "table":  coeffs (n_knot, 8)     W = K T_s^n and U = 1/T_s, each c0 + s (c1 + s (c2 + s c3)),
+                                      s = R - r_knot (interval j uses row j)
     "grid":   p_w, dp_dr_w_per_ohm (n_knot, n_bias, n_b)
               bias_v (n_det, n_bias), b_nodes_t (n_b,), t_ref_k (n_det,)
 
@@ -224,40 +228,54 @@ def _breakpoints(transition_or_params, r_lo: float, r_hi: float) -> np.ndarray:
 
 
 def transition_knots(
-    transition, r_lo: float, r_hi: float, tol_t_k: float, max_knots: int = 20000
+    p: DetectorParams, r_lo: float, r_hi: float, p_tol_w: float, t_tol_k: float, max_knots: int = 20000
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Knots and cubic coefficients of ``T_s(R)`` on ``[r_lo, r_hi]``.
+    """Knots and cubic coefficients of ``W = K T_s(R)^n`` and ``U = 1 / T_s(R)`` on ``[r_lo, r_hi]``.
 
-    Starts from a uniform grid plus the measured resistances of a tabulated
-    transition (where its PCHIP pieces join), then bisects every interval
-    whose Hermite interpolant misses ``T_s`` by more than ``tol_t_k`` at
-    s = 1/4, 1/2, 3/4 of the interval.
+    The conversion needs ``K T^n`` with ``T = T_s + delta`` (field shift and
+    current term): ``K T^n = W (1 + delta U)^n``, a short binomial series, so
+    no logarithm or power is evaluated per sample. Knots start from a uniform
+    grid plus the measured resistances of a tabulated transition (where its
+    PCHIP pieces join); every interval whose Hermite interpolants miss W by
+    more than ``p_tol_w`` or T_s (through U) by more than ``t_tol_k`` at
+    s = 1/4, 1/2, 3/4 is bisected.
 
     Returns
     -------
     r_knot_ohm : ndarray, shape (m + 1,)
-    coeffs : ndarray, shape (m + 1, 4)
+    coeffs : ndarray, shape (m + 1, 8)
+        ``[W c0..c3, U c0..c3]`` of interval j in ``s = R - r_knot[j]``; last row zero.
     """
-    x = np.union1d(np.linspace(r_lo, r_hi, _INITIAL_INTERVALS + 1), _breakpoints(transition, r_lo, r_hi))
+    tr, k, n = p.transition, p.k_w_per_k_n, p.n
+
+    def w_u(r):
+        t = np.asarray(tr.temperature_k(r), dtype=float)
+        dt = np.asarray(tr.dtemperature_dr(r)[0], dtype=float)
+        w = k * t**n
+        return t, w, n * w / t * dt, 1.0 / t, -dt / (t * t)
+
+    x = np.union1d(np.linspace(r_lo, r_hi, _INITIAL_INTERVALS + 1), _breakpoints(tr, r_lo, r_hi))
     frac = np.array([0.25, 0.5, 0.75])
     for _ in range(_MAX_REFINE):
-        y = np.asarray(transition.temperature_k(x), dtype=float)
-        dy = np.asarray(transition.dtemperature_dr(x)[0], dtype=float)
-        if not (np.all(np.isfinite(y)) and np.all(np.isfinite(dy))):
-            raise ConfigError("transition is not finite on the table range")
-        c = hermite_coefficients(x, y, dy)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            t, w, dw, u, du = w_u(x)
+        if not (np.all(np.isfinite([w, dw, u, du])) and np.all(t > 0)):
+            raise ConfigError(f"{p.detector_id}: transition is not finite and positive on the table range")
+        c = np.concatenate([hermite_coefficients(x, w, dw), hermite_coefficients(x, u, du)], axis=1)
         h = np.diff(x)
         xe = (x[:-1, None] + frac[None, :] * h[:, None]).ravel()
         j = np.repeat(np.arange(h.size), frac.size)
-        err = np.abs(_eval_pieces(x, c, j, xe) - transition.temperature_k(xe)).reshape(h.size, frac.size).max(axis=1)
-        bad = err > tol_t_k
+        te, we, _, ue, _ = w_u(xe)
+        err_w = np.abs(_eval_pieces(x, c[:, :4], j, xe) - we)
+        err_t = np.abs(_eval_pieces(x, c[:, 4:], j, xe) - ue) * te * te
+        bad = ((err_w > p_tol_w) | (err_t > t_tol_k)).reshape(h.size, frac.size).any(axis=1)
         if not np.any(bad):
             return x, c
         if x.size + np.count_nonzero(bad) > max_knots or np.min(h[bad]) < 1e-12 * (r_hi - r_lo):
             break
         x = np.sort(np.concatenate([x, x[:-1][bad] + 0.5 * h[bad]]))
     raise ConfigError(
-        f"transition table did not reach {tol_t_k:.2g} K within {max_knots} knots on "
+        f"{p.detector_id}: response table did not reach {p_tol_w:.2g} W within {max_knots} knots on "
         f"R = [{r_lo:.6g}, {r_hi:.6g}] Ohm (is T_s(R) smooth there? narrow the domain?)"
     )
 
@@ -319,7 +337,7 @@ _COMMON_ARRAYS = {
     "cell_per_ohm": ("<f8", 1),
 }
 _KIND_ARRAYS = {
-    "table": {"ts_coeffs": ("<f8", 2)},
+    "table": {"coeffs": ("<f8", 2)},
     "grid": {
         "p_w": ("<f8", 3),
         "dp_dr_w_per_ohm": ("<f8", 3),
@@ -406,8 +424,8 @@ class TableBank:
         if not (np.all(np.isfinite(x)) and np.all(np.diff(x)[inside] > 0)):
             raise SchemaError("table bank: knots must be finite and increasing")
         if self.kind == "table":
-            if a["ts_coeffs"].shape != (n_knot, 4):
-                raise SchemaError("table bank: ts_coeffs must have shape (n_knot, 4)")
+            if a["coeffs"].shape != (n_knot, 8):
+                raise SchemaError("table bank: coeffs must have shape (n_knot, 8)")
         else:
             nb = a["b_nodes_t"].size
             n_bias = a["bias_v"].shape[1] if a["bias_v"].ndim == 2 else -1
@@ -570,12 +588,12 @@ def build_bank(
         knots, coeffs = [], []
         for p in plist:
             r_lo, r_hi = resistance_range_ohm(p, domain)
-            x, c = transition_knots(p.transition, r_lo, r_hi, p_tol_w / _g_max(p, domain, r_hi))
+            x, c = transition_knots(p, r_lo, r_hi, p_tol_w, p_tol_w / _g_max(p, domain, r_hi))
             knots.append(x)
             coeffs.append(c)
             if progress is not None:
                 progress(1)
-        return _assemble("table", plist, domain, {"p_tol_w": float(p_tol_w)}, knots, {"ts_coeffs": coeffs}, {})
+        return _assemble("table", plist, domain, {"p_tol_w": float(p_tol_w)}, knots, {"coeffs": coeffs}, {})
     if kind == "grid":
         return _build_grid(plist, domain, bias_frac, n_b_nodes, n_power, progress)
     raise ConfigError(f"unknown table kind {kind!r} (known: {', '.join(TABLE_KINDS)})")
