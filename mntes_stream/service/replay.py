@@ -135,7 +135,7 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
         if not pubs.wait_matching(topics, config.wait_subscribers_s, stopping):
             unmatched = tuple(t for t in topics if not pubs.publisher(t).matching_status.matching)
         if unmatched:
-            log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(unmatched), len(pubs), unmatched[0])
+            log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(unmatched), len(topics), unmatched[0])
         bar = None
         if progress:
             from tqdm import tqdm
