@@ -311,3 +311,13 @@ def test_live_replayed_and_offline_conversions_agree(tmp_path):
         for k, a in live.items():
             b = other[k]
             assert np.array_equal(a.p_opt_w, b.p_opt_w) and np.array_equal(a.flags, b.flags), k
+
+
+def test_replay_without_subscribers_says_so(session_a):
+    from mntes_stream.io.transport import free_tcp_port, loopback
+
+    src, recorded = session_a
+    cfg = ReplayConfig(source=(str(src),), speed=0, topics=("mntes/t/hk/**",), wait_subscribers_s=0.2, linger_s=0,
+                       zenoh=loopback(free_tcp_port()))
+    stats = run_replay(cfg)
+    assert stats.unmatched_topics == ("mntes/t/hk/t_bath",) and stats.messages == 20
