@@ -78,6 +78,16 @@ def binomials(n):
     return a1, a2, a3, a4, a5, a6, a7, a8
 
 
+def binomial_series(x, a):
+    """``(1 + x)^n`` as ``1 + sum_k a[k-1] x^k`` (Horner), ``a = binomials(n)``."""
+    return 1.0 + x * (a[0] + x * (a[1] + x * (a[2] + x * (a[3] + x * (a[4] + x * (a[5] + x * (a[6] + x * a[7])))))))
+
+
+def hermite_basis(u, h):
+    """Cubic Hermite weights of (y0, h-scaled y0', y1, y1') at fraction ``u`` of an interval ``h``."""
+    return (1.0 + 2.0 * u) * (1.0 - u) ** 2, u * (1.0 - u) ** 2 * h, u * u * (3.0 - 2.0 * u), u * u * (u - 1.0) * h
+
+
 def lagrange4(u):
     """4-point Lagrange weights at ``u`` in node units (nodes at 0, 1, 2, 3)."""
     return (
@@ -143,10 +153,7 @@ def table_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, c
             delta = ph[:, 8] * bb + ph[:, 9] * bb * bb - ph[:, 10] * iabs
             xx = delta * inv_ts
             n = ph[:, 7]
-            series = np.zeros_like(xx)
-            for a in reversed(binomials(n)):
-                series = xx * (a + series)
-            kt = w * (1.0 + series)
+            kt = w * binomial_series(xx, binomials(n))
             far = ok & inside & ~(np.abs(xx) <= SERIES_LIMIT)
             if np.any(far):
                 t = 1.0 / inv_ts[far] + delta[far]
@@ -159,7 +166,7 @@ def table_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, c
 
 
 def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
-               p_w, dp_w, bias_v, b_nodes, k_tref_n, bias_rtol, out_p, out_f):
+               p_w, dp_w, bias_v, b_nodes, t_ref, k_tref_n, bias_rtol, out_p, out_f):
     """Grid-table conversion in numpy (same contract as :func:`grid_numba`)."""
     nb = b_nodes.size
     db = b_nodes[1] - b_nodes[0]
@@ -184,11 +191,7 @@ def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cp
         w = lagrange4(tpos - j0)
         h = x[np.minimum(j + 1, x.size - 1)] - x[j]
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            u = (r - x[j]) / h
-            h00 = (1 + 2 * u) * (1 - u) ** 2
-            h10 = u * (1 - u) ** 2 * h
-            h01 = u * u * (3 - 2 * u)
-            h11 = u * u * (u - 1) * h
+            h00, h10, h01, h11 = hermite_basis((r - x[j]) / h, h)
             acc = np.zeros(r.shape)
             for q in range(4):
                 jb = j0 + q
@@ -251,6 +254,17 @@ if numba is not None:
                 phys[d, 12], phys[d, 13])
 
     _binomials = _inline(binomials)
+    _series = _inline(binomial_series)
+    _hermite = _inline(hermite_basis)
+    _lagrange = _inline(lagrange4)
+
+    @_inline
+    def _bath(tb, ltb, inv_tb0, k_tb0_n, k, n, a):
+        """``K T_bath^n``: binomial series around the nominal bath within 5%, exact beyond."""
+        y = tb * inv_tb0 - 1.0
+        if abs(y) <= SERIES_LIMIT:
+            return k_tb0_n * _series(y, a)
+        return k * math.exp(n * ltb)
 
     @_inline
     def _dom(dom):
@@ -275,7 +289,7 @@ if numba is not None:
             k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
             x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]
-            a1, a2, a3, a4, a5, a6, a7, a8 = _binomials(n)
+            a = _binomials(n)
             inv_tb0, k_tb0_n = 1.0 / phys[d, 14], k * phys[d, 14] ** n
             zr, zi = phys[d, 4], phys[d, 5]
             for s in range(n_samp):
@@ -305,18 +319,11 @@ if numba is not None:
                         delta = c1 * bs + c2 * bs * bs - gamma * iabs
                         xx = delta * inv_ts
                         if abs(xx) <= SERIES_LIMIT:
-                            kt = w * (1.0 + xx * (a1 + xx * (a2 + xx * (a3 + xx * (a4 + xx * (
-                                a5 + xx * (a6 + xx * (a7 + xx * a8))))))))
+                            kt = w * _series(xx, a)
                         else:
                             t = 1.0 / inv_ts + delta
                             kt = k * math.exp(n * math.log(t)) if t > 0.0 else 0.0
-                        # Bath term the same way, around each detector's nominal bath.
-                        y = tb[row, s] * inv_tb0 - 1.0
-                        if abs(y) <= SERIES_LIMIT:
-                            kb = k_tb0_n * (1.0 + y * (a1 + y * (a2 + y * (a3 + y * (a4 + y * (
-                                a5 + y * (a6 + y * (a7 + y * a8))))))))
-                        else:
-                            kb = k * math.exp(n * ltb[row, s])
+                        kb = _bath(tb[row, s], ltb[row, s], inv_tb0, k_tb0_n, k, n, a)
                         p = kt - kb - vs * vs * r / ((r + zr) ** 2 + zi * zi)
                 if f & _UNUSABLE:
                     p = math.nan
@@ -325,7 +332,7 @@ if numba is not None:
 
     @_jit
     def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
-                   p_w, dp_w, bias_v, b_nodes, k_tref_n, bias_rtol, out_p, out_f):
+                   p_w, dp_w, bias_v, b_nodes, t_ref, k_tref_n, bias_rtol, out_p, out_f):
         """Grid-table conversion: bias state, cubic in B, Hermite in R, exact bath term."""
         n_rows, n_samp = out_p.shape
         dm = _dom(dom)
@@ -344,6 +351,8 @@ if numba is not None:
             k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
             x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n = phys[d, 6], phys[d, 7]
+            a = _binomials(n)
+            inv_tref = 1.0 / t_ref[d]
             for s in range(n_samp):
                 bs = b[row, s]
                 vs = v[row, s]
@@ -376,30 +385,18 @@ if numba is not None:
                         j0 = int(math.floor(tpos)) - 1
                         j0 = min(max(j0, 0), nb - 4)
                         uu = tpos - j0
-                        w0 = -(uu - 1.0) * (uu - 2.0) * (uu - 3.0) / 6.0
-                        w1 = uu * (uu - 2.0) * (uu - 3.0) / 2.0
-                        w2 = -uu * (uu - 1.0) * (uu - 3.0) / 2.0
-                        w3 = uu * (uu - 1.0) * (uu - 2.0) / 6.0
+                        w = _lagrange(uu)
                         h = x[j + 1] - x[j]
-                        u = (r - x[j]) / h
-                        h00 = (1.0 + 2.0 * u) * (1.0 - u) ** 2
-                        h10 = u * (1.0 - u) ** 2 * h
-                        h01 = u * u * (3.0 - 2.0 * u)
-                        h11 = u * u * (u - 1.0) * h
+                        h00, h10, h01, h11 = _hermite((r - x[j]) / h, h)
                         acc = 0.0
                         for q in range(4):
                             jb = j0 + q
-                            wq = w0 if q == 0 else (w1 if q == 1 else (w2 if q == 2 else w3))
-                            acc += wq * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
-                                         + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
-                        p = acc + k_tref_n[d]
+                            acc += w[q] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
+                                           + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
+                        p = acc + k_tref_n[d] - _bath(tb[row, s], ltb[row, s], inv_tref, k_tref_n[d], k, n, a)
                 if f & _UNUSABLE:
                     p = math.nan
                 out_p[row, s] = p
                 out_f[row, s] = f
-            for s in range(n_samp):
-                p = out_p[row, s]
-                if p == p:
-                    out_p[row, s] = p - k * math.exp(n * ltb[row, s])
 else:  # pragma: no cover - exercised only without numba
     table_numba = grid_numba = None

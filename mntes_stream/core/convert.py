@@ -481,7 +481,7 @@ class TableConverter(_Base):
             kernel(*common, a["coeffs"], p, f)
         else:
             kernel = _kernels.grid_numba if self.backend == "numba" else _kernels.grid_numpy
-            kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], self._k_tref_n,
+            kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], a["t_ref_k"], self._k_tref_n,
                    self.bias_rtol, p, f)
 
 
