@@ -34,7 +34,7 @@ def test_converter_and_simulator_configs_agree():
     assert {p.detector_id: p.to_dict() for p in default_params(src.source)} == {k: p.to_dict() for k, p in params.items()}
     converter = build_converter(conv)
     assert set(converter.detector_ids) == set(params)
-    assert subscriptions(conv) == ["mntes/lab/counts/*/*", "mntes/lab/hk/**"]
+    assert subscriptions(conv) == ["mntes/lab/hk/**", "mntes/lab/counts/*/*"]
 
 
 def test_lab_zenoh_config_loads_and_keeps_multicast_off():

@@ -17,6 +17,7 @@ yardstick. Two phases in one run:
 
 from __future__ import annotations
 
+import os
 import statistics
 import tempfile
 import time
@@ -162,6 +163,7 @@ def run(args) -> dict:
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
                "flat_out": args.flat_out}
     sink_cfg = {"zenoh": loopback(p_sink), "key": keys.counts_key(pass_setup, "*", "*")}
+    load_before = os.getloadavg()[0]
     services = Services()
     try:
         services.start("recorder", "mntes_stream.service:run_recorder_doc", recorder_doc)
@@ -221,6 +223,8 @@ def run(args) -> dict:
         "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "recorder": cpu(rec), "sink": cpu(sink)},
         "recording_mb": round(sum(f.stat().st_size for f in rec_dir.glob("*.mcap")) / 1e6, 1),
         "kind": args.kind,
+        # Other work on the machine shows in the latency tail: say how busy it was.
+        "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "all_services_ok": bool(ok and ok_all),
     }
     if tmp is not None:

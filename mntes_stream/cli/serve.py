@@ -72,7 +72,7 @@ def run_serve(args) -> int:
 
         from mntes_stream.service.recorder import RecorderConfig, run_recorder
 
-        result = asdict(run_recorder(RecorderConfig.from_dict(doc, args.config)))
+        result = asdict(run_recorder(RecorderConfig.from_dict(doc, args.config, base_dir=str(base))))
     else:
         from dataclasses import asdict
 

@@ -14,6 +14,7 @@ Facts this module encodes (``ARCHITECTURE.md``, measured on zenoh 1.x):
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import queue
@@ -202,15 +203,28 @@ class Publishers:
 
 
 class QueueSubscriber:
-    """Subscribe to key expressions; samples go to a bounded queue as ``(key, bytes, t_recv_ns)``.
+    """Subscribe to key expressions; samples come out as ``(key, bytes, t_recv_ns)``.
 
-    When the queue is full the zenoh callback waits: back-pressure travels
-    upstream to BLOCK publishers instead of losing samples. After
-    :meth:`close` (or once ``stop`` is set) a waiting callback gives up and
-    counts the sample in ``dropped_on_close``, so a session can always close.
+    Two ways, same interface:
+
+    - ``mode="callback"`` (default): a zenoh callback (its own Python thread)
+      stamps each sample and puts it on a bounded queue; ``t_recv_ns`` is the
+      arrival time. When the queue is full the callback waits: back-pressure
+      travels upstream to BLOCK publishers instead of losing samples. After
+      :meth:`close` (or once ``stop`` is set) a waiting callback gives up and
+      counts the sample in ``dropped_on_close``, so a session can always close.
+    - ``mode="channel"``: zenoh's own bounded FIFO channels, read from the
+      caller's thread (no second Python thread competing for the GIL: lower
+      latency in a busy converter); ``t_recv_ns`` is when the sample was
+      taken. Key expressions are read in the order given, so a batch that put
+      housekeeping before counts is read that way too. A full channel blocks
+      zenoh's receive path: back-pressure as above.
     """
 
-    def __init__(self, session, key_exprs: Iterable[str], maxsize: int = 4096, stop=None):
+    def __init__(self, session, key_exprs: Iterable[str], maxsize: int = 4096, stop=None, mode: str = "callback"):
+        if mode not in ("callback", "channel"):
+            raise ConfigError(f"QueueSubscriber mode must be 'callback' or 'channel', got {mode!r}")
+        self.mode = mode
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
         self._closing = threading.Event()
         self._stop = stop
@@ -218,9 +232,15 @@ class QueueSubscriber:
         self.dropped_on_close = 0
         self.high_water = 0
         self._subs = []
+        self._leftover: collections.deque = collections.deque()
         for expr in key_exprs:
             try:
-                self._subs.append(session.declare_subscriber(expr, self._on_sample))
+                if mode == "callback":
+                    self._subs.append(session.declare_subscriber(expr, self._on_sample))
+                else:
+                    import zenoh
+
+                    self._subs.append(session.declare_subscriber(expr, zenoh.handlers.FifoChannel(maxsize)))
             except Exception as exc:
                 raise TransportError(f"cannot subscribe to {expr!r}: {exc}") from None
 
@@ -236,8 +256,26 @@ class QueueSubscriber:
                     self.dropped_on_close += 1
                     return
 
+    def _poll(self):
+        if self._leftover:
+            return self._leftover.popleft()
+        for sub in self._subs:
+            sample = sub.try_recv()
+            if sample is not None:
+                self.received += 1
+                return str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+        return None
+
     def get(self, timeout_s: float | None = None):
-        """Next ``(key, payload, t_recv_ns)`` or None after ``timeout_s``."""
+        """Next ``(key, payload, t_recv_ns)`` or None after ``timeout_s`` (None/0: do not wait)."""
+        if self.mode == "channel":
+            item = self._poll()
+            if item is None and timeout_s:
+                deadline = time.monotonic() + timeout_s
+                while item is None and time.monotonic() < deadline:
+                    time.sleep(0.0005)  # zenoh's channels have no timed receive
+                    item = self._poll()
+            return item
         try:
             item = self._queue.get(timeout=timeout_s) if timeout_s else self._queue.get_nowait()
         except queue.Empty:
@@ -248,17 +286,22 @@ class QueueSubscriber:
     def drain(self, limit: int = 1 << 30) -> Iterator[tuple[str, bytes, int]]:
         """What is queued now, without waiting (at most ``limit`` items)."""
         for _ in range(limit):
-            try:
-                yield self._queue.get_nowait()
-            except queue.Empty:
+            item = self._poll() if self.mode == "channel" else self.get()
+            if item is None:
                 return
+            yield item
 
     def qsize(self) -> int:
         return self._queue.qsize()
 
     def close(self) -> None:
+        """Undeclare the subscribers; what was already received stays readable (:meth:`drain`)."""
         self._closing.set()
         for sub in self._subs:
+            if self.mode == "channel":
+                # Empty zenoh's channel first: a full one would hold up its receive thread.
+                while (sample := sub.try_recv()) is not None:
+                    self._leftover.append((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
             with contextlib.suppress(Exception):
                 sub.undeclare()
         self._subs.clear()

@@ -161,7 +161,7 @@ def subscriptions(cfg: ConverterConfig) -> list[str]:
     boards = [str(b) for b in cfg.boards] or ["*"]
     modules = [str(m) for m in cfg.modules] or ["*"]
     exprs = [keys.counts_key(setup, b, m) for b in boards for m in modules]
-    return exprs + [keys.hk_key(setup, "**")]
+    return [keys.hk_key(setup, "**")] + exprs
 
 
 def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -> dict:
@@ -186,7 +186,9 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -
     prov_key = keys.provenance_key(cfg.setup)
     with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
         pubs = Publishers(session)
-        sub = QueueSubscriber(session, subscriptions(cfg), maxsize=cfg.queue_size, stop=stopping)
+        # Channel mode: samples are read on this thread, no callback thread competing for the GIL.
+        # Housekeeping first (subscriptions() lists it first): a batch's readings before its counts.
+        sub = QueueSubscriber(session, subscriptions(cfg), maxsize=cfg.queue_size, stop=stopping, mode="channel")
         try:
             pubs.put(prov_key, pipe.provenance_bytes())
             next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
