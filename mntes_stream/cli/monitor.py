@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import sys
 import time
@@ -24,10 +23,7 @@ def _settings(args):
     from mntes_stream.monitor.aggregate import MonitorConfig
 
     config = MonitorConfig(history_s=args.history_s, f_hwp_hz=args.f_hwp, silent_s=args.silent_s, hk_stale_s=args.hk_stale_s)
-    zenoh = _zenoh_overrides(args, ZenohSettings())
-    if args.gossip:
-        zenoh = dataclasses.replace(zenoh, gossip=True)
-    return config, zenoh
+    return config, _zenoh_overrides(args, ZenohSettings())
 
 
 def _run_text(sub, args) -> int:
@@ -92,6 +88,4 @@ def register(sub) -> None:
     p.add_argument("--hk-stale-s", type=float, default=2.0, help="housekeeping not received this long is stale (s)")
     p.add_argument("-v", "--verbose", action="store_true")
     _add_zenoh_args(p)
-    p.add_argument("--gossip", action="store_true",
-                   help="learn the other peers (e.g. the simulator publishing housekeeping) from the one connected to")
     p.set_defaults(func=run_monitor)
