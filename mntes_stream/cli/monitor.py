@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
+import math
 import sys
 import time
 
@@ -13,7 +15,29 @@ def _f_hwp(text: str):
     try:
         value = float(text)
     except ValueError:
-        raise SystemExit(f"mntes-stream monitor: --f-hwp takes a frequency in Hz or 'auto', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"a frequency in Hz or 'auto', not {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"the HWP frequency must be > 0 Hz, got {text!r}")
+    return value
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be 0-65535 (0: any free port), got {value}")
+    return value
+
+
+def _period(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.05 <= value <= 60:
+        raise argparse.ArgumentTypeError(f"update period must be 0.05-60 s, got {text}")
     return value
 
 
@@ -77,10 +101,10 @@ def register(sub) -> None:
     p.add_argument("--setup", default="lab", help="setup name (default: lab)")
     p.add_argument("--bind", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; anything else exposes the page beyond this machine)")
-    p.add_argument("--port", type=int, default=8050, help="HTTP port (default 8050; 0 picks a free one)")
+    p.add_argument("--port", type=_port, default=8050, help="HTTP port (default 8050; 0 picks a free one)")
     p.add_argument("--text", action="store_true", help="print a live terminal table instead of serving the page")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
-    p.add_argument("--update-s", type=float, default=0.5, help="update period of the page / table (s, default 0.5)")
+    p.add_argument("--update-s", type=_period, default=0.5, help="update period of the page / table (s, default 0.5)")
     p.add_argument("--f-hwp", type=_f_hwp, default=0.77, metavar="HZ|auto",
                    help="HWP frequency whose 1f/2f/4f are marked (default 0.77 Hz, LFT); 'auto' estimates it")
     p.add_argument("--history-s", type=float, default=30.0, help="power history kept and plotted (s, default 30)")
