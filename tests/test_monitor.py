@@ -285,3 +285,15 @@ def test_config_rejects_nonsense():
     with pytest.raises(ConfigError):
         MonitorConfig(flag_frac=1.5)
     assert STATE_NAMES[0] == "transition"
+
+
+def test_cli_arguments():
+    from mntes_stream.cli import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args(["monitor", "--f-hwp", "auto", "--port", "0"])
+    assert args.f_hwp is None and args.port == 0 and args.bind == "127.0.0.1" and args.update_s == 0.5
+    assert parser.parse_args(["monitor"]).f_hwp == 0.77
+    for bad in (["--f-hwp", "-1"], ["--f-hwp", "x"], ["--port", "70000"], ["--update-s", "0"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["monitor", *bad])

@@ -9,36 +9,26 @@ import sys
 import time
 
 
+def _in_range(cast, lo: float, hi: float, what: str):
+    """An argparse ``type`` accepting ``cast(text)`` within [lo, hi]."""
+
+    def parse(text: str):
+        try:
+            value = cast(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what}: not a number: {text!r}") from None
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"{what} must be in [{lo:g}, {hi:g}], got {text}")
+        return value
+
+    return parse
+
+
+_positive_hz = _in_range(float, 1e-3, 1e3, "f_HWP (Hz)")
+
+
 def _f_hwp(text: str):
-    if text == "auto":
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"a frequency in Hz or 'auto', not {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"the HWP frequency must be > 0 Hz, got {text!r}")
-    return value
-
-
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be 0-65535 (0: any free port), got {value}")
-    return value
-
-
-def _period(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.05 <= value <= 60:
-        raise argparse.ArgumentTypeError(f"update period must be 0.05-60 s, got {text}")
-    return value
+    return None if text == "auto" else _positive_hz(text)
 
 
 def _settings(args):
@@ -101,10 +91,10 @@ def register(sub) -> None:
     p.add_argument("--setup", default="lab", help="setup name (default: lab)")
     p.add_argument("--bind", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; anything else exposes the page beyond this machine)")
-    p.add_argument("--port", type=_port, default=8050, help="HTTP port (default 8050; 0 picks a free one)")
+    p.add_argument("--port", type=_in_range(int, 0, 65535, "port (0: any free port)"), default=8050, help="HTTP port (default 8050; 0 picks a free one)")
     p.add_argument("--text", action="store_true", help="print a live terminal table instead of serving the page")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
-    p.add_argument("--update-s", type=_period, default=0.5, help="update period of the page / table (s, default 0.5)")
+    p.add_argument("--update-s", type=_in_range(float, 0.05, 60, "update period (s)"), default=0.5, help="update period of the page / table (s, default 0.5)")
     p.add_argument("--f-hwp", type=_f_hwp, default=0.77, metavar="HZ|auto",
                    help="HWP frequency whose 1f/2f/4f are marked (default 0.77 Hz, LFT); 'auto' estimates it")
     p.add_argument("--history-s", type=float, default=30.0, help="power history kept and plotted (s, default 30)")
