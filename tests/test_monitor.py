@@ -297,3 +297,13 @@ def test_cli_arguments():
     for bad in (["--f-hwp", "-1"], ["--f-hwp", "x"], ["--port", "70000"], ["--update-s", "0"]):
         with pytest.raises(SystemExit):
             parser.parse_args(["monitor", *bad])
+
+
+def test_failed_housekeeping_reading_stays_valid_json():
+    agg = Aggregator()
+    hk = HousekeepingChunk("lab", "b_field", 0, np.array([T0, T0 + 10**8]), np.array([1e-6, np.nan]), "T")
+    agg.add_hk(hk, T0)
+    tick = agg.tick(T0)
+    assert tick["health"]["hk"]["b_field"]["value"] is None  # the newest reading failed
+    assert tick["hk"]["b_field"]["value"] == [1e-6, None]
+    json.dumps(tick, allow_nan=False)

@@ -443,7 +443,7 @@ class Aggregator:
         for sensor, h in self.hk.items():
             age = None if h.last_recv_ns is None else (now_ns - h.last_recv_ns) / 1e9
             hk[sensor] = {
-                "value": float(h.v[-1]) if h.v.size else None,
+                "value": float(h.v[-1]) if h.v.size and math.isfinite(h.v[-1]) else None,  # NaN: a failed reading
                 "unit": h.unit,
                 "age_s": age,
                 "stale": age is None or age > stale_s,

@@ -122,7 +122,10 @@ def make_app(subscriber, update_s: float = 0.5):
         try:
             while True:
                 t0 = time.monotonic()
-                hub.publish(await asyncio.to_thread(subscriber.tick))
+                try:
+                    hub.publish(await asyncio.to_thread(subscriber.tick))
+                except Exception:  # keep ticking: one bad tick must not freeze every page
+                    log.exception("monitor tick failed")
                 await asyncio.sleep(max(update_s - (time.monotonic() - t0), 0.01))
         except asyncio.CancelledError:
             pass
@@ -181,7 +184,12 @@ def make_app(subscriber, update_s: float = 0.5):
                 if hub.tick is None:
                     continue
                 seen = hub.seq
-                await ws.send_str(await asyncio.to_thread(_update, hub, client))
+                try:
+                    msg = await asyncio.to_thread(_update, hub, client)
+                except Exception as exc:  # tell the page, keep serving it
+                    log.exception("monitor update failed")
+                    msg = _dumps({"type": "error", "message": f"server: {type(exc).__name__}: {exc}"})
+                await ws.send_str(msg)
 
         def _update(hub, client) -> str:
             tick = hub.tick

@@ -114,7 +114,11 @@ class MonitorSubscriber:
                     batch.append(self._queue.get_nowait())
             with self.lock:
                 for key, payload, t_recv_ns in batch:
-                    self.handle(key, payload, t_recv_ns)
+                    try:
+                        self.handle(key, payload, t_recv_ns)
+                    except Exception:  # a bug must not stop the monitor: counted, shown, logged
+                        self.aggregator.add_bad("internal_error")
+                        log.exception("monitor failed on a message from %s", key)
                 self.aggregator.dropped = self._dropped
 
     def handle(self, key: str, payload: bytes, t_recv_ns: int) -> None:
