@@ -289,7 +289,6 @@ class Aggregator:
         self._interval_latency_ms: list[float] = []
         self._last_tick_ns: int | None = None
         self._renders: collections.deque = collections.deque(maxlen=self.config.latency_reports)
-        self.last_tick: dict | None = None
 
     # ------------------------------------------------------------------ input
 
@@ -424,7 +423,6 @@ class Aggregator:
         self._interval_samples = 0
         self._interval_latency_ms = []
         self._last_tick_ns = now_ns
-        self.last_tick = out
         return out
 
     def _hk_view(self) -> dict:

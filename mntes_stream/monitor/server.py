@@ -73,12 +73,13 @@ class _Hub:
 
     def __init__(self):
         self.seq = 0
-        self.tick: dict | None = None
+        # (tick, layout): the shared update and the grid rows its state codes refer to, replaced as one.
+        self.snapshot: tuple[dict, list] | None = None
         self._event = asyncio.Event()
 
-    def publish(self, tick: dict) -> None:
+    def publish(self, tick: dict, layout: list) -> None:
         self.seq += 1
-        self.tick = tick
+        self.snapshot = (tick, layout)
         self._event.set()
         self._event = asyncio.Event()
 
@@ -110,12 +111,16 @@ def make_app(subscriber, update_s: float = 0.5):
     Parameters
     ----------
     subscriber : MonitorSubscriber
-        Anything with ``tick()``, ``view(selection, f_hwp)``, ``lock`` and ``aggregator``.
+        Anything with ``view(selection, f_hwp)``, ``lock`` and ``aggregator``.
     update_s : float
         Update period of the page (the ticker's period).
     """
     plotly_js = plotly_js_path()
     clients: set = set()
+
+    def _tick():
+        with subscriber.lock:
+            return subscriber.aggregator.tick(time.time_ns()), subscriber.aggregator.layout()
 
     async def ticker(app):
         hub = app[_HUB]
@@ -123,7 +128,7 @@ def make_app(subscriber, update_s: float = 0.5):
             while True:
                 t0 = time.monotonic()
                 try:
-                    hub.publish(await asyncio.to_thread(subscriber.tick))
+                    hub.publish(*await asyncio.to_thread(_tick))
                 except Exception:  # keep ticking: one bad tick must not freeze every page
                     log.exception("monitor tick failed")
                 await asyncio.sleep(max(update_s - (time.monotonic() - t0), 0.01))
@@ -152,9 +157,8 @@ def make_app(subscriber, update_s: float = 0.5):
 
     async def api_state(request):
         hub = request.app[_HUB]
-        with subscriber.lock:
-            layout = subscriber.aggregator.layout()
-        return web.Response(text=_dumps({"seq": hub.seq, "layout": layout, **(hub.tick or {})}), content_type="application/json")
+        tick, layout = hub.snapshot or ({}, [])
+        return web.Response(text=_dumps({"seq": hub.seq, "layout": layout, **tick}), content_type="application/json")
 
     async def api_view(request):
         try:
@@ -181,7 +185,7 @@ def make_app(subscriber, update_s: float = 0.5):
                 for task in (wake, tick):
                     task.cancel()
                 client["wake"].clear()
-                if hub.tick is None:
+                if hub.snapshot is None:
                     continue
                 seen = hub.seq
                 try:
@@ -192,16 +196,16 @@ def make_app(subscriber, update_s: float = 0.5):
                 await ws.send_str(msg)
 
         def _update(hub, client) -> str:
-            tick = hub.tick
+            tick, layout = hub.snapshot
             with subscriber.lock:
                 agg = subscriber.aggregator
                 if client["selection"] is None and agg.modules:
                     client["selection"] = agg.default_selection()
                 view = agg.view(client["selection"] or [], client["f_hwp"])
                 msg = {"type": "update", "seq": hub.seq, "t_server_ns": time.time_ns(), **tick, **view}
-                if client["layout_version"] != agg.layout_version:
-                    msg["layout"] = agg.layout()
-                    client["layout_version"] = agg.layout_version
+            if client["layout_version"] != tick["layout_version"]:  # the grid rows of this tick's codes
+                msg["layout"] = layout
+                client["layout_version"] = tick["layout_version"]
             return _dumps(msg)
 
         sender = asyncio.create_task(send_loop())

@@ -144,11 +144,6 @@ class MonitorSubscriber:
 
     # ------------------------------------------------------------------ convenience
 
-    def tick(self, now_ns: int | None = None) -> dict:
-        """:meth:`Aggregator.tick` under the lock."""
-        with self.lock:
-            return self.aggregator.tick(time.time_ns() if now_ns is None else now_ns)
-
     def view(self, selection, f_hwp_hz="config") -> dict:
         """:meth:`Aggregator.view` under the lock."""
         with self.lock:
