@@ -166,7 +166,7 @@ def table_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, c
 
 
 def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
-               p_w, dp_w, bias_v, b_nodes, t_ref, k_tref_n, bias_rtol, out_p, out_f):
+               p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
     """Grid-table conversion in numpy (same contract as :func:`grid_numba`)."""
     nb = b_nodes.size
     db = b_nodes[1] - b_nodes[0]
@@ -198,7 +198,7 @@ def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cp
                 acc += w[q] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
                                + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
             ph = phys[rk][:, :, None]
-            p = acc + k_tref_n[rk][:, None] - ph[:, 6] * np.exp(ph[:, 7] * ltb[r0:r1])
+            p = acc + ph[:, 6] * (t_ref[rk][:, None] ** ph[:, 7] - np.exp(ph[:, 7] * ltb[r0:r1]))
         out_p[r0:r1] = np.where((f & _UNUSABLE) != 0, np.nan, p)
         out_f[r0:r1] = f
 
@@ -271,13 +271,19 @@ if numba is not None:
         return (dom[0], dom[1], dom[2], dom[3], dom[4], dom[5])
 
     @_jit
-    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
-        """Structured-table conversion, one pass over (n_det, n_samp) samples.
+    def _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
+                grid, coef, p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
+        """Both table kinds in one pass over (n_det, n_samp) samples (``grid`` picks the kind).
 
         Writes ``out_p`` (float64, NaN where unusable) and ``out_f`` (uint16).
+        One function rather than a shared helper: array arguments to a helper
+        leave per-sample reference-count calls in the loop (measured ~3x slower).
         """
         n_rows, n_samp = out_p.shape
         dm = _dom(dom)
+        nb = b_nodes.size
+        n_bias = bias_v.shape[1]
+        inv_db = 1.0 / (b_nodes[1] - b_nodes[0]) if grid else 0.0
         for row in range(n_rows):
             d = rows[row]
             if d < 0:
@@ -289,9 +295,10 @@ if numba is not None:
             k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
             x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]
-            a = _binomials(n)
-            inv_tb0, k_tb0_n = 1.0 / phys[d, 14], k * phys[d, 14] ** n
             zr, zi = phys[d, 4], phys[d, 5]
+            a = _binomials(n)
+            t0 = t_ref[d] if grid else phys[d, 14]  # bath of the table / nominal bath
+            inv_t0, k_t0_n = 1.0 / t0, k * t0**n
             for s in range(n_samp):
                 bs = b[row, s]
                 vs = v[row, s]
@@ -301,18 +308,17 @@ if numba is not None:
                 if ok:
                     j = -1
                     if x_lo <= r <= x_hi:
-                        # O(1) lookup cell, then a few steps right. Written out here:
-                        # array arguments to a helper leave per-sample refcount calls.
+                        # O(1) lookup cell; a cell holds at most one knot (lookup_cells),
+                        # so one branch-free step; the loop only guards rounding at cell edges.
                         cell = min(int((r - x_lo) * cells_per_ohm), n_cells - 1)
                         j = k0 + cidx[c0 + cell]
-                        # A cell holds at most one knot (lookup_cells): one branch-free
-                        # step; the loop only guards rounding at cell edges.
                         j += (j + 1 < last) & (r >= x[j + 1])
                         while j + 1 < last and r >= x[j + 1]:
                             j += 1
+                    kb = _bath(tb[row, s], ltb[row, s], inv_t0, k_t0_n, k, n, a)
                     if j < 0:
                         f |= _OOT
-                    else:
+                    elif not grid:
                         u = r - x[j]
                         w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
                         inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
@@ -323,80 +329,46 @@ if numba is not None:
                         else:
                             t = 1.0 / inv_ts + delta
                             kt = k * math.exp(n * math.log(t)) if t > 0.0 else 0.0
-                        kb = _bath(tb[row, s], ltb[row, s], inv_tb0, k_tb0_n, k, n, a)
                         p = kt - kb - vs * vs * r / ((r + zr) ** 2 + zi * zi)
+                    else:
+                        state = -1
+                        for q in range(n_bias):
+                            if abs(vs - bias_v[d, q]) <= bias_rtol * bias_v[d, q]:
+                                state = q
+                                break
+                        if state < 0:
+                            f |= _OOT | _ENV
+                        else:
+                            if bs < b_nodes[0] or bs > b_nodes[nb - 1]:
+                                f |= _ENV
+                            tpos = (bs - b_nodes[0]) * inv_db
+                            j0 = min(max(int(math.floor(tpos)) - 1, 0), nb - 4)
+                            w4 = _lagrange(tpos - j0)
+                            h = x[j + 1] - x[j]
+                            h00, h10, h01, h11 = _hermite((r - x[j]) / h, h)
+                            acc = 0.0
+                            for q in range(4):
+                                jb = j0 + q
+                                acc += w4[q] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
+                                                + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
+                            p = acc + k_t0_n - kb
                 if f & _UNUSABLE:
                     p = math.nan
                 out_p[row, s] = p
                 out_f[row, s] = f
 
-    @_jit
+    _NO_COEF = np.zeros((0, 8))
+    _NO_GRID = np.zeros((0, 1, 1))
+
+    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
+        """Structured-table conversion (same contract as :func:`table_numpy`)."""
+        _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, False, coef,
+                _NO_GRID, _NO_GRID, np.ones((1, 1)), np.zeros(4), np.ones(1), 0.0, out_p, out_f)
+
     def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
-                   p_w, dp_w, bias_v, b_nodes, t_ref, k_tref_n, bias_rtol, out_p, out_f):
-        """Grid-table conversion: bias state, cubic in B, Hermite in R, exact bath term."""
-        n_rows, n_samp = out_p.shape
-        dm = _dom(dom)
-        nb = b_nodes.size
-        n_bias = bias_v.shape[1]
-        b0 = b_nodes[0]
-        inv_db = 1.0 / (b_nodes[1] - b_nodes[0])
-        for row in range(n_rows):
-            d = rows[row]
-            if d < 0:
-                for s in range(n_samp):
-                    out_f[row, s] = hk[row, s] | _UNKNOWN
-                    out_p[row, s] = math.nan
-                continue
-            det = _det(phys, d)
-            k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
-            x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
-            k, n = phys[d, 6], phys[d, 7]
-            a = _binomials(n)
-            inv_tref = 1.0 / t_ref[d]
-            for s in range(n_samp):
-                bs = b[row, s]
-                vs = v[row, s]
-                f, r, iabs, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
-                                        int(hk[row, s]), det, dm)
-                p = math.nan
-                if ok:
-                    j = -1
-                    if x_lo <= r <= x_hi:
-                        cell = min(int((r - x_lo) * cells_per_ohm), n_cells - 1)
-                        j = k0 + cidx[c0 + cell]
-                        # A cell holds at most one knot (lookup_cells): one branch-free
-                        # step; the loop only guards rounding at cell edges.
-                        j += (j + 1 < last) & (r >= x[j + 1])
-                        while j + 1 < last and r >= x[j + 1]:
-                            j += 1
-                    state = -1
-                    for q in range(n_bias):
-                        if abs(vs - bias_v[d, q]) <= bias_rtol * bias_v[d, q]:
-                            state = q
-                            break
-                    if j < 0:
-                        f |= _OOT
-                    elif state < 0:
-                        f |= _OOT | _ENV
-                    else:
-                        if bs < b_nodes[0] or bs > b_nodes[nb - 1]:
-                            f |= _ENV
-                        tpos = (bs - b0) * inv_db
-                        j0 = int(math.floor(tpos)) - 1
-                        j0 = min(max(j0, 0), nb - 4)
-                        uu = tpos - j0
-                        w = _lagrange(uu)
-                        h = x[j + 1] - x[j]
-                        h00, h10, h01, h11 = _hermite((r - x[j]) / h, h)
-                        acc = 0.0
-                        for q in range(4):
-                            jb = j0 + q
-                            acc += w[q] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
-                                           + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
-                        p = acc + k_tref_n[d] - _bath(tb[row, s], ltb[row, s], inv_tref, k_tref_n[d], k, n, a)
-                if f & _UNUSABLE:
-                    p = math.nan
-                out_p[row, s] = p
-                out_f[row, s] = f
+                   p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
+        """Grid-table conversion (same contract as :func:`grid_numpy`)."""
+        _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, True, _NO_COEF,
+                p_w, dp_w, bias_v, b_nodes, t_ref, float(bias_rtol), out_p, out_f)
 else:  # pragma: no cover - exercised only without numba
     table_numba = grid_numba = None

@@ -363,7 +363,33 @@ class ExactConverter(_Base):
         _finish(p, f)
 
 
-class LinearConverter(_Base):
+class _Baseline(_Base):
+    """Linear baselines: built at each detector's nominal operating point, env ignored."""
+
+    def __init__(self, params: Sequence[DetectorParams]) -> None:
+        super().__init__(params, params_identity(params, {"kind": self.kind}))
+        self._nominal = []
+        for q in self.params:
+            op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
+            if int(op.state) != model.STATE_TRANSITION:
+                raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
+            self._nominal.append(op)
+
+    def _convert(self, inp, p, f):
+        n_det, n_samp = p.shape
+        for r0, r1 in _row_chunks(n_det, n_samp):
+            rows = np.maximum(inp.rows[r0:r1], 0)
+            i, r, flags, valid = _currents(inp, self._phys, r0, r1)
+            f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
+            with np.errstate(invalid="ignore", over="ignore"):
+                p[r0:r1] = self._power(rows, i, inp.v_thev_v[r0:r1])
+        _finish(p, f)
+
+    def _power(self, rows: np.ndarray, i_meas_a: np.ndarray, v_thev_v: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+class LinearConverter(_Baseline):
     """``P = P0 + Re((i - i0) / S)`` at each detector's nominal operating point.
 
     S is the complex responsivity of paper eq. 3 and i0 the TES current at the
@@ -375,30 +401,18 @@ class LinearConverter(_Base):
     kind = "linear"
 
     def __init__(self, params: Sequence[DetectorParams]) -> None:
-        super().__init__(params, params_identity(params, {"kind": "linear"}))
-        i0, s = [], []
-        for q in self.params:
-            op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
-            if int(op.state) != model.STATE_TRANSITION:
-                raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
-            i0.append(complex(op.i_a))
-            s.append(complex(model.small_signal(q, op.r_ohm).responsivity_a_per_w))
-        self.i0_a = np.array(i0)
-        self.responsivity_a_per_w = np.array(s)
+        super().__init__(params)
+        self.i0_a = np.array([complex(op.i_a) for op in self._nominal])
+        self.responsivity_a_per_w = np.array(
+            [complex(model.small_signal(q, op.r_ohm).responsivity_a_per_w) for q, op in zip(self.params, self._nominal)]
+        )
         self.p0_w = np.array([q.p_opt_w for q in self.params])
 
-    def _convert(self, inp, p, f):
-        n_det, n_samp = p.shape
-        for r0, r1 in _row_chunks(n_det, n_samp):
-            rows = np.maximum(inp.rows[r0:r1], 0)
-            i, r, flags, valid = _currents(inp, self._phys, r0, r1)
-            f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
-            with np.errstate(invalid="ignore", over="ignore"):
-                p[r0:r1] = self.p0_w[rows, None] + np.real((i - self.i0_a[rows, None]) / self.responsivity_a_per_w[rows, None])
-        _finish(p, f)
+    def _power(self, rows, i_meas_a, v_thev_v):
+        return self.p0_w[rows, None] + np.real((i_meas_a - self.i0_a[rows, None]) / self.responsivity_a_per_w[rows, None])
 
 
-class ElectricalConverter(_Base):
+class ElectricalConverter(_Baseline):
     """SPT-3G style: optical power = nominal total power - electrical power.
 
     ``P_el = Re(V_tes conj(I))`` with RMS ``I = i / sqrt(2)`` and
@@ -411,28 +425,15 @@ class ElectricalConverter(_Base):
     kind = "electrical"
 
     def __init__(self, params: Sequence[DetectorParams]) -> None:
-        super().__init__(params, params_identity(params, {"kind": "electrical"}))
-        total = []
-        for q in self.params:
-            op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
-            if int(op.state) != model.STATE_TRANSITION:
-                raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
-            total.append(q.p_opt_w + float(model.joule_power_w(q, op.r_ohm, q.v_thev_v)))
-        self.p_total_w = np.array(total)
+        super().__init__(params)
+        self.p_total_w = np.array([
+            q.p_opt_w + float(model.joule_power_w(q, op.r_ohm, q.v_thev_v)) for q, op in zip(self.params, self._nominal)
+        ])
 
-    def _convert(self, inp, p, f):
-        n_det, n_samp = p.shape
-        for r0, r1 in _row_chunks(n_det, n_samp):
-            rows = np.maximum(inp.rows[r0:r1], 0)
-            i, r, flags, valid = _currents(inp, self._phys, r0, r1)
-            f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
-            z = (self._phys[rows, 4] + 1j * self._phys[rows, 5])[:, None]
-            i_rms = i / SQRT2
-            v = inp.v_thev_v[r0:r1]
-            with np.errstate(invalid="ignore", over="ignore"):
-                p_el = np.real((v - z * i_rms) * np.conj(i_rms))
-                p[r0:r1] = self.p_total_w[rows, None] - p_el
-        _finish(p, f)
+    def _power(self, rows, i_meas_a, v_thev_v):
+        z = (self._phys[rows, 4] + 1j * self._phys[rows, 5])[:, None]
+        i_rms = i_meas_a / SQRT2
+        return self.p_total_w[rows, None] - np.real((v_thev_v - z * i_rms) * np.conj(i_rms))
 
 
 class TableConverter(_Base):
@@ -464,10 +465,6 @@ class TableConverter(_Base):
         self.bias_rtol = float(bias_rtol)
         d = bank.domain
         self._domain = np.array([*d.t_bath_k, *d.b_field_t, *d.v_frac], dtype=float)
-        a = bank.arrays
-        if bank.kind == "grid":
-            k, n = self._phys[:, 6], self._phys[:, 7]
-            self._k_tref_n = k * a["t_ref_k"] ** n
 
     def _convert(self, inp, p, f):
         from mntes_stream.core import _kernels
@@ -481,7 +478,7 @@ class TableConverter(_Base):
             kernel(*common, a["coeffs"], p, f)
         else:
             kernel = _kernels.grid_numba if self.backend == "numba" else _kernels.grid_numpy
-            kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], a["t_ref_k"], self._k_tref_n,
+            kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], a["t_ref_k"],
                    self.bias_rtol, p, f)
 
 
