@@ -153,7 +153,7 @@ function grid(msg) {
   names.forEach((name, k) => { colorscale.push([k / n, STATE_COLORS[name]], [(k + 1) / n, STATE_COLORS[name]]); });
   const trace = {
     type: "heatmap", z, text, hoverinfo: "text", zmin: -0.5, zmax: n - 0.5, colorscale, showscale: false,
-    y: g.labels, xgap: 1, ygap: 1,
+    y: g.labels, xgap: g.cols > 64 ? 0 : 1, ygap: g.rows > 16 ? 0 : 1,  // gaps would hide a dense grid
   };
   const layout = {
     uirevision: "grid", margin: { l: 60, r: 10, t: 10, b: 45 },
