@@ -22,9 +22,10 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 
-__all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "lookup_numpy", "lagrange4"]
+__all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy"]
 
 SQRT2 = math.sqrt(2.0)
+# Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
 RAIL = float(2**31 - 1)
 # |delta / T_s| up to which the 8-term binomial series is used: its remainder
 # |C(n, 9)| 0.05^9 / 0.95 < 2e-14 relative for 1 < n < 6; beyond, the exact power.
@@ -98,8 +99,21 @@ def lagrange4(u):
     )
 
 
-def _front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
-    """Numpy version of the per-sample front end. Returns R, |i|, flags, ok."""
+def front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
+    """The per-sample front end every kind shares (numpy; ``_front`` is the compiled twin).
+
+    Parameters: counts, environment and housekeeping flags of shape
+    (n_rows, n_samp); ``rows`` (n_rows,) index into ``phys``, -1 unknown.
+
+    Returns
+    -------
+    r_ohm : ``Re(sqrt(2) V / i - z)`` with the pickup removed
+    i_abs_a : ``|i|`` with the pickup removed
+    flags : uint16, housekeeping | INVALID_INPUT | SATURATED | SUPERCONDUCTING
+        | ENV_OUT_OF_RANGE (outside ``dom``) | UNKNOWN_CHANNEL
+    valid : bool, input usable (R meaningful)
+    ok : bool, valid and on the stable branch
+    """
     known = (rows >= 0)[:, None]
     ph = phys[np.maximum(rows, 0)][:, :, None]
     xi = np.asarray(ci_, dtype=np.float64)
@@ -125,7 +139,7 @@ def _front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
     f[sc] |= _SC
     f[env_out] |= _ENV
     f[~known[:, 0]] |= _UNKNOWN
-    return r, np.sqrt(m2), f, valid & ~sat & ~sc
+    return r, np.sqrt(m2), f, valid, valid & ~sat & ~sc
 
 
 def _chunks(n_rows, n_samp, elements=1 << 19):
@@ -138,7 +152,7 @@ def table_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, c
     """Structured-table conversion in numpy (same contract as :func:`table_numba`)."""
     for r0, r1 in _chunks(*out_p.shape):
         rw = rows[r0:r1]
-        r, iabs, f, ok = _front_numpy(ci_[r0:r1], cq_[r0:r1], tb[r0:r1], b[r0:r1], v[r0:r1], hk[r0:r1],
+        r, iabs, f, _, ok = front_numpy(ci_[r0:r1], cq_[r0:r1], tb[r0:r1], b[r0:r1], v[r0:r1], hk[r0:r1],
                                       rw, phys, dom)
         j, inside = lookup_numpy(np.maximum(rw, 0), r, ko, x, co, cidx, cpo)
         f[ok & ~inside] |= _OOT
@@ -173,7 +187,7 @@ def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cp
     for r0, r1 in _chunks(*out_p.shape):
         rw = rows[r0:r1]
         rk = np.maximum(rw, 0)
-        r, _, f, ok = _front_numpy(ci_[r0:r1], cq_[r0:r1], tb[r0:r1], b[r0:r1], v[r0:r1], hk[r0:r1],
+        r, _, f, _, ok = front_numpy(ci_[r0:r1], cq_[r0:r1], tb[r0:r1], b[r0:r1], v[r0:r1], hk[r0:r1],
                                    rw, phys, dom)
         j, inside = lookup_numpy(rk, r, ko, x, co, cidx, cpo)
         vv = v[r0:r1]

@@ -35,17 +35,17 @@ silent number. Flag rules, per sample:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from mntes_stream.core import _kernels
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
 from mntes_stream.core.params import DetectorParams
-from mntes_stream.core.tables import TableBank, TableDomain, build_bank, params_identity
+from mntes_stream.core.tables import TableBank, build_bank, params_identity
 from mntes_stream.errors import ConfigError, SchemaError
 
 __all__ = [
@@ -63,8 +63,7 @@ __all__ = [
 ]
 
 CONVERTER_KINDS = ("table", "grid", "exact", "linear", "electrical")
-# Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
-COUNTS_RAIL = float(2**31 - 1)
+COUNTS_RAIL = _kernels.RAIL
 SQRT2 = model.SQRT2
 
 
@@ -120,11 +119,7 @@ class Converter(Protocol):
 
 def numba_available() -> bool:
     """True when the compiled kernels can be used."""
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return _kernels.numba is not None
 
 
 # --- input checking (shared by every kind) ------------------------------------------------
@@ -235,46 +230,19 @@ def _phys(params: Sequence[DetectorParams]) -> np.ndarray:
     return out
 
 
-def _currents(inp: _Inputs, phys: np.ndarray, r0: int, r1: int):
-    """Rows ``r0:r1``: measured current, resistance and the flags every kind shares.
-
-    Returns
-    -------
-    i_meas_a : complex ndarray, gain times counts (pickup included)
-    r_ohm : ndarray, ``Re(sqrt(2) V / i - z)`` with the pickup removed
-    flags : uint16 ndarray, housekeeping | INVALID_INPUT | UNKNOWN_CHANNEL
-    valid : bool ndarray, where ``r_ohm`` is meaningful
-    """
-    rows = inp.rows[r0:r1]
-    known = (rows >= 0)[:, None]
-    ph = phys[np.maximum(rows, 0)][:, :, None] if phys.size else np.full((r1 - r0, 15, 1), np.nan)
-    xi = np.asarray(inp.counts_i[r0:r1], dtype=np.float64)
-    xq = np.asarray(inp.counts_q[r0:r1], dtype=np.float64)
-    tb, b, v = inp.t_bath_k[r0:r1], inp.b_field_t[r0:r1], inp.v_thev_v[r0:r1]
-    hk = inp.hk_flags[r0:r1]
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        i_meas = (ph[:, 0] + 1j * ph[:, 1]) * (xi + 1j * xq)
-        i = i_meas - (ph[:, 2] + 1j * ph[:, 3]) * b
-        counts_ok = (np.abs(xi) < COUNTS_RAIL) & (np.abs(xq) < COUNTS_RAIL)
-        env_ok = (tb > 0) & (np.abs(b) < np.inf) & (v > 0) & (v < np.inf)
-        m2 = i.real * i.real + i.imag * i.imag
-        valid = counts_ok & env_ok & (m2 > 0) & known
-        invalid = known & (~counts_ok | (counts_ok & env_ok & ~(m2 > 0)) | (~env_ok & ((hk & fl.HK_MISSING) == 0)))
-        r = SQRT2 * v * i.real / m2 - ph[:, 4]
-    flags = np.array(hk, dtype=np.uint16)
-    flags[invalid] |= fl.INVALID_INPUT
-    flags[~known[:, 0]] |= fl.UNKNOWN_CHANNEL
-    return i_meas, r, flags, valid
+_NO_DOMAIN = np.array([-np.inf, np.inf] * 3)
 
 
-def _state_flags(phys: np.ndarray, rows: np.ndarray, r: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """SATURATED / SUPERCONDUCTING from R against each detector's stable branch."""
-    lo = phys[np.maximum(rows, 0), 12][:, None]
-    hi = phys[np.maximum(rows, 0), 13][:, None]
-    with np.errstate(invalid="ignore"):
-        sat = valid & (r >= hi)
-        sc = valid & ~(r >= hi) & ~(r > lo)
-    return np.where(sat, fl.SATURATED, 0).astype(np.uint16) | np.where(sc, fl.SUPERCONDUCTING, 0).astype(np.uint16)
+def _front(inp: _Inputs, phys: np.ndarray, r0: int, r1: int):
+    """Rows ``r0:r1`` through the shared front end (no environment domain)."""
+    return _kernels.front_numpy(inp.counts_i[r0:r1], inp.counts_q[r0:r1], inp.t_bath_k[r0:r1], inp.b_field_t[r0:r1],
+                       inp.v_thev_v[r0:r1], inp.hk_flags[r0:r1], inp.rows[r0:r1], phys, _NO_DOMAIN)
+
+
+def _measured_current(phys: np.ndarray, rows: np.ndarray, inp: _Inputs, r0: int, r1: int) -> np.ndarray:
+    """Gain times counts, pickup included (what the readout reports), shape (r1 - r0, n_samp)."""
+    gain = (phys[rows, 0] + 1j * phys[rows, 1])[:, None]
+    return gain * (np.asarray(inp.counts_i[r0:r1], float) + 1j * np.asarray(inp.counts_q[r0:r1], float))
 
 
 def _finish(p: np.ndarray, flags: np.ndarray) -> None:
@@ -346,7 +314,9 @@ class ExactConverter(_Base):
     def _convert(self, inp, p, f):
         n_det, n_samp = p.shape
         for r0, r1 in _row_chunks(n_det, n_samp):
-            i, _, flags, valid = _currents(inp, self._phys, r0, r1)
+            _, _, flags, valid, _ = _front(inp, self._phys, r0, r1)
+            flags &= ~np.uint16(fl.SATURATED | fl.SUPERCONDUCTING)  # the oracle decides the state
+            i = _measured_current(self._phys, np.maximum(inp.rows[r0:r1], 0), inp, r0, r1)
             for k in range(r0, r1):
                 row = inp.rows[k]
                 if row < 0:
@@ -355,7 +325,6 @@ class ExactConverter(_Base):
                     inv = model.invert_current(self.params[row], i[k - r0], inp.t_bath_k[k],
                                                inp.b_field_t[k], inp.v_thev_v[k])
                 p[k] = inv.p_opt_w
-                # States exactly as the oracle decides them.
                 ok = valid[k - r0]
                 flags[k - r0][ok & (inv.state == model.STATE_NORMAL)] |= fl.SATURATED
                 flags[k - r0][ok & (inv.state == model.STATE_SUPERCONDUCTING)] |= fl.SUPERCONDUCTING
@@ -379,10 +348,9 @@ class _Baseline(_Base):
         n_det, n_samp = p.shape
         for r0, r1 in _row_chunks(n_det, n_samp):
             rows = np.maximum(inp.rows[r0:r1], 0)
-            i, r, flags, valid = _currents(inp, self._phys, r0, r1)
-            f[r0:r1] = flags | _state_flags(self._phys, inp.rows[r0:r1], r, valid)
+            _, _, f[r0:r1], _, _ = _front(inp, self._phys, r0, r1)
             with np.errstate(invalid="ignore", over="ignore"):
-                p[r0:r1] = self._power(rows, i, inp.v_thev_v[r0:r1])
+                p[r0:r1] = self._power(rows, _measured_current(self._phys, rows, inp, r0, r1), inp.v_thev_v[r0:r1])
         _finish(p, f)
 
     def _power(self, rows: np.ndarray, i_meas_a: np.ndarray, v_thev_v: np.ndarray) -> np.ndarray:
@@ -467,8 +435,6 @@ class TableConverter(_Base):
         self._domain = np.array([*d.t_bath_k, *d.b_field_t, *d.v_frac], dtype=float)
 
     def _convert(self, inp, p, f):
-        from mntes_stream.core import _kernels
-
         a = self.bank.arrays
         common = (inp.counts_i, inp.counts_q, inp.t_bath_k, inp.log_t_bath, inp.b_field_t, inp.v_thev_v, inp.hk_flags,
                   inp.rows, self._phys, self._domain, a["knot_offset"], a["r_knot_ohm"], a["cell_offset"],
