@@ -97,6 +97,16 @@ def test_table_meets_1e19_w_over_the_spec_domain_and_its_edges(params, bank, bac
     assert err.max() <= TARGET_W, err.max()
 
 
+def test_a_domain_equal_to_the_spec_covers_its_own_edges(params):
+    tight = TableDomain(p_opt_w=SPEC_P_W, t_bath_k=SPEC_T_BATH_K, b_field_t=SPEC_B_T, v_frac=SPEC_V_FRAC)
+    bank = build_bank(params, domain=tight)
+    pts = spec_grid()
+    exact = convert_points(make_converter("exact", params), params, *pts, rounded=False)
+    table = convert_points(make_converter("table", None, bank=bank), params, *pts, rounded=False)
+    assert np.all(table.flags == 0)
+    assert np.abs(table.p_opt_w - exact.p_opt_w).max() <= TARGET_W
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     p_w=st.floats(*SPEC_P_W),

@@ -129,9 +129,10 @@ def front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
         r = SQRT2 * v * ire / m2 - ph[:, 4]
         sat = valid & (r >= ph[:, 13])
         sc = valid & ~sat & ~(r > ph[:, 12])
-        vf = v / ph[:, 11]
+        # Bias bounds as products (fraction x nominal), as a caller computes a bias.
         env_out = known & env_ok & ~(
-            (tb >= dom[0]) & (tb <= dom[1]) & (b >= dom[2]) & (b <= dom[3]) & (vf >= dom[4]) & (vf <= dom[5])
+            (tb >= dom[0]) & (tb <= dom[1]) & (b >= dom[2]) & (b <= dom[3])
+            & (v >= dom[4] * ph[:, 11]) & (v <= dom[5] * ph[:, 11])
         )
     f = np.array(hk, dtype=np.uint16)
     f[invalid] |= _INVALID
@@ -234,15 +235,15 @@ if numba is not None:
     def _front(xi, xq, tb, b, v, hk, det, dom):
         """One sample: flags so far, R, |i| and whether R is on the stable branch.
 
-        ``det`` = (g_re, g_im, m_re, m_im, z_re, 1/v_nom, lo, hi) and ``dom``
-        the 6 domain bounds, both as tuples of scalars hoisted out of the
-        sample loop (array reads here were reloaded every sample: ~8x slower).
+        ``det`` = (g_re, g_im, m_re, m_im, z_re, v_lo, lo, hi, v_hi) with the
+        domain's bias bounds ``v_lo, v_hi`` in volts, and ``dom`` the 6 domain
+        bounds, both tuples of scalars hoisted out of the sample loop (array
+        reads here were reloaded every sample: ~8x slower).
         """
         f = hk
         env_ok = tb > 0.0 and abs(b) < math.inf and v > 0.0 and v < math.inf
         if env_ok:
-            vf = v * det[5]
-            if not (dom[0] <= tb <= dom[1] and dom[2] <= b <= dom[3] and dom[4] <= vf <= dom[5]):
+            if not (dom[0] <= tb <= dom[1] and dom[2] <= b <= dom[3] and det[5] <= v <= det[8]):
                 f |= _ENV
         if not (abs(xi) < RAIL and abs(xq) < RAIL):
             return f | _INVALID, 0.0, 0.0, False
@@ -263,9 +264,10 @@ if numba is not None:
         return f, r, math.sqrt(m2), True
 
     @_inline
-    def _det(phys, d):
-        return (phys[d, 0], phys[d, 1], phys[d, 2], phys[d, 3], phys[d, 4], 1.0 / phys[d, 11],
-                phys[d, 12], phys[d, 13])
+    def _det(phys, d, dom):
+        v_nom = phys[d, 11]
+        return (phys[d, 0], phys[d, 1], phys[d, 2], phys[d, 3], phys[d, 4], dom[4] * v_nom,
+                phys[d, 12], phys[d, 13], dom[5] * v_nom)
 
     _binomials = _inline(binomials)
     _series = _inline(binomial_series)
@@ -305,7 +307,7 @@ if numba is not None:
                     out_f[row, s] = hk[row, s] | _UNKNOWN
                     out_p[row, s] = math.nan
                 continue
-            det = _det(phys, d)
+            det = _det(phys, d, dom)
             k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
             x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]

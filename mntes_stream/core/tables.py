@@ -161,7 +161,7 @@ def branch_bounds_ohm(p: DetectorParams) -> tuple[float, float]:
 
 
 def resistance_range_ohm(p: DetectorParams, domain: TableDomain) -> tuple[float, float]:
-    """Smallest R interval holding every sample of ``domain`` (exact, no sampling).
+    """Smallest R interval holding every sample of ``domain`` (exact, no sampling; +-1e-9 R_n).
 
     On the stable branch ``P(R)`` increases with R and decreases with bias and
     bath temperature; over B it follows the T_c shift. So the needed range is
@@ -192,7 +192,9 @@ def resistance_range_ohm(p: DetectorParams, domain: TableDomain) -> tuple[float,
             r_b = br_hi
     if not r_b > r_a:
         raise ConfigError(f"{p.detector_id}: the table domain reaches no stable transition state")
-    return float(r_a), float(r_b)
+    # A hair of margin so rounding in R never flags a sample on the domain's edge.
+    pad = 1e-9 * p.r_normal_ohm
+    return float(max(r_a - pad, br_lo)), float(min(r_b + pad, br_hi))
 
 
 # --- the transition table ----------------------------------------------------------------
