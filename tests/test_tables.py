@@ -200,6 +200,10 @@ def test_corrupted_edited_and_foreign_files_are_refused(tmp_path, bank):
         load_bank(_edited_copy(good, tmp_path / "headless.npz", lambda m: m.pop("__header__")))
     with pytest.raises(ConfigError, match="not found"):
         load_bank(tmp_path / "missing.npz")
+    with open(tmp_path / "array.npz", "wb") as f:
+        np.save(f, np.zeros(3))  # a bare .npy under an .npz name
+    with pytest.raises(SchemaError, match="not a table file"):
+        load_bank(tmp_path / "array.npz")
 
 
 def test_inconsistent_arrays_are_refused(bank):

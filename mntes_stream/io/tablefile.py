@@ -15,6 +15,7 @@ or version is not this build's, or when the file is not a readable archive.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -49,13 +50,20 @@ def save_bank(bank: TableBank, path: str | Path) -> Path:
     return path
 
 
+@contextlib.contextmanager
 def _open(path: Path):
+    """The archive, read through our own file handle (np.load leaks its own on a bad file)."""
     if not path.exists():
         raise ConfigError(f"table file not found: {path}")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-        raise SchemaError(f"{path}: not a readable table file ({type(exc).__name__}: {exc})") from None
+    with open(path, "rb") as f:
+        try:
+            npz = np.load(f, allow_pickle=False)
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            raise SchemaError(f"{path}: not a readable table file ({type(exc).__name__}: {exc})") from None
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise SchemaError(f"{path}: not a table file (a single array, not an archive)")
+        with npz:
+            yield npz
 
 
 def _header(npz, path: Path) -> tuple[dict, str]:
