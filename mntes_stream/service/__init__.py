@@ -83,6 +83,10 @@ def child_main(name: str, target: str, cfg, stop, ready, results) -> None:
         def is_set(self) -> bool:
             return super().is_set() or (parent is not None and not parent.is_alive())
 
+    if os.environ.get("RUST_LOG"):
+        import zenoh
+
+        zenoh.try_init_log_from_env()  # zenoh's own log, e.g. RUST_LOG=zenoh=warn
     module, func = target.split(":")
     wall0, cpu0 = time.monotonic(), time.process_time()
     try:

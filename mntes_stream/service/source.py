@@ -340,7 +340,9 @@ class SourceService:
 
     ``params`` is a detector parameter file used as the truth (default: the
     generated Table-1-like detectors); ``speed`` a multiple of real time (0:
-    flat out); ``duration_s`` of data to publish (0: until stopped).
+    flat out); ``duration_s`` of data to publish (0: until stopped);
+    ``linger_s`` how long the session stays open after the last batch
+    (``put`` returns when a message is queued, not when it is delivered).
     """
 
     source: SourceConfig
@@ -348,6 +350,7 @@ class SourceService:
     params: str = ""
     speed: float = 1.0
     duration_s: float = 0.0
+    linger_s: float = 1.0
 
     @classmethod
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SourceService":
@@ -359,7 +362,7 @@ class SourceService:
         if unknown:
             raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [source], [zenoh])")
         table = dict(doc.get("source", {}))
-        run = {k: table.pop(k) for k in ("params", "speed", "duration_s") if k in table}
+        run = {k: table.pop(k) for k in ("params", "speed", "duration_s", "linger_s") if k in table}
         if run.get("params") and base_dir is not None and not Path(run["params"]).is_absolute():
             run["params"] = str(Path(base_dir) / run["params"])
         return cls(
@@ -394,5 +397,6 @@ def run_source(svc: SourceService, stop=None, ready=None, t_start_ns: int | None
         start = t_start_ns if t_start_ns is not None else time.time_ns()
         log.info("source: %d detectors, %d modules, %.2f Hz, publishing", cfg.n_detectors, cfg.boards * cfg.modules, cfg.sample_rate_hz)
         result = publish(session, src.batches(start, svc.duration_s), speed=svc.speed, stop=stopping, t_ref_ns=start)
+        stopping.wait(svc.linger_s)
     log.info("source stopped: %s", result)
     return result
