@@ -257,3 +257,18 @@ def test_bench_convert_smoke():
     assert r["detectors"] == 8 and r["samples"] == 200
     assert r["max_abs_error_w"] <= 1e-19 < r["linear_max_abs_error_w"]
     assert r["flags_identical_to_exact"]
+
+
+def test_readme_example_runs(tmp_path, monkeypatch, capsys):
+    """The Python example of the README's "Response tables and conversion" section, as printed there."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text[text.index("## Response tables and conversion"):]
+    code = section[section.index("```python") + len("```python"):]
+    code = code[: code.index("```")]
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README.md", "exec"), {})
+    printed = capsys.readouterr().out
+    assert "0.29999" in printed and "0.69999" in printed
+    assert (tmp_path / "tables.npz").exists()

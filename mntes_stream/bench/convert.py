@@ -140,7 +140,7 @@ def run(args) -> dict:
     # Build time on detectors not seen before (nothing cached).
     build_params = synthetic_params(args.build_detectors, seed=args.seed + 2, start=n_det)
     t0 = time.perf_counter()
-    build_bank(build_params, kind="table")
+    built = build_bank(build_params, kind="table")
     build_s = time.perf_counter() - t0
 
     bank = build_bank(params, kind="table")
@@ -173,6 +173,7 @@ def run(args) -> dict:
         "flagged_samples": {k: v for k, v in fl.counts_by_flag(out.flags).items() if v},
         "build_s_per_1000_detectors": build_s * 1000.0 / args.build_detectors,
         "build_detectors": args.build_detectors,
+        "build_bank_mib": built.nbytes / 2**20,
         "bank_bytes": bank.nbytes,
         "bank_mib_per_5000_detectors": bank.nbytes / n_det * 5000 / 2**20,
         "knots_per_detector_median": float(np.median(np.diff(bank.arrays["knot_offset"]))),
