@@ -9,7 +9,7 @@ import pytest
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock, make_converter
 from mntes_stream.io import keys
-from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, Provenance, StatusMessage, decode
+from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance, StatusMessage, decode
 from mntes_stream.io.paramfile import parse_params
 from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig

@@ -8,7 +8,6 @@ keeps converting; ``mntes-stream serve`` stops cleanly on SIGTERM.
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
 import subprocess
 import sys

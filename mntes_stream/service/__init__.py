@@ -17,7 +17,28 @@ import sys
 import threading
 import time
 
-__all__ = ["StopFlag", "stop_on_signals", "Services", "child_main", "run_recorder_doc"]
+__all__ = ["StopFlag", "stop_on_signals", "Services", "child_main", "run_recorder_doc", "dataclass_from_table"]
+
+
+def dataclass_from_table(cls, table: dict, source: str, tuples: bool = False):
+    """``cls(**table)`` for a config table, naming unknown keys (ConfigError) instead of a TypeError.
+
+    ``tuples`` turns TOML arrays into tuples (frozen dataclasses hold tuples).
+    """
+    from dataclasses import fields
+
+    from mntes_stream.errors import ConfigError
+
+    known = {f.name for f in fields(cls)}
+    unknown = set(table) - known
+    if unknown:
+        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
+    if tuples:
+        table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
+    try:
+        return cls(**table)
+    except TypeError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
 
 
 class StopFlag:

@@ -31,7 +31,7 @@ import collections
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -131,12 +131,9 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "<config>") -> "PipelineConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
-        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-        return cls(**d)
+        from mntes_stream.service import dataclass_from_table
+
+        return dataclass_from_table(cls, d, source, tuples=True)
 
 
 def _ns(seconds: float) -> int | float:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
@@ -95,11 +95,9 @@ class SourceConfig:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "[source]") -> "SourceConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
-        return cls(**d)
+        from mntes_stream.service import dataclass_from_table
+
+        return dataclass_from_table(cls, d, source)
 
     @property
     def chunk_samples(self) -> int:
