@@ -372,3 +372,13 @@ def test_identity_travels_and_tracks_parameters(params, bank):
     assert make_converter("exact", changed).identity != make_converter("exact", params).identity
     small = build_bank(params, kind="table", domain=TableDomain(p_opt_w=(0.1e-12, 0.9e-12)))
     assert small.identity != bank.identity
+
+
+def test_non_string_ids_are_unknown_channels(params, bank):
+    conv = make_converter("table", None, bank=bank)
+    p = params["b0m0c099"]
+    ci, cq = counts_at_r(p, np.array([0.7, 0.7]))
+    env = EnvironmentBlock(np.full(2, 0.1), np.zeros(2))
+    for ids in (["b0m0c099", ["b0m0c099"]], ["b0m0c099", 7]):
+        out = conv.convert(ids, np.stack([ci, ci]), np.stack([cq, cq]), env)
+        assert np.all(out.flags[0] == 0) and np.all(out.flags[1] == fl.UNKNOWN_CHANNEL)

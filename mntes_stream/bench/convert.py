@@ -207,7 +207,7 @@ def _figure(path: str, ref: np.ndarray, kinds: dict) -> None:
 
     plt = pyplot()
     rng = np.random.default_rng(0)
-    pick = rng.choice(ref.size, size=min(ref.size, 20000), replace=False)
+    pick = rng.choice(ref.size, size=min(ref.size, 8000), replace=False)
     x = ref.ravel()[pick] * 1e12
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for name, marker in (("table", "."), ("grid", ".")):
@@ -222,5 +222,5 @@ def _figure(path: str, ref: np.ndarray, kinds: dict) -> None:
     axes[1].set(xlabel="optical power (pW)", ylabel="P - P_exact (pW)", title="Baselines vs exact inverse")
     axes[1].legend(markerscale=6)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -188,7 +188,7 @@ def _hk_flags(f, shape: tuple[int, int]) -> np.ndarray:
     return f
 
 
-def _prepare(index: Mapping[str, int], v_nominal: np.ndarray, detector_ids, counts_i, counts_q,
+def _prepare(rows_of, v_nominal: np.ndarray, detector_ids, counts_i, counts_q,
              env: EnvironmentBlock) -> _Inputs:
     ci = _counts("counts_i", counts_i)
     cq = _counts("counts_q", counts_q)
@@ -201,7 +201,7 @@ def _prepare(index: Mapping[str, int], v_nominal: np.ndarray, detector_ids, coun
     if not isinstance(env, EnvironmentBlock):
         raise SchemaError(f"env must be an EnvironmentBlock, got {type(env).__name__}")
     shape = ci.shape
-    rows = np.array([index.get(d, -1) if isinstance(d, str) else -1 for d in detector_ids], dtype=np.int64)
+    rows = rows_of(detector_ids)
     tb = _env_array("t_bath_k", env.t_bath_k, shape)
     with np.errstate(invalid="ignore", divide="ignore"):
         ltb = np.log(tb)  # before broadcasting: n_samp logs for a shared bath, not n_det * n_samp
@@ -266,8 +266,25 @@ class _Base:
         self.detector_ids = tuple(p.detector_id for p in self.params)
         self.identity = identity
         self._index = {d: k for k, d in enumerate(self.detector_ids)}
+        self._rows_cache: dict[tuple, np.ndarray] = {}
         self._phys = _phys(self.params)
         self._v_nominal = self._phys[:, 11].copy() if self.params else np.empty(0)
+
+    def _rows(self, detector_ids) -> np.ndarray:
+        """Index of each id in this converter (-1 unknown); cached per id list (a stream repeats it)."""
+        key = tuple(detector_ids)
+        try:
+            rows = self._rows_cache.get(key)
+        except TypeError:  # unhashable entries: not ids, so unknown channels
+            key, rows = None, None
+        if rows is None:
+            rows = np.array([self._index.get(d, -1) if isinstance(d, str) else -1 for d in detector_ids], dtype=np.int64)
+            rows.flags.writeable = False
+            if key is not None:
+                if len(self._rows_cache) >= 256:
+                    self._rows_cache.clear()
+                self._rows_cache[key] = rows
+        return rows
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} kind={self.kind!r} detectors={len(self.detector_ids)} identity={self.identity[:12]}>"
@@ -292,7 +309,7 @@ class _Base:
         SchemaError
             Only for arrays of the wrong shape or dtype.
         """
-        inp = _prepare(self._index, self._v_nominal, detector_ids, counts_i, counts_q, env)
+        inp = _prepare(self._rows, self._v_nominal, detector_ids, counts_i, counts_q, env)
         n_det, n_samp = inp.counts_i.shape
         p = np.empty((n_det, n_samp))
         f = np.empty((n_det, n_samp), dtype=np.uint16)
