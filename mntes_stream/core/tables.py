@@ -20,13 +20,14 @@ Two table kinds, both behind :func:`mntes_stream.core.convert.make_converter`:
 ``"grid"`` (the paper's general route)
     Knots in R come from a forward (bracketed, Brent-type) solve of the power
     balance on a uniform grid of optical power at the nominal environment;
-    on those knots the response ``P(R)`` is tabulated for each discrete bias
-    state and each node of a uniform magnetic-field grid, as a cubic spline
-    in R. A sample selects its bias state, is interpolated cubically (4-point
+    on those knots (plus the measured points of a tabulated transition) the
+    response ``P(R)`` and its slope are tabulated for each discrete bias state
+    and each node of a uniform magnetic-field grid, cubic Hermite in R. A
+    sample selects its bias state, is interpolated cubically (4-point
     Lagrange) across B, and corrected exactly for bath temperature
     (``+ K (T_ref^n - T_bath^n)``). Nothing but the bath-temperature term is
-    assumed about the physics, so measured curves could be dropped in
-    (:func:`grid_bank_from_curves`).
+    assumed about the physics, so measured curves can be dropped in
+    (:func:`grid_bank_from_curves`, slopes from a cubic spline if not given).
 
 Both kinds cover the resistance range ``[r_lo, r_hi]`` that the
 :class:`TableDomain` can reach (computed exactly, not sampled), so every
