@@ -200,7 +200,7 @@ def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cp
         f[ok & ~inside] |= _OOT
         f[ok & inside & ~has_state] |= _OOT | _ENV
         bb = np.where(np.isfinite(b[r0:r1]), b[r0:r1], 0.0)
-        f[ok & ((bb < b_nodes[0]) | (bb > b_nodes[-1]))] |= _ENV
+        f[ok & inside & has_state & ((bb < b_nodes[0]) | (bb > b_nodes[-1]))] |= _ENV
         tpos = (bb - b_nodes[0]) / db
         j0 = np.clip(np.floor(tpos).astype(np.int64) - 1, 0, nb - 4)
         w = lagrange4(tpos - j0)
