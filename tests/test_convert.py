@@ -23,7 +23,7 @@ from mntes_stream.core.convert import (
 )
 from mntes_stream.core.params import table1_params
 from mntes_stream.core.tables import TableDomain, build_bank
-from mntes_stream.core.transition import TabulatedTransition
+from mntes_stream.core.transition import ArctanTransition, TabulatedTransition
 from mntes_stream.errors import ConfigError, SchemaError
 
 SPEC_P_W = (0.05e-12, 1.0e-12)
@@ -92,9 +92,27 @@ def test_table_meets_1e19_w_over_the_spec_domain_and_its_edges(params, bank, bac
     pts = spec_grid()
     exact = convert_points(make_converter("exact", params), params, *pts)
     table = convert_points(make_converter("table", params, bank=bank, backend=backend), params, *pts)
-    assert np.all(exact.flags == 0) and np.all(table.flags == 0)
-    err = np.abs(table.p_opt_w - exact.p_opt_w)
+    assert_only_expected_saturation(params, pts, exact.flags)
+    np.testing.assert_array_equal(table.flags, exact.flags)
+    err = np.abs(table.p_opt_w - exact.p_opt_w)[exact.flags == 0]
     assert err.max() <= TARGET_W, err.max()
+
+
+def assert_only_expected_saturation(params, pts, flags):
+    """The spec domain is flag-free except where a detector's loop gain has collapsed.
+
+    Every arctan (Table-1-like) detector stays unflagged over the whole domain;
+    the sharp-topped tabulated detector is pushed past its saturation point
+    (loop gain < model.LOOP_GAIN_NORMAL) at the high-power, warm, high-bias
+    corner, and exactly those samples carry SATURATED.
+    """
+    p_w, tb, b, vf = pts
+    for k, p in enumerate(params.values()):
+        r = model.solve_operating_point(p, p_w, tb, b, vf * p.v_thev_v).r_ohm
+        saturated = r >= model.saturation_resistance_ohm(p)
+        np.testing.assert_array_equal(flags[k], np.where(saturated, fl.SATURATED, 0))
+        if isinstance(p.transition, ArctanTransition):
+            assert not saturated.any()
 
 
 def test_a_domain_equal_to_the_spec_covers_its_own_edges(params):
@@ -103,8 +121,9 @@ def test_a_domain_equal_to_the_spec_covers_its_own_edges(params):
     pts = spec_grid()
     exact = convert_points(make_converter("exact", params), params, *pts, rounded=False)
     table = convert_points(make_converter("table", None, bank=bank), params, *pts, rounded=False)
-    assert np.all(table.flags == 0)
-    assert np.abs(table.p_opt_w - exact.p_opt_w).max() <= TARGET_W
+    assert_only_expected_saturation(params, pts, table.flags)
+    ok = table.flags == 0
+    assert np.abs(table.p_opt_w - exact.p_opt_w)[ok].max() <= TARGET_W
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

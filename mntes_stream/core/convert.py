@@ -23,8 +23,11 @@ silent number. Flag rules, per sample:
   (``|x| >= 2**31 - 1``: ADC saturation or sentinel), zero current after the
   pickup is removed, non-finite field, bath temperature or bias not > 0
   (not added where the housekeeping already says ``HK_MISSING``);
-- ``SATURATED`` / ``SUPERCONDUCTING``: ``R = Re(sqrt(2) V / i - z)`` at or
-  above / at or below the stable branch of the exact inverse;
+- ``SATURATED``: ``R = Re(sqrt(2) V / i - z)`` at or above the point where the
+  loop gain at the nominal state falls below ``model.LOOP_GAIN_NORMAL`` (0.001):
+  the TES has left the transition in practice (the arctan placeholder never
+  reaches R_n exactly, so the top of the model alone would never flag it);
+- ``SUPERCONDUCTING``: R at or below the stable branch (``R <= |z|``);
 - ``OUT_OF_TABLE``: inside the branch but outside the table's R range (or, for
   ``"grid"``, a bias matching no tabulated bias state);
 - ``ENV_OUT_OF_RANGE``: table kinds, environment outside the bank's domain
@@ -216,10 +219,16 @@ def _prepare(rows_of, v_nominal: np.ndarray, detector_ids, counts_i, counts_q,
 
 
 def _phys(params: Sequence[DetectorParams]) -> np.ndarray:
-    """Per-detector scalars for the kernels, shape (n_det, 15) (see ``_kernels``)."""
+    """Per-detector scalars for the kernels, shape (n_det, 15) (see ``_kernels``).
+
+    Columns 12 and 13 are the usable R interval: the stable branch, capped
+    where the loop gain falls below ``model.LOOP_GAIN_NORMAL``
+    (:func:`core.model.saturation_resistance_ohm`).
+    """
     out = np.empty((len(params), 15))
     for k, p in enumerate(params):
-        lo, hi = model._branch_bounds(p)
+        lo, hi = model.branch_bounds_ohm(p)
+        hi = min(float(hi), model.saturation_resistance_ohm(p))
         out[k] = (
             p.gain_a_per_count.real, p.gain_a_per_count.imag,
             p.pickup_a_per_t.real, p.pickup_a_per_t.imag,
@@ -343,7 +352,8 @@ class ExactConverter(_Base):
                                                inp.b_field_t[k], inp.v_thev_v[k])
                 p[k] = inv.p_opt_w
                 ok = valid[k - r0]
-                flags[k - r0][ok & (inv.state == model.STATE_NORMAL)] |= fl.SATURATED
+                normal = (inv.state == model.STATE_NORMAL) | (inv.r_ohm >= self._phys[row, 13])
+                flags[k - r0][ok & normal] |= fl.SATURATED
                 flags[k - r0][ok & (inv.state == model.STATE_SUPERCONDUCTING)] |= fl.SUPERCONDUCTING
             f[r0:r1] = flags
         _finish(p, f)

@@ -41,6 +41,9 @@ __all__ = [
     "readout_current_a",
     "invert_current",
     "power_of_resistance_w",
+    "branch_bounds_ohm",
+    "LOOP_GAIN_NORMAL",
+    "saturation_resistance_ohm",
     "small_signal",
     "tune_bias_v",
 ]
@@ -156,7 +159,13 @@ def power_of_resistance_w(p, r_ohm, t_bath_k, b_field_t=0.0, v_thev_v=None):
     return p.k_w_per_k_n * (np.maximum(t, 0.0) ** p.n - t_bath**p.n) - joule_power_w(p, r, v)
 
 
-def _branch_bounds(p):
+def branch_bounds_ohm(p):
+    """Open interval ``(lo, hi)`` of R holding the stable transition branch.
+
+    ``lo`` is just above ``max(|z|, R_min)`` (below it the loop gain is
+    negative and the TES latches); ``hi`` just below the top of the
+    transition model's domain. Same shape as the parameters.
+    """
     r_min, r_max = p.transition.r_domain_ohm()
     r_n = p.transition.r_normal_ohm
     lo = np.maximum(np.abs(p.z_thev_ohm), r_min) + 1e-9 * r_n
@@ -180,7 +189,7 @@ def solve_operating_point(p, p_opt_w, t_bath_k=None, b_field_t=0.0, v_thev_v=Non
     """
     t_bath = p.t_bath_k if t_bath_k is None else t_bath_k
     v = p.v_thev_v if v_thev_v is None else v_thev_v
-    lo, hi = _branch_bounds(p)
+    lo, hi = branch_bounds_ohm(p)
     arrays = np.broadcast_arrays(
         np.asarray(p_opt_w, dtype=float),
         np.asarray(t_bath, dtype=float),
@@ -198,7 +207,9 @@ def solve_operating_point(p, p_opt_w, t_bath_k=None, b_field_t=0.0, v_thev_v=Non
         return p_opt - power_of_resistance_w(p, r, t_bath, b, v)
 
     f_lo = resid(lo)
-    f_hi = resid(hi)
+    # T_s diverges at the top of the transition: -inf there is the right sign.
+    with np.errstate(over="ignore"):
+        f_hi = resid(hi)
     sc = ~(f_lo > 0)
     normal = ~sc & ~(f_hi < 0)
     ok = ~sc & ~normal
@@ -209,7 +220,8 @@ def solve_operating_point(p, p_opt_w, t_bath_k=None, b_field_t=0.0, v_thev_v=Non
     def g(r):
         return np.where(ok, resid(r), mid - r)
 
-    r = bracketed_root(g, lo, hi)
+    with np.errstate(over="ignore"):
+        r = bracketed_root(g, lo, hi)
     r_min, r_max = p.transition.r_domain_ohm()
     r = np.where(sc, np.broadcast_to(r_min, r.shape), r)
     r = np.where(normal, np.broadcast_to(r_max, r.shape), r)
@@ -252,7 +264,7 @@ def invert_current(p, i_meas_a, t_bath_k=None, b_field_t=0.0, v_thev_v=None) -> 
     with np.errstate(divide="ignore", invalid="ignore"):
         zr = SQRT2 * v / i - p.z_thev_ohm
     r = zr.real
-    lo, hi = _branch_bounds(p)
+    lo, hi = branch_bounds_ohm(p)
     in_branch = (r > lo) & (r < hi)
     state = np.where(
         r >= hi, STATE_NORMAL, np.where(in_branch, STATE_TRANSITION, STATE_SUPERCONDUCTING)
@@ -332,6 +344,43 @@ def small_signal(p, r_ohm, t_bath_k=None, b_field_t=0.0, v_thev_v=None) -> Small
     )
 
 
+# Below this electrothermal loop gain the TES has left the transition in
+# practice: its response is < 0.1 % of an ideal voltage-biased TES and readout
+# noise is amplified > 1000x, so converters flag it SATURATED.
+LOOP_GAIN_NORMAL = 0.001
+
+
+def saturation_resistance_ohm(p, loop_gain_min: float = LOOP_GAIN_NORMAL, n_grid: int = 400) -> float:
+    """Lowest R above the nominal operating point where the loop gain < ``loop_gain_min``.
+
+    Evaluated at the nominal bias, bath temperature and B = 0. The arctan
+    placeholder only approaches R_n asymptotically, so "normal" needs a
+    physical criterion; this one applies to every transition model. Returns
+    the top of the stable branch if the loop gain never falls that low.
+
+    Parameters
+    ----------
+    p : DetectorParams (one detector)
+    """
+    lo, hi = (float(x) for x in branch_bounds_ohm(p))
+    op = solve_operating_point(p, p.p_opt_w)
+    r0 = float(op.r_ohm) if int(op.state) == STATE_TRANSITION else 0.5 * (lo + hi)
+    # Geometric spacing towards the top, where the loop gain collapses.
+    r = hi - (hi - r0) * np.geomspace(1.0, 1e-9, n_grid)
+    with np.errstate(all="ignore"):
+        loop_gain = small_signal(p, r).loop_gain
+    below = np.flatnonzero(~(loop_gain >= loop_gain_min))
+    if below.size == 0:
+        return hi
+    k = int(below[0])
+    if k == 0:
+        return r0
+    # Linear interpolation between the last grid point above and the first below.
+    l0, l1 = float(loop_gain[k - 1]), float(loop_gain[k])
+    frac = (l0 - loop_gain_min) / (l0 - l1) if np.isfinite(l1) and l0 != l1 else 1.0
+    return float(r[k - 1] + frac * (r[k] - r[k - 1]))
+
+
 def tune_bias_v(p, r_frac, p_opt_w=None, t_bath_k=None, b_field_t=0.0):
     """Bias voltage that puts the TES at ``R = r_frac R_n`` (vectorised).
 
@@ -348,7 +397,7 @@ def tune_bias_v(p, r_frac, p_opt_w=None, t_bath_k=None, b_field_t=0.0):
     p_opt = np.asarray(p.p_opt_w if p_opt_w is None else p_opt_w, dtype=float)
     t_bath = np.asarray(p.t_bath_k if t_bath_k is None else t_bath_k, dtype=float)
     r = np.asarray(r_frac, dtype=float) * p.transition.r_normal_ohm
-    lo, hi = _branch_bounds(p)
+    lo, hi = branch_bounds_ohm(p)
     if np.any(r <= lo) or np.any(r >= hi):
         raise ConfigError(f"tune_bias_v: r_frac {r_frac} is outside the stable transition branch")
     m2 = np.abs(r + p.z_thev_ohm) ** 2

@@ -450,7 +450,7 @@ def solve_quasi_static(pa: ParamArray, p_opt_w, t_bath_k, b_field_t, v_thev_v, r
     -------
     model.OperatingPoint with arrays of shape (n_det, n_samp).
     """
-    lo, hi = model._branch_bounds(pa)
+    lo, hi = model.branch_bounds_ohm(pa)
     p_opt, t_bath, b, v, lo, hi = (
         np.ascontiguousarray(x, dtype=float)
         for x in np.broadcast_arrays(p_opt_w, t_bath_k, b_field_t, v_thev_v, lo, hi)

@@ -155,12 +155,6 @@ def _b_candidates(p: DetectorParams, b_range: tuple[float, float]) -> np.ndarray
     return np.array(cands)
 
 
-def branch_bounds_ohm(p: DetectorParams) -> tuple[float, float]:
-    """The open stable branch ``(lo, hi)`` of the exact inverse (same definition)."""
-    lo, hi = model._branch_bounds(p)
-    return float(lo), float(hi)
-
-
 def resistance_range_ohm(p: DetectorParams, domain: TableDomain) -> tuple[float, float]:
     """Smallest R interval holding every sample of ``domain`` (exact, no sampling; +-1e-9 R_n).
 
@@ -168,7 +162,7 @@ def resistance_range_ohm(p: DetectorParams, domain: TableDomain) -> tuple[float,
     bath temperature; over B it follows the T_c shift. So the needed range is
     ``[R_a, R_b]`` with ``max_env P(R_a) = p_lo`` and ``min_env P(R_b) = p_hi``.
     """
-    br_lo, br_hi = branch_bounds_ohm(p)
+    br_lo, br_hi = (float(x) for x in model.branch_bounds_ohm(p))
     v_lo, v_hi = (f * p.v_thev_v for f in domain.v_frac)
     b = _b_candidates(p, domain.b_field_t)
 
