@@ -240,7 +240,7 @@ def write_report(directory: str | Path, campaign: Campaign, fits: dict[str, Dete
     if params_path:
         lines += [f"Parameter file: `{params_path}` (only the `ok` detectors; every fit's record is in its `[metadata.calibration]`)."]
     lines += ["", "## Outcome", "",
-              f"| ok | flagged | failed |", "|---|---|---|",
+              "| ok | flagged | failed |", "|---|---|---|",
               f"| {len(status['ok'])} | {len(status['flagged'])} | {len(status['failed'])} |", ""]
     bad = [(d, fits[d]) for d in status["flagged"] + status["failed"]]
     if bad:

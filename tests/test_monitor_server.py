@@ -233,9 +233,9 @@ def test_monitor_shows_a_replayed_recording(tmp_path):
     np.testing.assert_array_equal(t, np.concatenate([c.times_ns() for c in recorded]))
     np.testing.assert_allclose(p, np.concatenate([c.p_opt_w for c in recorded], axis=1), rtol=1e-6, equal_nan=True)
     assert tick["health"]["monitor"]["lost_chunks"] == 0 and tick["health"]["monitor"]["bad_messages"] == {}
-    # The simulated states: latched -> superconducting; the saturated channel's R (0.997 R_n) lies beyond
-    # the table, which the converter flags OUT_OF_TABLE (not SATURATED): "flagged"; the rest in transition.
-    want = {"ok": "transition", "latched": "superconducting", "saturated": "flagged"}
+    # The simulated states: latched -> superconducting; the saturated channel (R ~ 0.997 R_n, loop gain
+    # collapsed) is flagged SATURATED by the converter: "saturated"; the rest in transition.
+    want = {"ok": "transition", "latched": "superconducting", "saturated": "saturated"}
     assert states == {d: want[k] for d, k in kinds.items()}
     # Recorded housekeeping and converter status are shown too.
     assert tick["hk"]["t_bath"]["value"] and tick["hk"]["b_field"]["value"]

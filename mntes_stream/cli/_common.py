@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from mntes_stream.core.params import DetectorParams, table1_params
 from mntes_stream.errors import ConfigError
 
@@ -25,3 +27,26 @@ def params_from_args(args) -> DetectorParams:
         return detectors[args.detector]
     except KeyError:
         raise ConfigError(f"detector {args.detector!r} not in {args.params}") from None
+
+
+def add_zenoh_args(p) -> None:
+    """``--connect/--listen/--mode/--zenoh-config``, overriding a config's [zenoh] table."""
+    g = p.add_argument_group("zenoh (override the config file's [zenoh] table)")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447 (repeatable)")
+    g.add_argument("--mode", choices=("peer", "client", "router"))
+    g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
+
+
+def zenoh_overrides(args, z):
+    """``z`` (a ``transport.ZenohSettings``) with the command line's zenoh options applied."""
+    kw = {}
+    if args.connect:
+        kw["connect"] = tuple(args.connect)
+    if args.listen:
+        kw["listen"] = tuple(args.listen)
+    if args.mode:
+        kw["mode"] = args.mode
+    if args.zenoh_config:
+        kw["config_file"] = args.zenoh_config
+    return dataclasses.replace(z, **kw)

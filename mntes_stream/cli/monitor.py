@@ -32,12 +32,12 @@ def _f_hwp(text: str):
 
 
 def _settings(args):
-    from mntes_stream.cli.record import _zenoh_overrides
+    from mntes_stream.cli._common import zenoh_overrides
     from mntes_stream.io.transport import ZenohSettings
     from mntes_stream.monitor.aggregate import MonitorConfig
 
     config = MonitorConfig(history_s=args.history_s, f_hwp_hz=args.f_hwp, silent_s=args.silent_s, hk_stale_s=args.hk_stale_s)
-    return config, _zenoh_overrides(args, ZenohSettings())
+    return config, zenoh_overrides(args, ZenohSettings())
 
 
 def _run_text(sub, args) -> int:
@@ -79,7 +79,7 @@ def run_monitor(args) -> int:
 
 
 def register(sub) -> None:
-    from mntes_stream.cli.record import _add_zenoh_args
+    from mntes_stream.cli._common import add_zenoh_args
 
     p = sub.add_parser(
         "monitor",
@@ -101,5 +101,5 @@ def register(sub) -> None:
     p.add_argument("--silent-s", type=float, default=3.0, help="a module without data this long is silent (s)")
     p.add_argument("--hk-stale-s", type=float, default=2.0, help="housekeeping not received this long is stale (s)")
     p.add_argument("-v", "--verbose", action="store_true")
-    _add_zenoh_args(p)
+    add_zenoh_args(p)
     p.set_defaults(func=run_monitor)

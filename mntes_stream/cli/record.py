@@ -7,26 +7,7 @@ import json
 import logging
 import warnings
 
-
-def _add_zenoh_args(p) -> None:
-    g = p.add_argument_group("zenoh (override the config file's [zenoh] table)")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447 (repeatable)")
-    g.add_argument("--mode", choices=("peer", "client", "router"))
-    g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
-
-
-def _zenoh_overrides(args, z):
-    kw = {}
-    if args.connect:
-        kw["connect"] = tuple(args.connect)
-    if args.listen:
-        kw["listen"] = tuple(args.listen)
-    if args.mode:
-        kw["mode"] = args.mode
-    if args.zenoh_config:
-        kw["config_file"] = args.zenoh_config
-    return dataclasses.replace(z, **kw)
+from mntes_stream.cli._common import add_zenoh_args, zenoh_overrides
 
 
 def _logging(verbose: bool) -> None:
@@ -56,7 +37,7 @@ def run_record(args) -> int:
     kw = {field: getattr(args, flag) for flag, field in _RECORD_FLAGS.items() if getattr(args, flag) is not None}
     if args.fsync:
         kw["fsync"] = True
-    cfg = dataclasses.replace(cfg, zenoh=_zenoh_overrides(args, cfg.zenoh), **kw)
+    cfg = dataclasses.replace(cfg, zenoh=zenoh_overrides(args, cfg.zenoh), **kw)
     _logging(not args.quiet)
     stats = run_recorder(cfg)
     out = dataclasses.asdict(stats)
@@ -95,7 +76,7 @@ def run_replay_cmd(args) -> int:
             kw["start_ns"] = parse_time(args.start, t0)
         if args.end is not None:
             kw["end_ns"] = parse_time(args.end, t0)
-    cfg = dataclasses.replace(cfg, zenoh=_zenoh_overrides(args, cfg.zenoh), **kw)
+    cfg = dataclasses.replace(cfg, zenoh=zenoh_overrides(args, cfg.zenoh), **kw)
     _logging(not args.quiet)
     stats = run_replay(cfg, progress=not args.quiet and not args.json)
     if args.json:
@@ -178,7 +159,7 @@ def register(sub) -> None:
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
     p.add_argument("-q", "--quiet", action="store_true")
-    _add_zenoh_args(p)
+    add_zenoh_args(p)
     p.set_defaults(func=run_record)
 
     p = sub.add_parser("replay", help="re-publish a recorded session onto zenoh",
@@ -197,7 +178,7 @@ def register(sub) -> None:
     p.add_argument("--wait-s", type=float, help="wait this long for subscribers before starting")
     p.add_argument("--json", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true")
-    _add_zenoh_args(p)
+    add_zenoh_args(p)
     p.set_defaults(func=run_replay_cmd)
 
     p = sub.add_parser("convert", help="re-convert a recorded session offline (same code path as the live service)",

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mntes_stream.core.checks import finite_float
 from mntes_stream.core.transition import (
     ArctanTransition,
     TabulatedTransition,
@@ -93,14 +94,7 @@ class DetectorParams:
             "k_w_per_k_n", "n", "v_thev_v", "t_bath_k", "p_opt_w", "c_heat_j_per_k",
             "t_c_shift_k_per_t", "t_c_shift_k_per_t2", "current_shift_k_per_a",
         ):
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ConfigError(f"{self.detector_id}: {name} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise ConfigError(f"{self.detector_id}: {name} must be finite, got {value}")
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, finite_float(self.detector_id, name, getattr(self, name)))
         for name in ("z_thev_ohm", "pickup_a_per_t", "gain_a_per_count"):
             value = getattr(self, name)
             if not (math.isfinite(value.real) and math.isfinite(value.imag)):

@@ -227,11 +227,14 @@ def write_mcap(source: SimulatorSource, path: str | Path, duration_s: float, t_s
 
 
 def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, duration_s: float = 0.0, stop=None,
-                 truth: TruthRecorder | None = None, wait_s: float = 10.0, progress=None) -> dict:
+                 truth: TruthRecorder | None = None, wait_s: float = 10.0, progress=None,
+                 linger_s: float = 1.0) -> dict:
     """Publish over zenoh, paced to ``speed`` x real time (0: as fast as possible).
 
-    Waits up to ``wait_s`` for a subscriber to the counts first. Returns the
-    counters of :func:`mntes_stream.service.source.publish`.
+    Waits up to ``wait_s`` for a subscriber to the counts first, and keeps the
+    session open ``linger_s`` after the last batch: ``put`` returns once a
+    message is queued, so closing at once would drop what is still in flight.
+    Returns the counters of :func:`mntes_stream.service.source.publish`.
     """
     from mntes_stream.io.transport import open_session
     from mntes_stream.service.source import publish
@@ -250,6 +253,10 @@ def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, durat
         start = time.time_ns()
         result = publish(session, source.batches(start, duration_s, truth=truth), speed=speed, stop=stop,
                          progress=progress, t_ref_ns=start)
+        if stop is not None:
+            stop.wait(linger_s)
+        else:
+            time.sleep(linger_s)
     log.info("simulator stopped: %s", result)
     return result
 

@@ -232,7 +232,7 @@ def initial_guess(det: DetectorCalibration, sweeps: tuple[Sweep, ...]) -> np.nda
         i_a = hi.counts * g_abs * np.exp(1j * phi)
         coef = np.polyfit(b, i_a, 2)
         pickup = complex(coef[1])
-        tb_, bb, dt = [], [], []
+        bb, dt = [], []
         for s, fr in zip(fields, frac_f):
             if not 0.1 < fr < 0.9:
                 continue

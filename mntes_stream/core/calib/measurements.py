@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError
 
 __all__ = [
@@ -191,14 +192,7 @@ class DetectorCalibration:
         if not isinstance(self.detector_id, str) or not self.detector_id:
             raise ConfigError("detector_id must be a non-empty string")
         for name in ("bias_freq_hz", "gain_abs_a_per_count", "p_opt_w", "t_bath_k", "b_field_t"):
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ConfigError(f"{self.detector_id}: {name} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise ConfigError(f"{self.detector_id}: {name} must be finite")
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, finite_float(self.detector_id, name, getattr(self, name)))
         for name in ("bias_freq_hz", "gain_abs_a_per_count", "t_bath_k"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{self.detector_id}: {name} must be > 0")
