@@ -1,11 +1,18 @@
 """mntes-stream: real-time MNTES conversion of DfMux TES readout to optical power.
 
-Layout (data flows top to bottom):
+Layout (data flows top to bottom; see README "What it is"):
 
-- ``mntes_stream.core``: pure computation on numpy arrays, no I/O. Physics
-  (``params``, ``transition``, ``model``), and later tables, conversion, alignment.
-- ``mntes_stream.io``: the edges: parameter files, msgpack codec, MCAP, zenoh.
-- ``mntes_stream.cli``: the ``mntes-stream`` command.
+- ``mntes_stream.core``: pure computation on numpy arrays, no I/O: physics
+  (``params``, ``transition``, ``model``), tables and conversion (``tables``,
+  ``convert``), housekeeping alignment (``align``), flags, the simulator and
+  validation study (``sim``, ``validation``), ground calibration (``calib``).
+- ``mntes_stream.io``: the edges: parameter and table files, msgpack codec and
+  messages, MCAP, zenoh transport.
+- ``mntes_stream.service``: the converter pipeline and the services around it
+  (converter, simulator/source, recorder, replay, offline conversion).
+- ``mntes_stream.feeds``, ``mntes_stream.monitor``: mapmaking feeds and the
+  quick-look page.
+- ``mntes_stream.cli``, ``mntes_stream.bench``: the ``mntes-stream`` command.
 """
 
 __version__ = "0.1.0"
