@@ -14,12 +14,16 @@ import re
 from mntes_stream.errors import ConfigError
 
 PREFIX = "mntes"
-_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+# The setup name every service uses unless told otherwise.
+DEFAULT_SETUP = "lab"
+# Setup, sensor and service names: one path segment, no wildcards.
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.\-]+$")
+KINDS = ("counts", "hk", "power", "status", "provenance")
 
 
 def _check(name: str, what: str) -> str:
     name = str(name)
-    if not _NAME.match(name):
+    if not NAME_PATTERN.match(name):
         raise ConfigError(f"{what} {name!r} must match [A-Za-z0-9_.-]+ (no '/', '*', '$')")
     return name
 
@@ -30,6 +34,16 @@ def counts_key(setup: str, board: int | str = "*", module: int | str = "*") -> s
 
 def hk_key(setup: str, sensor: str = "**") -> str:
     return f"{PREFIX}/{_check(setup, 'setup')}/hk/{sensor}"
+
+
+def bias_sensor(board: int, module: int) -> str:
+    """Sensor name of one module's bias readings: ``bias/<board>/<module>``."""
+    return f"bias/{int(board)}/{int(module)}"
+
+
+def hk_sensor(sensor: str, board: int | None = None, module: int | None = None) -> str:
+    """The key's sensor part for a housekeeping message (bias readings are per module)."""
+    return bias_sensor(board, module) if sensor == "bias" else sensor
 
 
 def power_key(setup: str, board: int | str = "*", module: int | str = "*") -> str:
@@ -47,6 +61,14 @@ def provenance_key(setup: str) -> str:
 def all_key(setup: str) -> str:
     """Everything of one setup (what the recorder subscribes to)."""
     return f"{PREFIX}/{_check(setup, 'setup')}/**"
+
+
+def kind_of(key: str) -> str:
+    """``counts``, ``hk``, ``power``, ``status``, ``provenance`` or ``""`` for a foreign key."""
+    parts = str(key).split("/")
+    if len(parts) >= 3 and parts[0] == PREFIX and parts[2] in KINDS:
+        return parts[2]
+    return ""
 
 
 def parse_key(key: str) -> dict:
