@@ -36,6 +36,9 @@ def test_array_round_trip(a):
         {"dtype": "object", "shape": [1], "data": b"\0"},
         {"dtype": "<f8", "shape": [1], "data": "text"},
         {"dtype": "<f8", "shape": [1]},
+        {"dtype": "<f8", "shape": [2**32, 2**32], "data": b""},  # int64 product wraps to 0
+        {"dtype": "<i4", "shape": [2**31, 2**31, 4], "data": b""},
+        {"dtype": "<f8", "shape": [True], "data": b"\0" * 8},
         [1, 2, 3],
     ],
 )

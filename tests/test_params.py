@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
-from mntes_stream.core.params import DetectorParams, params_from_dict, table1_params
+from mntes_stream.core.params import params_from_dict, table1_params
 from mntes_stream.core.transition import ArctanTransition, TabulatedTransition
 from mntes_stream.errors import ConfigError
 from mntes_stream.io.paramfile import dump_params, load_params, parse_params
@@ -93,6 +95,6 @@ def test_tabulated_transition_validation():
 
 def test_params_are_frozen():
     p = table1_params()
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         p.n = 3.0  # type: ignore[misc]
-    assert isinstance(p, DetectorParams)
+    assert p.replace(n=3.0).n == 3.0 and p.n == 3.6

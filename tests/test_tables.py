@@ -268,7 +268,11 @@ def test_readme_example_runs(tmp_path, monkeypatch, capsys):
     code = section[section.index("```python") + len("```python"):]
     code = code[: code.index("```")]
     monkeypatch.chdir(tmp_path)
-    exec(compile(code, "README.md", "exec"), {})
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)
     printed = capsys.readouterr().out
     assert "0.29999" in printed and "0.69999" in printed
     assert (tmp_path / "tables.npz").exists()
+    # What the README's comments say the example prints.
+    assert np.all(ns["out"].flags == 0) and ns["out"].identity == ns["bank"].identity
+    np.testing.assert_allclose((ns["lin"].p_opt_w - ns["out"].p_opt_w)[0] * 1e12, [-0.023, -0.044], atol=0.0015)

@@ -68,7 +68,7 @@ def _info(args) -> int:
 def _fit(args) -> int:
     from tqdm import tqdm
 
-    from mntes_stream.core.calib.campaign import fit_campaign
+    from mntes_stream.calib_run import fit_campaign
     from mntes_stream.core.calib.fit import FitOptions, tabulated_transition
     from mntes_stream.errors import ConfigError, MntesError
     from mntes_stream.io.calib_file import read_campaign, read_truth, write_covariance, write_fit_params

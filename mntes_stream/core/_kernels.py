@@ -21,10 +21,11 @@ import math
 import numpy as np
 
 from mntes_stream.core import flags as fl
+from mntes_stream.core import model
 
 __all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy"]
 
-SQRT2 = math.sqrt(2.0)
+SQRT2 = model.SQRT2
 # Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
 RAIL = float(2**31 - 1)
 # |delta / T_s| up to which the 8-term binomial series is used: its remainder

@@ -65,6 +65,7 @@ __all__ = [
 HEADER_SCHEMA = "mntes.calib_detector"
 CAMPAIGN_METADATA = "mntes.calibration"
 COVARIANCE_SCHEMA = "mntes-calib-covariance"
+COVARIANCE_VERSION = 1
 _HEADER_TOPIC = "calib/detector"
 _KIND_OF_SCHEMA = {f"mntes.calib_{k}": k for k in KINDS}
 
@@ -274,7 +275,7 @@ def write_covariance(path: str | Path, fits: Mapping[str, DetectorFit]) -> None:
     """Covariance sidecar (JSON): parameter order, values and full covariance per fitted detector."""
     doc = {
         "schema": COVARIANCE_SCHEMA,
-        "version": 1,
+        "version": COVARIANCE_VERSION,
         "param_names": list(PARAM_NAMES),
         "units": [PARAM_UNITS[n] for n in PARAM_NAMES],
         "detectors": {
@@ -290,7 +291,7 @@ def read_covariance(path: str | Path) -> tuple[tuple[str, ...], dict[str, tuple[
         doc = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read covariance file: {exc}") from None
-    if doc.get("schema") != COVARIANCE_SCHEMA or doc.get("version") != 1:
+    if doc.get("schema") != COVARIANCE_SCHEMA or doc.get("version") != COVARIANCE_VERSION:
         raise ConfigError(f"{path}: not a {COVARIANCE_SCHEMA} v1 file")
     try:
         dets = {d: (np.array(e["theta"], float), np.array(e["cov"], float)) for d, e in doc["detectors"].items()}

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from importlib import resources
 from typing import Any
 
@@ -93,19 +94,25 @@ def decode_array(d: Any, field: str = "array", dtype: str | None = None, ndim: i
         raise SchemaError(f"{field}: dtype {dt!r} not allowed (little-endian numeric only)")
     if dtype is not None and dt != dtype:
         raise SchemaError(f"{field}: dtype must be {dtype!r}, got {dt!r}")
-    if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape):
+    if not isinstance(shape, list) or not all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape
+    ):
         raise SchemaError(f"{field}: shape must be a list of non-negative integers")
     if ndim is not None and len(shape) != ndim:
         raise SchemaError(f"{field}: expected {ndim} dimensions, got shape {shape}")
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise SchemaError(f"{field}: data must be bytes")
-    n = int(np.prod(shape, dtype=np.int64)) if shape else 1
-    if n > _MAX_ELEMENTS:
-        raise SchemaError(f"{field}: {n} elements exceeds the limit")
+    # Python ints: numpy's int64 product wraps for hostile shapes like [2**32, 2**32].
+    n = math.prod(shape)
+    if n > _MAX_ELEMENTS or any(s > _MAX_ELEMENTS for s in shape):
+        raise SchemaError(f"{field}: shape {shape} exceeds the limit of {_MAX_ELEMENTS} elements")
     npdt = np.dtype(dt)
     if len(data) != n * npdt.itemsize:
         raise SchemaError(f"{field}: {len(data)} bytes do not match shape {shape} of {dt}")
-    return np.frombuffer(data, dtype=npdt).reshape(tuple(shape))
+    try:
+        return np.frombuffer(data, dtype=npdt).reshape(tuple(shape))
+    except ValueError as exc:  # belt and braces: decoding raises SchemaError and nothing else
+        raise SchemaError(f"{field}: {exc}") from None
 
 
 def pack(schema: str, body: dict) -> bytes:

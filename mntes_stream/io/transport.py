@@ -30,7 +30,6 @@ __all__ = [
     "ZenohSettings",
     "zenoh_config",
     "open_session",
-    "open_zenoh_session",
     "free_tcp_port",
     "loopback",
     "Publishers",
@@ -48,7 +47,9 @@ class ZenohSettings:
     ----------
     mode : {"peer", "client", "router"}
     connect, listen : tuple of str
-        Endpoints such as ``tcp/127.0.0.1:7447``.
+        Endpoints such as ``tcp/127.0.0.1:7447``. A peer given no ``listen``
+        (and no config file) whose ``connect`` endpoints are all on loopback
+        listens on ``tcp/127.0.0.1:0``, never on every interface.
     config_file : str
         zenoh JSON5 config read first (e.g. ``services/zenoh-lab.json5``);
         the fields above override it where given.
@@ -108,11 +109,21 @@ def zenoh_config(settings: ZenohSettings):
             conf.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
         if settings.listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
+        elif settings.mode == "peer" and not settings.config_file and all(map(_is_loopback, settings.connect)):
+            # zenoh's default would listen on every interface (tcp/[::]:0). A
+            # peer must stay reachable for gossip, so: loopback, any free port.
+            conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(settings.scouting)))
         conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(settings.scouting or settings.gossip)))
     except Exception as exc:  # zenoh raises ZError for unreadable files and bad values
         raise ConfigError(f"zenoh config ({settings}): {exc}") from None
     return conf
+
+
+def _is_loopback(endpoint: str) -> bool:
+    """Whether ``proto/host:port`` names this machine's loopback."""
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    return host in ("localhost", "::1") or host.startswith("127.")
 
 
 def open_session(settings: ZenohSettings):
@@ -128,9 +139,6 @@ def open_session(settings: ZenohSettings):
             f"connect={list(settings.connect)}): {exc}"
         ) from None
 
-
-# The recorder's name for the same thing.
-open_zenoh_session = open_session
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
