@@ -16,7 +16,7 @@ from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
 from mntes_stream.errors import ConfigError
 from mntes_stream.feeds import RecordedPower, export_hdf5, iter_power_blocks, read_hdf5, read_power
-from mntes_stream.feeds.blocks import StreamAssembler
+from mntes_stream.feeds.blocks import BlockBuffer, GapFill, StreamAssembler, StreamId, iter_pieces
 from mntes_stream.io import keys
 from mntes_stream.io.mcap_io import McapFileWriter, RotatingMcapWriter
 from mntes_stream.io.messages import PowerChunk, Provenance
@@ -27,8 +27,9 @@ N = 10  # samples per chunk
 STEP = int(N * 1e9 / RATE)
 
 
-def chunk(seq: int, module: int = 0, channels=(0, 1, 2, 3), setup: str = "t", t_ns=None) -> PowerChunk:
-    """A power chunk with distinct, NaN-bearing values (seeded by seq and module)."""
+def chunk(seq: int, module: int = 0, channels=(0, 1, 2, 3), setup: str = "t", t_ns=None, t0_ns=None,
+          table: str = "tab-1", board: int = 0) -> PowerChunk:
+    """A power chunk with distinct, NaN-bearing values (seeded by seq and module); t0 on the T0 grid by default."""
     ch = np.asarray(channels, dtype=np.int32)
     rng = np.random.default_rng([seq, module])
     p = rng.normal(1e-12, 1e-14, (ch.size, N))
@@ -36,10 +37,11 @@ def chunk(seq: int, module: int = 0, channels=(0, 1, 2, 3), setup: str = "t", t_
     f[:, 3] = fl.SATURATED
     p[:, 3] = np.nan
     f[0, 7] = fl.HK_STALE  # a flag that keeps its value
-    times = {"t0_ns": T0 + seq * STEP, "sample_rate_hz": RATE} if t_ns is None else {"t0_ns": None, "sample_rate_hz": None, "t_ns": t_ns}
-    return PowerChunk(setup=setup, board=0, module=module, channels=ch,
-                      detector_ids=[detector_id(0, module, c) for c in ch], seq=seq, p_opt_w=p, flags=f,
-                      table_identity="tab-1", converter_kind="exact", source_t_pub_ns=T0, t_pub_ns=T0, **times)
+    t0 = T0 + seq * STEP if t0_ns is None else t0_ns
+    times = {"t0_ns": t0, "sample_rate_hz": RATE} if t_ns is None else {"t0_ns": None, "sample_rate_hz": None, "t_ns": t_ns}
+    return PowerChunk(setup=setup, board=board, module=module, channels=ch,
+                      detector_ids=[detector_id(board, module, c) for c in ch], seq=seq, p_opt_w=p, flags=f,
+                      table_identity=table, converter_kind="exact", source_t_pub_ns=T0, t_pub_ns=T0, **times)
 
 
 def write(path, chunks, log_times=None):
@@ -128,6 +130,8 @@ def test_time_and_detector_selection(tmp_path):
     with pytest.raises(ConfigError, match="no power"):
         read_power(path, start_ns=T0 + 10**12)
     assert read_power(path, module=0).module == 0
+    first = read_power(path, detectors=["b0m0c000"])  # the chunks' first row only: the others are left out
+    np.testing.assert_array_equal(bits(first.p_opt_w), bits(full["t_b0m0"].p_opt_w[:1]))
 
 
 def test_rotated_session_reads_as_one_and_blocks_stream(tmp_path):
@@ -192,13 +196,15 @@ def test_export_hdf5_layout_provenance_and_exact_read_back(tmp_path):
         np.testing.assert_array_equal(back[name].flags, b.flags)
         np.testing.assert_array_equal(back[name].t_ns, b.t_ns)
         assert back[name].detectors == b.detectors
+        assert back[name].table_identities == b.table_identities == ("tab-1",)
     with h5py.File(tmp_path / "x.h5") as f:
         assert f.attrs["format"] == "mntes-stream/power"
         assert json.loads(f.attrs["source_files"]) == [str(tmp_path / "a.mcap")]
         p = f["provenance/0"].attrs
         assert p["params_toml"] == prov.params_toml and p["table_identity"] == "tab-1"
         g = f["t_b0m1"]
-        assert g.attrs["table_identity"] == "tab-1" and g.attrs["converter_kind"] == "exact"
+        assert json.loads(g.attrs["table_identities"]) == ["tab-1"] and json.loads(g.attrs["converter_kinds"]) == ["exact"]
+        assert json.loads(g.attrs["segment_starts"]) == [] and f.attrs["max_gap_s"] == 3600.0
         assert json.loads(g.attrs["provenance"]) == ["/provenance/0"]
         assert json.loads(g.attrs["counts"])["gap_samples"] == N
         assert g["tod"].attrs["units"] == "W" and g["tod"].compression == "gzip" and g["tod"].chunks == (4, 64)
@@ -236,7 +242,8 @@ def test_assembler_property_every_kept_sample_exact_every_hole_flagged(present, 
     pieces = []
     for s in feed:
         c = chunk(s)
-        pieces += asm.push(c.seq, c.times_ns(), c.sample_rate_hz, c.detector_ids, c.p_opt_w, c.flags)
+        pieces += iter_pieces(asm.push(c.seq, c.times_ns(), c.sample_rate_hz, c.detector_ids, c.p_opt_w, c.flags), 7)
+    assert max(x.t_ns.size for x in pieces) <= N  # gap fill in pieces of at most 7, chunks whole
     t = np.concatenate([p[0] for p in pieces])
     p = np.concatenate([p[1] for p in pieces], axis=1)
     f = np.concatenate([p[2] for p in pieces], axis=1)
@@ -271,3 +278,83 @@ def test_file_of_a_killed_recorder_reads_up_to_its_last_flush(tmp_path):
     assert b.n_samples == 8 * N
     for s in range(8):
         assert_chunk_in(b, chunk(s), s * N)
+
+
+def test_long_hole_is_filled_in_bounded_blocks_and_longer_steps_are_reported_segment_breaks(tmp_path):
+    """A 20 min hole: NaN + GAP in blocks of at most block_samples; a 10 h pause and a corrupt
+    far-future timestamp (year 2255): segment breaks, reported, nothing allocated for them."""
+    hole_ns, pause_ns, future_ns = 1200 * 10**9, 10 * 3600 * 10**9, 9 * 10**18
+    t3 = T0 + 3 * STEP + hole_ns
+    sent = [chunk(0), chunk(1), chunk(2), chunk(3, t0_ns=t3), chunk(4, t0_ns=t3 + STEP + pause_ns),
+            chunk(5, t0_ns=t3 + 2 * STEP + pause_ns), chunk(6, t0_ns=future_ns)]
+    path = write(tmp_path / "a.mcap", sent)
+    n_fill = hole_ns * int(RATE) // 10**9
+    rec = RecordedPower(path)
+    blocks = list(rec.iter_blocks(block_samples=4096))
+    assert max(b.n_samples for b in blocks) == 4096 and sum(b.n_samples for b in blocks) == 7 * N + n_fill
+    st_ = rec.stats[StreamId("t", 0, 0)]
+    starts = [3 * N + n_fill + N, 3 * N + n_fill + 3 * N]  # chunk 4 (after the pause) and chunk 6 (the corrupt time)
+    assert st_.segment_starts == starts and (st_.gaps, st_.gap_samples) == (1, n_fill)
+    b = RecordedPower(path).read()["t_b0m0"]
+    fill = slice(3 * N, 3 * N + n_fill)
+    np.testing.assert_array_equal(b.t_ns[fill], sample_times_ns(T0, RATE, 3 * N + n_fill)[3 * N:])  # the grid goes on
+    assert np.all(b.flags[:, fill] == fl.GAP) and np.all(np.isnan(b.p_opt_w[:, fill]))
+    cols = [0, N, 2 * N, 3 * N + n_fill, starts[0], starts[0] + N, starts[1]]
+    for c, col in zip(sent, cols):
+        assert_chunk_in(b, c, col)
+    assert not np.any(b.flags[:, 3 * N + n_fill:] & fl.GAP)  # nothing filled across the breaks
+    summary = export_hdf5(path, tmp_path / "x.h5", block_samples=4096)
+    assert summary.segment_breaks == 2 and summary.gap_samples == n_fill
+    with h5py.File(tmp_path / "x.h5") as f:
+        assert json.loads(f["t_b0m0"].attrs["segment_starts"]) == starts
+    # A shorter max_gap_s makes the 20 min hole a break too.
+    short = RecordedPower(path, max_gap_s=600)
+    short.read()
+    assert short.stats[StreamId("t", 0, 0)].segment_starts == [3 * N, 4 * N, 6 * N] and short.stats[StreamId("t", 0, 0)].gaps == 0
+    with pytest.raises(ConfigError, match="max_gap_s"):
+        RecordedPower(path, max_gap_s=0)
+
+
+def test_gap_fill_is_made_lazily_and_a_jump_back_starts_a_segment():
+    dets = [detector_id(0, 0, c) for c in range(4)]
+    asm = StreamAssembler(dets, np.arange(4), max_gap_s=10**6)
+    c0 = chunk(0)
+    asm.push(c0.seq, c0.times_ns(), RATE, c0.detector_ids, c0.p_opt_w, c0.flags)
+    c1 = chunk(1, t0_ns=T0 + STEP + 150_000 * 10**9)  # a 41 h hole: 15 M samples x 4 detectors
+    out = asm.push(c1.seq, c1.times_ns(), RATE, c1.detector_ids, c1.p_opt_w, c1.flags, "tab-1")
+    fill = out[0]
+    assert isinstance(fill, GapFill) and fill.size == 15_000_000 and asm.stats.gap_samples == fill.size
+    buf = BlockBuffer(StreamId("t", 0, 0), dets, np.arange(4), block_samples=1000)
+    blocks = buf.add(out)
+    first = [next(blocks) for _ in range(3)]  # made on demand: 3 blocks, not the hole
+    assert [b.n_samples for b in first] == [1000] * 3 and all(b.table_identities == () for b in first)
+    np.testing.assert_array_equal(first[2].t_ns, sample_times_ns(T0, RATE, N + 3000)[N + 2000:])
+    assert np.all(first[0].flags == fl.GAP)
+    # A corrupt far-future chunk, then the stream as before: a break each way, nothing dropped.
+    asm = StreamAssembler(dets, np.arange(4))
+    pieces = []
+    for c in (chunk(0), chunk(1), chunk(2, t0_ns=8 * 10**18), chunk(3), chunk(4)):
+        pieces += iter_pieces(asm.push(c.seq, c.times_ns(), RATE, c.detector_ids, c.p_opt_w, c.flags), 100)
+    assert [p.t_ns.size for p in pieces] == [N] * 5 and asm.stats.segment_starts == [2 * N, 3 * N]
+    assert asm.stats.overlap_samples == 0 and asm.stats.gaps == 0
+    # A corrupt sample rate: a 1 s hole at 1 GHz is beyond MAX_FILL_SAMPLES: a break, not 1e9 samples.
+    asm = StreamAssembler(dets, np.arange(4))
+    c0, c1 = chunk(0), chunk(1, t0_ns=T0 + 10**9)
+    asm.push(0, c0.times_ns(), 1e9, c0.detector_ids, c0.p_opt_w, c0.flags)
+    assert not any(isinstance(x, GapFill) for x in asm.push(1, c1.times_ns(), 1e9, c1.detector_ids, c1.p_opt_w, c1.flags))
+    assert asm.stats.segment_starts == [N]
+
+
+def test_blocks_carry_the_table_identities_of_their_power(tmp_path):
+    sent = [chunk(s, table="tab-1" if s < 5 else "tab-2") for s in range(10) if s not in (7, 8)]
+    path = write(tmp_path / "a.mcap", sent)
+    blocks = list(iter_power_blocks(path, block_samples=2 * N))
+    assert [b.table_identities for b in blocks] == [("tab-1",), ("tab-1",), ("tab-1", "tab-2"), ("tab-2",), ("tab-2",)]
+    b = read_power(path)
+    assert b.table_identities == ("tab-1", "tab-2") and b.select(["b0m0c001"]).table_identities == ("tab-1", "tab-2")
+    assert read_power(path, start_ns=T0 + 6 * STEP).table_identities == ("tab-2",)
+    export_hdf5(path, tmp_path / "x.h5")
+    assert read_hdf5(tmp_path / "x.h5", "t_b0m0").table_identities == ("tab-1", "tab-2")
+    # Blocks of gap fill only hold no table's power.
+    gap_only = list(iter_power_blocks(path, block_samples=N))[7]
+    assert np.all(gap_only.flags == fl.GAP) and gap_only.table_identities == ()

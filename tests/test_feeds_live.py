@@ -2,30 +2,39 @@
 
 from __future__ import annotations
 
+import re
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
-from test_feeds import N, bits, chunk
+from test_feeds import N, RATE, STEP, T0, bits, chunk, write
 
 from mntes_stream.core import flags as fl
 from mntes_stream.feeds import LivePowerFeed
 from mntes_stream.io import keys
+from mntes_stream.io.mcap_io import RotatingMcapWriter
 from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
 
 
 class _Publisher(threading.Thread):
-    """Publishes ``plan`` once the feed subscribed; keeps its session open until told (no loss at close)."""
+    """Publishes ``plan`` once the feed subscribed; keeps its session open until told (no loss at close).
 
-    def __init__(self, port: int, plan: list[tuple[str, bytes]], wait_keys):
+    Connects to the feed's ``port``, or (``listen=True``) listens on it for the feed to connect.
+    """
+
+    def __init__(self, port: int, plan: list[tuple[str, bytes]], wait_keys, listen: bool = False):
         super().__init__(daemon=True)
         self.port, self.plan, self.wait_keys = port, plan, list(wait_keys)
+        self.settings = loopback(listen_port=port) if listen else loopback(connect_ports=[port])
+        self.ready = threading.Event()  # the session is open
         self.done = threading.Event()
         self.error: BaseException | None = None
 
     def run(self) -> None:
         try:
-            with open_session(loopback(connect_ports=[self.port])) as z:
+            with open_session(self.settings) as z:
+                self.ready.set()
                 pubs = Publishers(z)
                 try:
                     if not pubs.wait_matching(self.wait_keys, 20.0):
@@ -37,6 +46,8 @@ class _Publisher(threading.Thread):
                     pubs.close()
         except BaseException as exc:  # reported by the test
             self.error = exc
+        finally:
+            self.ready.set()
 
 
 def _run(feed, port, plan, wait_keys) -> list:
@@ -101,3 +112,64 @@ def test_live_feed_without_selection_grows_rows_and_stops_at_max_blocks():
     c = chunk(3, channels=(0, 1, 3))
     np.testing.assert_array_equal(bits(blocks[3].p_opt_w), bits(c.p_opt_w))
     assert feed._session is None
+
+
+def test_live_hole_comes_in_bounded_blocks_and_a_corrupt_time_does_not_end_the_stream():
+    port = free_tcp_port()
+    hole_s = 100
+    t1 = T0 + STEP + hole_s * 10**9
+    sent = [chunk(0), chunk(1, t0_ns=t1), chunk(2, t0_ns=9 * 10**18), chunk(3, t0_ns=t1 + STEP)]
+    plan = [(keys.power_key("t", 0, 0), c.to_bytes()) for c in sent]
+    feed = LivePowerFeed(loopback(listen_port=port), "t", idle_timeout_s=1.5, duration_s=60, gap_block_samples=4096)
+    blocks = _run(feed, port, plan, [plan[0][0]])
+    n_fill = hole_s * int(RATE)
+    assert [b.n_samples for b in blocks] == [N, 4096, 4096, n_fill - 8192, N, N, N]
+    assert all(np.all(b.flags == fl.GAP) and b.table_identities == () for b in blocks[1:4])
+    np.testing.assert_array_equal(np.concatenate([b.t_ns for b in blocks[1:4]]),
+                                  T0 + np.rint(np.arange(N, N + n_fill) * 1e9 / RATE).astype(np.int64))
+    for b, c in zip([blocks[0], *blocks[4:]], sent):
+        np.testing.assert_array_equal(b.t_ns, c.times_ns())
+        np.testing.assert_array_equal(bits(b.p_opt_w), bits(c.p_opt_w))
+        assert b.table_identities == ("tab-1",)
+    st = feed.stats["t_b0m0"]
+    assert st.segment_starts == [2 * N + n_fill, 3 * N + n_fill] and st.overlap_samples == 0
+
+
+def _readme_section_code(title: str) -> str:
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text.split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert blocks, f"no python example in README section {title!r}"
+    return "\n".join(blocks)
+
+
+def test_readme_feeds_examples_run(tmp_path, monkeypatch):
+    """The README's feeds code, as written, on recordings it names and a live publisher."""
+    monkeypatch.chdir(tmp_path)
+    sent = [chunk(s, module=3, channels=(1, 2, 7), setup="lab") for s in range(12) if s != 5]
+    half = len(sent) // 2
+    write(tmp_path / "a.mcap", sent[:half])
+    write(tmp_path / "b.mcap", sent[half:])
+    with RotatingMcapWriter(tmp_path / "recordings", "s", rotate_bytes=2000, rotate_s=0) as w:
+        for c in sent:
+            w.write(keys.power_key("lab", 0, 3), c.to_bytes(), T0 + (c.seq + 1) * STEP)
+    port = free_tcp_port()
+    live = [chunk(s, module=3, channels=(1, 7), setup="lab", t0_ns=T0 + 10**12 + s * STEP) for s in range(3)]
+    pub = _Publisher(port, [(keys.power_key("lab", 0, 3), c.to_bytes()) for c in live],
+                     [keys.power_key("lab", 0, 3)], listen=True)
+    pub.start()
+    assert pub.ready.wait(20)
+    ns = {"t0": T0 + 2 * STEP, "t1": T0 + 9 * STEP, "endpoint": f"tcp/127.0.0.1:{port}"}
+    try:
+        exec(compile(_readme_section_code("Feeds for mapmaking"), "README.md", "exec"), ns)
+    finally:
+        pub.done.set()
+        pub.join(30)
+    assert pub.error is None, pub.error
+    b = ns["b"]
+    assert b.detectors == ("b0m3c001", "b0m3c007") and b.n_samples == 7 * N
+    assert np.all(b.flags[:, 3 * N:4 * N] == fl.GAP)  # chunk 5 never recorded
+    assert sorted(ns["obs"]) == ["lab_b0m3"] and ns["obs"]["lab_b0m3"].n_samples == 12 * N
+    np.testing.assert_array_equal(bits(ns["obs"]["lab_b0m3"].p_opt_w[:, :N]), bits(sent[0].p_opt_w))
+    assert ns["blk"].name == "lab_b0m3" and ns["blk"].detectors == ("b0m3c001",)  # the live feed's last block
+    np.testing.assert_array_equal(bits(ns["blk"].p_opt_w), bits(live[-1].p_opt_w[[0]]))

@@ -45,6 +45,8 @@ def run_export(args) -> int:
         "board": args.board,
         "module": args.module,
     }
+    if args.max_gap_s is not None:
+        selection["max_gap_s"] = args.max_gap_s
     summary = export_hdf5(args.session, args.out, compression=args.compression, block_samples=args.block_samples,
                           overwrite=args.overwrite, progress=not args.json, **selection)
     result = {
@@ -54,6 +56,7 @@ def run_export(args) -> int:
         "gap_samples": summary.gap_samples,
         "absent_detector_samples": summary.absent_samples,
         "duplicate_chunks": summary.duplicate_chunks,
+        "segment_breaks": summary.segment_breaks,
         "file_bytes": summary.file_bytes,
         "seconds": round(summary.seconds, 3),
         "samples_per_s": round(summary.samples_per_s),
@@ -79,6 +82,9 @@ def register(sub) -> None:
     p.add_argument("--compression", default="gzip", choices=("gzip", "lzf", "none"),
                    help="gzip (default) is readable everywhere; lzf is faster but h5py-only")
     p.add_argument("--block-samples", type=int, default=8192, help="samples per write and per HDF5 chunk")
+    p.add_argument("--max-gap-s", type=float, metavar="S",
+                   help="a longer step in time is a segment break (counted, listed in the group's segment_starts), "
+                   "not a hole filled with NaN + GAP (default: feeds.blocks.DEFAULT_MAX_GAP_S, one hour)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
     p.set_defaults(func=run_export)

@@ -1,4 +1,4 @@
-"""Power blocks and the per-stream assembly of chunks into gap-explicit time series (pure numpy).
+"""Time-ordered data blocks and the per-stream assembly of chunks into gap-explicit time series (pure numpy).
 
 A *stream* is the power of one module: ``(setup, board, module)``. Its chunks
 are assembled in sample-time order by :class:`StreamAssembler`, which makes
@@ -7,14 +7,20 @@ every irregularity explicit instead of silent:
 - **gap** (missing chunk, or missing sequence numbers that left a hole in
   time): the hole is filled with NaN power and ``flags.GAP`` on the regular
   sample grid continued from the last sample (``t_last + round(k * period)``);
-  a hole is a step larger than 1.5 sample periods;
+  a hole is a step larger than 1.5 sample periods. The fill is made lazily
+  (:class:`GapFill`), in pieces of at most ``block_samples``: a long hole
+  never costs more memory than a block;
+- **segment break** (a step in time beyond ``max_gap_s``, forwards: a long
+  pause or a corrupt far-future timestamp; or backwards: a clock reset, or
+  the return after such a timestamp): not filled; the stream goes on from
+  the new time and the break is reported (``StreamStats.segment_starts``).
+  Sample times increase strictly *within* a segment;
 - **absent detector** (a row of the stream that a chunk does not carry, or a
   selected detector that is not there): NaN and ``flags.UNKNOWN_CHANNEL``;
 - **duplicate chunk** (same ``seq`` and first sample time as one already
   taken): dropped and counted;
 - **overlap** (samples at or before the last sample already emitted, e.g. a
-  late chunk whose span was already filled as a gap): dropped and counted, so
-  output times are strictly increasing.
+  late chunk whose span was already filled as a gap): dropped and counted.
 
 Power values are copied, never recomputed: what comes out is bitwise what the
 converter published.
@@ -22,18 +28,24 @@ converter published.
 
 from __future__ import annotations
 
+import bisect
 import collections
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, NamedTuple
 
 import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError
 
-__all__ = ["PowerBlock", "StreamId", "StreamStats", "StreamAssembler", "BlockBuffer", "concat_blocks", "stream_name"]
+__all__ = ["TodBlock", "StreamId", "StreamStats", "StreamAssembler", "BlockBuffer", "GapFill", "Piece",
+           "iter_pieces", "concat_blocks", "stream_name", "DEFAULT_BLOCK_SAMPLES", "DEFAULT_MAX_GAP_S"]
 
 GAP_FACTOR = 1.5  # a step longer than this many sample periods is a hole
+DEFAULT_BLOCK_SAMPLES = 8192
+DEFAULT_MAX_GAP_S = 3600.0  # a longer step is a segment break, not a hole to fill
+# Backstop for a hole within max_gap_s but of absurdly many samples (a corrupt sample rate).
+MAX_FILL_SAMPLES = 1 << 24
 _RECENT_KEYS = 1024  # (seq, t_first) pairs remembered per stream to spot duplicates
 
 
@@ -60,9 +72,14 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _distinct(values: Iterable) -> tuple:
+    """Distinct non-empty values in order of first appearance."""
+    return tuple(dict.fromkeys(v for v in values if v))
+
+
 @dataclass(frozen=True, eq=False)
-class PowerBlock:
-    """Power of one module stream over consecutive samples.
+class TodBlock:
+    """Time-ordered data: the power of one module stream over consecutive samples.
 
     Attributes
     ----------
@@ -72,7 +89,8 @@ class PowerBlock:
         Detector ids of the rows.
     channels : ndarray of int32, shape (n_det,)
     t_ns : ndarray of int64, shape (n_samp,)
-        Sample times, ns since the Unix epoch, strictly increasing.
+        Sample times, ns since the Unix epoch, strictly increasing within a
+        segment (see ``StreamStats.segment_starts``).
     p_opt_w : ndarray of float64, shape (n_det, n_samp)
         Optical power (W); NaN wherever no usable power (see ``flags``).
     flags : ndarray of uint16, shape (n_det, n_samp)
@@ -80,6 +98,10 @@ class PowerBlock:
         a detector is absent.
     first_sample : int
         Index of ``t_ns[0]`` in the assembled stream (0 for a whole stream).
+    table_identities : tuple of str
+        Identities of the response tables (``PowerChunk.table_identity``) that
+        produced the power in this block, in order of first appearance;
+        empty for a block of gap fill only.
 
     Arrays are read-only; ``np.array(block.p_opt_w)`` gives a writable copy.
     """
@@ -93,6 +115,7 @@ class PowerBlock:
     p_opt_w: np.ndarray
     flags: np.ndarray
     first_sample: int = 0
+    table_identities: tuple = ()
 
     def __post_init__(self) -> None:
         dets = tuple(str(d) for d in self.detectors)
@@ -103,11 +126,12 @@ class PowerBlock:
         shape = (len(dets), t.size)
         if ch.shape != (len(dets),) or t.ndim != 1 or p.shape != shape or f.shape != shape:
             raise ConfigError(
-                f"PowerBlock: {len(dets)} detectors, channels {ch.shape}, t_ns {t.shape}, "
+                f"TodBlock: {len(dets)} detectors, channels {ch.shape}, t_ns {t.shape}, "
                 f"p_opt_w {p.shape}, flags {f.shape} are inconsistent (want (n_det, n_samp) = {shape})"
             )
         for name, value in (("detectors", dets), ("channels", ch), ("t_ns", t), ("p_opt_w", p), ("flags", f)):
             object.__setattr__(self, name, value if name == "detectors" else _readonly(value))
+        object.__setattr__(self, "table_identities", tuple(str(s) for s in self.table_identities))
 
     @property
     def stream(self) -> StreamId:
@@ -131,7 +155,7 @@ class PowerBlock:
         """Sample times in float64 seconds since the epoch (sub-microsecond resolution)."""
         return self.t_ns / 1e9
 
-    def select(self, detectors: Iterable[str]) -> "PowerBlock":
+    def select(self, detectors: Iterable[str]) -> "TodBlock":
         """The rows of ``detectors`` (in that order); ConfigError for an id not here."""
         row = {d: r for r, d in enumerate(self.detectors)}
         want = list(detectors)
@@ -139,11 +163,11 @@ class PowerBlock:
         if missing:
             raise ConfigError(f"{self.name}: no detector(s) {missing}")
         idx = np.array([row[d] for d in want], dtype=np.intp)
-        return PowerBlock(self.setup, self.board, self.module, tuple(want), self.channels[idx], self.t_ns,
-                          self.p_opt_w[idx], self.flags[idx], self.first_sample)
+        return TodBlock(self.setup, self.board, self.module, tuple(want), self.channels[idx], self.t_ns,
+                        self.p_opt_w[idx], self.flags[idx], self.first_sample, self.table_identities)
 
 
-def concat_blocks(blocks: list[PowerBlock]) -> PowerBlock:
+def concat_blocks(blocks: list[TodBlock]) -> TodBlock:
     """Consecutive blocks of one stream (same rows) as one block."""
     if not blocks:
         raise ConfigError("no blocks to concatenate")
@@ -153,9 +177,10 @@ def concat_blocks(blocks: list[PowerBlock]) -> PowerBlock:
     for b in blocks[1:]:
         if b.stream != b0.stream or b.detectors != b0.detectors:
             raise ConfigError("concat_blocks: blocks of different streams or rows")
-    return PowerBlock(b0.setup, b0.board, b0.module, b0.detectors, b0.channels,
-                      np.concatenate([b.t_ns for b in blocks]), np.concatenate([b.p_opt_w for b in blocks], axis=1),
-                      np.concatenate([b.flags for b in blocks], axis=1), b0.first_sample)
+    return TodBlock(b0.setup, b0.board, b0.module, b0.detectors, b0.channels,
+                    np.concatenate([b.t_ns for b in blocks]), np.concatenate([b.p_opt_w for b in blocks], axis=1),
+                    np.concatenate([b.flags for b in blocks], axis=1), b0.first_sample,
+                    _distinct(s for b in blocks for s in b.table_identities))
 
 
 @dataclass
@@ -167,7 +192,7 @@ class StreamStats:
     chunks : int
         Chunks whose samples were used.
     samples : int
-        Samples emitted per detector row (data and gap fill).
+        Samples handed out per detector row (data and gap fill).
     duplicate_chunks : int
         Same ``seq`` and first sample time as a chunk already taken: dropped.
     overlap_samples : int
@@ -180,6 +205,9 @@ class StreamStats:
         Detector-samples filled with NaN + UNKNOWN_CHANNEL (absent detectors).
     invalid_messages : int
         Payloads that did not decode as a power chunk (skipped).
+    segment_starts : list of int
+        Sample indices (in the stream) where a new segment starts after a
+        step in time beyond ``max_gap_s`` (not filled); empty for one segment.
     table_identities, converter_kinds : list of str
         Distinct values of the chunks used, in order of first appearance.
     """
@@ -193,6 +221,7 @@ class StreamStats:
     seq_gaps: int = 0
     absent_samples: int = 0
     invalid_messages: int = 0
+    segment_starts: list = field(default_factory=list)
     table_identities: list = field(default_factory=list)
     converter_kinds: list = field(default_factory=list)
 
@@ -200,7 +229,45 @@ class StreamStats:
         return {k: (list(v) if isinstance(v, list) else v) for k, v in self.__dict__.items()}
 
 
-Piece = tuple  # (t_ns (n,), p_opt_w (n_rows, n), flags (n_rows, n))
+class Piece(NamedTuple):
+    """Samples handed out by the assembler (arrays of its rows at the time)."""
+
+    t_ns: np.ndarray  # (n,) int64
+    p_opt_w: np.ndarray  # (n_rows, n) float64
+    flags: np.ndarray  # (n_rows, n) uint16
+    table_identity: str | None  # None for gap fill
+
+
+@dataclass(frozen=True)
+class GapFill:
+    """A hole's NaN + GAP samples, not yet made: times ``t_last_ns + round(k * period_ns)``, ``k_lo <= k < k_hi``."""
+
+    t_last_ns: int
+    period_ns: float
+    k_lo: int
+    k_hi: int
+    n_rows: int
+
+    @property
+    def size(self) -> int:
+        return self.k_hi - self.k_lo
+
+    def take(self, start: int, stop: int) -> Piece:
+        """Samples ``start:stop`` of the fill as a :class:`Piece`."""
+        k = np.arange(self.k_lo + start, self.k_lo + stop, dtype=np.int64)
+        t = self.t_last_ns + np.rint(k * self.period_ns).astype(np.int64)
+        shape = (self.n_rows, t.size)
+        return Piece(t, np.full(shape, np.nan), np.full(shape, fl.GAP, dtype=fl.FLAG_DTYPE), None)
+
+
+def iter_pieces(pieces: Iterable, max_samples: int) -> Iterator[Piece]:
+    """``pieces`` with each :class:`GapFill` made in pieces of at most ``max_samples``."""
+    for piece in pieces:
+        if isinstance(piece, GapFill):
+            for a in range(0, piece.size, max_samples):
+                yield piece.take(a, min(a + max_samples, piece.size))
+        else:
+            yield piece
 
 
 class StreamAssembler:
@@ -210,16 +277,23 @@ class StreamAssembler:
     ----------
     detectors : sequence of str
         The output rows (n_rows).
+    channels : sequence of int, length n_rows
     start_ns, end_ns : int, optional
         Keep samples with ``start_ns <= t < end_ns`` (gap fill included).
+    max_gap_s : float
+        A step in time longer than this (either way) is a segment break, not a hole.
     """
 
-    def __init__(self, detectors, channels, start_ns: int | None = None, end_ns: int | None = None):
+    def __init__(self, detectors, channels, start_ns: int | None = None, end_ns: int | None = None,
+                 max_gap_s: float = DEFAULT_MAX_GAP_S):
+        if not max_gap_s > 0:
+            raise ConfigError(f"max_gap_s must be > 0, got {max_gap_s!r}")
         self.detectors = tuple(detectors)
         self.channels = np.asarray(channels, dtype=np.int32)
         self._row = {d: r for r, d in enumerate(self.detectors)}
         self._lo = -(1 << 63) if start_ns is None else int(start_ns)
         self._hi = (1 << 63) - 1 if end_ns is None else int(end_ns)
+        self.max_gap_ns = int(max_gap_s * 1e9)
         self.last_t_ns: int | None = None
         self.last_seq: int | None = None
         self.period_ns: float | None = None
@@ -229,13 +303,16 @@ class StreamAssembler:
         self.stats = StreamStats()
 
     def _map(self, ids: tuple) -> tuple[np.ndarray, np.ndarray, bool]:
-        """(source rows, destination rows, complete) for a chunk's detector ids."""
+        """(source rows, destination rows, same_rows) for a chunk's detector ids.
+
+        ``same_rows``: the chunk's rows are exactly the output rows, in order (copied as they are).
+        """
         m = self._maps.get(ids)
         if m is None:
             pairs = [(i, self._row[d]) for i, d in enumerate(ids) if d in self._row]
             src = np.array([i for i, _ in pairs], dtype=np.intp)
             dst = np.array([r for _, r in pairs], dtype=np.intp)
-            m = self._maps[ids] = (src, dst, len(pairs) == len(self.detectors) and np.array_equal(src, dst))
+            m = self._maps[ids] = (src, dst, ids == self.detectors)
         return m
 
     def add_rows(self, detector_ids, channels) -> bool:
@@ -256,9 +333,22 @@ class StreamAssembler:
         self._recent.append(key)
         self._recent_set.add(key)
 
+    def _fill(self, period_ns: float, n_fill: int, t_next_ns: int) -> GapFill:
+        """The grid points ``1..n_fill`` after the last sample that lie before ``t_next_ns`` and in range."""
+        last = self.last_t_ns
+        ks = range(1, n_fill + 1)
+
+        def t_of(k: int) -> int:
+            return last + int(round(k * period_ns))  # round half to even, as np.rint in GapFill.take
+
+        i_lo = bisect.bisect_left(ks, self._lo, key=t_of)
+        i_hi = bisect.bisect_left(ks, min(t_next_ns, self._hi), key=t_of)
+        return GapFill(last, period_ns, 1 + i_lo, 1 + max(i_lo, i_hi), len(self.detectors))
+
     def push(self, seq: int, t_ns: np.ndarray, sample_rate_hz: float | None, detector_ids: tuple,
-             p_opt_w: np.ndarray, flags: np.ndarray) -> list[Piece]:
-        """Add the next chunk (in sample-time order); returns the pieces to append.
+             p_opt_w: np.ndarray, flags: np.ndarray, table_identity: str = "",
+             converter_kind: str = "") -> list:
+        """Add the next chunk (in sample-time order); returns what to append, in order.
 
         Parameters
         ----------
@@ -269,6 +359,14 @@ class StreamAssembler:
         detector_ids : tuple of str, length n_ch
         p_opt_w : ndarray of float64, shape (n_ch, n)
         flags : ndarray of uint16, shape (n_ch, n)
+        table_identity, converter_kind : str
+            The chunk's, recorded in :attr:`stats` when its samples are used.
+
+        Returns
+        -------
+        list of Piece or GapFill
+            A :class:`GapFill` is not made yet: pass the list through
+            :func:`iter_pieces` to get bounded pieces.
         """
         st = self.stats
         n = int(t_ns.size)
@@ -285,26 +383,33 @@ class StreamAssembler:
             period = float(np.median(np.diff(t_ns)))
         else:
             period = self.period_ns
-        out: list[Piece] = []
+        out: list = []
         keep = slice(None)
         if self.last_t_ns is not None:
-            n_old = int(np.searchsorted(t_ns, self.last_t_ns, side="right"))
-            if n_old:
-                st.overlap_samples += n_old
-                if n_old == n:
-                    return []
-                keep = slice(n_old, None)
-            step = int(t_ns[n_old]) - self.last_t_ns
-            p_ref = period if period else self.period_ns
-            if p_ref and step > GAP_FACTOR * p_ref:
-                n_fill = int(round(step / p_ref)) - 1
-                t_fill = self.last_t_ns + np.rint(np.arange(1, n_fill + 1) * p_ref).astype(np.int64)
-                t_fill = t_fill[(t_fill < int(t_ns[n_old])) & (t_fill >= self._lo) & (t_fill < self._hi)]
-                if t_fill.size:
-                    st.gaps += 1
-                    st.gap_samples += int(t_fill.size)
-                    shape = (len(self.detectors), t_fill.size)
-                    out.append((t_fill, np.full(shape, np.nan), np.full(shape, fl.GAP, dtype=fl.FLAG_DTYPE)))
+            if int(t_ns[0]) < self.last_t_ns - self.max_gap_ns:
+                # Far back in time: a clock reset, or the stream back after a far-future timestamp.
+                # Not a late chunk: a new segment (dropping it as overlap would drop the rest of the stream).
+                st.segment_starts.append(st.samples)
+            else:
+                n_old = int(np.searchsorted(t_ns, self.last_t_ns, side="right"))
+                if n_old:
+                    st.overlap_samples += n_old
+                    if n_old == n:
+                        return []
+                    keep = slice(n_old, None)
+                t_next = int(t_ns[n_old])
+                step = t_next - self.last_t_ns
+                p_ref = period if period else self.period_ns
+                n_fill = int(round(step / p_ref)) - 1 if p_ref and step > GAP_FACTOR * p_ref else 0
+                if step > self.max_gap_ns or n_fill > MAX_FILL_SAMPLES:
+                    st.segment_starts.append(st.samples)  # a pause, or a corrupt timestamp: not filled
+                elif n_fill > 0:
+                    fill = self._fill(p_ref, n_fill, t_next)
+                    if fill.size:
+                        st.gaps += 1
+                        st.gap_samples += fill.size
+                        st.samples += fill.size
+                        out.append(fill)
             if self.last_seq is not None and seq > self.last_seq + 1:
                 st.seq_gaps += int(seq) - self.last_seq - 1
         t = t_ns[keep]
@@ -320,12 +425,12 @@ class StreamAssembler:
             self.period_ns = period
         if t.size == 0:
             return out
-        src, dst, complete = self._map(tuple(detector_ids))
+        src, dst, same_rows = self._map(tuple(detector_ids))
         p = p_opt_w[:, keep]
         f = flags[:, keep]
         if cols is not None:
             p, f = p[:, cols], f[:, cols]
-        if complete:
+        if same_rows:
             p_out, f_out = np.array(p, dtype=np.float64), np.array(f, dtype=fl.FLAG_DTYPE)
         else:
             shape = (len(self.detectors), t.size)
@@ -333,16 +438,17 @@ class StreamAssembler:
             f_out = np.full(shape, fl.UNKNOWN_CHANNEL, dtype=fl.FLAG_DTYPE)
             p_out[dst] = p[src]
             f_out[dst] = f[src]
-            st.absent_samples += (len(self.detectors) - dst.size) * int(t.size)
+            st.absent_samples += (len(self.detectors) - dst.size) * int(t.size)  # rows the chunk lacks
         st.chunks += 1
-        out.append((np.array(t, dtype=np.int64), p_out, f_out))
+        st.samples += int(t.size)
+        self._note(table_identity, converter_kind)
+        out.append(Piece(np.array(t, dtype=np.int64), p_out, f_out, table_identity))
         return out
 
-    def note(self, table_identity: str, converter_kind: str) -> None:
-        """Record the table identity and converter kind of a chunk that was used."""
-        if table_identity not in self.stats.table_identities:
+    def _note(self, table_identity: str, converter_kind: str) -> None:
+        if table_identity and table_identity not in self.stats.table_identities:
             self.stats.table_identities.append(table_identity)
-        if converter_kind not in self.stats.converter_kinds:
+        if converter_kind and converter_kind not in self.stats.converter_kinds:
             self.stats.converter_kinds.append(converter_kind)
 
 
@@ -355,7 +461,9 @@ class BlockBuffer:
     detectors, channels
         The rows (as the assembler's).
     block_samples : int
-        Samples per block (the last block may be shorter).
+        Samples per block (the last block may be shorter). Gap fill is made
+        only as blocks are cut, so the buffer never holds much more than one
+        block (plus one chunk).
     """
 
     def __init__(self, stream: StreamId, detectors, channels, block_samples: int):
@@ -369,37 +477,40 @@ class BlockBuffer:
         self._n = 0
         self.emitted = 0
 
-    def add(self, pieces: list[Piece]) -> Iterator[PowerBlock]:
-        for piece in pieces:
+    def add(self, pieces: list) -> Iterator[TodBlock]:
+        """Blocks completed by ``pieces`` (what :meth:`StreamAssembler.push` returned)."""
+        for piece in iter_pieces(pieces, self.block_samples):
             self._pieces.append(piece)
-            self._n += int(piece[0].size)
-        while self._n >= self.block_samples:
-            yield self._cut(self.block_samples)
+            self._n += int(piece.t_ns.size)
+            while self._n >= self.block_samples:
+                yield self._cut(self.block_samples)
 
-    def flush(self) -> Iterator[PowerBlock]:
+    def flush(self) -> Iterator[TodBlock]:
         if self._n:
             yield self._cut(self._n)
 
-    def _cut(self, n: int) -> PowerBlock:
+    def _cut(self, n: int) -> TodBlock:
         take, rest, got = [], [], 0
-        for t, p, f in self._pieces:
+        for piece in self._pieces:
             if got >= n:
-                rest.append((t, p, f))
+                rest.append(piece)
                 continue
+            t, p, f, ident = piece
             k = min(n - got, t.size)
-            take.append((t[:k], p[:, :k], f[:, :k]))
+            take.append(Piece(t[:k], p[:, :k], f[:, :k], ident))
             if k < t.size:
-                rest.append((t[k:], p[:, k:], f[:, k:]))
+                rest.append(Piece(t[k:], p[:, k:], f[:, k:], ident))
             got += k
         self._pieces = rest
         self._n -= n
         if len(take) == 1:
-            t, p, f = take[0]
+            t, p, f, _ = take[0]
         else:
-            t = np.concatenate([x[0] for x in take])
-            p = np.concatenate([x[1] for x in take], axis=1)
-            f = np.concatenate([x[2] for x in take], axis=1)
+            t = np.concatenate([x.t_ns for x in take])
+            p = np.concatenate([x.p_opt_w for x in take], axis=1)
+            f = np.concatenate([x.flags for x in take], axis=1)
         s = self.stream
-        block = PowerBlock(s.setup, s.board, s.module, self.detectors, self.channels, t, p, f, self.emitted)
+        block = TodBlock(s.setup, s.board, s.module, self.detectors, self.channels, t, p, f, self.emitted,
+                         _distinct(x.table_identity for x in take))
         self.emitted += n
         return block

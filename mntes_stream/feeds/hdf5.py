@@ -1,17 +1,19 @@
 """HDF5 export of recorded power, laid out the way mapmakers read observations.
 
-Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 1``)::
+Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 2``)::
 
     /                           attrs: format, format_version, software_version, created_utc,
-                                       source_files, observations, selection, recording (JSON)
+                                       source_files, observations, selection, recording (JSON), max_gap_s
     /provenance/<k>             one group per distinct mntes.provenance record (k = 0, 1, ...):
                                 attrs setup, params_toml, table_identity, converter_kind,
                                 software_version, t_ns, recorded_log_time_ns, source_file
     /<setup>_b<board>m<module>  one group per observation (a module's power stream):
         attrs   setup, board, module, sample_rate_hz, n_detectors, n_samples, t_start_ns, t_end_ns,
-                table_identity, converter_kind (JSON list if they changed), provenance (paths of the
-                matching /provenance groups), flag_bits (JSON name -> bit), counts (JSON: chunks,
-                duplicate_chunks, gaps, gap_samples, seq_gaps, overlap_samples, absent_samples, ...)
+                table_identities (JSON list: the tables that produced the power), converter_kinds (JSON
+                list), segment_starts (JSON list of sample indices where a new segment starts after a
+                step beyond max_gap_s), provenance (paths of the matching /provenance groups), flag_bits
+                (JSON name -> bit), counts (JSON: chunks, duplicate_chunks, gaps, gap_samples, seq_gaps,
+                overlap_samples, absent_samples, ...)
         tod        float64 (n_det, n_samp)  W; NaN where no usable power      [chunked, compressed]
         flags      uint16  (n_det, n_samp)  core.flags bits (GAP, UNKNOWN_CHANNEL, ...)  [chunked, compressed]
         time       float64 (n_samp,)        s since the Unix epoch (what TOAST/sotodlib/litebird_sim use)
@@ -36,13 +38,13 @@ import numpy as np
 from mntes_stream import __version__
 from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError, TransportError
-from mntes_stream.feeds.blocks import PowerBlock
-from mntes_stream.feeds.recorded import DEFAULT_BLOCK_SAMPLES, RecordedPower
+from mntes_stream.feeds.blocks import DEFAULT_BLOCK_SAMPLES, TodBlock
+from mntes_stream.feeds.recorded import RecordedPower
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "COMPRESSIONS", "ExportSummary", "export_hdf5", "read_hdf5", "observation_names"]
 
 FORMAT = "mntes-stream/power"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: table_identities / converter_kinds / segment_starts as JSON lists
 COMPRESSIONS = ("gzip", "lzf", "none")
 _ROW_CHUNK = 16
 
@@ -51,7 +53,8 @@ _ROW_CHUNK = 16
 class ExportSummary:
     """What :func:`export_hdf5` wrote.
 
-    ``samples`` counts detector-samples (n_det x n_samp summed over observations).
+    ``samples`` counts detector-samples (n_det x n_samp summed over observations);
+    ``segment_breaks`` the steps in time beyond ``max_gap_s`` (not filled), over all observations.
     """
 
     path: str
@@ -60,6 +63,7 @@ class ExportSummary:
     gap_samples: int
     absent_samples: int
     duplicate_chunks: int
+    segment_breaks: int
     file_bytes: int
     seconds: float
 
@@ -81,10 +85,6 @@ def _filters(compression: str) -> dict:
 
 def _json(v) -> str:
     return json.dumps(v, sort_keys=True, default=str)
-
-
-def _one_or_list(values: list):
-    return values[0] if len(values) == 1 else _json(values)
 
 
 def _create_observation(f, rec: RecordedPower, sid, block_samples: int, filters: dict):
@@ -116,7 +116,7 @@ def _create_observation(f, rec: RecordedPower, sid, block_samples: int, filters:
     return g
 
 
-def _write_block(g, b: PowerBlock) -> None:
+def _write_block(g, b: TodBlock) -> None:
     a, z = b.first_sample, b.first_sample + b.n_samples
     for name in ("tod", "flags"):
         g[name].resize(z, axis=1)
@@ -147,8 +147,8 @@ def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = 
     progress : bool
         tqdm progress bars.
     **selection
-        ``setup``, ``detectors``, ``start_ns``, ``end_ns``, ``board``, ``module``
-        (see :class:`~mntes_stream.feeds.recorded.RecordedPower`).
+        ``setup``, ``detectors``, ``start_ns``, ``end_ns``, ``board``, ``module``,
+        ``max_gap_s`` (see :class:`~mntes_stream.feeds.recorded.RecordedPower`).
 
     Returns
     -------
@@ -177,6 +177,7 @@ def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = 
                 "source_files": _json([str(p) for p in rec.files]),
                 "observations": _json(rec.names),
                 "selection": _json(rec.selection),
+                "max_gap_s": rec.max_gap_s,
                 "recording": _json(rec.recording_metadata()),
                 "units": _json({"tod": "W", "time": "s", "time_ns": "ns"}),
             })
@@ -192,7 +193,7 @@ def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = 
             groups = {sid: _create_observation(f, rec, sid, block_samples, filters) for sid in rec.streams}
             for b in rec.iter_blocks(block_samples):
                 _write_block(groups[b.stream], b)
-            summary_samples = gap = absent = dups = 0
+            summary_samples = gap = absent = dups = breaks = 0
             for sid, g in groups.items():
                 st, ix = rec.stats[sid], rec.streams[sid]
                 n = g["time_ns"].shape[0]
@@ -201,20 +202,23 @@ def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = 
                     "n_samples": n,
                     "t_start_ns": int(tn[0]) if n else 0,
                     "t_end_ns": int(tn[-1]) if n else 0,
-                    "table_identity": _one_or_list(st.table_identities) if st.table_identities else "",
-                    "converter_kind": _one_or_list(st.converter_kinds) if st.converter_kinds else "",
+                    "table_identities": _json(st.table_identities),
+                    "converter_kinds": _json(st.converter_kinds),
+                    "segment_starts": _json(st.segment_starts),
                     "provenance": _json([p for t in st.table_identities for p in prov_paths.get((sid.setup, t), [])]),
-                    "counts": _json(st.as_dict() | {"chunks_indexed": len(ix.chunks)}),
+                    "counts": _json({k: v for k, v in st.as_dict().items() if not isinstance(v, list)}
+                                    | {"chunks_indexed": len(ix.chunks)}),
                 })
                 summary_samples += n * len(ix.detectors)
                 gap += st.gap_samples
                 absent += st.absent_samples
                 dups += st.duplicate_chunks
+                breaks += len(st.segment_starts)
         tmp.replace(out)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return ExportSummary(str(out), tuple(rec.names), summary_samples, gap, absent, dups, out.stat().st_size,
+    return ExportSummary(str(out), tuple(rec.names), summary_samples, gap, absent, dups, breaks, out.stat().st_size,
                          time.perf_counter() - t_start)
 
 
@@ -226,22 +230,26 @@ def observation_names(path) -> list[str]:
         return json.loads(f.attrs["observations"])
 
 
-def read_hdf5(path, observation: str | None = None) -> PowerBlock | dict[str, PowerBlock]:
-    """Load exported observations back as :class:`PowerBlock` (one, or all by name)."""
+def read_hdf5(path, observation: str | None = None) -> TodBlock | dict[str, TodBlock]:
+    """Load exported observations back as :class:`TodBlock` (one, or all by name)."""
     import h5py
 
     with h5py.File(path, "r") as f:
         if f.attrs.get("format") != FORMAT:
             raise ConfigError(f"{path} is not an mntes-stream power export (format {f.attrs.get('format')!r})")
+        if int(f.attrs.get("format_version", 0)) != FORMAT_VERSION:
+            raise ConfigError(f"{path}: format_version {f.attrs.get('format_version')} (this reader: {FORMAT_VERSION}); "
+                              "export the session again")
         names = json.loads(f.attrs["observations"]) if observation is None else [observation]
         out = {}
         for name in names:
             if name not in f:
                 raise ConfigError(f"{path} has no observation {name!r} (has {json.loads(f.attrs['observations'])})")
             g = f[name]
-            out[name] = PowerBlock(
+            out[name] = TodBlock(
                 str(g.attrs["setup"]), int(g.attrs["board"]), int(g.attrs["module"]),
                 tuple(s.decode() if isinstance(s, bytes) else str(s) for s in g["detectors"][()]),
                 g["channels"][()], g["time_ns"][()], g["tod"][()], g["flags"][()],
+                table_identities=tuple(json.loads(g.attrs["table_identities"])),
             )
     return out[observation] if observation is not None else out

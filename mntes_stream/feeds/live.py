@@ -2,10 +2,12 @@
 
 :class:`LivePowerFeed` subscribes to ``mntes/<setup>/power/<board>/<module>``
 (only the modules of the selected detectors, when a selection is given) and
-yields one :class:`~mntes_stream.feeds.blocks.PowerBlock` per received chunk,
+yields one :class:`~mntes_stream.feeds.blocks.TodBlock` per received chunk,
 assembled per stream exactly like a recording
 (:class:`~mntes_stream.feeds.blocks.StreamAssembler`): a hole in time comes
-as its own block of NaN + GAP before the chunk after it; a chunk that arrives
+as its own block(s) of NaN + GAP (at most ``gap_block_samples`` each) before
+the chunk after it; a step beyond ``max_gap_s`` is a segment break, reported
+in ``stats``, not filled; a chunk that arrives
 after its span was already given out (late, or a duplicate) is dropped and
 counted; an absent detector is NaN + UNKNOWN_CHANNEL. Without a selection the
 rows are every detector seen so far on that stream (a block's ``detectors``
@@ -24,7 +26,15 @@ from collections.abc import Iterable, Iterator
 
 from mntes_stream.core.ids import parse_detector_id
 from mntes_stream.errors import ConfigError, SchemaError
-from mntes_stream.feeds.blocks import PowerBlock, StreamAssembler, StreamId, StreamStats
+from mntes_stream.feeds.blocks import (
+    DEFAULT_BLOCK_SAMPLES,
+    DEFAULT_MAX_GAP_S,
+    StreamAssembler,
+    StreamId,
+    StreamStats,
+    TodBlock,
+    iter_pieces,
+)
 from mntes_stream.io import keys
 
 __all__ = ["LivePowerFeed"]
@@ -50,6 +60,10 @@ class LivePowerFeed:
         Stop after this long without a power chunk.
     queue_size : int
         Received chunks buffered; when full, BLOCK publishers wait (no loss).
+    max_gap_s : float
+        A step in time longer than this is a segment break, not a hole to fill.
+    gap_block_samples : int
+        A hole is given out in blocks of at most this many samples.
 
     Attributes
     ----------
@@ -61,7 +75,8 @@ class LivePowerFeed:
 
     def __init__(self, zenoh, setup: str, *, detectors: Iterable[str] | None = None, board: int | str = "*",
                  module: int | str = "*", max_blocks: int | None = None, duration_s: float | None = None,
-                 idle_timeout_s: float = 10.0, queue_size: int = 1024):
+                 idle_timeout_s: float = 10.0, queue_size: int = 1024, max_gap_s: float = DEFAULT_MAX_GAP_S,
+                 gap_block_samples: int = DEFAULT_BLOCK_SAMPLES):
         self.settings = zenoh
         self.setup = setup
         self._dets = None if detectors is None else tuple(dict.fromkeys(str(d) for d in detectors))
@@ -72,13 +87,16 @@ class LivePowerFeed:
             self.key_exprs = [keys.power_key(setup, b, m) for b, m in mods]
         else:
             self.key_exprs = [keys.power_key(setup, board, module)]
-        for name, v in (("max_blocks", max_blocks), ("duration_s", duration_s), ("idle_timeout_s", idle_timeout_s)):
+        for name, v in (("max_blocks", max_blocks), ("duration_s", duration_s), ("idle_timeout_s", idle_timeout_s),
+                        ("max_gap_s", max_gap_s), ("gap_block_samples", gap_block_samples)):
             if v is not None and not v > 0:
                 raise ConfigError(f"{name} must be > 0, got {v!r}")
         self.max_blocks = max_blocks
         self.duration_s = duration_s
         self.idle_timeout_s = float(idle_timeout_s)
         self.queue_size = int(queue_size)
+        self.max_gap_s = float(max_gap_s)
+        self.gap_block_samples = int(gap_block_samples)
         self._session = None
         self._sub = None
         self._asm: dict[StreamId, StreamAssembler] = {}
@@ -125,12 +143,12 @@ class LivePowerFeed:
         asm = self._asm.get(sid)
         if asm is None:
             if self._dets is None:
-                asm = StreamAssembler((), ())
+                asm = StreamAssembler((), (), max_gap_s=self.max_gap_s)
             else:
                 mine = [d for d in self._dets if parse_detector_id(d)[:2] == (sid.board, sid.module)]
                 if not mine:
                     return None
-                asm = StreamAssembler(mine, [parse_detector_id(d)[2] for d in mine])
+                asm = StreamAssembler(mine, [parse_detector_id(d)[2] for d in mine], max_gap_s=self.max_gap_s)
             self._asm[sid] = asm
             self._emitted[sid] = 0
             self.stats[sid.name] = asm.stats
@@ -138,22 +156,21 @@ class LivePowerFeed:
             asm.add_rows(chunk.detector_ids, chunk.channels)
         return asm
 
-    def _blocks_of(self, chunk) -> list[PowerBlock]:
+    def _blocks_of(self, chunk) -> Iterator[TodBlock]:
+        # A generator: a long hole is made one bounded block at a time, as the caller takes them.
         sid = StreamId(chunk.setup, chunk.board, chunk.module)
         asm = self._assembler(sid, chunk)
         if asm is None:
-            return []
-        pieces = asm.push(chunk.seq, chunk.times_ns(), chunk.sample_rate_hz, chunk.detector_ids, chunk.p_opt_w, chunk.flags)
-        if pieces:
-            asm.note(chunk.table_identity, chunk.converter_kind)
-        out = []
-        for t, p, f in pieces:
-            out.append(PowerBlock(sid.setup, sid.board, sid.module, asm.detectors, asm.channels, t, p, f, self._emitted[sid]))
+            return
+        pieces = asm.push(chunk.seq, chunk.times_ns(), chunk.sample_rate_hz, chunk.detector_ids, chunk.p_opt_w,
+                          chunk.flags, chunk.table_identity, chunk.converter_kind)
+        rows, channels = asm.detectors, asm.channels
+        for t, p, f, ident in iter_pieces(pieces, self.gap_block_samples):
+            yield TodBlock(sid.setup, sid.board, sid.module, rows, channels, t, p, f, self._emitted[sid],
+                           (ident,) if ident else ())
             self._emitted[sid] += int(t.size)
-            asm.stats.samples = self._emitted[sid]
-        return out
 
-    def __iter__(self) -> Iterator[PowerBlock]:
+    def __iter__(self) -> Iterator[TodBlock]:
         from mntes_stream.io.messages import PowerChunk
 
         self.open()

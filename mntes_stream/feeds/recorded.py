@@ -12,9 +12,10 @@ Two passes over the session's ``mntes/<setup>/power/<board>/<module>`` messages:
    in receive order, held only until the chunks before them in sample time
    have come (a reorder buffer bounded by how far out of order they were
    recorded), assembled (:class:`~mntes_stream.feeds.blocks.StreamAssembler`:
-   NaN + GAP in holes, NaN + UNKNOWN_CHANNEL for absent detectors) and cut
-   into blocks of ``block_samples``. Memory is bounded by the blocks, not the
-   session.
+   NaN + GAP in holes, NaN + UNKNOWN_CHANNEL for absent detectors, a segment
+   break for a step beyond ``max_gap_s``) and cut into blocks of
+   ``block_samples``. Memory is bounded by the blocks, not the session (nor
+   the length of a hole).
 
 Time selection is on *sample* time (``start_ns <= t < end_ns``); the second
 pass only reads the receive-time span of the selected chunks. Holes are filled
@@ -32,12 +33,19 @@ import numpy as np
 
 from mntes_stream.core.ids import parse_detector_id
 from mntes_stream.errors import ConfigError, SchemaError
-from mntes_stream.feeds.blocks import BlockBuffer, PowerBlock, StreamAssembler, StreamId, StreamStats, concat_blocks
+from mntes_stream.feeds.blocks import (
+    DEFAULT_BLOCK_SAMPLES,
+    DEFAULT_MAX_GAP_S,
+    BlockBuffer,
+    StreamAssembler,
+    StreamId,
+    StreamStats,
+    TodBlock,
+    concat_blocks,
+)
 from mntes_stream.io import keys
 
 __all__ = ["RecordedPower", "StreamIndex", "read_power", "iter_power_blocks", "DEFAULT_BLOCK_SAMPLES"]
-
-DEFAULT_BLOCK_SAMPLES = 8192
 
 
 @dataclass
@@ -71,14 +79,17 @@ class StreamIndex:
     t_last_ns: int = 0
 
 
-def _power_topics(setup: str | None, detectors: tuple | None) -> list[str]:
-    s = "*" if setup is None else setup
+def _power_topics(session, setup: str | None, detectors: tuple | None) -> list[str]:
+    """Key expressions of the power to read: of ``setup``, or of every setup recorded in ``session``."""
     if setup is not None:
-        keys.power_key(setup)  # validates the name
+        setups = [setup]
+    else:
+        found = {t.split("/")[1] for t in session.message_counts() if keys.kind_of(t) == "power"}
+        setups = sorted(s for s in found if keys.NAME_PATTERN.match(s))
     if detectors is None:
-        return [f"{keys.PREFIX}/{s}/power/*/*"]
+        return [keys.power_key(s) for s in setups]
     mods = sorted({parse_detector_id(d)[:2] for d in detectors})
-    return [f"{keys.PREFIX}/{s}/power/{b}/{m}" for b, m in mods]
+    return [keys.power_key(s, b, m) for s in setups for b, m in mods]
 
 
 class RecordedPower:
@@ -97,6 +108,9 @@ class RecordedPower:
         Sample-time range ``[start_ns, end_ns)``.
     board, module : int, optional
         Only streams of this board / module.
+    max_gap_s : float
+        A step in sample time longer than this is a segment break
+        (``stats[...].segment_starts``), not a hole filled with NaN + GAP.
     progress : bool
         tqdm progress bars for the two passes.
 
@@ -110,7 +124,7 @@ class RecordedPower:
 
     def __init__(self, source, *, setup: str | None = None, detectors: Iterable[str] | None = None,
                  start_ns: int | None = None, end_ns: int | None = None, board: int | None = None,
-                 module: int | None = None, progress: bool = False):
+                 module: int | None = None, max_gap_s: float = DEFAULT_MAX_GAP_S, progress: bool = False):
         from mntes_stream.io.mcap_io import Session
 
         if start_ns is not None and end_ns is not None and int(end_ns) <= int(start_ns):
@@ -126,9 +140,14 @@ class RecordedPower:
         self._dets = None if detectors is None else tuple(self.selection["detectors"])
         if self._dets is not None and not self._dets:
             raise ConfigError("an empty detector selection selects nothing")
-        self._topics = _power_topics(setup, self._dets)
+        if setup is not None:
+            keys.power_key(setup)  # a bad name is a ConfigError before any file is opened
+        if not max_gap_s > 0:
+            raise ConfigError(f"max_gap_s must be > 0, got {max_gap_s!r}")
+        self.max_gap_s = float(max_gap_s)
         self._progress = progress
         self.session = Session(source)
+        self._topics = _power_topics(self.session, setup, self._dets)
         self.files = [fi.path for fi in self.session.files]
         self.streams: dict[StreamId, StreamIndex] = {}
         self.stats: dict[StreamId, StreamStats] = {}  # filled by iter_blocks
@@ -222,12 +241,13 @@ class RecordedPower:
         """Observation names (``<setup>_b<board>m<module>``) of the selected streams."""
         return [sid.name for sid in self.streams]
 
-    def iter_blocks(self, block_samples: int = DEFAULT_BLOCK_SAMPLES) -> Iterator[PowerBlock]:
+    def iter_blocks(self, block_samples: int = DEFAULT_BLOCK_SAMPLES) -> Iterator[TodBlock]:
         """Blocks of at most ``block_samples`` samples, streams interleaved as recorded.
 
         Each stream's blocks come in sample order with ``first_sample``
-        counting from 0; a stream's last block may be shorter. After the
-        iterator is exhausted, :attr:`stats` holds each stream's counts.
+        counting from 0; a stream's last block may be shorter; no block is
+        longer, however long a hole. After the iterator is exhausted,
+        :attr:`stats` holds each stream's counts.
         """
         from mntes_stream.io.messages import PowerChunk
 
@@ -236,7 +256,7 @@ class RecordedPower:
         log_lo, log_hi = None, None
         for sid, ix in self.streams.items():
             order = {(t0, seq): i for i, (t0, seq, _) in enumerate(ix.chunks)}
-            asm = StreamAssembler(ix.detectors, ix.channels, lo, hi)
+            asm = StreamAssembler(ix.detectors, ix.channels, lo, hi, self.max_gap_s)
             asm.stats.duplicate_chunks = ix.duplicate_chunks
             asm.stats.invalid_messages = ix.invalid_messages
             state[sid] = _ReadState(order, asm, BlockBuffer(sid, ix.detectors, ix.channels, block_samples))
@@ -270,11 +290,10 @@ class RecordedPower:
                 for i in sorted(st.held):
                     yield from st.take(st.held.pop(i))
             yield from st.buf.flush()
-            st.asm.stats.samples = st.buf.emitted
 
-    def read(self) -> dict[str, PowerBlock]:
+    def read(self) -> dict[str, TodBlock]:
         """Every selected stream as one block, by observation name (small sessions)."""
-        parts: dict[str, list[PowerBlock]] = {}
+        parts: dict[str, list[TodBlock]] = {}
         for b in self.iter_blocks(DEFAULT_BLOCK_SAMPLES * 16):
             parts.setdefault(b.name, []).append(b)
         out = {}
@@ -284,8 +303,8 @@ class RecordedPower:
                 out[sid.name] = concat_blocks(blocks)
             else:  # every chunk fell outside the range after trimming
                 n = len(ix.detectors)
-                out[sid.name] = PowerBlock(sid.setup, sid.board, sid.module, ix.detectors, ix.channels,
-                                           np.zeros(0, np.int64), np.zeros((n, 0)), np.zeros((n, 0), np.uint16))
+                out[sid.name] = TodBlock(sid.setup, sid.board, sid.module, ix.detectors, ix.channels,
+                                         np.zeros(0, np.int64), np.zeros((n, 0)), np.zeros((n, 0), np.uint16))
         return out
 
     # ------------------------------------------------------------------ provenance
@@ -324,32 +343,31 @@ class _ReadState:
         self.held: dict[int, tuple] = {}
         self.next = 0
 
-    def take(self, item) -> Iterator[PowerBlock]:
+    def take(self, item) -> Iterator[TodBlock]:
         c, t = item
-        pieces = self.asm.push(c.seq, t, c.sample_rate_hz, c.detector_ids, c.p_opt_w, c.flags)
-        if pieces:
-            self.asm.note(c.table_identity, c.converter_kind)
+        pieces = self.asm.push(c.seq, t, c.sample_rate_hz, c.detector_ids, c.p_opt_w, c.flags,
+                               c.table_identity, c.converter_kind)
         yield from self.buf.add(pieces)
 
 
-def iter_power_blocks(source, *, block_samples: int = DEFAULT_BLOCK_SAMPLES, **selection) -> Iterator[PowerBlock]:
+def iter_power_blocks(source, *, block_samples: int = DEFAULT_BLOCK_SAMPLES, **selection) -> Iterator[TodBlock]:
     """Stream a session's power in blocks (see :class:`RecordedPower` for ``selection``)."""
     return RecordedPower(source, **selection).iter_blocks(block_samples)
 
 
-def read_power(source, **selection) -> PowerBlock:
+def read_power(source, **selection) -> TodBlock:
     """All selected power of ONE stream (module) as a single block.
 
     Parameters
     ----------
     source : path, directory, or iterable of paths
     **selection
-        ``setup``, ``detectors``, ``start_ns``, ``end_ns``, ``board``, ``module``
-        (see :class:`RecordedPower`).
+        ``setup``, ``detectors``, ``start_ns``, ``end_ns``, ``board``, ``module``,
+        ``max_gap_s`` (see :class:`RecordedPower`).
 
     Returns
     -------
-    PowerBlock
+    TodBlock
         ``p_opt_w`` (n_det, n_samp) W, ``t_ns`` (n_samp,), ``flags`` (n_det, n_samp).
 
     Raises
