@@ -10,10 +10,11 @@ import msgpack
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap_helpers import counts_payload, hk_payload, provenance_payload
 
-from mntes_stream.errors import ConfigError, TransportError
+from mntes_stream.errors import ConfigError, SchemaError, TransportError
 from mntes_stream.io import mcap_io as mio
 from mntes_stream.io.codec import json_schema
 
@@ -239,3 +240,121 @@ def test_messages_whose_channel_was_lost_are_counted_not_silently_dropped(chunke
     assert got == [provenance_payload()]  # its channel is defined in the last, intact chunk
     assert any("110 messages skipped" in str(w.message) for w in caught)
     assert any("damaged chunk" in str(w.message) for w in caught)
+
+
+# Envelopes that claim mntes.provenance but are not one: a bytes-keyed map (json.dumps
+# cannot write it), mixed-type map keys (sort_keys cannot order them), missing fields.
+BAD_PROVENANCE = [
+    msgpack.packb({"schema": "mntes.provenance", "version": 1, "x": {b"k": 1}}),
+    msgpack.packb({"schema": "mntes.provenance", "version": 1, "setup": {1: "a", "b": 2}}, strict_types=False),
+    msgpack.packb({"schema": "mntes.provenance", "version": 1, "setup": "t"}),
+]
+
+
+def test_malformed_provenance_is_recorded_as_invalid_and_writing_goes_on(tmp_path):
+    good = provenance_payload("a")
+    sent = [("mntes/t/provenance", p) for p in BAD_PROVENANCE]
+    sent += [("mntes/t/provenance", good), ("mntes/t/counts/0/0", counts_payload(0)), ("mntes/t/provenance", BAD_PROVENANCE[0])]
+    w = mio.RotatingMcapWriter(tmp_path, "p", rotate_bytes=0, rotate_s=0)
+    envs = [w.write(k, p, T0 + i) for i, (k, p) in enumerate(sent)]
+    w.close()
+    assert w.invalid == 4 and [bool(e.problem) for e in envs] == [True, True, True, False, False, True]
+    assert all("invalid mntes.provenance" in e.problem for e in envs if e.problem)
+    assert [(m.topic, m.payload) for m in _read(tmp_path)] == sent  # every one recorded verbatim
+    # Only the valid one became the file's provenance (attachment and metadata).
+    assert [a.data for a in mio.read_attachments(tmp_path)] == [good]
+    assert [m.data["table_identity"] for m in mio.read_metadata(tmp_path) if m.name == "mntes.provenance"] == ["sha256:a"]
+    with open(w.files[0], "rb") as f:
+        invalid = [c for c in make_reader(f).get_summary().channels.values() if "mntes.invalid" in c.metadata]
+    assert {c.topic for c in invalid} == {"mntes/t/provenance"} and all(c.schema_id == 0 for c in invalid)
+    with pytest.raises(SchemaError):  # a bad provenance to repeat is the caller's bug, not peer data
+        mio.McapFileWriter(tmp_path / "q.mcap", provenance=(BAD_PROVENANCE[2], T0))
+    assert not (tmp_path / "q.mcap").exists()
+
+
+def _unchunked_file():
+    """Bytes of an MCAP file written without chunks (other tools do): loose schema, channel, message,
+    attachment and metadata records; a second channel is declared half way."""
+    import io
+
+    from mcap.writer import Writer
+
+    buf = io.BytesIO()
+    w = Writer(buf, use_chunking=False)
+    w.start()
+    sid = w.register_schema("mntes.counts", "jsonschema", b"{}")
+    ch = w.register_channel("mntes/t/counts/0/0", "msgpack", sid)
+    sent = []
+    for i in range(12):
+        if i == 6:
+            ch = w.register_channel("mntes/t/counts/0/1", "msgpack", sid)
+            w.add_attachment(T0, T0 + i, "note", "text/plain", b"hello")
+            w.add_metadata("m", {"k": "v"})
+        p = counts_payload(i)
+        w.add_message(ch, log_time=T0 + i, data=p, publish_time=T0 + i)
+        sent.append(p)
+    w.finish()
+    return buf.getvalue(), sent
+
+
+def _records(data):
+    """(opcode, offset, length) of the top-level records after the magic."""
+    import struct
+
+    out, pos = [], 8
+    while pos + 9 <= len(data):
+        op, ln = struct.unpack_from("<BQ", data, pos)
+        out.append((op, pos, ln))
+        pos += 9 + ln
+    return out
+
+
+@pytest.mark.parametrize("opcode", [Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE])
+def test_damaged_loose_record_stops_the_scan_with_what_came_before(tmp_path, opcode):
+    import struct
+
+    data, sent = _unchunked_file()
+    recs = _records(data)
+    footer = next(off for op, off, _ in recs if op == Opcode.DATA_END)  # cut here: the writer "died"
+    # The last record of that kind before the end; its first string/field length made impossible.
+    op, off, ln = [r for r in recs if r[0] == opcode and r[1] < footer][-1]
+    bad = bytearray(data[:footer])
+    if opcode == Opcode.MESSAGE:
+        struct.pack_into("<Q", bad, off + 1, 5)  # a message record too short for its header
+    else:
+        struct.pack_into("<I", bad, off + 9 + 2 + (2 if opcode == Opcode.CHANNEL else 0), 10**6)  # name / topic length
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(bytes(bad))
+    with pytest.warns(mio.TruncatedFileWarning, match="not finished"):
+        session = mio.Session(path)
+    got = [m.payload for m in session.iter_messages()]
+    info = session.files[0]
+    assert "damaged record" in info.problem and not info.complete and info.recovered_bytes == off
+    # Exactly the messages whose records (and channel) precede the damaged record.
+    n_before = sum(1 for o, p, _ in recs if o == Opcode.MESSAGE and p < off)
+    if opcode == Opcode.CHANNEL:  # the second channel is lost: its messages come after it anyway
+        assert n_before == 6
+    assert got == sent[:n_before]
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(pick=st.integers(0, 10**6), xor=st.integers(1, 255), cut=st.booleans())
+def test_any_damage_to_an_unchunked_file_is_recovered_or_a_transport_error(tmp_path_factory, pick, xor, cut):
+    data, sent = _unchunked_file()
+    # Damage where it matters: record headers and the length fields that open each record.
+    structural = [off + j for _, off, ln in _records(data) for j in range(min(9 + ln, 24))]
+    k = structural[pick % len(structural)]
+    bad = bytearray(data[:k] if cut else data)
+    if not cut:
+        bad[k] ^= xor
+    path = tmp_path_factory.mktemp("d") / "d.mcap"
+    path.write_bytes(bytes(bad))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", mio.TruncatedFileWarning)
+        try:
+            session = mio.Session(path)
+            got = list(session.iter_messages())
+            session.metadata(), session.attachments()
+        except TransportError:  # e.g. the magic itself was hit
+            return
+    assert len(got) <= len(sent)

@@ -9,12 +9,13 @@ File layout (one file = a self-describing piece of a session)
   for, or bytes that are not an mntes envelope, gets an extra schema-less
   channel on the same topic (channel metadata ``mntes.schema`` names what the
   payload claimed, ``mntes.invalid`` says why it has no schema): nothing is
-  dropped, and nothing is mislabelled.
+  dropped, and nothing is mislabelled. An envelope that claims
+  ``mntes.provenance`` but does not decode as one is such an invalid payload.
 - ``log_time`` is the receive time (ns since epoch); ``publish_time`` the
   message's own ``t_pub_ns`` (else ``t_ns``, else the receive time);
   ``sequence`` the message's ``seq`` modulo 2**32 (else 0).
-- Every ``mntes.provenance`` message whose bytes differ from the previous one
-  is also stored as an attachment ``mntes.provenance.msgpack`` (verbatim) and a
+- Every valid ``mntes.provenance`` message whose bytes differ from the previous
+  one is also stored as an attachment ``mntes.provenance.msgpack`` (verbatim) and a
   metadata record ``mntes.provenance`` (its fields as strings); each file
   repeats the latest provenance at its start, so one file alone reproduces its
   conversion. The writer's own description (software version, host, config)
@@ -37,6 +38,7 @@ from __future__ import annotations
 import heapq
 import io
 import json
+import numbers
 import os
 import re
 import socket
@@ -55,7 +57,9 @@ from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from mntes_stream import __version__
+from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, SchemaError, TransportError
+from mntes_stream.io import keys
 
 __all__ = [
     "MESSAGE_ENCODING",
@@ -135,7 +139,7 @@ def _schema_text(name: str, version: int) -> bytes | None:
 
 
 def _as_metadata(fields: Mapping) -> dict[str, str]:
-    """Flatten a decoded message to MCAP metadata (str -> str); bytes are summarised."""
+    """Flatten a decoded message to MCAP metadata (str -> str); bytes are summarised. Never raises."""
     out = {}
     for k, v in fields.items():
         if isinstance(v, str):
@@ -143,8 +147,30 @@ def _as_metadata(fields: Mapping) -> dict[str, str]:
         elif isinstance(v, (bytes, bytearray)):
             out[str(k)] = f"<{len(v)} bytes: see attachment {PROVENANCE_ATTACHMENT}>"
         else:
-            out[str(k)] = json.dumps(v, default=repr, sort_keys=True)
+            try:
+                out[str(k)] = json.dumps(v, default=repr, sort_keys=True)
+            except (TypeError, ValueError):  # e.g. bytes or mixed-type map keys
+                out[str(k)] = repr(v)
     return out
+
+
+def _check_provenance(payload: bytes, env: Envelope) -> Envelope:
+    """``env``, or ``env`` with a problem if a ``mntes.provenance`` envelope does not decode as one.
+
+    Only a valid provenance becomes an attachment and a metadata record; any
+    peer on the setup's keys can publish, so nothing here may raise.
+    """
+    if env.problem or env.schema != PROVENANCE_SCHEMA:
+        return env
+    from mntes_stream.io.messages import Provenance
+
+    try:
+        Provenance.from_bytes(payload)
+    except Exception as exc:  # SchemaError normally; anything else must not stop a recorder either
+        # A bounded set of problem strings: each distinct one is a channel.
+        reason = getattr(exc, "reason", "") or type(exc).__name__
+        return Envelope(env.schema, env.version, env.publish_time_ns, env.seq, f"invalid {PROVENANCE_SCHEMA} message ({reason})")
+    return env
 
 
 def writer_description(**extra) -> dict[str, str]:
@@ -198,6 +224,11 @@ class McapFileWriter:
             raise ConfigError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
         if chunk_size_bytes < 1024:
             raise ConfigError(f"chunk_size_bytes must be >= 1024, got {chunk_size_bytes}")
+        if provenance is not None:
+            provenance = (bytes(provenance[0]), int(provenance[1]))
+            env = _check_provenance(provenance[0], peek_envelope(provenance[0]))
+            if env.schema != PROVENANCE_SCHEMA or env.problem:
+                raise SchemaError(f"provenance to repeat is not a valid {PROVENANCE_SCHEMA} message ({env.problem or env.schema!r})")
         self.path = Path(path)
         try:
             self._file = open(self.path, "xb")
@@ -245,7 +276,7 @@ class McapFileWriter:
     def write(self, key: str, payload: bytes, log_time_ns: int) -> Envelope:
         """Store one received message verbatim; returns what its envelope said."""
         payload = bytes(payload)
-        env = peek_envelope(payload)
+        env = _check_provenance(payload, peek_envelope(payload))
         if env.problem:
             self.invalid += 1
         cid = self._channel(str(key), env)
@@ -260,6 +291,7 @@ class McapFileWriter:
         return env
 
     def _add_provenance(self, payload: bytes, log_time_ns: int) -> None:
+        """Attachment + metadata for a provenance payload that :func:`_check_provenance` accepted."""
         self._provenance = (payload, int(log_time_ns))
         env = peek_envelope(payload)
         self._writer.add_attachment(
@@ -353,12 +385,14 @@ class RotatingMcapWriter:
         fsync: bool = False,
         metadata: Mapping[str, object] | None = None,
     ):
-        if not re.fullmatch(r"[A-Za-z0-9_.\-]+", prefix):
+        if not isinstance(prefix, str) or not keys.NAME_PATTERN.fullmatch(prefix):
             raise ConfigError(f"prefix {prefix!r} must match [A-Za-z0-9_.-]+")
-        if flush_interval_s <= 0:
+        flush_interval_s = finite_float("RotatingMcapWriter", "flush_interval_s", flush_interval_s)
+        rotate_s = finite_float("RotatingMcapWriter", "rotate_s", rotate_s)
+        if not flush_interval_s > 0:  # NaN would never flush: the crash-loss bound would be gone
             raise ConfigError(f"flush_interval_s must be > 0, got {flush_interval_s}")
-        if rotate_bytes < 0 or rotate_s < 0:
-            raise ConfigError("rotate_bytes and rotate_s must be >= 0 (0 disables)")
+        if not isinstance(rotate_bytes, numbers.Integral) or isinstance(rotate_bytes, bool) or rotate_bytes < 0 or rotate_s < 0:
+            raise ConfigError(f"rotate_bytes (an integer) and rotate_s must be >= 0 (0 disables), got {rotate_bytes!r}, {rotate_s}")
         self.directory = Path(directory)
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
@@ -652,16 +686,26 @@ def _index_by_scan(idx: _FileIndex, f) -> None:
             except Exception as exc:  # a damaged chunk: skip it, keep going
                 idx.problem = f"damaged chunk at byte {pos} skipped ({exc})"
         elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-            stream = ReadDataStream(io.BytesIO(f.read(length)))
+            # Records outside chunks (other writers): no CRC, so a damaged one means the
+            # framing after it cannot be trusted either. Keep what came before, stop.
+            try:
+                stream = ReadDataStream(io.BytesIO(f.read(length)))
+                if opcode == Opcode.SCHEMA:
+                    rec = Schema.read(stream)
+                elif opcode == Opcode.CHANNEL:
+                    rec = Channel.read(stream)
+                else:
+                    rec = Message.read(stream, length)
+            except Exception as exc:  # mcap raises EndOfFile, struct.error, UnicodeDecodeError...
+                idx.problem = f"damaged record (opcode {opcode:#x}) at byte {pos} ({type(exc).__name__}: {exc}); stopped there"
+                break
             if opcode == Opcode.SCHEMA:
-                rec = Schema.read(stream)
                 idx.schemas[rec.id] = rec
             elif opcode == Opcode.CHANNEL:
-                idx.add_channel(Channel.read(stream))
+                idx.add_channel(rec)
             else:
-                msg = Message.read(stream, length)
-                idx.loose.append(msg)
-                idx.counts[msg.channel_id] = idx.counts.get(msg.channel_id, 0) + 1
+                idx.loose.append(rec)
+                idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
         elif opcode == Opcode.ATTACHMENT:
             idx.attachments.append((pos, 9 + length))
         elif opcode == Opcode.METADATA:
@@ -872,25 +916,38 @@ class Session:
             warnings.warn(f"{ix.path}: damaged chunk at byte {ref.offset} skipped ({exc})", TruncatedFileWarning, stacklevel=4)
             return []
 
+    def _records(self, which: str, opcode: int, read) -> Iterator:
+        """``read(stream, path)`` of every indexed record of one kind; a damaged one is skipped with a warning."""
+        for ix in self._index:
+            try:
+                f = open(ix.path, "rb")
+            except OSError as exc:
+                raise TransportError(f"cannot read {ix.path}: {exc}") from None
+            with f:
+                for off, length in getattr(ix, which):
+                    try:
+                        rec = read(_read_record(f, off, length, opcode), str(ix.path))
+                    except Exception as exc:  # no CRC on these records: a damaged one is unreadable
+                        warnings.warn(f"{ix.path}: damaged record (opcode {opcode:#x}) at byte {off} skipped ({exc})",
+                                      TruncatedFileWarning, stacklevel=4)
+                        continue
+                    yield rec
+
     def metadata(self) -> list[RecordedMetadata]:
         """Every metadata record, in file order (a name may repeat, e.g. provenance changes)."""
-        out = []
-        for ix in self._index:
-            with open(ix.path, "rb") as f:
-                for off, length in ix.metadata:
-                    m = Metadata.read(_read_record(f, off, length, Opcode.METADATA))
-                    out.append(RecordedMetadata(m.name, dict(m.metadata), str(ix.path)))
-        return out
+        def read(stream, path):
+            m = Metadata.read(stream)
+            return RecordedMetadata(m.name, dict(m.metadata), path)
+
+        return list(self._records("metadata", Opcode.METADATA, read))
 
     def attachments(self) -> list[RecordedAttachment]:
         """Every attachment, in file order."""
-        out = []
-        for ix in self._index:
-            with open(ix.path, "rb") as f:
-                for off, length in ix.attachments:
-                    a = Attachment.read(_read_record(f, off, length, Opcode.ATTACHMENT))
-                    out.append(RecordedAttachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data), str(ix.path)))
-        return out
+        def read(stream, path):
+            a = Attachment.read(stream)
+            return RecordedAttachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data), path)
+
+        return list(self._records("attachments", Opcode.ATTACHMENT, read))
 
 
 def iter_messages(source, topics=None, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[RecordedMessage]:
