@@ -11,7 +11,7 @@ import numpy as np
 
 from mntes_stream.io import mcap_io
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance
-from mntes_stream.io.transport import free_tcp_port
+from mntes_stream.io.transport import Publishers, free_tcp_port
 
 
 def free_endpoint() -> str:
@@ -45,16 +45,26 @@ def provenance_payload(tag: str = "a", *, setup: str = "t") -> bytes:
     ).to_bytes()
 
 
-def wait_matching(publisher, timeout_s: float = 10.0, alive=None) -> None:
-    """Block until a zenoh publisher has a matching subscriber (fail after ``timeout_s``,
+class _Dead:
+    """A stop flag for :meth:`Publishers.wait_matching` that is set when ``alive()`` turns False."""
+
+    def __init__(self, alive):
+        self._alive = alive
+
+    def is_set(self) -> bool:
+        return self._alive is not None and not self._alive()
+
+
+def matched_publishers(z, keys, timeout_s: float = 30.0, alive=None) -> Publishers:
+    """BLOCK publishers on ``keys``, each with a matching subscriber (fail after ``timeout_s``,
     or at once when ``alive()``, the subscriber's liveness, turns False)."""
-    deadline = time.monotonic() + timeout_s
-    while not publisher.matching_status.matching:
+    pubs = Publishers(z)
+    if not pubs.wait_matching(keys, timeout_s, _Dead(alive)):
+        missing = [k for k in keys if not pubs.publisher(k).matching_status.matching]
         if alive is not None and not alive():
-            raise RuntimeError(f"the subscriber for {publisher.key_expr} died before subscribing")
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"no subscriber for {publisher.key_expr} after {timeout_s} s")
-        time.sleep(0.01)
+            raise RuntimeError(f"the subscriber died before subscribing to {missing}")
+        raise TimeoutError(f"no subscriber for {missing} after {timeout_s} s")
+    return pubs
 
 
 def readable_messages(source) -> list:
@@ -68,13 +78,14 @@ def readable_messages(source) -> list:
 
 
 @contextlib.contextmanager
-def running_recorder(directory, *, attempts: int = 3, **config):
+def running_recorder(directory, *, attempts: int = 3, start_timeout_s: float = 30.0, **config):
     """``run_recorder`` in a thread, listening on a free loopback port; yields ``(endpoint, result)``.
 
     ``result`` gets ``stats`` when the recorder has stopped (at the end of the
     block, or earlier with ``duration_s``). A port taken by another process
     between choosing and binding it is retried with a new one; any other
-    start-up failure is raised at once instead of surfacing as a timeout.
+    start-up failure is raised at once instead of surfacing as a timeout, and
+    a recorder not ready within ``start_timeout_s`` is stopped and reported.
     """
     from mntes_stream.io.transport import ZenohSettings
     from mntes_stream.service.recorder import RecorderConfig, run_recorder
@@ -91,10 +102,15 @@ def running_recorder(directory, *, attempts: int = 3, **config):
             except Exception as exc:  # handed to the test thread below
                 result["error"] = exc
 
-        thread = threading.Thread(target=target)
+        thread = threading.Thread(target=target, daemon=True)  # daemon: a hung recorder cannot hang pytest's exit
         thread.start()
+        deadline = time.monotonic() + start_timeout_s
         while not ready.wait(0.05) and thread.is_alive():
-            pass
+            if time.monotonic() > deadline:
+                stop.set()
+                thread.join(10)
+                raise TimeoutError(f"the recorder was not ready after {start_timeout_s} s"
+                                   + ("" if not thread.is_alive() else " and does not stop"))
         if ready.is_set():
             break
         thread.join()

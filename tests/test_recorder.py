@@ -8,8 +8,8 @@ import subprocess
 import sys
 import time
 
+import msgpack
 import pytest
-import zenoh
 from mcap.reader import make_reader
 from mcap_helpers import (
     counts_payload,
@@ -17,8 +17,8 @@ from mcap_helpers import (
     hk_payload,
     provenance_payload,
     readable_messages,
+    matched_publishers,
     running_recorder,
-    wait_matching,
 )
 
 from mntes_stream.errors import ConfigError
@@ -36,11 +36,8 @@ def _wait_for(pred, timeout_s=15.0, what="condition"):
 
 
 def _publishers(z, keys, proc=None):
-    pubs = {k: z.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k in keys}
-    alive = None if proc is None else (lambda: proc.poll() is None)
-    for p in pubs.values():
-        wait_matching(p, 30.0, alive)
-    return pubs
+    pubs = matched_publishers(z, keys, 30.0, None if proc is None else (lambda: proc.poll() is None))
+    return {k: pubs.publisher(k) for k in keys}
 
 
 def test_records_everything_verbatim_with_stats(tmp_path):
@@ -55,6 +52,9 @@ def test_records_everything_verbatim_with_stats(tmp_path):
                 if i % 6 == 0:
                     plan.append(("mntes/t/hk/t_bath", hk_payload(i // 6)))
             plan.insert(10, ("mntes/t/counts/0/0", b"\x93garbage"))
+            # Any peer can publish on the setup's keys: a provenance the writer cannot
+            # flatten to metadata (bytes map keys) is recorded as invalid, recording goes on.
+            plan.insert(20, ("mntes/t/provenance", msgpack.packb({"schema": "mntes.provenance", "version": 1, "x": {b"k": 1}})))
             for key, payload in plan:
                 pubs[key].put(payload)
                 sent.append((key, payload))
@@ -66,8 +66,8 @@ def test_records_everything_verbatim_with_stats(tmp_path):
     assert mio.Session(tmp_path).complete
     for key in {k for k, _ in sent}:
         assert [m.payload for m in got if m.topic == key] == [p for k, p in sent if k == key]
-    assert stats.messages == len(sent) and stats.invalid == 1
-    assert stats.by_kind == {"provenance": 1, "counts": 61, "hk": 10}
+    assert stats.messages == len(sent) and stats.invalid == 2
+    assert stats.by_kind == {"provenance": 2, "counts": 61, "hk": 10}
     assert stats.seq_gaps == 0 and stats.seq_repeats == 0
     assert mio.latest_provenance(tmp_path) == provenance_payload("a")
     meta = {m.name: m.data for m in mio.read_metadata(tmp_path)}
@@ -160,3 +160,50 @@ def test_config_file_and_errors(tmp_path):
         RecorderConfig.from_toml(bad)
     with pytest.raises(ConfigError, match="flush_interval_s"):
         RecorderConfig(flush_interval_s=0)
+
+
+@pytest.mark.parametrize("line, match", [
+    ('flush_interval_s = "1"', "flush_interval_s must be a number"),
+    ("flush_interval_s = nan", "flush_interval_s must be finite"),  # would never flush: no crash-loss bound
+    ("flush_interval_s = inf", "flush_interval_s must be finite"),
+    ("rotate_mb = -1", "rotate_mb must be >= 0"),
+    ("duration_s = nan", "duration_s must be finite"),
+    ("log_interval_s = 0", "log_interval_s must be > 0"),
+    ("queue_messages = 1.5", "queue_messages must be an integer"),
+    ("chunk_size_kb = true", "chunk_size_kb must be an integer"),
+    ('fsync = "yes"', "fsync must be true or false"),
+    ("setup = 3", "setup must be a string"),
+    ('prefix = "a/b"', "prefix"),
+    ("recorder = 1", "must be a table"),
+])
+def test_wrongly_typed_or_non_finite_values_are_config_errors(tmp_path, line, match):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(line + "\n" if line.startswith("recorder") else f"[recorder]\n{line}\n")
+    with pytest.raises(ConfigError, match=match):
+        RecorderConfig.from_toml(bad)
+
+
+def test_non_finite_values_given_directly_or_on_the_command_line(tmp_path):
+    for kw in ({"flush_interval_s": float("nan")}, {"rotate_s": float("inf")}, {"queue_messages": 0}):
+        with pytest.raises(ConfigError):
+            RecorderConfig(**kw)
+    with pytest.raises(ConfigError, match="flush_interval_s"):
+        mio.RotatingMcapWriter(tmp_path, "x", flush_interval_s=float("nan"))
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "record", "--dir", str(tmp_path), "--flush-s", "nan", "-q"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "flush_interval_s must be finite" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_recorder_doc_is_ready_only_once_subscribed(tmp_path):
+    """``up`` starts the source once the recorder is ready: ready must mean subscribed,
+    so a recorder that cannot open its session never reports ready."""
+    import threading
+
+    from mntes_stream.errors import MntesError
+    from mntes_stream.service import run_recorder_doc
+
+    ready = threading.Event()
+    doc = {"recorder": {"setup": "t", "directory": str(tmp_path)}, "zenoh": {"listen": ["tcp/not-an-address:1"]}}
+    with pytest.raises(MntesError):
+        run_recorder_doc(doc, None, ready)
+    assert not ready.is_set()

@@ -9,8 +9,7 @@ import threading
 import time
 
 import pytest
-import zenoh
-from mcap_helpers import counts_payload, hk_payload, provenance_payload, readable_messages, running_recorder, wait_matching
+from mcap_helpers import counts_payload, hk_payload, matched_publishers, provenance_payload, readable_messages, running_recorder
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap_io as mio
@@ -39,11 +38,9 @@ def session_a(tmp_path_factory):
             plan.append(("mntes/t/power/0/0", counts_payload(1000 + i)))  # stands in for an output
     with running_recorder(directory) as (ep, _):
         with open_session(ZenohSettings(connect=(ep,))) as z:
-            pubs = {k: z.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, _ in plan}
-            for p in pubs.values():
-                wait_matching(p, 30.0)
+            pubs = matched_publishers(z, sorted({k for k, _ in plan}))
             for key, payload in plan:
-                pubs[key].put(payload)
+                pubs.put(key, payload)
                 time.sleep(0.004)  # ~0.5 s of traffic, so pacing is measurable
             _wait_count(directory, len(plan))
     return directory, list(mio.iter_messages(directory))
@@ -105,7 +102,37 @@ def test_parse_time_and_config_errors():
     with pytest.raises(ConfigError):
         ReplayConfig(speed=-1)
     cfg = ReplayConfig.from_toml("services/replay.toml", source=("x.mcap",))
-    assert cfg.topics == ("mntes/*/counts/**", "mntes/*/hk/**") and cfg.source == ("x.mcap",)
+    assert cfg.topics == () and cfg.source == ("x.mcap",) and cfg.speed == 1.0  # (): the converter's inputs
+
+
+@pytest.mark.parametrize("line, match", [
+    ('speed = "2"', "speed must be a number"),
+    ("speed = nan", "speed must be finite"),
+    ("linger_s = inf", "linger_s must be finite"),
+    ("wait_subscribers_s = -1", "wait_subscribers_s must be >= 0"),
+    ('topics = "mntes/**"', "topics must be a list of string"),
+    ('source = ["a.mcap", 3]', "source must be a list of string"),
+    ("start_ns = 1.5", "start_ns must be an integer"),
+    ("start_ns = 10\nend_ns = 5", "end must be after start"),
+    ("speeed = 1", "unknown key"),
+])
+def test_replay_config_errors_name_the_value(tmp_path, line, match):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f"[replay]\n{line}\n")
+    with pytest.raises(ConfigError, match=match):
+        ReplayConfig.from_toml(bad)
+
+
+def test_replay_default_selects_the_inputs_of_every_setup(tmp_path):
+    from mntes_stream.io.transport import free_tcp_port, loopback
+
+    path = tmp_path / "two.mcap"
+    with mio.McapFileWriter(path) as w:
+        for i, key in enumerate(["mntes/a/counts/0/0", "mntes/b/hk/t_bath", "mntes/a/power/0/0", "mntes/a/provenance",
+                                 "mntes/b/status/converter", "other/a/counts/0/0"]):
+            w.write(key, counts_payload(i), T0 + i)
+    stats = run_replay(ReplayConfig(source=(str(path),), speed=0, wait_subscribers_s=0, linger_s=0, zenoh=loopback(free_tcp_port())))
+    assert stats.topics == 2 and stats.messages == 2 and stats.by_kind == {"counts": 1, "hk": 1}
 
 
 # ---------------------------------------------------------------------------- offline conversion
@@ -239,6 +266,89 @@ def test_offline_convert_needs_parameters(tmp_path):
         w.write("mntes/t/counts/0/0", counts_payload(0), T0)
     with pytest.raises(ConfigError, match="no provenance"):
         convert_recording(path, tmp_path / "out.mcap", progress=False)
+
+
+@pytest.fixture(scope="module")
+def two_calibrations(tmp_path_factory):
+    """A rotated recording whose converter was restarted half way with other parameters (T_c 0.1 % higher).
+
+    Written directly, as the live services would have: calibration A (the source's truth)
+    until ``t_switch``; there the old converter converts what it holds and stops, the new
+    one publishes its provenance and converts from then on. Rotation repeats provenance.
+    """
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.io import keys
+    from mntes_stream.io.paramfile import dump_params
+    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.source import MinimalSource, SourceConfig
+
+    src = MinimalSource(SourceConfig(setup="t", modules=1, channels=4))
+    calib = {"a": src.params, "b": [p.replace(t_c_k=p.transition.t_c_k * 1.001) for p in src.params]}
+    convs = {k: make_converter("table", {p.detector_id: p for p in v}) for k, v in calib.items()}
+    directory = tmp_path_factory.mktemp("two")
+    dump_params(calib["b"], directory.parent / "b.toml")
+    t_switch = T0 + 1_500_000_000
+    w = mio.RotatingMcapWriter(directory, "c", rotate_bytes=60_000, rotate_s=0)
+    prov_key = keys.provenance_key("t")
+
+    def pipeline(k):
+        return ConverterPipeline(convs[k], PipelineConfig(setup="t"), params=calib[k], clock=None)
+
+    pipe = pipeline("a")
+    w.write(prov_key, pipe.provenance_bytes(), T0)
+    for t_pub, batch in src.batches(T0, 3.0):
+        t_log = t_pub + 1_000_000
+        if t_log >= t_switch and pipe.converter is convs["a"]:
+            for k2, p2 in pipe.tick(t_switch) + pipe.flush():
+                w.write(k2, p2, t_switch)
+            pipe = pipeline("b")
+            w.write(prov_key, pipe.provenance_bytes(), t_switch)
+        for key, payload in batch:
+            w.write(key, payload, t_log)
+            for k2, p2 in pipe.handle(key, payload, t_log):
+                w.write(k2, p2, t_log)
+        w.write(prov_key, pipe.provenance_bytes(), t_log)  # republished: no new calibration
+    for k2, p2 in pipe.flush():
+        w.write(k2, p2, t_log)
+    w.close()
+    assert len(w.files) >= 3
+    return directory, src, {k: str(c.identity) for k, c in convs.items()}, t_switch
+
+
+def test_offline_convert_switches_calibration_where_the_recording_did(two_calibrations, tmp_path):
+    import numpy as np
+
+    from mntes_stream.service.offline import convert_recording, recorded_calibrations
+
+    directory, src, ident, t_switch = two_calibrations
+    assert [(t, p.table_identity) for t, p in recorded_calibrations(mio.Session(directory))] == \
+        [(T0, ident["a"]), (t_switch, ident["b"])]  # repeats and rotated copies are one calibration each
+    stats = convert_recording(directory, tmp_path / "out.mcap", progress=False)
+    assert stats.calibrations == 2 and stats.table_identity == stats.recorded_table_identity == ident["b"]
+    assert "changed 1 time(s)" in stats.summary()
+    rec, new = _power(directory), _power(tmp_path / "out.mcap")
+    assert len(new) == len(rec) == mio.Session(directory).count("mntes/t/counts/**")
+    for a, b in zip(rec, new, strict=True):
+        assert (a.seq, a.table_identity) == (b.seq, b.table_identity)
+        assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True) and np.array_equal(a.flags, b.flags)
+    # Independently of the recorded power: the part before the switch, converted with the truth,
+    # gives the source's optical power; the part after carries the newer calibration's bias.
+    before = [b for b in new if b.table_identity == ident["a"]]
+    after = [b for b in new if b.table_identity == ident["b"]]
+    assert before and after and max(b.t0_ns for b in before) < min(b.t0_ns for b in after) < t_switch
+    err = [b.p_opt_w - src.truth_p_opt_w(b.board, b.module, b.times_ns(), T0) for b in before]
+    assert max(np.nanmax(np.abs(e)) for e in err) < 5e-16
+    assert np.mean([np.nanmean(b.p_opt_w - src.truth_p_opt_w(b.board, b.module, b.times_ns(), T0)) for b in after]) > 1e-15
+
+
+def test_offline_convert_override_of_several_calibrations_warns(two_calibrations, tmp_path, caplog):
+    from mntes_stream.service.offline import convert_recording
+
+    directory, src, ident, _ = two_calibrations
+    with caplog.at_level("WARNING", logger="mntes_stream.offline"):
+        stats = convert_recording(directory, tmp_path / "out.mcap", params=directory.parent / "b.toml", progress=False)
+    assert "holds 2 calibrations" in caplog.text and "replace all of them" in caplog.text
+    assert stats.calibrations == 1 and {p.table_identity for p in _power(tmp_path / "out.mcap")} == {ident["b"]}
 
 
 def _live_run(tmp_path, name, params_file, feed, n_power):

@@ -21,24 +21,90 @@ __all__ = ["StopFlag", "stop_on_signals", "Services", "child_main", "run_recorde
 
 
 def dataclass_from_table(cls, table: dict, source: str, tuples: bool = False):
-    """``cls(**table)`` for a config table, naming unknown keys (ConfigError) instead of a TypeError.
+    """``cls(**table)`` for a config table; every problem is a ConfigError naming ``source``.
 
-    ``tuples`` turns TOML arrays into tuples (frozen dataclasses hold tuples).
+    Unknown keys, and values whose TOML type does not fit the field's annotation
+    (a string for a number, a number for a string, a bool for an int, a scalar
+    for an array), are named here; TypeError or ValueError from the constructor
+    become ConfigError too. Ranges and finiteness are the class's own
+    ``__post_init__`` checks. ``tuples`` turns TOML arrays into tuples (frozen
+    dataclasses hold tuples).
     """
     from dataclasses import fields
 
     from mntes_stream.errors import ConfigError
 
+    if not isinstance(table, dict):
+        raise ConfigError(f"{source}: expected a table, got {type(table).__name__}")
     known = {f.name for f in fields(cls)}
     unknown = set(table) - known
     if unknown:
         raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
+    hints = _field_types(cls)
+    for name, value in table.items():
+        if name in hints and not _fits(value, hints[name]):
+            raise ConfigError(f"{source}: {name} must be {_describe(hints[name])}, got {value!r}")
     if tuples:
         table = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
     try:
         return cls(**table)
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:
         raise ConfigError(f"{source}: {exc}") from None
+
+
+def _field_types(cls) -> dict:
+    """Resolved field annotations of a dataclass ({} if they cannot be resolved: checks then fall to the class)."""
+    import typing
+
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # a name only imported under TYPE_CHECKING
+        return {}
+
+
+def _fits(value, hint) -> bool:
+    """Whether a TOML value can stand for ``hint`` (unknown kinds of hint: True, the class decides)."""
+    import types
+    import typing
+
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in args)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(v, args[0]) for v in value)
+        return not args or (len(value) == len(args) and all(_fits(v, a) for v, a in zip(value, args)))
+    if isinstance(hint, type) and origin is None:
+        return isinstance(value, hint)
+    return True
+
+
+def _describe(hint, plural: bool = False) -> str:
+    import types
+    import typing
+
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a, plural) for a in args)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_describe(args[0], True)}"
+        return f"a list of {len(args)} values ({', '.join(_describe(a) for a in args)})"
+    one = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "absent"}
+    many = {bool: "booleans", int: "integers", float: "numbers", str: "strings"}
+    return (many if plural else one).get(hint, getattr(hint, "__name__", str(hint)))
 
 
 class StopFlag:
@@ -127,9 +193,7 @@ def run_recorder_doc(doc: dict, stop=None, ready=None) -> dict:
     from mntes_stream.service.recorder import RecorderConfig, run_recorder
 
     cfg = RecorderConfig.from_dict(doc, "recorder")
-    if ready is not None:
-        ready.set()  # subscribes within milliseconds; callers wait for a matching publisher anyway
-    return asdict(run_recorder(cfg, stop))
+    return asdict(run_recorder(cfg, stop, ready))  # ready once subscribed, so sources start after it
 
 
 class Services:

@@ -8,12 +8,17 @@ status, its provenance) are written to the output file. Outputs are stamped
 with the receive time of the message that produced them (``clock=None``), so
 running the conversion twice gives identical files' contents.
 
-Parameters and tables default to the recording's own provenance (the latest
-``mntes.provenance`` attachment): detector parameters from its TOML text, the
+Parameters and tables default to the recording's own provenance
+(``mntes.provenance`` attachments): detector parameters from its TOML text, the
 converter kind from it, and for table kinds a table bank rebuilt from those
-parameters whose identity must match the recorded one. ``tables`` (a table
-file) and ``params`` (a parameter TOML) override them, e.g. with a newer
-calibration.
+parameters whose identity must match the recorded one. When the calibration
+changed during the recording (a converter restarted with other parameters or
+tables), each part is converted with the calibration in force when it was
+received: at the recorded receive time of a new provenance, what the old
+pipeline holds is converted and a fresh pipeline with the new converter takes
+over, as the restarted live converter did. ``tables`` (a table file) and
+``params`` (a parameter TOML) override them for the whole recording, e.g. with
+a newer calibration (with a warning if the recording held several).
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from pathlib import Path
 
 from mntes_stream.errors import ConfigError
 
-__all__ = ["OfflineStats", "build_converter", "convert_recording"]
+__all__ = ["OfflineStats", "build_converter", "convert_recording", "recorded_calibrations"]
 
 log = logging.getLogger("mntes_stream.offline")
 
@@ -50,6 +55,7 @@ class OfflineStats:
     duration_s: float
     input_complete: bool
     flag_counts: dict = field(default_factory=dict)
+    calibrations: int = 1  # recorded calibrations used (more than one: switched at their receive times)
 
     def summary(self) -> str:
         same = "same tables as recorded" if self.table_identity == self.recorded_table_identity else \
@@ -59,15 +65,49 @@ class OfflineStats:
                 f"{self.input_messages} recorded inputs in {self.duration_s:.1f} s -> {self.output}\n"
                 f"  converter {self.converter_kind}, tables {self.table_identity[:16]} ({same})\n"
                 f"  params: {self.params_source}; tables: {self.tables_source}; bad messages: {bad}"
+                + (f"\n  the calibration changed {self.calibrations - 1} time(s) during the recording: each part "
+                   "converted with its own (figures above: the last)" if self.calibrations > 1 else "")
                 + ("" if self.input_complete else "\n  input was not finished by its recorder: converted what was recovered"))
 
 
-def _recorded_provenance(source):
-    from mntes_stream.io.mcap_io import latest_provenance
+def _calibration(prov) -> tuple:
+    """What decides a conversion (a restarted converter republishes it with a new ``t_ns``)."""
+    return (prov.setup, prov.params_toml, prov.table_identity, prov.converter_kind)
+
+
+def recorded_calibrations(session) -> list:
+    """The calibrations a recording holds, in receive-time order.
+
+    Parameters
+    ----------
+    session : mcap_io.Session
+
+    Returns
+    -------
+    list of (int, Provenance)
+        The recorded receive time (ns) of each provenance that changed the
+        calibration of its setup, and that provenance. Rotated files repeat
+        the latest provenance with its original receive time: counted once.
+    """
+    from mntes_stream.errors import SchemaError
+    from mntes_stream.io.mcap_io import PROVENANCE_ATTACHMENT
     from mntes_stream.io.messages import Provenance
 
-    raw = latest_provenance(source)
-    return None if raw is None else Provenance.from_bytes(raw)
+    first: dict[tuple[int, bytes], int] = {}
+    for k, a in enumerate(session.attachments()):
+        if a.name == PROVENANCE_ATTACHMENT:
+            first.setdefault((a.log_time_ns, a.data), k)
+    out, current = [], {}
+    for (t_ns, data), _ in sorted(first.items(), key=lambda kv: (kv[0][0], kv[1])):
+        try:
+            prov = Provenance.from_bytes(data)
+        except SchemaError as exc:  # files of recorders that stored it unchecked
+            log.warning("recorded provenance at log time %d unreadable, ignored: %s", t_ns, exc)
+            continue
+        if current.get(prov.setup) != _calibration(prov):
+            current[prov.setup] = _calibration(prov)
+            out.append((t_ns, prov))
+    return out
 
 
 def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None):
@@ -130,54 +170,103 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     output : path
         New MCAP file (never overwritten).
     tables, params : path, optional
-        Override the recording's tables / parameters.
+        Override the recording's tables / parameters for the whole recording.
+        Without them, every recorded calibration converts the part of the
+        recording received while it was in force.
     pipeline_config : PipelineConfig, optional
         Alignment and status settings; default: the pipeline's defaults for
         the recording's setup.
     progress : bool
         tqdm progress bar over the input messages.
     """
+    from collections import Counter
+
     from tqdm import tqdm
 
     from mntes_stream.io import keys
     from mntes_stream.io.mcap_io import McapFileWriter, Session, writer_description
     from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
-    from mntes_stream.service.replay import INPUT_TOPICS
+    from mntes_stream.service.replay import INPUT_KINDS, input_topics
 
     t_start = time.monotonic()
     session = Session(source)
-    prov = _recorded_provenance(source)
-    converter, pdict, psrc, tsrc = build_converter(prov, params=params, tables=tables)
+    calibrations = recorded_calibrations(session)
     if pipeline_config is None:
-        setup = prov.setup if prov is not None else None
+        setup = calibrations[-1][1].setup if calibrations else None
         if setup is None:
-            setups = {t.split("/")[1] for t in session.message_counts() if t.count("/") >= 2}
+            setups = {_setup_of(t) for t in session.message_counts() if keys.kind_of(t) in INPUT_KINDS} - {None}
             if len(setups) != 1:
                 raise ConfigError(f"cannot tell the setup of the recording (found {sorted(setups)})")
             setup = setups.pop()
         pipeline_config = PipelineConfig(setup=setup)
-    pipe = ConverterPipeline(converter, pipeline_config, params=pdict, clock=None)
-    selection = [t.replace("*", pipeline_config.setup, 1) for t in INPUT_TOPICS]
+    calibrations = [(t, prov) for t, prov in calibrations if prov.setup == pipeline_config.setup]
+    prov = calibrations[-1][1] if calibrations else None
+    # Every converter is built (and checked against its recorded identity) before the output exists.
+    if params is not None or tables is not None or len(calibrations) <= 1:
+        if len(calibrations) > 1:
+            log.warning("the recording holds %d calibrations (changed at log times %s); the given %s replace all of them",
+                        len(calibrations), [t for t, _ in calibrations[1:]], "tables" if tables is not None else "parameters")
+        plan = [(None, build_converter(prov, params=params, tables=tables))]
+    else:
+        built: dict[tuple, tuple] = {}  # a calibration that comes back is not rebuilt
+        plan = []
+        for k, (t_ns, p) in enumerate(calibrations):
+            if _calibration(p) not in built:
+                built[_calibration(p)] = build_converter(p)
+            plan.append((t_ns if k else None, built[_calibration(p)]))
+        log.info("the calibration changed %d time(s) during the recording: each part converted with its own", len(plan) - 1)
+    converter, pdict, psrc, tsrc = plan[-1][1]
+    selection = list(input_topics(pipeline_config.setup))
     total = session.count(selection)
     n_in = n_power = n_status = 0
     meta = writer_description(
-        mode="offline conversion", input=[str(f.path) for f in session.files], params_source=psrc, tables_source=tsrc
+        mode="offline conversion", input=[str(f.path) for f in session.files], params_source=psrc, tables_source=tsrc,
+        calibrations=str(len(plan)),
     )
+    totals = {"samples_converted": 0, "chunks_lost": 0}
+    bad, flag_counts = Counter(), Counter()
+
+    def add_status(pipe) -> None:
+        status = pipe.status()
+        totals["samples_converted"] += status.samples_converted
+        totals["chunks_lost"] += status.chunks_lost
+        bad.update(status.bad_messages)
+        flag_counts.update(status.flag_counts)
+
     with McapFileWriter(output, metadata={"mntes.recording": meta}) as out:
         bar = tqdm(total=total, unit="msg", desc="convert", disable=not progress)
         t_last = None
+        epoch = 0
 
         def emit(items, t_ns):
             nonlocal n_power, n_status
             for key, payload in items:
                 out.write(key, payload, t_ns)
-                kind = key.split("/")[2]
+                kind = keys.kind_of(key)
                 n_power += kind == "power"
                 n_status += kind == "status"
 
+        def start_pipeline(k, t_ns):
+            conv, pd = plan[k][1][:2]
+            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None)
+            out.write(keys.provenance_key(pipeline_config.setup), new.provenance_bytes(), t_ns)
+            return new
+
+        pipe = None
         for msg in session.iter_messages(selection):
-            if t_last is None:
-                out.write(keys.provenance_key(pipeline_config.setup), pipe.provenance_bytes(), msg.log_time_ns)
+            if pipe is None or (epoch + 1 < len(plan) and msg.log_time_ns >= plan[epoch + 1][0]):
+                while epoch + 1 < len(plan) and msg.log_time_ns >= plan[epoch + 1][0]:
+                    epoch += 1
+                if pipe is None:
+                    pipe = start_pipeline(epoch, msg.log_time_ns)
+                else:
+                    # The converter changed at t_switch: what the old one holds arrived
+                    # before, so it is the old one's to convert (as the stopped live converter did).
+                    t_switch = plan[epoch][0]
+                    emit(pipe.tick(t_switch), t_switch)
+                    emit(pipe.flush(), t_switch)
+                    add_status(pipe)
+                    pipe = start_pipeline(epoch, t_switch)
             t_last = msg.log_time_ns
             # Release what waited long enough *before* this message, as the live service's ticks do.
             emit(pipe.tick(msg.log_time_ns), msg.log_time_ns)
@@ -185,17 +274,17 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
             emit(pipe.handle(msg.topic, msg.payload, msg.log_time_ns), msg.log_time_ns)
             n_in += 1
             bar.update(1)
-        if t_last is not None:
+        if pipe is not None:
             emit(pipe.flush(), t_last)
+            add_status(pipe)
         bar.close()
-    status = pipe.status()
     return OfflineStats(
         input_messages=n_in,
         power_chunks=n_power,
         status_messages=n_status,
-        samples_converted=status.samples_converted,
-        bad_messages={k: v for k, v in status.bad_messages.items() if v},
-        chunks_lost=status.chunks_lost,
+        samples_converted=totals["samples_converted"],
+        bad_messages={k: v for k, v in bad.items() if v},
+        chunks_lost=totals["chunks_lost"],
         converter_kind=str(converter.kind),
         table_identity=str(converter.identity),
         recorded_table_identity=prov.table_identity if prov is not None else "",
@@ -204,5 +293,15 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         output=str(output),
         duration_s=time.monotonic() - t_start,
         input_complete=session.complete,
-        flag_counts={k: v for k, v in status.flag_counts.items() if v},
+        flag_counts={k: v for k, v in flag_counts.items() if v},
+        calibrations=len(plan),
     )
+
+
+def _setup_of(topic: str) -> str | None:
+    from mntes_stream.io import keys
+
+    try:
+        return keys.parse_key(topic)["setup"]
+    except ConfigError:
+        return None

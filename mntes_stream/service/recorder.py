@@ -15,32 +15,18 @@ from __future__ import annotations
 import logging
 import time
 import tomllib
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, MntesError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service import stop_on_signals
+from mntes_stream.service import dataclass_from_table, stop_on_signals
 
 __all__ = ["RecorderConfig", "RecorderStats", "run_recorder"]
 
 log = logging.getLogger("mntes_stream.recorder")
-
-
-def _from_dict(cls, d: dict, source: str, tuples: tuple[str, ...] = ()):
-    known = {f.name: f for f in fields(cls)}
-    unknown = set(d) - set(known)
-    if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
-    kw = {}
-    for k, v in d.items():
-        if k in tuples:
-            if isinstance(v, str) or not all(isinstance(x, str) for x in v):
-                raise ConfigError(f"{source}: {k} must be a list of strings")
-            v = tuple(v)
-        kw[k] = v
-    return cls(**kw)
 
 
 @dataclass(frozen=True)
@@ -72,7 +58,7 @@ class RecorderConfig:
         the callback waits (back-pressure on BLOCK publishers, no loss).
     """
 
-    setup: str = "lab"
+    setup: str = keys.DEFAULT_SETUP
     key_expr: str = ""
     directory: str = "recordings"
     prefix: str = "mntes"
@@ -89,16 +75,29 @@ class RecorderConfig:
 
     def __post_init__(self):
         keys.all_key(self.setup)  # validates the setup name
-        if self.flush_interval_s <= 0:
-            raise ConfigError(f"flush_interval_s must be > 0, got {self.flush_interval_s}")
-        if self.rotate_mb < 0 or self.rotate_s < 0 or self.duration_s < 0:
-            raise ConfigError("rotate_mb, rotate_s and duration_s must be >= 0 (0 disables)")
-        if self.queue_messages < 1:
-            raise ConfigError(f"queue_messages must be >= 1, got {self.queue_messages}")
-        if self.chunk_size_kb < 1:
-            raise ConfigError(f"chunk_size_kb must be >= 1, got {self.chunk_size_kb}")
+        for name in ("key_expr", "directory", "prefix"):
+            if not isinstance(getattr(self, name), str):
+                raise ConfigError(f"recorder: {name} must be a string, got {getattr(self, name)!r}")
+        if not keys.NAME_PATTERN.fullmatch(self.prefix):
+            raise ConfigError(f"recorder: prefix {self.prefix!r} must match [A-Za-z0-9_.-]+")
+        # Finite numbers only: a NaN flush interval never flushes (no crash-loss bound),
+        # a NaN duration never stops.
+        for name, positive in (("flush_interval_s", True), ("log_interval_s", True), ("rotate_mb", False),
+                               ("rotate_s", False), ("duration_s", False)):
+            v = finite_float("recorder", name, getattr(self, name))
+            if v < 0 or (positive and v == 0):
+                raise ConfigError(f"recorder: {name} must be {'> 0' if positive else '>= 0 (0 disables)'}, got {v}")
+            object.__setattr__(self, name, v)
+        for name in ("queue_messages", "chunk_size_kb"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ConfigError(f"recorder: {name} must be an integer >= 1, got {v!r}")
+        if not isinstance(self.fsync, bool):
+            raise ConfigError(f"recorder: fsync must be true or false, got {self.fsync!r}")
         if self.compression not in ("zstd", "lz4", "none"):
-            raise ConfigError(f"compression must be zstd, lz4 or none, got {self.compression!r}")
+            raise ConfigError(f"recorder: compression must be zstd, lz4 or none, got {self.compression!r}")
+        if not isinstance(self.zenoh, ZenohSettings):
+            raise ConfigError("recorder: zenoh must be a ZenohSettings (the [zenoh] table)")
 
     @property
     def subscription(self) -> str:
@@ -118,11 +117,14 @@ class RecorderConfig:
         unknown = set(doc) - {"recorder", "zenoh"}
         if unknown:
             raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [recorder], [zenoh])")
+        for table in ("recorder", "zenoh"):
+            if not isinstance(doc.get(table, {}), dict):
+                raise ConfigError(f"{source}: [{table}] must be a table")
         rec = dict(doc.get("recorder", {}))
         z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
         if "zenoh" in rec:
             raise ConfigError(f"{source}: put zenoh settings in the [zenoh] table")
-        return _from_dict(cls, {**rec, "zenoh": z}, f"{source} [recorder]")
+        return dataclass_from_table(cls, {**rec, "zenoh": z}, f"{source} [recorder]")
 
     def to_metadata(self) -> dict[str, str]:
         """Flat string form stored in every file's ``mntes.recording`` metadata."""
@@ -158,11 +160,6 @@ class RecorderStats:
     queue_high_water: int
     dropped_on_close: int
     duration_s: float
-
-
-def _kind(topic: str) -> str:
-    parts = topic.split("/")
-    return parts[2] if len(parts) > 2 and parts[0] == keys.PREFIX else "other"
 
 
 def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> RecorderStats:
@@ -206,7 +203,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> Recorde
         nonlocal gaps, repeats
         topic, payload, t_ns = item
         env = writer.write(topic, payload, t_ns)
-        kind = _kind(topic)
+        kind = keys.kind_of(topic) or "other"
         by_kind[kind] = by_kind.get(kind, 0) + 1
         if env.seq is not None:
             prev = last_seq.get(topic)

@@ -15,17 +15,23 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
+from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError
+from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service import stop_on_signals
-from mntes_stream.service.recorder import _from_dict
+from mntes_stream.service import dataclass_from_table, stop_on_signals
 
-__all__ = ["INPUT_TOPICS", "ReplayConfig", "ReplayStats", "parse_time", "run_replay"]
+__all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayStats", "input_topics", "parse_time", "run_replay"]
 
 log = logging.getLogger("mntes_stream.replay")
 
-#: What a converter consumes: the default selection of a replay.
-INPUT_TOPICS = ("mntes/*/counts/**", "mntes/*/hk/**")
+#: Key kinds a converter consumes: the default selection of a replay (any setup).
+INPUT_KINDS = ("counts", "hk")
+
+
+def input_topics(setup: str) -> tuple[str, ...]:
+    """Key expressions of a converter's inputs for one setup: counts and housekeeping."""
+    return (keys.counts_key(setup), keys.hk_key(setup))
 
 
 @dataclass(frozen=True)
@@ -41,8 +47,9 @@ class ReplayConfig:
     start_ns, end_ns : int, optional
         Replay messages with ``start_ns <= log_time < end_ns``.
     topics : tuple of str
-        Topics or zenoh-style patterns; default: the converter's inputs
-        (:data:`INPUT_TOPICS`). ``("**",)`` replays everything.
+        Topics or zenoh-style patterns (``("**",)``: everything); empty (the
+        default): the converter's inputs, i.e. every recorded topic whose kind
+        is in :data:`INPUT_KINDS`, whatever its setup.
     wait_subscribers_s : float
         Wait up to this long for every publisher to have a matching subscriber.
     linger_s : float
@@ -53,18 +60,30 @@ class ReplayConfig:
     speed: float = 1.0
     start_ns: int | None = None
     end_ns: int | None = None
-    topics: tuple[str, ...] = INPUT_TOPICS
+    topics: tuple[str, ...] = ()
     wait_subscribers_s: float = 5.0
     linger_s: float = 0.5
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
 
     def __post_init__(self):
-        if self.speed < 0:
-            raise ConfigError(f"speed must be >= 0 (0: as fast as possible), got {self.speed}")
+        for name in ("source", "topics"):
+            v = getattr(self, name)
+            if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v):
+                raise ConfigError(f"replay: {name} must be a list of strings, got {v!r}")
+            object.__setattr__(self, name, tuple(v))
+        for name in ("speed", "wait_subscribers_s", "linger_s"):
+            v = finite_float("replay", name, getattr(self, name))
+            if v < 0:
+                raise ConfigError(f"replay: {name} must be >= 0{' (0: as fast as possible)' if name == 'speed' else ''}, got {v}")
+            object.__setattr__(self, name, v)
+        for name in ("start_ns", "end_ns"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, int) or isinstance(v, bool)):
+                raise ConfigError(f"replay: {name} must be an integer (ns since the epoch), got {v!r}")
         if self.start_ns is not None and self.end_ns is not None and self.end_ns <= self.start_ns:
-            raise ConfigError("end must be after start")
-        if self.wait_subscribers_s < 0 or self.linger_s < 0:
-            raise ConfigError("wait_subscribers_s and linger_s must be >= 0")
+            raise ConfigError("replay: end must be after start")
+        if not isinstance(self.zenoh, ZenohSettings):
+            raise ConfigError("replay: zenoh must be a ZenohSettings (the [zenoh] table)")
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides) -> ReplayConfig:
@@ -76,9 +95,12 @@ class ReplayConfig:
         unknown = set(doc) - {"replay", "zenoh"}
         if unknown:
             raise ConfigError(f"{path}: unknown table(s) {sorted(unknown)} (expected [replay], [zenoh])")
+        for table in ("replay", "zenoh"):
+            if not isinstance(doc.get(table, {}), dict):
+                raise ConfigError(f"{path}: [{table}] must be a table")
         z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{path} [zenoh]", base_dir=str(Path(path).parent))
         d = {**doc.get("replay", {}), "zenoh": z, **overrides}
-        return _from_dict(cls, d, f"{path} [replay]", tuples=("source", "topics"))
+        return dataclass_from_table(cls, d, f"{path} [replay]", tuples=True)
 
 
 @dataclass(frozen=True)
@@ -121,7 +143,7 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
     if not config.source:
         raise ConfigError("nothing to replay: no source files")
     session_in = Session(list(config.source))
-    match = topic_matcher(config.topics)
+    match = topic_matcher(config.topics) if config.topics else (lambda t: keys.kind_of(t) in INPUT_KINDS)
     topics = sorted(t for t in session_in.message_counts() if match(t))
     total = session_in.count(topics)
     by_kind: dict[str, int] = {}
@@ -156,7 +178,7 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
             pubs.put(msg.topic, msg.payload)
             n += 1
             nbytes += len(msg.payload)
-            kind = msg.topic.split("/")[2] if msg.topic.count("/") >= 2 else "other"
+            kind = keys.kind_of(msg.topic) or "other"
             by_kind[kind] = by_kind.get(kind, 0) + 1
             if bar is not None:
                 bar.update(1)
