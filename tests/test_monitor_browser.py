@@ -17,6 +17,7 @@ import contextlib
 import json
 import math
 import os
+import queue
 import shutil
 import subprocess
 import sys
@@ -64,13 +65,28 @@ def _normal_tes_counts(p, n: int) -> np.ndarray:
     return np.full(n, complex(round(c.real), round(c.imag)))
 
 
+class _Publisher(threading.Thread):
+    """Runs :func:`_publish_normal_channel`; keeps what it raised for the test to re-raise."""
+
+    def __init__(self, *args):
+        super().__init__(target=_publish_normal_channel, args=args, daemon=True)
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except BaseException as exc:
+            self.error = exc
+
+
 def _publish_normal_channel(port: int, p, stop: threading.Event) -> None:
     """Counts for b0m2c000 every 0.1 s, sample times on the wall clock like the simulator's."""
     n = 15
     c = _normal_tes_counts(p, n)
     with open_session(loopback(None, [port])) as z:
         pubs = Publishers(z)
-        pubs.wait_matching([keys.counts_key("lab", 0, 2)], 30, stop)
+        if not pubs.wait_matching([keys.counts_key("lab", 0, 2)], 30, stop) and not stop.is_set():
+            raise TimeoutError("the converter never subscribed to the extra module's counts")
         t0 = time.time_ns()
         seq = 0
         while not stop.is_set():
@@ -98,6 +114,17 @@ def _process(args, log_path: Path):
                 proc.kill()
                 proc.wait(5)
         log.close()
+
+
+def _read_line(proc, timeout_s: float, log_path: Path) -> str:
+    """The child's next stdout line, or a test failure after ``timeout_s`` (a silent child must not hang CI)."""
+    lines: queue.Queue = queue.Queue()
+    # readline blocks; a daemon thread does it (it ends when the child's stdout closes at terminate).
+    threading.Thread(target=lambda: lines.put(proc.stdout.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=timeout_s)
+    except queue.Empty:
+        pytest.fail(f"no output from {proc.args} within {timeout_s} s; its log: {log_path.read_text()[-2000:]}")
 
 
 def _wait(driver, predicate, timeout_s: float, what: str):
@@ -139,10 +166,10 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         monitor = stack.enter_context(_process(
             ["monitor", "--port", "0", "--setup", "lab", "--duration", "120",
              "--connect", f"tcp/127.0.0.1:{p_conv}", "--connect", f"tcp/127.0.0.1:{p_sim}"], tmp_path / "monitor.log"))
-        publisher = threading.Thread(target=_publish_normal_channel, args=(p_conv, normal, stop), daemon=True)
+        publisher = _Publisher(p_conv, normal, stop)
         publisher.start()
         stack.callback(lambda: (stop.set(), publisher.join(10)))
-        line = monitor.stdout.readline()
+        line = _read_line(monitor, 60, tmp_path / "monitor.log")
         assert "serving http://127.0.0.1:" in line, f"monitor did not start: {line!r} {(tmp_path / 'monitor.log').read_text()}"
         url = line.split("serving ", 1)[1].split()[0]
         driver = headless_chromium(profile_dir=str(tmp_path / "chromium-profile"))
@@ -205,3 +232,16 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         assert shot.stat().st_size > 20_000
         if os.environ.get("MNTES_MONITOR_SCREENSHOT"):
             shutil.copy(shot, os.environ["MNTES_MONITOR_SCREENSHOT"])
+    assert not publisher.is_alive(), "the extra module's publisher did not stop"
+    if publisher.error is not None:
+        raise publisher.error
+
+
+def test_missing_chromium_is_a_config_error(monkeypatch):
+    """What `mntes-stream bench monitor` gets on a machine without chromium: a package error, not a traceback."""
+    from mntes_stream.errors import MntesError
+    from mntes_stream.monitor import browser
+
+    monkeypatch.setattr(browser, "find_chromium", lambda: None)  # as on a machine without the packages
+    with pytest.raises(MntesError, match="apt-get install -y chromium chromium-driver"):
+        browser.headless_chromium()

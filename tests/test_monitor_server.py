@@ -16,19 +16,18 @@ import sys
 import threading
 import time
 
+import aiohttp  # the [test] extra pulls in [monitor]: a missing aiohttp is a broken install, not a skip
 import numpy as np
 import pytest
 
-pytest.importorskip("aiohttp", reason="the monitor extra is not installed")
-import aiohttp  # noqa: E402
-
-from mntes_stream.core import flags as fl  # noqa: E402
-from mntes_stream.io import keys  # noqa: E402
-from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage, detector_ids_for  # noqa: E402
-from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session  # noqa: E402
-from mntes_stream.monitor.aggregate import MonitorConfig  # noqa: E402
-from mntes_stream.monitor.server import is_loopback, serve  # noqa: E402
-from mntes_stream.monitor.subscriber import MonitorSubscriber  # noqa: E402
+from mntes_stream.core import flags as fl
+from mntes_stream.errors import ConfigError
+from mntes_stream.io import keys
+from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage, detector_ids_for
+from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
+from mntes_stream.monitor.aggregate import MonitorConfig
+from mntes_stream.monitor.server import _parse_f_hwp, is_loopback, serve
+from mntes_stream.monitor.subscriber import MonitorSubscriber
 
 FS = 100.0
 N = 20  # samples per chunk: 0.2 s
@@ -46,11 +45,32 @@ def chunk_bytes(module: int, seq: int, t0_ns: int) -> bytes:
                       "tables-x", "table", t, time.time_ns()).to_bytes()
 
 
+class Worker(threading.Thread):
+    """A daemon thread that keeps what its target raised; :meth:`check` joins and re-raises it in the test."""
+
+    def __init__(self, target, *args):
+        super().__init__(target=target, args=args, daemon=True)
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except BaseException as exc:
+            self.error = exc
+
+    def check(self, timeout_s: float = 10.0) -> None:
+        self.join(timeout_s)
+        assert not self.is_alive(), f"{self.name} did not stop within {timeout_s} s"
+        if self.error is not None:
+            raise self.error
+
+
 def publish_stream(port: int, stop: threading.Event, modules=(0, 1)) -> None:
     """Power for two modules, housekeeping and a status, paced in real time; one malformed message."""
     with open_session(loopback(None, [port])) as z:
         pubs = Publishers(z)
-        assert pubs.wait_matching([keys.power_key("lab", 0, 0)], 10, stop)
+        if not pubs.wait_matching([keys.power_key("lab", 0, 0)], 10, stop) and not stop.is_set():
+            raise TimeoutError("the monitor never subscribed")
         pubs.put(keys.power_key("lab", 0, 9), b"\x93not a message")
         t0 = time.time_ns()
         seq = 0
@@ -73,19 +93,19 @@ def monitor_with_stream():
     info: dict = {}
     ready = threading.Event()
     with MonitorSubscriber("lab", loopback(zport), MonitorConfig(history_s=10.0)) as sub:
-        server = threading.Thread(target=serve, args=(sub, "127.0.0.1", 0, 0.2, 60.0,
-                                                      lambda h, p: (info.update(port=p), ready.set()), stop), daemon=True)
+        server = Worker(serve, sub, "127.0.0.1", 0, 0.2, 60.0, lambda h, p: (info.update(port=p), ready.set()), stop)
         server.start()
-        pub = threading.Thread(target=publish_stream, args=(zport, stop), daemon=True)
+        pub = Worker(publish_stream, zport, stop)
         pub.start()
         try:
-            assert ready.wait(15), "server did not start"
+            if not ready.wait(15):
+                server.check(0.1)
+                pytest.fail("server did not start")
             yield sub, f"http://127.0.0.1:{info['port']}"
         finally:
             stop.set()
-            pub.join(10)
-            server.join(10)
-    assert not server.is_alive() and not pub.is_alive()
+            pub.check()
+            server.check()
 
 
 async def _until(fn, timeout_s=15.0):
@@ -160,8 +180,18 @@ def test_page_assets_state_and_websocket_protocol():
             async with http.get(base + "/api/view", params=[("ch", "b0m0c001"), ("f_hwp", "1.02")]) as r:
                 view = await r.json()
                 assert view["spectrum"]["harmonics_hz"] == pytest.approx([1.02, 2.04, 4.08])
-            async with http.get(base + "/api/view", params=[("ch", "b0m0c001"), ("f_hwp", "-1")]) as r:
-                assert r.status == 400
+            for bad in ("-1", "abc", "nan"):
+                async with http.get(base + "/api/view", params=[("ch", "b0m0c001"), ("f_hwp", bad)]) as r:
+                    assert r.status == 400 and "f_HWP" in await r.text()
+            async with http.ws_connect(base + "/ws") as ws:  # bad requests get an error reply, the connection stays
+                for bad, why in (("[1, 2]", "JSON object"), ('{"type": "rendered"}', "newest_t_pub_ns"),
+                                 ('{"type": "f_hwp", "value": "x"}', "f_HWP"), ('{"type": "select", "channels": 3}', "list"),
+                                 ('{"type": "nope"}', "unknown message type")):
+                    await ws.send_str(bad)
+                    while (msg := json.loads((await ws.receive(timeout=5)).data))["type"] != "error":
+                        pass
+                    assert why in msg["message"], (bad, msg)
+                assert json.loads((await ws.receive(timeout=5)).data)["type"] == "update"
 
     with monitor_with_stream() as (_, base):
         asyncio.run(scenario(base))
@@ -174,15 +204,16 @@ def test_text_mode_prints_a_bounded_live_table():
         [sys.executable, "-m", "mntes_stream", "monitor", "--text", "--duration", "4", "--update-s", "1",
          "--listen", f"tcp/127.0.0.1:{zport}"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    pub = threading.Thread(target=publish_stream, args=(zport, stop), daemon=True)
+    pub = Worker(publish_stream, zport, stop)
     pub.start()
     try:
         out, err = proc.communicate(timeout=60)
     finally:
         stop.set()
-        pub.join(10)
         if proc.poll() is None:
             proc.kill()
+            proc.wait(10)
+    pub.check()
     assert proc.returncode == 0, err
     screens = [s for s in out.split("\n\n") if s.strip()]
     assert 3 <= len(screens) <= 6  # about one per second, and it stopped by itself
@@ -192,6 +223,13 @@ def test_text_mode_prints_a_bounded_live_table():
     assert "t_bath 100.0000 mK" in last and "b_field 2.000 uT" in last
     row = next(line for line in last.splitlines() if line.startswith("monitor"))
     assert float(row.split()[1]) == pytest.approx(10.0, rel=0.3)  # chunks/s received: 2 modules x 5 chunks/s
+
+
+def test_bad_f_hwp_is_a_config_error():
+    assert _parse_f_hwp("auto") is None and _parse_f_hwp(None) == "config" and _parse_f_hwp("0.5") == 0.5
+    for bad in ("abc", "-1", "inf", "0", [1]):
+        with pytest.raises(ConfigError, match="f_HWP"):
+            _parse_f_hwp(bad)
 
 
 def test_only_loopback_counts_as_loopback():

@@ -80,6 +80,7 @@ def run_monitor(args) -> int:
 
 def register(sub) -> None:
     from mntes_stream.cli._common import add_zenoh_args
+    from mntes_stream.io import keys
 
     p = sub.add_parser(
         "monitor",
@@ -88,7 +89,7 @@ def register(sub) -> None:
         "(time streams, spectrum with HWP harmonics, channel-state grid, housekeeping, service health). "
         "Works the same on a live converter and on `mntes-stream replay`.",
     )
-    p.add_argument("--setup", default="lab", help="setup name (default: lab)")
+    p.add_argument("--setup", default=keys.DEFAULT_SETUP, help=f"setup name (default: {keys.DEFAULT_SETUP})")
     p.add_argument("--bind", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; anything else exposes the page beyond this machine)")
     p.add_argument("--port", type=_in_range(int, 0, 65535, "port (0: any free port)"), default=8050, help="HTTP port (default 8050; 0 picks a free one)")

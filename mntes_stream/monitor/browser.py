@@ -11,6 +11,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from mntes_stream.errors import ConfigError
+
 __all__ = ["CHROMIUM_FLAGS", "find_chromium", "headless_chromium", "page_state"]
 
 # Root-safe, quiet, offline: no sandbox (root), no GPU, no phoning home, a fresh profile.
@@ -33,7 +35,7 @@ def headless_chromium(window: tuple[int, int] = (1400, 1300), profile_dir: str |
 
     Raises
     ------
-    RuntimeError
+    ConfigError
         When chromium/chromedriver are not installed.
     """
     from selenium import webdriver
@@ -41,7 +43,7 @@ def headless_chromium(window: tuple[int, int] = (1400, 1300), profile_dir: str |
 
     found = find_chromium()
     if found is None:
-        raise RuntimeError("chromium and chromedriver not found: apt-get install -y chromium chromium-driver")
+        raise ConfigError("chromium and chromedriver not found: apt-get install -y chromium chromium-driver")
     binary, driver = found
     opts = webdriver.ChromeOptions()
     for flag in CHROMIUM_FLAGS:

@@ -94,14 +94,17 @@ _TICKER = web.AppKey("ticker", asyncio.Task)
 
 
 def _parse_f_hwp(value):
-    """"auto" -> None (estimate), a positive number -> float, "config" stays."""
+    """"auto" -> None (estimate), a positive number -> float, "config" stays; else ConfigError."""
     if value in ("config", None, ""):
         return "config"
     if value == "auto":
         return None
-    f = float(value)
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        f = math.nan
     if not (math.isfinite(f) and f > 0):
-        raise ValueError("f_HWP must be a positive number or 'auto'")
+        raise ConfigError(f"f_HWP must be a positive number or 'auto', got {value!r}")
     return f
 
 
@@ -163,7 +166,7 @@ def make_app(subscriber, update_s: float = 0.5):
     async def api_view(request):
         try:
             f_hwp = _parse_f_hwp(request.query.get("f_hwp"))
-        except ValueError as exc:
+        except ConfigError as exc:
             raise web.HTTPBadRequest(text=str(exc)) from None
         view = await asyncio.to_thread(subscriber.view, request.query.getall("ch", []), f_hwp)
         return web.Response(text=_dumps(view), content_type="application/json")
@@ -214,25 +217,33 @@ def make_app(subscriber, update_s: float = 0.5):
                 if raw.type != WSMsgType.TEXT:
                     continue
                 try:
-                    req = json.loads(raw.data)
+                    try:
+                        req = json.loads(raw.data)
+                    except json.JSONDecodeError as exc:
+                        raise ConfigError(f"not JSON: {exc}") from None
+                    if not isinstance(req, dict):
+                        raise ConfigError("a message must be a JSON object")
                     kind = req.get("type")
                     if kind == "select":
                         chans = req.get("channels")
                         if not isinstance(chans, list) or not all(isinstance(c, str) for c in chans):
-                            raise ValueError("channels must be a list of detector ids")
+                            raise ConfigError("channels must be a list of detector ids")
                         client["selection"] = chans
                         client["wake"].set()
                     elif kind == "f_hwp":
                         client["f_hwp"] = _parse_f_hwp(req.get("value"))
                         client["wake"].set()
                     elif kind == "rendered":
-                        t_pub, t_render = int(req["newest_t_pub_ns"]), int(req["t_render_ns"])
+                        try:
+                            t_pub, t_render = int(req["newest_t_pub_ns"]), int(req["t_render_ns"])
+                        except (KeyError, TypeError, ValueError):
+                            raise ConfigError("rendered needs integer newest_t_pub_ns and t_render_ns") from None
                         if t_pub > 0:
                             with subscriber.lock:
                                 subscriber.aggregator.report_render(t_pub, t_render)
                     else:
-                        raise ValueError(f"unknown message type {kind!r}")
-                except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                        raise ConfigError(f"unknown message type {kind!r}")
+                except ConfigError as exc:  # tell the page; the connection stays
                     await ws.send_str(_dumps({"type": "error", "message": str(exc)}))
         finally:
             sender.cancel()

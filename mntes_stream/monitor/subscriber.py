@@ -124,7 +124,7 @@ class MonitorSubscriber:
     def handle(self, key: str, payload: bytes, t_recv_ns: int) -> None:
         """Decode one message and feed it to the aggregator (caller holds :attr:`lock`)."""
         agg = self.aggregator
-        kind = key.split("/")[2] if key.count("/") >= 2 else ""
+        kind = keys.kind_of(key)
         cls = _DECODERS.get(kind)
         if cls is None:
             agg.add_bad("wrong_key")
