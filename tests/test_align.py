@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mntes_stream.core import flags as fl
-from mntes_stream.core.align import HkSeries, align, sample_times_ns
+from mntes_stream.core.align import HkSeries, align, last_sample_offset_ns, sample_times_ns
 from mntes_stream.errors import ConfigError
 
 T0 = 1_700_000_000_000_000_000  # realistic ns epoch: precision must survive it
@@ -184,3 +184,35 @@ def test_series_window_gives_the_same_result_as_the_whole_history(sc):
     np.testing.assert_array_equal(windowed.flags, whole.flags)
     np.testing.assert_array_equal(windowed.value, whole.value)
     np.testing.assert_array_equal(windowed.age_ns, whole.age_ns)
+
+
+def test_sample_times_never_wrap():
+    """int64 arithmetic wraps silently: a chunk whose last sample is beyond int64 ns must raise instead."""
+    i64 = np.iinfo(np.int64).max
+    assert sample_times_ns(i64 - 10**9, 1.0, 2)[-1] == i64           # the very last representable time
+    for t0, rate, n in [(i64 - 10, 1.0, 2), (0, 1e-300, 2), (T0, 1e-9, 10**6), (0, float("nan"), 2),
+                        (0, 0.0, 2), (0, -1.0, 2), (2**63, 1.0, 1), (0, 1e-300, 1)]:
+        with pytest.raises(ConfigError):
+            sample_times_ns(t0, rate, n)
+    assert sample_times_ns(i64, 1.0, 1).tolist() == [i64]            # one sample: no span at all
+    assert last_sample_offset_ns(152.59, 1000) == int(sample_times_ns(0, 152.59, 1000)[-1])
+
+
+def test_series_prunes_against_the_callers_clock():
+    """One reading stamped far ahead must not push the history out (HkSeries.add with now_ns)."""
+    s = HkSeries(retention_ns=10 * 10**9)
+    for k in range(20):
+        s.add([T0 + k * 10**9], [0.1], now_ns=T0 + k * 10**9)
+    s.add([T0 + 10**18], [9.0], now_ns=T0 + 19 * 10**9)               # a bogus future reading
+    assert len(s) == 12 and s.t_ns[0] == T0 + 9 * 10**9                # history behind the clock kept
+    a = s.align([T0 + 15 * 10**9], 10**9)
+    assert a.value[0] == 0.1 and a.flags[0] == 0
+    # Without a clock the newest reading is the clock: the documented hazard.
+    legacy = HkSeries(retention_ns=10 * 10**9)
+    legacy.add(T0 + np.arange(20) * 10**9, np.full(20, 0.1))
+    legacy.add([T0 + 10**18], [9.0])
+    assert len(legacy) == 1
+    # The newest reading always stays, however old: a silent sensor's value holds (stale).
+    quiet = HkSeries(retention_ns=10)
+    quiet.add([5, 6], [0.1, 0.2], now_ns=10**12)
+    assert quiet.t_ns.tolist() == [6]

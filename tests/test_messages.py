@@ -244,3 +244,32 @@ def test_times_convention():
     np.testing.assert_array_equal(t, 1_000_000_000 + np.rint(np.arange(4) * 1e9 / 152.59).astype(np.int64))
     explicit = _counts(t0_ns=None, sample_rate_hz=None, t_ns=np.array([5, 6, 6, 9]))
     np.testing.assert_array_equal(m.CountsChunk.from_bytes(explicit.to_bytes()).times_ns(), [5, 6, 6, 9])
+
+
+@pytest.mark.parametrize("changes", [
+    {"t0_ns": 2**63 - 10, "sample_rate_hz": 1.0},        # the last sample (3 s later) is beyond int64
+    {"t0_ns": 0, "sample_rate_hz": 1e-300},              # 1e-300 Hz: sample 1 at 1e309 ns
+    {"sample_rate_hz": 1e-4},                             # below the accepted range
+    {"sample_rate_hz": 2e6},                              # above it
+])
+def test_sample_times_that_cannot_exist_are_invalid(changes):
+    """Before: t0_ns near INT64_MAX wrapped to negative times, 1e-300 Hz gave INT64_MIN, silently."""
+    with pytest.raises(SchemaError) as info:
+        _counts(**changes)
+    assert m.reason_of(info.value) == "invalid"
+    raw = msgpack.unpackb(_counts().to_bytes())
+    for cls in (m.CountsChunk, m.PowerChunk):
+        if cls is m.PowerChunk:
+            raw = msgpack.unpackb(m.PowerChunk("lab", 0, 1, [2], ["b0m1c002"], 0, 10**18, 200.0, np.zeros((1, 4)),
+                                               np.zeros((1, 4), np.uint16), "h", "exact", 0, 0).to_bytes())
+        with pytest.raises(SchemaError) as info:
+            cls.from_bytes(msgpack.packb(dict(raw, **changes)))
+        assert m.reason_of(info.value) == "invalid"
+
+
+def test_sample_times_at_the_limits_are_valid():
+    lo, hi = m.SAMPLE_RATE_RANGE_HZ
+    for rate in (lo, hi):
+        assert _counts(sample_rate_hz=rate).times_ns()[0] == 10**18
+    last = _counts(t0_ns=2**63 - 1 - 3 * 10**9, sample_rate_hz=1.0).times_ns()
+    assert last[-1] == 2**63 - 1 and np.all(np.diff(last) == 10**9)

@@ -241,6 +241,7 @@ def test_bias_housekeeping_is_used_per_channel(source, converter):
         v_used = v if pw.module == 0 else None
         env = EnvironmentBlock(_interp(t, tb_t, tb_v), _interp(t, b_t, b_v), v_thev_v=v_used)
         ref = converter.convert(pw.detector_ids, c.counts_i, c.counts_q, env)
+        np.testing.assert_array_equal(pw.flags, ref.flags)
         np.testing.assert_allclose(pw.p_opt_w, ref.p_opt_w, rtol=1e-12)
     assert any(pw.module == 0 for pw in power)
 
@@ -270,18 +271,27 @@ def test_status_cadence_and_schema(source, converter):
     assert set(status[-1].hk_age_s) == {"t_bath", "b_field"}
 
 
-def test_config_validation():
+@pytest.mark.parametrize("bad", [
+    {"required_hk": ("pressure",)}, {"required_hk": "t_bath"}, {"hk_staleness_s": -1}, {"hk_stalenes_s": 1},
+    {"setup": "a/b"}, {"setup": 3}, {"max_pending": 2.5}, {"max_pending": True}, {"max_pending": 0},
+    {"t_bath_default_k": float("nan")}, {"t_bath_default_k": 0.0}, {"b_field_default_t": float("inf")},
+    {"hk_wait_s": float("nan")}, {"hk_wait_s": float("inf")}, {"hk_wait_s": "1"}, {"status_interval_s": 0},
+    {"hk_retention_s": 0}, {"hk_max_ahead_s": -1.0}, {"t_bath_range_k": [0.2, 0.05]},
+    {"t_bath_range_k": [0.05, float("nan")]}, {"bias_range_v": [0.0]}, {"b_field_range_t": "ab"},
+])
+def test_config_validation(bad):
     from mntes_stream.errors import ConfigError
 
     with pytest.raises(ConfigError):
-        PipelineConfig(required_hk=("pressure",))
-    with pytest.raises(ConfigError):
-        PipelineConfig(hk_staleness_s=-1)
-    with pytest.raises(ConfigError):
-        PipelineConfig.from_dict({"hk_stalenes_s": 1})
-    with pytest.raises(ConfigError):
-        PipelineConfig(setup="a/b")
-    assert PipelineConfig.from_dict({"t_bath_range_k": [0.05, 0.2]}).t_bath_range_k == (0.05, 0.2)
+        PipelineConfig.from_dict(bad)
+
+
+def test_config_normalises():
+    cfg = PipelineConfig.from_dict({"t_bath_range_k": [0.05, 0.2], "required_hk": ["t_bath"], "hk_wait_s": 1,
+                                    "hk_staleness_s": float("inf")})
+    assert cfg.t_bath_range_k == (0.05, 0.2) and cfg.required_hk == ("t_bath",)
+    assert isinstance(cfg.hk_wait_s, float) and cfg.hk_staleness_s == float("inf")
+    assert PipelineConfig().setup == keys.DEFAULT_SETUP
 
 
 def test_housekeeping_arriving_between_modules_of_one_step_is_used(source, converter):
@@ -296,3 +306,180 @@ def test_housekeeping_arriving_between_modules_of_one_step_is_used(source, conve
     (late,) = _split(pipe.handle(*c1))[0]
     assert np.all(early.flags & fl.HK_STALE)
     assert not late.flags.any()
+
+
+# ---------------------------------------------------------------------------- robustness
+
+
+def _hk_msg(sensor, t_ns, value, seq=0, setup="lab"):
+    hk = HousekeepingChunk(setup, sensor, seq, t_ns, value, {"t_bath": "K", "b_field": "T"}[sensor])
+    return keys.hk_key(setup, sensor), hk.to_bytes()
+
+
+def _reference_power(converter, msgs, pw, counts):
+    """The library conversion of one power chunk's counts with independently interpolated housekeeping."""
+    tb_t, tb_v = _hk_series(msgs, "t_bath")
+    b_t, b_v = _hk_series(msgs, "b_field")
+    c = counts[(pw.board, pw.module, pw.seq)]
+    t = c.times_ns()
+    env = EnvironmentBlock(_interp(t, tb_t, tb_v), _interp(t, b_t, b_v))
+    return converter.convert(pw.detector_ids, c.counts_i, c.counts_q, env)
+
+
+@pytest.mark.parametrize("offset_s", [1e6, 60.0, -1e6, -1.7e9])
+def test_housekeeping_far_from_the_data_clock_is_rejected_and_counted(source, converter, offset_s):
+    """One reading stamped far in the future (or absurdly far in the past) must not wipe the history."""
+    msgs = _messages(source, 12)
+    i = next(j for j, m in enumerate(msgs) if "/counts/" in m[0] and CountsChunk.from_bytes(m[1]).seq == 4)
+    t_recv = msgs[i][2]
+    key, bad = _hk_msg("t_bath", [t_recv + int(offset_s * 1e9)], [0.1], seq=999)
+    pipe = ConverterPipeline(converter, PipelineConfig(status_interval_s=0.5))
+    power, status = _split(_run(pipe, msgs[:i] + [(key, bad, t_recv)] + msgs[i:]) + pipe.flush())
+    counts = {(c.board, c.module, c.seq): c for c in (CountsChunk.from_bytes(p) for k, p, _ in msgs if "/counts/" in k)}
+    assert len(power) == len(counts) == 24
+    for pw in power:  # every chunk, before and after the bad reading, as if it had never come
+        ref = _reference_power(converter, msgs, pw, counts)
+        np.testing.assert_array_equal(pw.flags, ref.flags)
+        np.testing.assert_allclose(pw.p_opt_w, ref.p_opt_w, rtol=1e-12, atol=0)
+        assert not pw.flags.any()
+    st = status[-1]
+    assert st.bad_messages == {"hk_time": 1} and st.last_error.startswith("hk_time")
+    assert st.hk_missing_samples == 0 and st.hk_received == 12 * 2 + 1
+
+
+def test_housekeeping_checks_follow_the_recording_clock_in_a_replay(source, converter):
+    """A recording replayed a year later: readings are judged by the data clock of the counts, not rejected."""
+    year = 365 * 86400 * 10**9
+    msgs = [(k, p, t + year) for k, p, t in _messages(source, 6)]
+    pipe = ConverterPipeline(converter)
+    power, _ = _split(_run(pipe, msgs) + pipe.flush())
+    assert len(power) == 12 and not any(pw.flags.any() for pw in power)
+    assert pipe.status().bad_messages == {}
+
+
+def test_housekeeping_out_of_range_and_failed_readings(source, converter):
+    msgs = _messages(source, 4)
+    hk = [m for m in msgs if "/hk/" in m[0]]
+    counts = [m for m in msgs if "/counts/" in m[0]]
+    # The bath reading at 0.2 s reads 5 K (outside t_bath_range_k), the one at 0.3 s failed (NaN).
+    t_bad = T0 + 2 * 10**8
+    edited = []
+    for k, p, t in hk:
+        h = HousekeepingChunk.from_bytes(p)
+        if h.sensor == "t_bath":
+            v = h.value.copy()
+            v[h.t_ns == t_bad] = 5.0
+            v[h.t_ns == T0 + 3 * 10**8] = np.nan
+            p = HousekeepingChunk(h.setup, h.sensor, h.seq, h.t_ns, v, h.unit).to_bytes()
+        edited.append((k, p, t))
+    pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0))
+    power, _ = _split(_run(pipe, edited + counts) + pipe.flush())
+    assert len(power) == 8
+    for pw in power:
+        t = pw.times_ns()
+        # Samples interpolated with the 5 K reading (0.1 s < t < 0.4 s, the NaN one being ignored) are flagged.
+        uses_bad = (t > t_bad - 10**8) & (t < t_bad + 2 * 10**8)
+        np.testing.assert_array_equal(pw.flags, np.where(uses_bad, fl.ENV_OUT_OF_RANGE, 0)[None, :].repeat(4, axis=0))
+    assert pipe.status().flag_counts["env_out_of_range"] > 0
+    assert pipe.status().bad_messages == {}
+    # Only failed readings: as if none had come (t_bath required: missing, NaN power).
+    pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0))
+    nan_tb = [_hk_msg("t_bath", [T0, T0 + 10**8], [np.nan, np.nan]) + (T0,)]
+    power, _ = _split(_run(pipe, nan_tb + [m for m in hk if m[0].endswith("b_field")] + counts))
+    assert power and all(np.all(pw.flags & fl.HK_MISSING) and np.all(np.isnan(pw.p_opt_w)) for pw in power)
+
+
+def test_bias_reading_out_of_range_flags_that_module(source, converter):
+    msgs = _messages(source, 3)
+    bias = HousekeepingChunk("lab", "bias", 0, [T0 - 10**9], [[5e-3, 1e-6]], "V", board=0, module=1, channels=[0, 1])
+    pipe = ConverterPipeline(converter, PipelineConfig(bias_range_v=(0.0, 1e-3)))
+    power, _ = _split(_run(pipe, [(keys.hk_key("lab", keys.hk_sensor("bias", 0, 1)), bias.to_bytes(), T0)] + msgs)
+                      + pipe.flush())
+    assert len(power) == 6
+    for pw in power:
+        want = fl.ENV_OUT_OF_RANGE if pw.module == 1 else 0
+        assert np.all((pw.flags & fl.ENV_OUT_OF_RANGE) == want), pw.module
+    assert pipe.status().bad_messages == {}
+
+
+def test_counts_at_the_int32_rails_are_flagged_not_fatal(source, converter):
+    msgs = _messages(source, 2)
+    hk = [m for m in msgs if "/hk/" in m[0]]
+    k, p, t = next(m for m in msgs if m[0].endswith("counts/0/0"))
+    c = CountsChunk.from_bytes(p)
+    hi, lo = np.iinfo(np.int32).max, np.iinfo(np.int32).min
+    ci, cq = c.counts_i.copy(), c.counts_q.copy()
+    ci[0], cq[0] = hi, lo
+    ci[1], cq[1] = lo, hi
+    ci[2], cq[2] = hi, hi
+    rails = CountsChunk(c.setup, c.board, c.module, c.channels, c.seq, c.t0_ns, c.sample_rate_hz, ci, cq, c.t_pub_ns)
+    pipe = ConverterPipeline(converter)
+    (pw,) = [x for x in _split(_run(pipe, hk + [(k, rails.to_bytes(), t)]) + pipe.flush())[0]]
+    ref = _reference_power(converter, msgs, pw, {(c.board, c.module, c.seq): rails})
+    np.testing.assert_array_equal(pw.flags, ref.flags)
+    assert np.all(pw.flags[:3] & fl.UNUSABLE) and np.all(np.isnan(pw.p_opt_w[:3]))
+    np.testing.assert_allclose(pw.p_opt_w[3], ref.p_opt_w[3], rtol=1e-12)
+    assert not pw.flags[3].any()
+    assert pipe.status().bad_messages == {}
+
+
+def _renumbered(msg, seq, dt_s=0.0):
+    k, p, t = msg
+    c = CountsChunk.from_bytes(p)
+    return k, CountsChunk(c.setup, c.board, c.module, c.channels, seq, c.t0_ns + int(dt_s * 1e9), c.sample_rate_hz,
+                          c.counts_i, c.counts_q, c.t_pub_ns).to_bytes(), t
+
+
+@pytest.mark.parametrize("name, seqs, resets, lost, out_of_order", [
+    # One corrupt number (chunk 3 came as 2**62) then the stream goes on: two resets, nothing lost.
+    ("corrupt", [0, 1, 2, 2**62, 4, 5, 6, 7, 8, 9], 2, 0, 0),
+    # The int64 rail twice: the status must stay a valid message.
+    ("rails", [0, 2**63 - 1, 2, 3, 2**63 - 1 - 2**40, 5, 6, 7, 8, 9], 4, 0, 0),
+    # A jump far back (the source restarted at 0 after a long run).
+    ("restart", [50000, 50001, 50002, 50003, 50004, 0, 1, 2, 3, 4], 1, 0, 0),
+])
+def test_huge_sequence_jumps_are_stream_resets(source, converter, name, seqs, resets, lost, out_of_order):
+    msgs = [m for m in _messages(source, 10) if m[0].endswith("counts/0/0") or "/hk/" in m[0]]
+    counts = [m for m in msgs if "/counts/" in m[0]]
+    hk = [m for m in msgs if "/hk/" in m[0]]
+    pipe = ConverterPipeline(converter)
+    power, _ = _split(_run(pipe, hk + [_renumbered(counts[i], seq) for i, seq in enumerate(seqs)]) + pipe.flush())
+    st = StatusMessage.from_bytes(pipe.status().to_bytes())  # the status stays a valid message
+    assert sorted(p.seq for p in power) == sorted(seqs) and st.chunks_converted == 10
+    assert st.bad_messages == {"seq_reset": resets}
+    assert (st.chunks_lost, st.chunks_out_of_order, st.chunks_duplicated) == (lost, out_of_order, 0)
+
+
+def test_a_restart_reusing_recent_numbers_is_not_a_duplicate(source, converter):
+    """A source restarted within 256 chunks sends numbers the converter has just seen, with new samples."""
+    msgs = [m for m in _messages(source, 10) if m[0].endswith("counts/0/0") or "/hk/" in m[0]]
+    counts = [m for m in msgs if "/counts/" in m[0]]
+    hk = [m for m in msgs if "/hk/" in m[0]]
+    script = counts[:5] + [counts[2]]                                     # 0-4, then a real duplicate of 2
+    script += [_renumbered(counts[5 + i], i) for i in range(5)]           # restart: 0-4 again, later samples
+    pipe = ConverterPipeline(converter)
+    power, _ = _split(_run(pipe, hk + script) + pipe.flush())
+    st = pipe.status()
+    assert len(power) == 10 and st.chunks_duplicated == 1
+    assert st.bad_messages == {"seq_reset": 1} and st.chunks_lost == st.chunks_out_of_order == 0
+
+
+def test_a_chunk_that_cannot_be_converted_is_dropped_once_and_counted(source, converter):
+    """A failure outside the converter's own guard must not leave the chunk blocking (or re-publishing) the queue."""
+    calls = []
+
+    def clock():  # the publication stamp of the third chunk fails
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError("clock unavailable")
+        return T0 + len(calls)
+
+    msgs = _messages(source, 5)
+    pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0), clock=clock)
+    power, _ = _split(_run(pipe, msgs) + pipe.flush())
+    seqs = [(p.module, p.seq) for p in power]
+    assert len(seqs) == len(set(seqs)) == 9       # 10 chunks, each published at most once, one dropped
+    st = pipe.status()
+    assert pipe.pending == 0 and st.chunks_pending == 0
+    assert st.bad_messages == {"internal_error": 1} and "clock unavailable" in st.last_error
+    assert pipe.counters["chunks_failed"] == 1

@@ -148,6 +148,9 @@ def test_bad_input_is_reported_and_the_service_keeps_converting(source, params_f
         (key, shifted(c0, 4, 0.4, channels=np.array([0, 99], np.int32))),   # channel 99 unknown
         (key, shifted(c0, 5, -30.0)),                                 # long before any housekeeping: missing
         (key, shifted(c0, 6, 30.0)),                                  # long after: waits, then stale
+        (keys.counts_key("lab", 0, 1), counts[1][1].to_bytes()),     # module 0's payload on module 1's key
+        (keys.hk_key("lab", "t_bath"), HousekeepingChunk(            # a reading stamped 11 days ahead
+            "lab", "t_bath", 99, [time.time_ns() + 10**15], [0.1], "K").to_bytes()),
         (key, shifted(c0, 7, 0.3)),                                   # a good chunk after all that
     ]
     with converter_service(params_file, hk_wait_s=0.3, hk_staleness_s=1.0) as (_, port, thread), \
@@ -162,7 +165,7 @@ def test_bad_input_is_reported_and_the_service_keeps_converting(source, params_f
         assert thread.is_alive()
         sub.close()
     st = [s for s in _of(msgs, StatusMessage) if s.chunks_converted >= 8][-1]
-    assert st.bad_messages == {"malformed": 1, "wrong_version": 1, "unknown_schema": 1}
+    assert st.bad_messages == {"malformed": 1, "wrong_version": 1, "unknown_schema": 1, "wrong_key": 1, "hk_time": 1}
     assert st.chunks_out_of_order == 1 and st.chunks_duplicated == 1 and st.chunks_lost == 0
     assert st.unknown_channel_samples == 20 and st.flag_counts["unknown_channel"] == 20
     assert st.hk_missing_samples == 20 and st.hk_stale_samples == 20
@@ -181,8 +184,11 @@ def test_serve_stops_cleanly_on_sigterm(tmp_path, source, params_file):
         f'[converter]\nsetup = "lab"\nparams = "{params_file.name}"\nkind = "table"\nprovenance_interval_s = 0.2\n'
         f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n'
     )
-    proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", str(config), "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    # Output to files, not pipes: a pipe nobody drains blocks the child once it holds 64 KiB.
+    log_path = tmp_path / "serve.log"
+    with open(log_path, "wb") as log_file:
+        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", str(config), "-q"],
+                                stdout=log_file, stderr=subprocess.STDOUT, cwd=tmp_path)
     try:
         with open_session(loopback(None, [port])) as z:
             sub = QueueSubscriber(z, OUTPUTS)
@@ -195,9 +201,9 @@ def test_serve_stops_cleanly_on_sigterm(tmp_path, source, params_file):
             final = collect(sub, lambda m: any(s.chunks_converted == 6 for s in _of(m, StatusMessage)))
             assert final
             sub.close()
-        assert proc.wait(timeout=20) == 0, proc.stderr.read().decode()
+        assert proc.wait(timeout=20) == 0, log_path.read_text()
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert b"Traceback" not in proc.stderr.read()
+    assert "Traceback" not in log_path.read_text()

@@ -22,6 +22,7 @@ reading so ns timestamps near 2e18 keep full precision.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,12 +30,40 @@ import numpy as np
 from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError
 
-__all__ = ["Aligned", "align", "sample_times_ns", "HkSeries"]
+__all__ = ["Aligned", "align", "sample_times_ns", "last_sample_offset_ns", "HkSeries"]
+
+_INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
+
+
+def last_sample_offset_ns(sample_rate_hz: float, n: int) -> int:
+    """Offset of sample ``n - 1`` from the first, ``round((n - 1) * 1e9 / rate)`` exactly as
+    :func:`sample_times_ns` computes it (0 for ``n <= 1``); a Python int, never wrapped.
+
+    Raises ConfigError unless the rate is finite and > 0 with a finite period
+    and the offset is finite.
+    """
+    rate = float(sample_rate_hz)
+    step = 1e9 / rate if math.isfinite(rate) and rate > 0 else math.nan
+    if not math.isfinite(step):  # 1e-300 Hz: an infinite step, and 0 * inf is NaN even for sample 0
+        raise ConfigError(f"sample rate must be finite and > 0 with a finite period, got {sample_rate_hz!r}")
+    if n <= 1:
+        return 0
+    off = float(np.rint(np.float64(n - 1) * step))
+    if not math.isfinite(off):
+        raise ConfigError(f"{n} samples at {rate} Hz span more than any time can")
+    return int(off)
 
 
 def sample_times_ns(t0_ns: int, sample_rate_hz: float, n: int) -> np.ndarray:
-    """Times of a regularly sampled chunk: ``t0_ns + round(k * 1e9 / rate)``, int64 (n,)."""
-    k = np.arange(int(n), dtype=np.float64)
+    """Times of a regularly sampled chunk: ``t0_ns + round(k * 1e9 / rate)``, int64 (n,).
+
+    Raises ConfigError when the last time does not fit int64 (numpy would wrap it silently).
+    """
+    n, t0 = int(n), int(t0_ns)
+    last = t0 + last_sample_offset_ns(sample_rate_hz, n)
+    if not (_INT64_MIN <= t0 <= _INT64_MAX and last <= _INT64_MAX):
+        raise ConfigError(f"{n} samples from t0 {t0} ns at {sample_rate_hz} Hz end beyond int64 ns")
+    k = np.arange(n, dtype=np.float64)
     return np.int64(t0_ns) + np.rint(k * (1e9 / float(sample_rate_hz))).astype(np.int64)
 
 
@@ -142,15 +171,19 @@ class HkSeries:
     """A growing, bounded history of one sensor's readings (pure state, no I/O).
 
     Readings may arrive in any order; a reading at an existing time replaces
-    the old one. Non-finite readings (failed sensor reads) are dropped. Readings older than ``retention_ns`` before the newest are
-    pruned, so memory stays bounded in a long run.
+    the old one. Non-finite readings (failed sensor reads) are dropped.
+    Readings older than ``retention_ns`` before the caller's clock (``now_ns``
+    of :meth:`add`) are pruned, so memory stays bounded in a long run. Without
+    ``now_ns`` the newest reading is the clock: then one reading stamped far
+    in the future prunes the whole history, so callers that cannot vouch for
+    the readings' times pass ``now_ns``.
 
     Parameters
     ----------
     width : int or None
         None for scalar sensors; the number of channels for per-channel ones.
     retention_ns : int
-        History kept behind the newest reading.
+        History kept behind the clock.
     """
 
     def __init__(self, width: int | None = None, retention_ns: int = 600 * 10**9):
@@ -167,8 +200,13 @@ class HkSeries:
     def newest_t_ns(self) -> int | None:
         return int(self.t_ns[-1]) if self.t_ns.size else None
 
-    def add(self, t_ns, value) -> None:
-        """Add readings: ``t_ns`` (n,) int64, ``value`` (n,) or (n, width)."""
+    def add(self, t_ns, value, now_ns: int | None = None) -> None:
+        """Add readings: ``t_ns`` (n,) int64, ``value`` (n,) or (n, width).
+
+        ``now_ns``: the caller's clock; history older than ``now_ns -
+        retention_ns`` is pruned (default: relative to the newest reading);
+        the newest reading is always kept.
+        """
         t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
         v = np.asarray(value, dtype=np.float64)
         want = (t.size,) if self.width is None else (t.size, self.width)
@@ -195,7 +233,10 @@ class HkSeries:
             keep = np.ones(all_t.size, dtype=bool)
             keep[:-1] = all_t[1:] != all_t[:-1]
             self.t_ns, self.value = all_t[keep], all_v[keep]
-        cut = np.searchsorted(self.t_ns, self.t_ns[-1] - self.retention_ns, side="left")
+        ref = int(self.t_ns[-1]) if now_ns is None else int(now_ns)
+        # The newest reading always stays: a silent sensor's last value holds (flagged stale).
+        cut = min(int(np.searchsorted(self.t_ns, max(ref - self.retention_ns, _INT64_MIN), side="left")),
+                  self.t_ns.size - 1)
         if cut > 0:
             self.t_ns, self.value = self.t_ns[cut:], self.value[cut:]
 

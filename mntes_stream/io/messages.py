@@ -21,14 +21,16 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from mntes_stream.core.align import sample_times_ns
+from mntes_stream.core.align import last_sample_offset_ns, sample_times_ns
 from mntes_stream.core.ids import detector_id
-from mntes_stream.errors import SchemaError
+from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io.codec import decode_array, encode_array, pack, unpack
+from mntes_stream.io.keys import NAME_PATTERN
 
 __all__ = [
     "REASONS",
     "SENSOR_UNITS",
+    "SAMPLE_RATE_RANGE_HZ",
     "CountsChunk",
     "HousekeepingChunk",
     "PowerChunk",
@@ -43,7 +45,9 @@ __all__ = [
 # Why a message was rejected; the keys of StatusMessage.bad_messages.
 REASONS = ("malformed", "unknown_schema", "wrong_schema", "wrong_version", "invalid", "wrong_key")
 SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V"}
-_SETUP = re.compile(r"^[A-Za-z0-9_.\-]+$")
+# Sample rates a chunk may declare: beyond, sample times lose meaning (1e-300 Hz
+# puts sample 1 beyond int64 ns) long before any readout gets there.
+SAMPLE_RATE_RANGE_HZ = (1e-3, 1e6)
 _INT64_MAX = (1 << 63) - 1
 
 
@@ -162,8 +166,19 @@ def _times(obj, n_samp: int) -> None:
     else:
         if obj.t0_ns is None or obj.sample_rate_hz is None:
             raise _error("invalid", "t0_ns and sample_rate_hz (or t_ns) are required")
-        object.__setattr__(obj, "t0_ns", _int(obj.t0_ns, "t0_ns"))
-        object.__setattr__(obj, "sample_rate_hz", _float(obj.sample_rate_hz, "sample_rate_hz", positive=True))
+        t0 = _int(obj.t0_ns, "t0_ns")
+        rate = _float(obj.sample_rate_hz, "sample_rate_hz", positive=True)
+        lo, hi = SAMPLE_RATE_RANGE_HZ
+        if not lo <= rate <= hi:
+            raise _error("invalid", f"sample_rate_hz = {rate} outside [{lo:g}, {hi:g}]")
+        try:
+            last = t0 + last_sample_offset_ns(rate, n_samp)
+        except ConfigError as exc:
+            raise _error("invalid", str(exc)) from None
+        if last > _INT64_MAX:
+            raise _error("invalid", f"the last of {n_samp} samples from t0_ns = {t0} at {rate} Hz is beyond int64 ns")
+        object.__setattr__(obj, "t0_ns", t0)
+        object.__setattr__(obj, "sample_rate_hz", rate)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -281,7 +296,7 @@ class CountsChunk(_Message):
     t_ns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", _SETUP)
+        _str(self.setup, "setup", NAME_PATTERN)
         for name in ("board", "module", "seq", "t_pub_ns"):
             object.__setattr__(self, name, _int(getattr(self, name), name))
         ch = _channels(self.channels)
@@ -337,7 +352,7 @@ class HousekeepingChunk(_Message):
     channels: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", _SETUP)
+        _str(self.setup, "setup", NAME_PATTERN)
         if self.sensor not in SENSOR_UNITS:
             raise _error("invalid", f"sensor {self.sensor!r} not one of {sorted(SENSOR_UNITS)}")
         if self.unit != SENSOR_UNITS[self.sensor]:
@@ -409,7 +424,7 @@ class PowerChunk(_Message):
     t_ns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", _SETUP)
+        _str(self.setup, "setup", NAME_PATTERN)
         for name in ("board", "module", "seq", "source_t_pub_ns", "t_pub_ns"):
             object.__setattr__(self, name, _int(getattr(self, name), name))
         _str(self.table_identity, "table_identity")
@@ -485,7 +500,7 @@ class StatusMessage(_Message):
     last_error: str = ""
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", _SETUP)
+        _str(self.setup, "setup", NAME_PATTERN)
         _str(self.service, "service")
         _str(self.last_error, "last_error")
         for f in fields(self):
@@ -542,7 +557,7 @@ class Provenance(_Message):
     t_ns: int
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", _SETUP)
+        _str(self.setup, "setup", NAME_PATTERN)
         for name in ("params_toml", "table_identity", "converter_kind", "software_version"):
             _str(getattr(self, name), name)
         object.__setattr__(self, "t_ns", _int(self.t_ns, "t_ns"))

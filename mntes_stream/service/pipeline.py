@@ -10,11 +10,21 @@ What happens to a message (``handle``):
 - counts chunk: decoded and validated, checked against its key, its sequence
   number tracked per ``(board, module)`` stream (lost = numbers skipped, minus
   those that turn up late; out of order = a skipped number that turned up;
-  duplicated = a number seen recently: dropped). The chunk then waits until
+  duplicated = a number seen recently with the same first sample time:
+  dropped; a jump of more than 4096 either way, or a recent number with other
+  sample times = the stream restarted: resynchronised, counted as
+  ``bad_messages["seq_reset"]``, not as lost). The chunk then waits until
   every *required* housekeeping sensor has a reading at or after its last
   sample (so housekeeping is interpolated, not extrapolated) or until it has
   waited ``hk_wait_s`` of receive time, whichever first;
-- housekeeping: added to that sensor's history (``core.align.HkSeries``);
+- housekeeping: added to that sensor's history (``core.align.HkSeries``),
+  except readings stamped more than ``hk_max_ahead_s`` ahead of the data clock
+  or (bias excepted: a setting holds) more than ``hk_retention_s`` behind it,
+  which are counted (``bad_messages["hk_time"]``) and dropped. The data clock
+  is the receive clock minus the median delay (receive time minus ``t_pub_ns``)
+  of the latest counts chunks, so a replayed old recording is judged by its own
+  time. History is pruned relative to the data clock, never relative to the
+  newest reading, which one bad time stamp could push anywhere;
 - anything that fails to decode, or does not match its key, is counted by
   reason in the status and otherwise ignored: the service never stops on one.
 
@@ -30,6 +40,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import statistics
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -39,6 +50,7 @@ import numpy as np
 from mntes_stream import __version__
 from mntes_stream.core import flags as fl
 from mntes_stream.core.align import HkSeries
+from mntes_stream.core.checks import finite_float
 from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
@@ -58,7 +70,9 @@ log = logging.getLogger("mntes_stream.converter")
 
 SCALAR_SENSORS = ("t_bath", "b_field")
 _SEQ_RECENT = 256      # sequence numbers remembered per stream to spot duplicates
-_SEQ_MISSING = 4096    # skipped numbers remembered per stream to spot late arrivals
+_SEQ_MISSING = 4096    # skipped numbers remembered per stream to spot late arrivals; a longer jump is a restart
+_INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
+_OFFSETS = 32          # counts chunks whose receive delay sets the data clock (median: one bad t_pub_ns cannot move it)
 
 
 @dataclass(frozen=True)
@@ -90,10 +104,14 @@ class PipelineConfig:
     max_pending : int
         Chunks held at most; beyond, the oldest is converted at once.
     hk_retention_s : float
-        Housekeeping history kept.
+        Housekeeping history kept behind the data clock; older readings are rejected.
+    hk_max_ahead_s : float
+        Readings stamped further ahead of the data clock are rejected
+        (``bad_messages["hk_time"]``): readings are causal, so only clock
+        offsets between hosts put them ahead at all.
     """
 
-    setup: str = "lab"
+    setup: str = keys.DEFAULT_SETUP
     service: str = "converter"
     required_hk: tuple[str, ...] = SCALAR_SENSORS
     hk_staleness_s: float = 2.0
@@ -107,33 +125,55 @@ class PipelineConfig:
     status_interval_s: float = 1.0
     max_pending: int = 4096
     hk_retention_s: float = 600.0
+    hk_max_ahead_s: float = 10.0
 
     def __post_init__(self):
-        keys.status_key(self.setup, "x")  # validates the setup name
-        keys.status_key(self.setup, self.service)
-        req = tuple(self.required_hk)
-        if set(req) - set(SCALAR_SENSORS):
-            raise ConfigError(f"required_hk must be a subset of {SCALAR_SENSORS}, got {list(req)}")
-        object.__setattr__(self, "required_hk", req)
-        for name in ("hk_staleness_s", "hk_wait_s", "bias_staleness_s", "status_interval_s", "hk_retention_s"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= 0:
-                raise ConfigError(f"{name} must be a number >= 0, got {v!r}")
-        if self.status_interval_s <= 0:
-            raise ConfigError("status_interval_s must be > 0")
+        for name in ("setup", "service"):
+            if not isinstance(getattr(self, name), str):
+                raise ConfigError(f"pipeline: {name} must be a string, got {getattr(self, name)!r}")
+        keys.status_key(self.setup, self.service)  # validates both names
+        req = self.required_hk
+        if isinstance(req, str) or not all(isinstance(x, str) for x in req) or set(req) - set(SCALAR_SENSORS):
+            raise ConfigError(f"pipeline: required_hk must be a list from {list(SCALAR_SENSORS)}, got {req!r}")
+        object.__setattr__(self, "required_hk", tuple(req))
+        # Staleness may be infinite (never stale); every other time must be finite.
+        for name in ("hk_staleness_s", "bias_staleness_s", "hk_wait_s", "status_interval_s", "hk_retention_s",
+                     "hk_max_ahead_s"):
+            v = _number(name, getattr(self, name), allow_inf=name.endswith("staleness_s"))
+            if not v >= 0:
+                raise ConfigError(f"pipeline: {name} must be >= 0, got {v}")
+            object.__setattr__(self, name, v)
+        if self.status_interval_s <= 0 or self.hk_retention_s <= 0:
+            raise ConfigError("pipeline: status_interval_s and hk_retention_s must be > 0")
+        for name in ("t_bath_default_k", "b_field_default_t"):
+            object.__setattr__(self, name, _number(name, getattr(self, name)))
+        if not self.t_bath_default_k > 0:
+            raise ConfigError(f"pipeline: t_bath_default_k must be > 0, got {self.t_bath_default_k}")
         for name in ("t_bath_range_k", "b_field_range_t", "bias_range_v"):
             v = getattr(self, name)
-            if len(v) != 2 or not float(v[0]) < float(v[1]):
-                raise ConfigError(f"{name} must be [low, high] with low < high, got {v!r}")
-            object.__setattr__(self, name, (float(v[0]), float(v[1])))
-        if int(self.max_pending) < 1:
-            raise ConfigError("max_pending must be >= 1")
+            if isinstance(v, str) or len(v) != 2:
+                raise ConfigError(f"pipeline: {name} must be [low, high], got {v!r}")
+            lo, hi = _number(name, v[0]), _number(name, v[1])
+            if not lo < hi:
+                raise ConfigError(f"pipeline: {name} must be [low, high] with low < high, got {v!r}")
+            object.__setattr__(self, name, (lo, hi))
+        if not isinstance(self.max_pending, int) or isinstance(self.max_pending, bool) or self.max_pending < 1:
+            raise ConfigError(f"pipeline: max_pending must be an integer >= 1, got {self.max_pending!r}")
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "<config>") -> "PipelineConfig":
         from mntes_stream.service import dataclass_from_table
 
         return dataclass_from_table(cls, d, source, tuples=True)
+
+
+def _number(name: str, value, allow_inf: bool = False) -> float:
+    """A config number as float: ConfigError for strings, bools, NaN (and infinity unless allowed)."""
+    if isinstance(value, (str, bool)):
+        raise ConfigError(f"pipeline: {name} must be a number, got {value!r}")
+    if allow_inf and isinstance(value, (int, float)) and math.isinf(value) and value > 0:
+        return math.inf
+    return finite_float("pipeline", name, value)
 
 
 def _ns(seconds: float) -> int | float:
@@ -143,19 +183,25 @@ def _ns(seconds: float) -> int | float:
 class _Stream:
     """Sequence bookkeeping of one (board, module) counts stream."""
 
-    __slots__ = ("next", "recent", "recent_set", "missing")
+    __slots__ = ("next", "recent", "recent_t", "missing")
 
     def __init__(self):
         self.next: int | None = None
         self.recent: collections.deque = collections.deque()
-        self.recent_set: set[int] = set()
+        self.recent_t: dict[int, int] = {}  # seq -> first sample time: a duplicate has both equal
         self.missing: collections.OrderedDict = collections.OrderedDict()
 
-    def remember(self, seq: int) -> None:
+    def remember(self, seq: int, t_first_ns: int) -> None:
         self.recent.append(seq)
-        self.recent_set.add(seq)
+        self.recent_t[seq] = t_first_ns
         if len(self.recent) > _SEQ_RECENT:
-            self.recent_set.discard(self.recent.popleft())
+            self.recent_t.pop(self.recent.popleft(), None)
+
+    def reset(self) -> None:
+        self.next = None
+        self.recent.clear()
+        self.recent_t.clear()
+        self.missing.clear()
 
 
 @dataclass
@@ -200,11 +246,13 @@ class ConverterPipeline:
         self._bias_staleness_ns = _ns(self.config.bias_staleness_s)
         self._wait_ns = _ns(self.config.hk_wait_s)
         self._status_ns = _ns(self.config.status_interval_s)
-        retention = _ns(self.config.hk_retention_s)
-        self._hk: dict[str, HkSeries] = {s: HkSeries(None, retention) for s in SCALAR_SENSORS}
+        self._retention_ns = _ns(self.config.hk_retention_s)
+        self._ahead_ns = _ns(self.config.hk_max_ahead_s)
+        self._hk: dict[str, HkSeries] = {s: HkSeries(None, self._retention_ns) for s in SCALAR_SENSORS}
         self._bias: dict[tuple[int, int], tuple[np.ndarray, HkSeries]] = {}
         self._streams: dict[tuple[int, int], _Stream] = {}
         self._pending: collections.deque[_Pending] = collections.deque()
+        self._delays: collections.deque[int] = collections.deque(maxlen=_OFFSETS)  # receive minus t_pub_ns
         self._rows: dict[tuple, tuple] = {}
         self._env_cache: dict[tuple, tuple] = {}
         self._provenance: bytes | None = None
@@ -255,9 +303,9 @@ class ConverterPipeline:
     def flush(self) -> list[tuple[str, bytes]]:
         """Convert everything still held (with what housekeeping there is) and emit a final status."""
         out: list[tuple[str, bytes]] = []
-        self._release(out, force=True)
+        self._guarded(self._release, "flush", out, True)
         if self._now_ns is not None:
-            out.append(self._emit_status())
+            self._guarded(lambda: out.append(self._emit_status()), "flush")
         return out
 
     def status(self) -> StatusMessage:
@@ -353,7 +401,7 @@ class ConverterPipeline:
             if kind == "counts":
                 self._on_counts(info, CountsChunk.from_bytes(payload), key, t_recv_ns)
             elif kind == "hk":
-                self._on_hk(info, HousekeepingChunk.from_bytes(payload), key)
+                self._on_hk(info, HousekeepingChunk.from_bytes(payload), key, t_recv_ns)
             else:
                 self._bad("wrong_key", f"the converter does not consume {kind!r} messages", key)
         except SchemaError as exc:
@@ -364,20 +412,29 @@ class ConverterPipeline:
             self._bad("wrong_key", f"payload is setup {chunk.setup} board {chunk.board} module {chunk.module}", key)
             return
         self.counters["chunks_received"] += 1
-        if not self._sequence((chunk.board, chunk.module), chunk.seq):
-            return
         t = chunk.times_ns()
+        if not self._sequence((chunk.board, chunk.module), chunk.seq, int(t[0]) if t.size else chunk.t_pub_ns, key):
+            return
+        self._delays.append(t_recv_ns - chunk.t_pub_ns)
         self._pending.append(_Pending(chunk, t_recv_ns, t, int(t.max()) if t.size else None))
 
-    def _sequence(self, stream_id: tuple[int, int], seq: int) -> bool:
+    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> bool:
         """Book-keep a sequence number; False for a duplicate (to drop)."""
         s = self._streams.get(stream_id)
         if s is None:
             s = self._streams[stream_id] = _Stream()
         c = self.counters
-        if seq in s.recent_set:
+        seen = s.recent_t.get(seq)
+        if seen == t_first_ns:
             c["chunks_duplicated"] += 1
             return False
+        if seen is not None or (s.next is not None and abs(seq - s.next) > _SEQ_MISSING):
+            # A restarted source (a recent number with other samples, or a long jump back) or a
+            # corrupt number: start over from it. Counting the jump as lost, everything after
+            # it as out of order, or a new run's chunks as duplicates would bury the status.
+            why = "a recent number with other sample times" if seen is not None else f"expected {s.next}"
+            self._bad("seq_reset", f"sequence number {seq}, {why}: stream restarted", key)
+            s.reset()
         if s.next is None or seq >= s.next:
             if s.next is not None and seq > s.next:
                 c["chunks_lost"] += seq - s.next
@@ -393,26 +450,38 @@ class ConverterPipeline:
         else:
             # Older than anything remembered (e.g. a restarted source): convert it, count it.
             c["chunks_out_of_order"] += 1
-        s.remember(seq)
+        s.remember(seq, t_first_ns)
         return True
 
-    def _on_hk(self, info: dict, hk: HousekeepingChunk, key: str) -> None:
+    def _on_hk(self, info: dict, hk: HousekeepingChunk, key: str, t_recv_ns: int) -> None:
         sensor = info["sensor"]
-        expected = hk.sensor if hk.sensor != "bias" else f"bias/{hk.board}/{hk.module}"
+        expected = keys.hk_sensor(hk.sensor, hk.board, hk.module)
         if hk.setup != self.config.setup or sensor != expected:
             self._bad("wrong_key", f"payload is setup {hk.setup} sensor {expected}", key)
             return
         self.counters["hk_received"] += 1
+        # The data clock: receive clock minus the counts' median delay (none yet: the receive clock).
+        now = t_recv_ns - (int(statistics.median_low(self._delays)) if self._delays else 0)
+        t_ns, value = hk.t_ns, hk.value
+        # Too old only once the data clock is known (a replayed recording's first readings
+        # come before its first counts chunk), and never for the bias: a setting holds.
+        lo = now - self._retention_ns if self._delays and hk.sensor != "bias" else _INT64_MIN
+        ok = (t_ns >= max(lo, _INT64_MIN)) & (t_ns <= min(now + self._ahead_ns, _INT64_MAX))
+        if not ok.all():
+            bad = t_ns[~ok]
+            self._bad("hk_time", f"{bad.size} reading(s) stamped {(int(bad[0]) - now) / 1e9:+.4g} s from the data clock "
+                                 f"(accepted: -{self.config.hk_retention_s:g} s to +{self.config.hk_max_ahead_s:g} s)", key)
+            t_ns, value = t_ns[ok], value[ok]
         if hk.sensor == "bias":
             module = (hk.board, hk.module)
             entry = self._bias.get(module)
             if entry is None or not np.array_equal(entry[0], hk.channels):
                 # A new channel list starts a new history: columns must line up.
-                entry = (hk.channels.copy(), HkSeries(hk.channels.size, _ns(self.config.hk_retention_s)))
+                entry = (hk.channels.copy(), HkSeries(hk.channels.size, self._retention_ns))
                 self._bias[module] = entry
-            entry[1].add(hk.t_ns, hk.value)
+            entry[1].add(t_ns, value, now_ns=now)
         else:
-            self._hk[hk.sensor].add(hk.t_ns, hk.value)
+            self._hk[hk.sensor].add(t_ns, value, now_ns=now)
 
     def _bracketed(self, p: _Pending) -> bool:
         if p.t_last_ns is None:
@@ -428,13 +497,25 @@ class ConverterPipeline:
             return
         now = self._now_ns
         keep: collections.deque[_Pending] = collections.deque()
-        overflow = len(self._pending) - int(self.config.max_pending)
-        for i, p in enumerate(self._pending):
-            if force or i < overflow or self._bracketed(p) or now - p.t_recv_ns >= self._wait_ns:
-                out.append(self._convert(p))
-            else:
-                keep.append(p)
-        self._pending = keep
+        overflow = len(self._pending) - self.config.max_pending
+        try:
+            # Each chunk leaves the queue before it is converted: one that cannot be
+            # converted is counted and dropped, never re-published nor left blocking the rest.
+            for i in range(len(self._pending)):
+                p = self._pending.popleft()
+                try:
+                    if force or i < overflow or self._bracketed(p) or now - p.t_recv_ns >= self._wait_ns:
+                        out.append(self._convert(p))
+                    else:
+                        keep.append(p)
+                except Exception as exc:
+                    key = keys.counts_key(self.config.setup, p.chunk.board, p.chunk.module)
+                    self.counters["chunks_failed"] += 1
+                    self._bad("internal_error", f"chunk seq {p.chunk.seq} dropped: {type(exc).__name__}: {exc}", key)
+                    log.exception("internal error converting %s seq %d; chunk dropped", key, p.chunk.seq)
+        finally:
+            keep.extend(self._pending)
+            self._pending = keep
 
     def _scalar_env(self, sensor: str, chunk: CountsChunk, t: np.ndarray, default: float, valid_range):
         """Aligned value and flags, shape (n_samp,); cached, since every module of a step shares its times."""
