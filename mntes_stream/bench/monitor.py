@@ -126,10 +126,24 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _first_line(proc, timeout_s: float) -> str:
+    """The child's first stdout line, or "" after ``timeout_s`` (readline alone would wait forever)."""
+    import queue
+    import threading
+
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: lines.put(proc.stdout.readline()), daemon=True).start()
+    try:
+        return lines.get(timeout=timeout_s)
+    except queue.Empty:
+        return ""
+
+
 def _browser(args) -> dict:
     import multiprocessing as mp
     import urllib.request
 
+    from mntes_stream.errors import TransportError
     from mntes_stream.io.transport import free_tcp_port
     from mntes_stream.monitor.browser import headless_chromium, page_state
 
@@ -141,7 +155,9 @@ def _browser(args) -> dict:
                             "--connect", f"tcp/127.0.0.1:{zport}"], stdout=subprocess.PIPE, text=True)
     driver = None
     try:
-        line = mon.stdout.readline()
+        line = _first_line(mon, 60.0)
+        if "serving " not in line:
+            raise TransportError(f"mntes-stream monitor did not start (first output line: {line!r})")
         url = line.split("serving ", 1)[1].split()[0]
         pub.start()
         driver = headless_chromium()
@@ -157,8 +173,9 @@ def _browser(args) -> dict:
             driver.quit()
         mon.terminate()
         mon.wait(20)
-        pub.terminate()
-        pub.join(10)
+        if pub.pid is not None:  # started
+            pub.terminate()
+            pub.join(10)
     t_first = s0["renders"][-1]["t_render_ms"] if s0["renders"] else 0
     lat = np.array([r["latency_ms"] for r in s1["renders"] if r["t_render_ms"] > t_first])
     return {
