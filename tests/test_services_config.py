@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 
@@ -16,25 +17,49 @@ from mntes_stream.service.source import MinimalSource, SourceService, default_pa
 SERVICES = Path(__file__).resolve().parents[1] / "services"
 
 
-def test_converter_and_simulator_configs_agree():
+def test_converter_and_source_configs_agree():
     conv = ConverterConfig.from_toml(SERVICES / "converter.toml")
-    doc = tomllib.loads((SERVICES / "simulator.toml").read_text())
-    src = SourceService.from_dict(doc, "simulator.toml", base_dir=SERVICES)
+    doc = tomllib.loads((SERVICES / "source.toml").read_text())
+    src = SourceService.from_dict(doc, "source.toml", base_dir=SERVICES)
     assert conv.setup == src.source.setup == "lab"
     assert Path(conv.params) == Path(src.params) == SERVICES / "params.toml"
-    # The converter listens where the simulator (and recorder, replay) connect.
+    # The converter listens where the source (and recorder, replay) connect.
     port = conv.zenoh.listen[0].rsplit(":", 1)[1]
-    for name in ("simulator.toml", "recorder.toml", "replay.toml"):
+    for name in ("source.toml", "recorder.toml", "replay.toml"):
         z = tomllib.loads((SERVICES / name).read_text())["zenoh"]
         assert any(e.endswith(":" + port) for e in z["connect"]), name
         assert z.get("gossip") is True, name
-    # Every detector the simulator publishes has parameters, and the file is the generated truth.
+    # Every detector the source publishes has parameters, and the file is the generated truth.
     params = load_params(conv.params)
     MinimalSource(src.source, list(params.values()))
     assert {p.detector_id: p.to_dict() for p in default_params(src.source)} == {k: p.to_dict() for k, p in params.items()}
     converter = build_converter(conv)
     assert set(converter.detector_ids) == set(params)
     assert subscriptions(conv) == ["mntes/lab/hk/**", "mntes/lab/counts/*/*"]
+
+
+def test_every_service_file_the_docs_name_exists_and_loads():
+    from mntes_stream.cli.serve import _load
+    from mntes_stream.service.recorder import RecorderConfig
+    from mntes_stream.service.replay import ReplayConfig
+
+    readme = (SERVICES.parent / "README.md").read_text()
+    table = [line for line in (SERVICES / "README.md").read_text().splitlines() if line.startswith("| `")]
+    named = set(re.findall(r"services/([a-z][\w.-]*\.(?:toml|json5))", readme + (SERVICES / "README.md").read_text()))
+    named |= {re.match(r"\| `([^`]+)`", line).group(1) for line in table}
+    assert {"converter.toml", "source.toml", "recorder.toml", "replay.toml"} <= named
+    for name in named:
+        assert (SERVICES / name).is_file(), f"{name} is documented but not in services/"
+    build = {"converter": lambda doc, path: ConverterConfig.from_dict(doc, str(path), base_dir=SERVICES),
+             "source": lambda doc, path: SourceService.from_dict(doc, str(path), base_dir=SERVICES),
+             "recorder": lambda doc, path: RecorderConfig.from_dict(doc, str(path), base_dir=str(SERVICES)),
+             "replay": lambda doc, path: ReplayConfig.from_toml(path, source=("x.mcap",))}
+    for path in sorted(SERVICES.glob("*.toml")):
+        if path.name == "params.toml":
+            continue
+        kind, doc = _load(str(path))
+        assert kind == path.stem, f"{path.name} holds a [{kind}] service"  # the file is named after its service
+        build[kind](doc, path)
 
 
 def test_lab_zenoh_config_loads_and_keeps_multicast_off():

@@ -14,6 +14,7 @@ import pytest
 
 from mntes_stream.cli import main
 from mntes_stream.core.sim import ArraySimulator, SimConfig
+from mntes_stream.io import keys
 from mntes_stream.io.mcap_io import Session, read_metadata
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, decode, detector_ids_for
 from mntes_stream.io.paramfile import load_params
@@ -84,7 +85,9 @@ def test_mcap_truth_and_params_files(tmp_path):
     assert wrong.keys() == truth_params.keys()
     assert all(wrong[k] != truth_params[k] for k in wrong)
     session = Session(out)
-    counts = [decode(m.payload) for m in session.iter_messages(topics="mntes/sim/counts/**")]
+    # The default setup is every service's: the converter's default config converts it as it stands.
+    assert {t.split("/")[1] for t in session.message_counts()} == {keys.DEFAULT_SETUP}
+    counts = [decode(m.payload) for m in session.iter_messages(topics=f"mntes/{keys.DEFAULT_SETUP}/counts/**")]
     assert len(counts) == 2 * 21
     meta = {m.name: m.data for m in read_metadata(out)}
     assert "truth_params_toml" in meta["mntes.simulation"]
@@ -164,10 +167,23 @@ def test_live_publication_over_loopback_zenoh():
 
 
 def test_service_config_tables():
-    svc = SimulatorService.from_dict({"simulator": {"channels": 128, "setup": "lab", "speed": 0, "duration_s": 5},
-                                      "zenoh": {"connect": ["tcp/127.0.0.1:7447"]}})
-    assert svc.config.channels == 128 and svc.setup == "lab" and svc.speed == 0 and svc.duration_s == 5
-    with pytest.raises(ConfigError):
-        SimulatorService.from_dict({"simulator": {"chanels": 128}})
-    with pytest.raises(ConfigError):
-        SimulatorService.from_dict({"simulatr": {}})
+    import dataclasses
+
+    from mntes_stream.service.pipeline import PipelineConfig
+    from mntes_stream.service.source import SourceConfig
+
+    svc = SimulatorService.from_dict({"simulator": {"channels": 128, "setup": "x1", "speed": 0, "duration_s": 5,
+                                                    "linger_s": 0.5},
+                                      "zenoh": {"connect": ["tcp/127.0.0.1:7447"], "gossip": True}})
+    assert svc.config.channels == 128 and svc.setup == "x1" and svc.speed == 0 and svc.duration_s == 5
+    assert svc.linger_s == 0.5 and svc.zenoh.gossip and isinstance(svc.speed, float)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        svc.speed = 2.0
+    # One default setup: the simulator publishes where the converter (and source, monitor) listen.
+    default = SimulatorService.from_dict({})
+    assert default.setup == SimulatorSource(CFG).setup == PipelineConfig().setup == SourceConfig().setup == "lab"
+    for bad in ({"simulator": {"chanels": 128}}, {"simulatr": {}}, {"simulator": {"chunk_s": 0}},
+                {"simulator": {"speed": -1}}, {"simulator": {"speed": "fast"}}, {"simulator": {"setup": "a/b"}},
+                {"simulator": {"duration_s": float("nan")}}, {"simulator": {"setup": 7}}):
+        with pytest.raises(ConfigError):
+            SimulatorService.from_dict(bad)

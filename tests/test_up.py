@@ -2,38 +2,60 @@
 
 from __future__ import annotations
 
+import queue
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 from mntes_stream.io.mcap_io import Session
 from mntes_stream.io.messages import PowerChunk, decode
 
 
+def _pump(stream, lines: queue.Queue) -> None:
+    for line in stream:
+        lines.put(line)
+    lines.put(None)  # end of output
+
+
 def test_up_runs_until_ctrl_c_and_leaves_a_finished_recording(tmp_path):
     cmd = [sys.executable, "-m", "mntes_stream", "up", "--duration", "0", "--modules", "1", "--channels", "8",
            "--out", str(tmp_path / "up")]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines = []
+    # stderr to a file (a pipe nobody drains blocks the child at 64 KiB); stdout read by a
+    # thread so every wait below has a deadline, even if the child falls silent.
+    err_path = tmp_path / "up.stderr"
+    with open(err_path, "w") as err_file:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err_file, text=True)
+    lines: queue.Queue = queue.Queue()
+    reader = threading.Thread(target=_pump, args=(proc.stdout, lines), daemon=True)
+    reader.start()
+    seen: list[str] = []
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            assert line, f"up ended early: {lines} {proc.stderr.read()}"
-            lines.append(line)
+        while True:
+            try:
+                line = lines.get(timeout=max(deadline - time.monotonic(), 0.01))
+            except queue.Empty:
+                raise AssertionError(f"no power after 120 s: {seen} {err_path.read_text()}") from None
+            assert line is not None, f"up ended early: {seen} {err_path.read_text()}"
+            seen.append(line)
             m = re.search(r"power chunks\s+(\d+).*MCAP 1 file\(s\) ([\d.]+) MB", line)
             if m and int(m.group(1)) >= 20:
                 break
-        else:
-            raise AssertionError(f"no power after 120 s: {lines}")
         proc.send_signal(signal.SIGINT)  # what Ctrl-C sends to the foreground process
-        out, err = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
+        reader.join(10)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    rest = []
+    while not lines.empty():
+        rest.append(lines.get())
+    out = "".join(seen + [x for x in rest if x is not None])
+    err = err_path.read_text()
     assert proc.returncode == 0, err
     assert "Traceback" not in err
     done = [line for line in out.splitlines() if line.startswith("done:")]

@@ -66,6 +66,7 @@ def _sink(cfg: dict, stop, ready) -> dict:
 
 def _source(cfg: dict, stop, ready) -> dict:
     """Both phases of the source side (one session, one process)."""
+    from mntes_stream.errors import TransportError
     from mntes_stream.io import keys
     from mntes_stream.io.paramfile import load_params
     from mntes_stream.io.transport import Publishers, open_session
@@ -94,7 +95,7 @@ def _source(cfg: dict, stop, ready) -> dict:
         out["passthrough_sent"] = n
         # Phase 2: the array through the converter, into the recorder.
         if not pubs.wait_matching(counts_keys, 60.0, stop):
-            raise RuntimeError("converter not subscribed")
+            raise TransportError("bench stream: the converter did not subscribe to the counts within 60 s")
         pubs.close()
         time.sleep(0.5)  # let the passthrough messages drain before the clock starts
         start = time.time_ns()
@@ -132,6 +133,7 @@ def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window
 
 
 def run(args) -> dict:
+    from mntes_stream.errors import TransportError
     from mntes_stream.io import keys
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.messages import StatusMessage
@@ -179,16 +181,20 @@ def run(args) -> dict:
         with open_session(loopback(None, [p_conv])) as z:
             sub = QueueSubscriber(z, [keys.status_key(setup, conv_cfg.pipeline.service)])
             # The source keeps its session open after publishing (queued is not delivered): wait
-            # until the converter has received something and then made no progress for 4.5 s.
-            received, still = 0, 0
+            # until the converter has received something, holds nothing and has made no progress
+            # for 4.5 s. Its power went out before that, so the recorder has had as long to take it in.
+            received, pending, still = 0, 0, 0
             while still < 3 and time.monotonic() < deadline and services.alive():
                 item = sub.get(timeout_s=1.5)
-                n_in = StatusMessage.from_bytes(item[1]).chunks_received if item else received
-                still = still + 1 if n_in == received and received > 0 else 0
+                if item is not None:
+                    st = StatusMessage.from_bytes(item[1])
+                    n_in, pending = st.chunks_received, st.chunks_pending
+                else:
+                    n_in = received
+                still = still + 1 if n_in == received and received > 0 and pending == 0 else 0
                 received = n_in
             sub.close()
         ok_src = services.stop("source")
-        time.sleep(1.0)  # the recorder drains what is in flight
         ok = services.stop("converter") & services.stop("recorder") & services.stop("sink") & ok_src
     finally:
         for name in ("source", "converter", "recorder", "sink"):
@@ -196,7 +202,7 @@ def run(args) -> dict:
     results, ok_all = services.collect()
     src, conv, rec, sink = (results.get(k, {}) for k in ("source", "converter", "recorder", "sink"))
     if not isinstance(src, dict) or "t_start_ns" not in src:
-        raise RuntimeError(f"benchmark source failed: {src}; converter: {conv}; recorder: {rec}")
+        raise TransportError(f"bench stream: the source failed: {src}; converter: {conv}; recorder: {rec}")
     window_end = None if args.flat_out else src["t_start_ns"] + int(args.duration * 1e9)
     lat, unique_power, power_msgs, counts_msgs, samples_window, t_first, t_last = _analyse(
         rec_dir, setup, src["t_start_ns"], args.warmup, window_end)

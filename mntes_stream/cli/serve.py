@@ -131,6 +131,23 @@ def _flagged(st) -> str:
     return f"  flagged: {', '.join(parts)}" if parts else ""
 
 
+def _converter_idle(sub, timeout_s: float) -> bool:
+    """Wait for two converter statuses in a row with nothing new received and nothing pending."""
+    from mntes_stream.io.messages import StatusMessage
+
+    deadline = time.monotonic() + timeout_s
+    last = None
+    while time.monotonic() < deadline:
+        item = sub.get(timeout_s=0.2)
+        if item is None:
+            continue
+        st = StatusMessage.from_bytes(item[1])
+        if st.chunks_pending == 0 and st.chunks_received == last:
+            return True
+        last = st.chunks_received
+    return False
+
+
 def _mcap_bytes(directory: Path) -> tuple[int, int]:
     files = sorted(directory.glob("*.mcap"))
     return len(files), sum(f.stat().st_size for f in files)
@@ -194,13 +211,22 @@ def run_up(args) -> int:
                           f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
                           f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
                           f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}", flush=True)
+                # Ordered stop: no new data; the converter takes in and converts what is on its
+                # way (its status says when), converts what it still holds and says so in a
+                # final status; once that status is here, its last power chunks have reached the
+                # recorder, which then finishes its file.
+                failed |= not services.stop("source")
+                if not failed and not _converter_idle(sub, 10.0):
+                    print("the converter did not settle within 10 s; stopping it anyway", file=sys.stderr)
+                while sub.get() is not None:  # statuses from before the stop
+                    pass
+                failed |= not services.stop("converter")
+                sub.get(timeout_s=2.0)
                 sub.close()
         finally:
-            # Ordered stop: no new data, then the converter empties, then the recorder finishes its file.
+            # Also after an error: source, converter, recorder (stopping a stopped one is a no-op).
             failed |= not services.stop("source")
-            time.sleep(0.5)  # the last chunks reach the converter and the recorder
             failed |= not services.stop("converter")
-            time.sleep(0.3)
             failed |= not services.stop("recorder")
     summary, ok = services.collect()
     failed |= not ok
@@ -230,7 +256,9 @@ def register(sub) -> None:
                                    "status line per second. Stops after --duration or on Ctrl-C.")
     p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
     p.add_argument("--out", default="mntes-up", metavar="DIR", help="parameters and recordings go here (default ./mntes-up)")
-    p.add_argument("--setup", default="lab")
+    from mntes_stream.io.keys import DEFAULT_SETUP
+
+    p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
     p.add_argument("--modules", type=int, default=4, help="readout modules (default 4)")
     p.add_argument("--channels", type=int, default=64, help="channels per module (default 64)")
     p.add_argument("--sample-rate", type=float, default=152.59, metavar="HZ", help="default 152.59 (DfMux ground rate)")

@@ -14,11 +14,15 @@ def _value(text: str):
 
 
 def _config(args):
+    """(SimConfig, ZenohSettings, run options) from ``--config`` and the command line (which wins)."""
+    import dataclasses
+
     from mntes_stream.core.sim import HWP_FREQUENCIES_HZ, SimConfig
     from mntes_stream.errors import ConfigError
+    from mntes_stream.io.transport import ZenohSettings
 
     settings: dict = {}
-    zenoh_doc: dict = {}
+    zenoh = ZenohSettings()
     run: dict = {}
     if args.config:
         import tomllib
@@ -32,9 +36,8 @@ def _config(args):
             raise ConfigError(f"{args.config}: {exc}") from None
         svc = SimulatorService.from_dict(doc, args.config, base_dir=str(Path(args.config).parent))
         settings = svc.config.to_dict()
-        zenoh_doc = {"mode": svc.zenoh.mode, "connect": list(svc.zenoh.connect), "listen": list(svc.zenoh.listen),
-                     "config_file": svc.zenoh.config_file, "scouting": svc.zenoh.scouting}
-        run = {"setup": svc.setup, "chunk_s": svc.chunk_s, "speed": svc.speed, "duration_s": svc.duration_s}
+        zenoh = svc.zenoh
+        run = {f.name: getattr(svc, f.name) for f in dataclasses.fields(svc) if f.name not in ("config", "zenoh")}
     for name, attr in (("boards", "boards"), ("modules", "modules"), ("channels", "channels"),
                        ("sample_rate_hz", "sample_rate"), ("seed", "seed")):
         if getattr(args, attr) is not None:
@@ -54,10 +57,10 @@ def _config(args):
         if value is not None:
             run[name] = value
     if args.connect:
-        zenoh_doc["connect"] = list(args.connect)
+        zenoh = dataclasses.replace(zenoh, connect=tuple(args.connect))
     if args.listen:
-        zenoh_doc["listen"] = list(args.listen)
-    return config, zenoh_doc, run
+        zenoh = dataclasses.replace(zenoh, listen=tuple(args.listen))
+    return config, zenoh, run
 
 
 def run(args) -> int:
@@ -68,6 +71,7 @@ def run(args) -> int:
     from mntes_stream.errors import ConfigError
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.service.simulator import (
+        SimulatorService,
         SimulatorSource,
         TruthRecorder,
         perturbed_params,
@@ -75,14 +79,13 @@ def run(args) -> int:
         write_mcap,
     )
 
-    config, zenoh_doc, run_opts = _config(args)
-    setup = run_opts.get("setup", "sim")
-    chunk_s = run_opts.get("chunk_s", 0.1)
-    duration = run_opts.get("duration_s", 0.0)
-    live = bool(zenoh_doc.get("connect") or zenoh_doc.get("listen") or zenoh_doc.get("config_file"))
+    config, settings, run_opts = _config(args)
+    svc = SimulatorService(config, settings, **run_opts)  # validates; holds the defaults
+    duration = svc.duration_s
+    live = bool(settings.connect or settings.listen or settings.config_file)
     if bool(args.mcap) == live:
         raise ConfigError("simulate: give either --mcap FILE or zenoh endpoints (--connect/--listen or --config)")
-    source = SimulatorSource(config, setup, chunk_s)
+    source = SimulatorSource(config, svc.setup, svc.chunk_s)
     stem = Path(args.mcap).with_suffix("") if args.mcap else None
     params_out = args.params_out or (f"{stem}.params.toml" if stem else None)
     truth_out = None if args.no_truth else (args.truth or (f"{stem}.truth.npz" if stem else None))
@@ -102,16 +105,14 @@ def run(args) -> int:
         with tqdm(total=n, desc="simulate", unit="chunk", disable=args.json or None) as bar:
             result = write_mcap(source, args.mcap, duration, truth=truth, progress=bar.update)
     else:
-        from mntes_stream.io.transport import ZenohSettings
         from mntes_stream.service import stop_on_signals
 
-        settings = ZenohSettings.from_dict(zenoh_doc, "--connect/--listen")
-        speed = run_opts.get("speed", 1.0)
         print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect) + list(settings.listen)}, "
-              f"setup {setup!r}, {speed:g}x real time" + (f", {duration:g} s" if duration else ", until Ctrl-C"),
+              f"setup {svc.setup!r}, {svc.speed:g}x real time" + (f", {duration:g} s" if duration else ", until Ctrl-C"),
               file=sys.stderr)
         with stop_on_signals() as stop:
-            result = publish_live(source, settings, speed=speed, duration_s=duration, stop=stop, truth=truth)
+            result = publish_live(source, settings, speed=svc.speed, duration_s=duration, stop=stop, truth=truth,
+                                  linger_s=svc.linger_s)
     if truth is not None:
         truth.save(truth_out)
     result.update({"detectors": config.n_detectors, "params": params_out, "truth": truth_out,
@@ -134,7 +135,7 @@ def register(sub) -> None:
     p.add_argument("--mcap", metavar="FILE", help="write an MCAP file instead of publishing")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on (repeatable)")
-    p.add_argument("--setup", help="setup name in the keys (default sim)")
+    p.add_argument("--setup", help="setup name in the keys (default lab, as every service)")
     p.add_argument("--boards", type=int)
     p.add_argument("--modules", type=int, help="modules per board")
     p.add_argument("--channels", type=int, help="channels per module (DfMux: 64 or 128)")

@@ -21,20 +21,26 @@ import json
 import logging
 import math
 import time
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
 from mntes_stream import __version__
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.sim import ArraySimulator, SimBlock, SimConfig
+from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 from mntes_stream.service.source import Batch
 
-__all__ = ["SimulatorSource", "TruthRecorder", "write_mcap", "publish_live", "load_truth", "TRUTH_NOTE"]
+__all__ = ["SimulatorSource", "SimulatorService", "TruthRecorder", "write_mcap", "publish_live", "run_simulator",
+           "load_truth", "TRUTH_NOTE"]
+
+if TYPE_CHECKING:
+    from mntes_stream.io.transport import ZenohSettings
 
 log = logging.getLogger("mntes_stream.simulator")
 
@@ -53,7 +59,7 @@ class SimulatorSource:
         Chunk length (rounded to whole samples, at least one).
     """
 
-    def __init__(self, config: SimConfig, setup: str = "sim", chunk_s: float = 0.1):
+    def __init__(self, config: SimConfig, setup: str = keys.DEFAULT_SETUP, chunk_s: float = 0.1):
         keys.counts_key(setup)  # validates the name
         if not chunk_s > 0:
             raise ConfigError("simulator: chunk_s must be > 0")
@@ -103,7 +109,7 @@ class SimulatorSource:
                 blocks.append(blk)
             batch: list[tuple[str, bytes]] = []
             for h in blk.hk:
-                sensor_key = h.sensor if h.sensor != "bias" else f"bias/{h.board}/{h.module}"
+                sensor_key = keys.hk_sensor(h.sensor, h.board, h.module)
                 seq = hk_seq.get(sensor_key, 0)
                 hk_seq[sensor_key] = seq + 1
                 msg = HousekeepingChunk(setup=self.setup, sensor=h.sensor, seq=seq, t_ns=h.t_ns, value=h.value,
@@ -236,10 +242,8 @@ def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, durat
     message is queued, so closing at once would drop what is still in flight.
     Returns the counters of :func:`mntes_stream.service.source.publish`.
     """
-    from mntes_stream.io.transport import open_session
+    from mntes_stream.io.transport import Publishers, open_session
     from mntes_stream.service.source import publish
-
-    from mntes_stream.io.transport import Publishers
 
     with open_session(settings) as session:
         # Wait for the converter before the data clock starts, so waiting is not latency.
@@ -274,35 +278,53 @@ def perturbed_params(params: list[DetectorParams], scale: float = 1.0, seed: int
     return out
 
 
+@dataclass(frozen=True)
 class SimulatorService:
     """The ``[simulator]`` (+ ``[zenoh]``) tables of a service config.
 
     ``[simulator]`` takes any :class:`SimConfig` field plus ``setup``,
-    ``chunk_s``, ``speed`` (x real time, 0: flat out) and ``duration_s``
-    (0: until stopped).
+    ``chunk_s``, ``speed`` (x real time, 0: flat out), ``duration_s`` (0:
+    until stopped) and ``linger_s`` (the session stays open this long after
+    the last batch: ``put`` returns when a message is queued, not delivered).
     """
 
-    RUN_KEYS = ("setup", "chunk_s", "speed", "duration_s")
+    config: SimConfig
+    zenoh: "ZenohSettings"
+    setup: str = keys.DEFAULT_SETUP
+    chunk_s: float = 0.1
+    speed: float = 1.0
+    duration_s: float = 0.0
+    linger_s: float = 1.0
 
-    def __init__(self, config: SimConfig, zenoh, setup: str = "sim", chunk_s: float = 0.1, speed: float = 1.0,
-                 duration_s: float = 0.0):
-        self.config, self.zenoh, self.setup = config, zenoh, setup
-        self.chunk_s, self.speed, self.duration_s = float(chunk_s), float(speed), float(duration_s)
+    def __post_init__(self):
+        if not isinstance(self.setup, str):
+            raise ConfigError(f"simulator: setup must be a string, got {self.setup!r}")
+        keys.counts_key(self.setup)  # validates the name
+        for name in ("chunk_s", "speed", "duration_s", "linger_s"):
+            value = getattr(self, name)
+            if isinstance(value, (str, bool)):
+                raise ConfigError(f"simulator: {name} must be a number, got {value!r}")
+            v = finite_float("simulator", name, value)
+            if v < 0 or (name == "chunk_s" and v == 0):
+                raise ConfigError(f"simulator: {name} must be {'> 0' if name == 'chunk_s' else '>= 0'}, got {v}")
+            object.__setattr__(self, name, v)
 
     @classmethod
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SimulatorService":
         from mntes_stream.io.transport import ZenohSettings
+        from mntes_stream.service import dataclass_from_table
 
         unknown = set(doc) - {"simulator", "zenoh"}
         if unknown:
             raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [simulator], [zenoh])")
         table = dict(doc.get("simulator", {}))
-        run = {k: table.pop(k) for k in cls.RUN_KEYS if k in table}
+        run = {f.name: table.pop(f.name) for f in fields(cls) if f.name not in ("config", "zenoh") and f.name in table}
         try:
             config = SimConfig.from_dict(table)
         except ConfigError as exc:
             raise ConfigError(f"{source} [simulator]: {exc}") from None
-        return cls(config, ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir), **run)
+        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
+        return dataclass_from_table(cls, {"config": config, "zenoh": z, **run}, f"{source} [simulator]")
 
 
 def run_simulator(svc: SimulatorService, stop=None, truth: TruthRecorder | None = None) -> dict:
@@ -311,4 +333,5 @@ def run_simulator(svc: SimulatorService, stop=None, truth: TruthRecorder | None 
 
     source = SimulatorSource(svc.config, svc.setup, svc.chunk_s)
     with stop_on_signals(stop) as stopping:
-        return publish_live(source, svc.zenoh, speed=svc.speed, duration_s=svc.duration_s, stop=stopping, truth=truth)
+        return publish_live(source, svc.zenoh, speed=svc.speed, duration_s=svc.duration_s, stop=stopping, truth=truth,
+                            linger_s=svc.linger_s)

@@ -20,11 +20,12 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
+from mntes_stream.core.checks import finite_float
 from mntes_stream.core.ids import detector_id
 from mntes_stream.core.params import DetectorParams, ParamArray, table1_params
 from mntes_stream.errors import ConfigError
@@ -65,7 +66,7 @@ class SourceConfig:
     seed : int
     """
 
-    setup: str = "lab"
+    setup: str = keys.DEFAULT_SETUP
     boards: int = 1
     modules: int = 2
     channels: int = 16
@@ -83,12 +84,21 @@ class SourceConfig:
     seed: int = 0
 
     def __post_init__(self):
+        if not isinstance(self.setup, str):
+            raise ConfigError(f"source: setup must be a string, got {self.setup!r}")
         keys.counts_key(self.setup)
-        for name in ("boards", "modules", "channels"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"source: {name} must be >= 1")
-        for name in ("sample_rate_hz", "chunk_s", "hk_interval_s", "cycle_s"):
-            if not float(getattr(self, name)) > 0:
+        for name in ("boards", "modules", "channels", "seed"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < (0 if name == "seed" else 1):
+                raise ConfigError(f"source: {name} must be an integer >= {0 if name == 'seed' else 1}, got {v!r}")
+        for f in fields(self):
+            if f.type == "float":
+                v = getattr(self, f.name)
+                if isinstance(v, (str, bool)):
+                    raise ConfigError(f"source: {f.name} must be a number, got {v!r}")
+                object.__setattr__(self, f.name, finite_float("source", f.name, v))
+        for name in ("sample_rate_hz", "chunk_s", "hk_interval_s", "cycle_s", "t_bath_k"):
+            if not getattr(self, name) > 0:
                 raise ConfigError(f"source: {name} must be > 0")
         if self.chunk_samples < 1:
             raise ConfigError("source: chunk_s * sample_rate_hz must give at least one sample")
@@ -350,6 +360,15 @@ class SourceService:
     duration_s: float = 0.0
     linger_s: float = 1.0
 
+    def __post_init__(self):
+        if not isinstance(self.params, str):
+            raise ConfigError(f"source: params must be a file name, got {self.params!r}")
+        for name in ("speed", "duration_s", "linger_s"):
+            v = getattr(self, name)
+            if isinstance(v, (str, bool)) or not finite_float("source", name, v) >= 0:
+                raise ConfigError(f"source: {name} must be a number >= 0, got {v!r}")
+            object.__setattr__(self, name, float(v))
+
     @classmethod
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SourceService":
         from pathlib import Path
@@ -372,7 +391,7 @@ class SourceService:
 
 def run_source(svc: SourceService, stop=None, ready=None, t_start_ns: int | None = None) -> dict:
     """Publish :class:`MinimalSource` batches until done or stopped; returns :func:`publish`'s counters."""
-    from mntes_stream.io.transport import open_session
+    from mntes_stream.io.transport import Publishers, open_session
     from mntes_stream.service import stop_on_signals
 
     params = None
@@ -386,11 +405,13 @@ def run_source(svc: SourceService, stop=None, ready=None, t_start_ns: int | None
     with stop_on_signals(stop) as stopping, open_session(svc.zenoh) as session:
         if ready is not None:
             ready.set()
-        from mntes_stream.io.transport import Publishers
-
         # Wait for the converter before the data clock starts, so waiting is not latency.
-        if not Publishers(session).wait_matching(counts_keys, 30.0, stopping):
-            log.warning("source: no subscriber for the counts yet; publishing anyway")
+        pubs = Publishers(session)
+        try:
+            if not pubs.wait_matching(counts_keys, 30.0, stopping):
+                log.warning("source: no subscriber for the counts yet; publishing anyway")
+        finally:
+            pubs.close()
         src.prepare()
         start = t_start_ns if t_start_ns is not None else time.time_ns()
         log.info("source: %d detectors, %d modules, %.2f Hz, publishing", cfg.n_detectors, cfg.boards * cfg.modules, cfg.sample_rate_hz)
