@@ -340,7 +340,7 @@ def test_damaged_loose_record_stops_the_scan_with_what_came_before(tmp_path, opc
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(pick=st.integers(0, 10**6), xor=st.integers(1, 255), cut=st.booleans())
 def test_any_damage_to_an_unchunked_file_is_recovered_or_a_transport_error(tmp_path_factory, pick, xor, cut):
-    data, sent = _unchunked_file()
+    data, _ = _unchunked_file()
     # Damage where it matters: record headers and the length fields that open each record.
     structural = [off + j for _, off, ln in _records(data) for j in range(min(9 + ln, 24))]
     k = structural[pick % len(structural)]
@@ -353,8 +353,10 @@ def test_any_damage_to_an_unchunked_file_is_recovered_or_a_transport_error(tmp_p
         warnings.simplefilter("ignore", mio.TruncatedFileWarning)
         try:
             session = mio.Session(path)
-            got = list(session.iter_messages())
+            # Loose records carry no CRC: a flipped byte can rename a topic or turn a channel
+            # record into a "message" nobody sent, so what comes back is not checked; what must
+            # hold is that reading raises nothing but TransportError, whatever the damage.
+            list(session.iter_messages())
             session.metadata(), session.attachments()
         except TransportError:  # e.g. the magic itself was hit
-            return
-    assert len(got) <= len(sent)
+            pass
