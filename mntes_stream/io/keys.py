@@ -17,13 +17,13 @@ PREFIX = "mntes"
 # The setup name every service uses unless told otherwise.
 DEFAULT_SETUP = "lab"
 # Setup, sensor and service names: one path segment, no wildcards.
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.\-]+$")
+NAME_PATTERN = re.compile(r"\A[A-Za-z0-9_.\-]+\Z")  # \Z: no trailing newline slips through
 KINDS = ("counts", "hk", "power", "status", "provenance")
 
 
 def _check(name: str, what: str) -> str:
     name = str(name)
-    if not NAME_PATTERN.match(name):
+    if not NAME_PATTERN.fullmatch(name):
         raise ConfigError(f"{what} {name!r} must match [A-Za-z0-9_.-]+ (no '/', '*', '$')")
     return name
 
