@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_monitor_server import Worker
 
 from mntes_stream.core.sim import ArraySimulator, SimConfig
 from mntes_stream.io import keys
@@ -63,20 +64,6 @@ def _normal_tes_counts(p, n: int) -> np.ndarray:
     i = math.sqrt(2) * p.v_thev_v / (r + p.z_thev_ohm)
     c = i / p.gain_a_per_count
     return np.full(n, complex(round(c.real), round(c.imag)))
-
-
-class _Publisher(threading.Thread):
-    """Runs :func:`_publish_normal_channel`; keeps what it raised for the test to re-raise."""
-
-    def __init__(self, *args):
-        super().__init__(target=_publish_normal_channel, args=args, daemon=True)
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            super().run()
-        except BaseException as exc:
-            self.error = exc
 
 
 def _publish_normal_channel(port: int, p, stop: threading.Event) -> None:
@@ -166,7 +153,7 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         monitor = stack.enter_context(_process(
             ["monitor", "--port", "0", "--setup", "lab", "--duration", "120",
              "--connect", f"tcp/127.0.0.1:{p_conv}", "--connect", f"tcp/127.0.0.1:{p_sim}"], tmp_path / "monitor.log"))
-        publisher = _Publisher(p_conv, normal, stop)
+        publisher = Worker(_publish_normal_channel, p_conv, normal, stop)
         publisher.start()
         stack.callback(lambda: (stop.set(), publisher.join(10)))
         line = _read_line(monitor, 60, tmp_path / "monitor.log")
@@ -232,9 +219,7 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         assert shot.stat().st_size > 20_000
         if os.environ.get("MNTES_MONITOR_SCREENSHOT"):
             shutil.copy(shot, os.environ["MNTES_MONITOR_SCREENSHOT"])
-    assert not publisher.is_alive(), "the extra module's publisher did not stop"
-    if publisher.error is not None:
-        raise publisher.error
+    publisher.check()  # what it raised, if anything
 
 
 def test_missing_chromium_is_a_config_error(monkeypatch):
