@@ -24,7 +24,7 @@ import numpy as np
 from mntes_stream.core.align import last_sample_offset_ns, sample_times_ns
 from mntes_stream.core.ids import detector_id
 from mntes_stream.errors import ConfigError, SchemaError
-from mntes_stream.io.codec import decode_array, encode_array, pack, unpack
+from mntes_stream.io.codec import decode_array, encode_array, json_schema, pack, unpack
 from mntes_stream.io.keys import NAME_PATTERN
 
 __all__ = [
@@ -45,9 +45,10 @@ __all__ = [
 # Why a message was rejected; the keys of StatusMessage.bad_messages.
 REASONS = ("malformed", "unknown_schema", "wrong_schema", "wrong_version", "invalid", "wrong_key")
 SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V"}
-# Sample rates a chunk may declare: beyond, sample times lose meaning (1e-300 Hz
-# puts sample 1 beyond int64 ns) long before any readout gets there.
-SAMPLE_RATE_RANGE_HZ = (1e-3, 1e6)
+# Sample rates a chunk may declare (from the schema, the one source): beyond,
+# sample times lose meaning (1e-300 Hz puts sample 1 beyond int64 ns).
+_RATE_SCHEMA = json_schema("mntes.counts")["properties"]["sample_rate_hz"]
+SAMPLE_RATE_RANGE_HZ = (float(_RATE_SCHEMA["minimum"]), float(_RATE_SCHEMA["maximum"]))
 _INT64_MAX = (1 << 63) - 1
 
 
