@@ -20,6 +20,28 @@ import time
 __all__ = ["StopFlag", "stop_on_signals", "Services", "child_main", "run_recorder_doc", "dataclass_from_table"]
 
 
+def split_config(doc: dict, tables: tuple[str, ...], source: str, base_dir=None):
+    """A service config document as ``({table: dict}, ZenohSettings)``.
+
+    Every service config is its own tables plus ``[zenoh]``; anything else,
+    or a table that is not a table, is a ConfigError naming ``source``.
+    """
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.io.transport import ZenohSettings
+
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{source}: expected a TOML document")
+    unknown = set(doc) - {*tables, "zenoh"}
+    if unknown:
+        expected = ", ".join(f"[{t}]" for t in (*tables, "zenoh"))
+        raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected {expected})")
+    for table in (*tables, "zenoh"):
+        if not isinstance(doc.get(table, {}), dict):
+            raise ConfigError(f"{source}: [{table}] must be a table")
+    zenoh = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
+    return {t: dict(doc.get(t, {})) for t in tables}, zenoh
+
+
 def dataclass_from_table(cls, table: dict, source: str, tuples: bool = False):
     """``cls(**table)`` for a config table; every problem is a ConfigError naming ``source``.
 

@@ -20,7 +20,7 @@ from pathlib import Path
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, open_session
-from mntes_stream.service import stop_on_signals
+from mntes_stream.service import split_config, stop_on_signals
 from mntes_stream.service.pipeline import PipelineConfig
 
 __all__ = ["ConverterConfig", "build_converter", "run_converter", "subscriptions"]
@@ -78,12 +78,8 @@ class ConverterConfig:
     @classmethod
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir: str | Path | None = None) -> "ConverterConfig":
         """From a parsed TOML document; relative file names resolve against ``base_dir``."""
-        unknown = set(doc) - {"converter", "alignment", "status", "zenoh"}
-        if unknown:
-            raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [converter], [alignment], [status], [zenoh])")
-        conv = dict(doc.get("converter", {}))
-        pipe = dict(doc.get("alignment", {}))
-        status = dict(doc.get("status", {}))
+        tables, z = split_config(doc, ("converter", "alignment", "status"), source, base_dir)
+        conv, pipe, status = tables["converter"], tables["alignment"], tables["status"]
         bad_status = set(status) - {"interval_s"}
         if bad_status:
             raise ConfigError(f"{source} [status]: unknown key(s) {sorted(bad_status)} (known: ['interval_s'])")
@@ -106,7 +102,6 @@ class ConverterConfig:
                     raise ConfigError(f"{source} [converter]: {name} must be a list of integers >= 0")
                 conv[name] = tuple(v)
         pipeline = PipelineConfig.from_dict(pipe, f"{source} [alignment]")
-        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
         try:
             return cls(pipeline=pipeline, zenoh=z, **conv)
         except TypeError as exc:

@@ -22,7 +22,7 @@ from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, MntesError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service import dataclass_from_table, stop_on_signals
+from mntes_stream.service import dataclass_from_table, split_config, stop_on_signals
 
 __all__ = ["RecorderConfig", "RecorderStats", "run_recorder"]
 
@@ -114,14 +114,8 @@ class RecorderConfig:
 
     @classmethod
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir: str | None = None) -> RecorderConfig:
-        unknown = set(doc) - {"recorder", "zenoh"}
-        if unknown:
-            raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [recorder], [zenoh])")
-        for table in ("recorder", "zenoh"):
-            if not isinstance(doc.get(table, {}), dict):
-                raise ConfigError(f"{source}: [{table}] must be a table")
-        rec = dict(doc.get("recorder", {}))
-        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
+        tables, z = split_config(doc, ("recorder",), source, base_dir)
+        rec = tables["recorder"]
         if "zenoh" in rec:
             raise ConfigError(f"{source}: put zenoh settings in the [zenoh] table")
         return dataclass_from_table(cls, {**rec, "zenoh": z}, f"{source} [recorder]")

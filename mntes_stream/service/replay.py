@@ -19,7 +19,7 @@ from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service import dataclass_from_table, stop_on_signals
+from mntes_stream.service import dataclass_from_table, split_config, stop_on_signals
 
 __all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayStats", "input_topics", "parse_time", "run_replay"]
 
@@ -92,14 +92,8 @@ class ReplayConfig:
             doc = tomllib.loads(Path(path).read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise ConfigError(f"{path}: {exc}") from None
-        unknown = set(doc) - {"replay", "zenoh"}
-        if unknown:
-            raise ConfigError(f"{path}: unknown table(s) {sorted(unknown)} (expected [replay], [zenoh])")
-        for table in ("replay", "zenoh"):
-            if not isinstance(doc.get(table, {}), dict):
-                raise ConfigError(f"{path}: [{table}] must be a table")
-        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{path} [zenoh]", base_dir=str(Path(path).parent))
-        d = {**doc.get("replay", {}), "zenoh": z, **overrides}
+        tables, z = split_config(doc, ("replay",), str(path), str(Path(path).parent))
+        d = {**tables["replay"], "zenoh": z, **overrides}
         return dataclass_from_table(cls, d, f"{path} [replay]", tuples=True)
 
 

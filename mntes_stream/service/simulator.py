@@ -311,19 +311,15 @@ class SimulatorService:
 
     @classmethod
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SimulatorService":
-        from mntes_stream.io.transport import ZenohSettings
-        from mntes_stream.service import dataclass_from_table
+        from mntes_stream.service import dataclass_from_table, split_config
 
-        unknown = set(doc) - {"simulator", "zenoh"}
-        if unknown:
-            raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [simulator], [zenoh])")
-        table = dict(doc.get("simulator", {}))
+        tables, z = split_config(doc, ("simulator",), source, base_dir)
+        table = tables["simulator"]
         run = {f.name: table.pop(f.name) for f in fields(cls) if f.name not in ("config", "zenoh") and f.name in table}
         try:
             config = SimConfig.from_dict(table)
         except ConfigError as exc:
             raise ConfigError(f"{source} [simulator]: {exc}") from None
-        z = ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir)
         return dataclass_from_table(cls, {"config": config, "zenoh": z, **run}, f"{source} [simulator]")
 
 

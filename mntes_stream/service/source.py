@@ -373,18 +373,16 @@ class SourceService:
     def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SourceService":
         from pathlib import Path
 
-        from mntes_stream.io.transport import ZenohSettings
+        from mntes_stream.service import split_config
 
-        unknown = set(doc) - {"source", "zenoh"}
-        if unknown:
-            raise ConfigError(f"{source}: unknown table(s) {sorted(unknown)} (expected [source], [zenoh])")
-        table = dict(doc.get("source", {}))
+        tables, z = split_config(doc, ("source",), source, base_dir)
+        table = tables["source"]
         run = {k: table.pop(k) for k in ("params", "speed", "duration_s", "linger_s") if k in table}
         if run.get("params") and base_dir is not None and not Path(run["params"]).is_absolute():
             run["params"] = str(Path(base_dir) / run["params"])
         return cls(
             source=SourceConfig.from_dict(table, f"{source} [source]"),
-            zenoh=ZenohSettings.from_dict(doc.get("zenoh", {}), f"{source} [zenoh]", base_dir=base_dir),
+            zenoh=z,
             **run,
         )
 
