@@ -50,3 +50,15 @@ def zenoh_overrides(args, z):
     if args.zenoh_config:
         kw["config_file"] = args.zenoh_config
     return dataclasses.replace(z, **kw)
+
+
+def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:
+    """A command's result: one JSON object, or one right-aligned ``key: value`` per line (None skipped)."""
+    import json
+
+    if as_json:
+        print(json.dumps(d, indent=2, default=str))
+        return
+    for key, value in d.items():
+        if value is not None:
+            print(f"{key:>{width}s}: {value}")

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import importlib
-import json
 import pkgutil
+
+from mntes_stream.cli._common import print_mapping
 
 
 def _benches():
@@ -20,11 +21,7 @@ def _run(args) -> int:
 
     result = args.bench_module.run(args)
     result.setdefault("machine", machine())
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        for key, value in result.items():
-            print(f"{key:>32s}: {value}")
+    print_mapping(result, args.json, width=32)
     return 0
 
 

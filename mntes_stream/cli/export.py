@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import json
 import re
 from datetime import datetime, timezone
 
+from mntes_stream.cli._common import print_mapping
 from mntes_stream.errors import ConfigError
 
 _ISO = re.compile(r"^\d{4}-\d{2}-\d{2}[T ]")
@@ -61,11 +61,7 @@ def run_export(args) -> int:
         "seconds": round(summary.seconds, 3),
         "samples_per_s": round(summary.samples_per_s),
     }
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        for k, v in result.items():
-            print(f"{k:>24s}: {v}")
+    print_mapping(result, args.json)
     return 0
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
+from mntes_stream.cli._common import print_mapping
+
 
 def _value(text: str):
     try:
@@ -117,12 +119,7 @@ def run(args) -> int:
         truth.save(truth_out)
     result.update({"detectors": config.n_detectors, "params": params_out, "truth": truth_out,
                    "perturbed_params": args.perturbed_params_out})
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        for key, value in result.items():
-            if value is not None:
-                print(f"  {key}: {value}")
+    print_mapping(result, args.json)
     return 0
 
 

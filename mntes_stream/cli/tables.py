@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import json
+from mntes_stream.cli._common import print_mapping
 
 
 def _build(args) -> int:
@@ -34,11 +34,7 @@ def _info(args) -> int:
     from mntes_stream.io.tablefile import load_bank
 
     summary = load_bank(args.file).summary()
-    if args.json:
-        print(json.dumps(summary, indent=2))
-        return 0
-    for key, value in summary.items():
-        print(f"{key:>20s}: {value}")
+    print_mapping(summary, args.json, width=20)
     return 0
 
 
