@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mntes_stream.calib_run import fit_campaign
+from mntes_stream.reports.calib_run import fit_campaign
 from mntes_stream.core.calib.campaign import pulls
 from mntes_stream.core.calib.endtoend import REQUIREMENT_PER_PW, calibration_nonlinearity
 from mntes_stream.core.calib.fit import FitOptions, fit_detector, tabulated_transition

@@ -78,7 +78,8 @@ def test_core_imports_no_edges_and_does_no_io():
     "source, expected",
     [
         ("from ..io import codec\n", "imports mntes_stream.io"),
-        ("from .. import plots\n", "imports mntes_stream.plots"),
+        ("from .. import reports\n", "imports mntes_stream.reports"),
+        ("from ..reports import plots\n", "imports mntes_stream.reports.plots"),
         ("import zenoh\n", "imports zenoh"),
         ("def f(p):\n    return p.open()\n", "uses .open"),
         ("import numpy as np\nnp.save('x', 1)\n", "uses .save"),

@@ -203,7 +203,7 @@ def run(args) -> dict:
 
 
 def _figure(path: str, ref: np.ndarray, kinds: dict) -> None:
-    from mntes_stream.plots import pyplot
+    from mntes_stream.reports.plots import pyplot
 
     plt = pyplot()
     rng = np.random.default_rng(0)

@@ -68,7 +68,7 @@ def _info(args) -> int:
 def _fit(args) -> int:
     from tqdm import tqdm
 
-    from mntes_stream.calib_run import fit_campaign
+    from mntes_stream.reports.calib_run import fit_campaign
     from mntes_stream.core.calib.fit import FitOptions, tabulated_transition
     from mntes_stream.errors import ConfigError, MntesError
     from mntes_stream.io.calib_file import read_campaign, read_truth, write_covariance, write_fit_params
@@ -115,7 +115,7 @@ def _fit(args) -> int:
         "failed": {d: list(f.reasons) for d, f in fits.items() if f.status == "failed"},
     }
     if truth is not None or args.report:
-        from mntes_stream.calib_report import evaluate, write_report
+        from mntes_stream.reports.calib_report import evaluate, write_report
 
         ev = evaluate(campaign, fits, arctan, tabulated, truth, converter_kind=args.converter)
         summary.update(ev.summary)

@@ -40,11 +40,11 @@ def run(args) -> int:
         v = args.v_thev_v
     d = describe(p, p_opt_w=args.p_opt_w, t_bath_k=args.t_bath_k, b_field_t=args.b_field_t, v_thev_v=v)
     if args.figure:
-        from mntes_stream.plots import figure_parameter_dependence
+        from mntes_stream.reports.plots import figure_parameter_dependence
 
         figure_parameter_dependence(p, args.figure)
     if args.response_figure:
-        from mntes_stream.plots import figure_response_function
+        from mntes_stream.reports.plots import figure_response_function
 
         figure_response_function(p, args.response_figure, r_frac=args.tune_r_frac)
     if args.json:

@@ -9,7 +9,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from mntes_stream.core.validation import JSON_KEYS, StudyConfig, run_study
-    from mntes_stream.validation_report import headline_rows, to_jsonable, write_report
+    from mntes_stream.reports.validation_report import headline_rows, to_jsonable, write_report
 
     from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
 

@@ -5,6 +5,6 @@
 - ``simulate``: campaigns with known truth (``simulate_campaign``);
 - ``fit``: per-detector joint fit with covariance and quality flags (``fit_detector``),
   the tabulated-transition outcome (``tabulated_transition``);
-- ``campaign``: ``pulls`` against a truth (the parallel driver is ``mntes_stream.calib_run``);
+- ``campaign``: ``pulls`` against a truth (the parallel driver is ``mntes_stream.reports.calib_run``);
 - ``endtoend``: HWP 2f -> 4f effective nonlinearity left by a calibration.
 """

@@ -1,7 +1,7 @@
 """Campaign-level results: pulls of fitted parameters against a truth (pure).
 
 The parallel driver that fits a whole campaign is at the edge:
-:func:`mntes_stream.calib_run.fit_campaign`.
+:func:`mntes_stream.reports.calib_run.fit_campaign`.
 """
 
 from __future__ import annotations

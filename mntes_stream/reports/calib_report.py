@@ -13,7 +13,7 @@ from mntes_stream.core.calib.endtoend import REQUIREMENT_PER_PW, calibration_non
 from mntes_stream.core.calib.fit import DetectorFit
 from mntes_stream.core.calib.forward import PARAM_NAMES, PARAM_UNITS, Design, predict_counts
 from mntes_stream.core.calib.measurements import KINDS, SWEPT_AXIS, Campaign
-from mntes_stream.plots import pyplot
+from mntes_stream.reports.plots import pyplot
 
 __all__ = ["Evaluation", "evaluate", "write_report", "HWP_AMPLITUDE_W"]
 

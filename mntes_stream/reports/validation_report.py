@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mntes_stream.core.validation import REQUIREMENT_PER_PW, StudyResult
-from mntes_stream.plots import pyplot
+from mntes_stream.reports.plots import pyplot
 
 __all__ = ["write_report", "headline_rows", "headline_markdown", "to_jsonable"]
 
