@@ -23,3 +23,19 @@ class TableDomainError(MntesError, ValueError):
 
 class TransportError(MntesError, RuntimeError):
     """zenoh or MCAP transport failure (session, key expression, truncated file)."""
+
+
+class MissingExtraError(MntesError, ImportError):
+    """An optional integration is not installed; the message names the extra that installs it."""
+
+
+def import_extra(module: str, extra: str):
+    """``importlib.import_module(module)``, or MissingExtraError naming ``pip install 'mntes-stream[extra]'``."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise MissingExtraError(
+            f"{module} is not installed ({exc}); install the extra: pip install 'mntes-stream[{extra}]'"
+        ) from None

@@ -43,9 +43,11 @@ def test_defaults_preset_and_overrides():
         ({"r_n_ohm": -1.0}, "r_n_ohm"),
         ({"t_bath_k": 0.2}, "below the transition"),
         ({"k_w_per_k_n": 0.0}, "k_w_per_k_n"),
-        ({"n": float("nan")}, "finite"),
+        ({"n": float("nan")}, "n: expected a number > 1, got nan"),
+        ({"t_c_k": "0.18"}, "t_c_k: expected a number .* got '0.18'"),  # a quoted number is named, not a traceback
+        ({"v_thev_v": "8e-7"}, "v_thev_v: expected a number"),
         ({"z_thev_ohm": [-0.1, 0.0]}, "passive"),
-        ({"transition": "vortex"}, "unknown transition"),
+        ({"transition": "vortex"}, "transition: expected one of 'arctan', 'tabulated'"),
         ({"current_shift_k_per_a": -1.0}, "current_shift"),
     ],
 )

@@ -282,13 +282,17 @@ def test_status_cadence_and_schema(source, converter):
 def test_config_validation(bad):
     from mntes_stream.errors import ConfigError
 
+    from mntes_stream.core.settings import build
+
     with pytest.raises(ConfigError):
-        PipelineConfig.from_dict(bad)
+        build(PipelineConfig, bad)
 
 
 def test_config_normalises():
-    cfg = PipelineConfig.from_dict({"t_bath_range_k": [0.05, 0.2], "required_hk": ["t_bath"], "hk_wait_s": 1,
-                                    "hk_staleness_s": float("inf")})
+    from mntes_stream.core.settings import build
+
+    cfg = build(PipelineConfig, {"t_bath_range_k": [0.05, 0.2], "required_hk": ["t_bath"], "hk_wait_s": 1,
+                                 "hk_staleness_s": float("inf")})
     assert cfg.t_bath_range_k == (0.05, 0.2) and cfg.required_hk == ("t_bath",)
     assert isinstance(cfg.hk_wait_s, float) and cfg.hk_staleness_s == float("inf")
     assert PipelineConfig().setup == keys.DEFAULT_SETUP

@@ -148,39 +148,48 @@ def test_sigkill_loses_at_most_the_flush_interval(tmp_path):
     assert len(got) >= 200
 
 
+def _load(path):
+    from mntes_stream.service.config import load_service_config
+
+    service, cfg = load_service_config(path)
+    assert service.name == "recorder"
+    return cfg
+
+
 def test_config_file_and_errors(tmp_path):
-    cfg = RecorderConfig.from_toml("services/recorder.toml")
-    assert cfg.setup == "lab" and cfg.subscription == "mntes/lab/**" and cfg.zenoh.connect
+    cfg = _load("services/recorder.toml")
+    assert cfg.setup == "lab" and cfg.subscription == "mntes/lab/**" and cfg.zenoh.file
     bad = tmp_path / "bad.toml"
     bad.write_text('[recorder]\nsetup = "lab"\nflush_every = 1\n')
     with pytest.raises(ConfigError, match="flush_every"):
-        RecorderConfig.from_toml(bad)
+        _load(bad)
     bad.write_text('[recorder]\nsetup = "a/b"\n')
     with pytest.raises(ConfigError, match="setup"):
-        RecorderConfig.from_toml(bad)
+        _load(bad)
     with pytest.raises(ConfigError, match="flush_interval_s"):
         RecorderConfig(flush_interval_s=0)
 
 
 @pytest.mark.parametrize("line, match", [
-    ('flush_interval_s = "1"', "flush_interval_s must be a number"),
-    ("flush_interval_s = nan", "flush_interval_s must be finite"),  # would never flush: no crash-loss bound
-    ("flush_interval_s = inf", "flush_interval_s must be finite"),
-    ("rotate_mb = -1", "rotate_mb must be >= 0"),
-    ("duration_s = nan", "duration_s must be finite"),
-    ("log_interval_s = 0", "log_interval_s must be > 0"),
-    ("queue_messages = 1.5", "queue_messages must be an integer"),
-    ("chunk_size_kb = true", "chunk_size_kb must be an integer"),
-    ('fsync = "yes"', "fsync must be true or false"),
-    ("setup = 3", "setup must be a string"),
+    ('flush_interval_s = "1"', r"\[recorder\] flush_interval_s: expected a number \(s\) > 0, got '1'"),
+    ("flush_interval_s = nan", "flush_interval_s: expected a number"),  # would never flush: no crash-loss bound
+    ("flush_interval_s = inf", "flush_interval_s: expected a number"),
+    ("rotate_mb = -1", r"rotate_mb: expected a number \(MiB\) >= 0"),
+    ("duration_s = nan", "duration_s: expected a number"),
+    ("log_interval_s = 0", "log_interval_s: expected a number .* > 0"),
+    ("queue_messages = 1.5", "queue_messages: expected an integer"),
+    ("chunk_size_kb = true", "chunk_size_kb: expected an integer"),
+    ('fsync = "yes"', "fsync: expected true or false"),
+    ("setup = 3", "setup: expected a name"),
     ('prefix = "a/b"', "prefix"),
     ("recorder = 1", "must be a table"),
 ])
 def test_wrongly_typed_or_non_finite_values_are_config_errors(tmp_path, line, match):
     bad = tmp_path / "bad.toml"
     bad.write_text(line + "\n" if line.startswith("recorder") else f"[recorder]\n{line}\n")
-    with pytest.raises(ConfigError, match=match):
-        RecorderConfig.from_toml(bad)
+    with pytest.raises(ConfigError, match=match) as exc:
+        _load(bad)
+    assert str(bad) in str(exc.value)  # the file is named
 
 
 def test_non_finite_values_given_directly_or_on_the_command_line(tmp_path):
@@ -191,7 +200,8 @@ def test_non_finite_values_given_directly_or_on_the_command_line(tmp_path):
         mio.RotatingMcapWriter(tmp_path, "x", flush_interval_s=float("nan"))
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "record", "--dir", str(tmp_path), "--flush-s", "nan", "-q"],
                          capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2 and "flush_interval_s must be finite" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "flush_interval_s: expected a number" in res.stderr and "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
 
 
 def test_recorder_doc_is_ready_only_once_subscribed(tmp_path):
@@ -200,10 +210,11 @@ def test_recorder_doc_is_ready_only_once_subscribed(tmp_path):
     import threading
 
     from mntes_stream.errors import MntesError
-    from mntes_stream.service import run_recorder_doc
+    from mntes_stream.service.recorder import RecorderService
 
     ready = threading.Event()
     doc = {"recorder": {"setup": "t", "directory": str(tmp_path)}, "zenoh": {"listen": ["tcp/not-an-address:1"]}}
+    svc = RecorderService(RecorderService.config_from_document(doc))
     with pytest.raises(MntesError):
-        run_recorder_doc(doc, None, ready)
-    assert not ready.is_set()
+        svc.start(None, ready)
+    assert not ready.is_set() and svc.status()["state"] == "failed"

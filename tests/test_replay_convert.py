@@ -7,6 +7,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from mcap_helpers import counts_payload, hk_payload, matched_publishers, provenance_payload, readable_messages, running_recorder
@@ -101,26 +102,32 @@ def test_parse_time_and_config_errors():
         parse_time("yesterday", 0)
     with pytest.raises(ConfigError):
         ReplayConfig(speed=-1)
-    cfg = ReplayConfig.from_toml("services/replay.toml", source=("x.mcap",))
-    assert cfg.topics == () and cfg.source == ("x.mcap",) and cfg.speed == 1.0  # (): the converter's inputs
+    from mntes_stream.service.config import load_service_config
+
+    _, cfg = load_service_config("services/replay.toml", ["replay.source=['x.mcap']"])
+    assert cfg.topics == () and cfg.source == (str(Path("x.mcap").resolve()),) and cfg.speed == 1.0  # (): the inputs
+    _, cfg = load_service_config("services/replay.toml")  # its source: what services/recorder.toml records
+    assert cfg.source == (str(Path("services/recordings").resolve()),)
 
 
 @pytest.mark.parametrize("line, match", [
-    ('speed = "2"', "speed must be a number"),
-    ("speed = nan", "speed must be finite"),
-    ("linger_s = inf", "linger_s must be finite"),
-    ("wait_subscribers_s = -1", "wait_subscribers_s must be >= 0"),
-    ('topics = "mntes/**"', "topics must be a list of string"),
-    ('source = ["a.mcap", 3]', "source must be a list of string"),
-    ("start_ns = 1.5", "start_ns must be an integer"),
+    ('speed = "2"', "speed: expected a number >= 0, got '2'"),
+    ("speed = nan", "speed: expected a number"),
+    ("linger_s = inf", "linger_s: expected a number"),
+    ("wait_subscribers_s = -1", r"wait_subscribers_s: expected a number \(s\) >= 0"),
+    ('topics = "mntes/**"', "topics: expected a list of strings"),
+    ('source = ["a.mcap", 3]', "source: expected a list of strings"),
+    ("start_ns = 1.5", "start_ns: expected an integer"),
     ("start_ns = 10\nend_ns = 5", "end must be after start"),
     ("speeed = 1", "unknown key"),
 ])
 def test_replay_config_errors_name_the_value(tmp_path, line, match):
+    from mntes_stream.service.config import load_service_config
+
     bad = tmp_path / "bad.toml"
     bad.write_text(f"[replay]\n{line}\n")
     with pytest.raises(ConfigError, match=match):
-        ReplayConfig.from_toml(bad)
+        load_service_config(bad)
 
 
 def test_replay_default_selects_the_inputs_of_every_setup(tmp_path):
@@ -364,7 +371,7 @@ def _live_run(tmp_path, name, params_file, feed, n_power):
     rec_dir = tmp_path / name
     with running_recorder(rec_dir) as (ep_rec, _):
         ep_conv = f"tcp/127.0.0.1:{free_tcp_port()}"
-        conv_cfg = ConverterConfig(params=str(params_file), kind="table", pipeline=PipelineConfig(setup="t"),
+        conv_cfg = ConverterConfig.for_pipeline(PipelineConfig(setup="t"), params=str(params_file), kind="table",
                                    zenoh=ZenohSettings(listen=(ep_conv,), connect=(ep_rec,)))
         stop, ready = threading.Event(), threading.Event()
         conv = threading.Thread(target=run_converter, args=(conv_cfg, stop, ready))

@@ -48,8 +48,9 @@ def params_file(tmp_path, source):
 def converter_service(params_file, **pipeline):
     """The converter service in a thread with its own zenoh session (listening on a free port)."""
     port = free_tcp_port()
-    cfg = ConverterConfig(params=str(params_file), kind="table", provenance_interval_s=0.5,
-                          pipeline=PipelineConfig(**{"status_interval_s": 0.2, **pipeline}), zenoh=loopback(port))
+    cfg = ConverterConfig.for_pipeline(PipelineConfig(**{"status_interval_s": 0.2, **pipeline}),
+                                       params=str(params_file), kind="table", provenance_interval_s=0.5,
+                                       zenoh=loopback(port))
     stop, ready = threading.Event(), threading.Event()
     result: dict = {}
     thread = threading.Thread(target=lambda: result.update(run_converter(cfg, stop, ready)), daemon=True)

@@ -172,18 +172,18 @@ def test_service_config_tables():
     from mntes_stream.service.pipeline import PipelineConfig
     from mntes_stream.service.source import SourceConfig
 
-    svc = SimulatorService.from_dict({"simulator": {"channels": 128, "setup": "x1", "speed": 0, "duration_s": 5,
-                                                    "linger_s": 0.5},
-                                      "zenoh": {"connect": ["tcp/127.0.0.1:7447"], "gossip": True}})
-    assert svc.config.channels == 128 and svc.setup == "x1" and svc.speed == 0 and svc.duration_s == 5
+    svc = SimulatorService.config_from_document({"simulator": {"channels": 128, "setup": "x1", "speed": 0, "duration_s": 5,
+                                                                "linger_s": 0.5},
+                                                  "zenoh": {"connect": ["tcp/127.0.0.1:7447"], "gossip": True}})
+    assert svc.sim.channels == 128 and svc.setup == "x1" and svc.speed == 0 and svc.duration_s == 5
     assert svc.linger_s == 0.5 and svc.zenoh.gossip and isinstance(svc.speed, float)
     with pytest.raises(dataclasses.FrozenInstanceError):
         svc.speed = 2.0
     # One default setup: the simulator publishes where the converter (and source, monitor) listen.
-    default = SimulatorService.from_dict({})
+    default = SimulatorService.config_from_document({})
     assert default.setup == SimulatorSource(CFG).setup == PipelineConfig().setup == SourceConfig().setup == "lab"
     for bad in ({"simulator": {"chanels": 128}}, {"simulatr": {}}, {"simulator": {"chunk_s": 0}},
                 {"simulator": {"speed": -1}}, {"simulator": {"speed": "fast"}}, {"simulator": {"setup": "a/b"}},
                 {"simulator": {"duration_s": float("nan")}}, {"simulator": {"setup": 7}}):
         with pytest.raises(ConfigError):
-            SimulatorService.from_dict(bad)
+            SimulatorService.config_from_document(bad)

@@ -23,6 +23,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from mntes_stream.cli._common import add_zenoh_args, zenoh_layer
+from mntes_stream.service.base import Service
+
 HELP = "source -> zenoh -> converter -> zenoh -> MCAP recorder: sustained rate, latency, loss"
 
 
@@ -37,10 +40,31 @@ def add_arguments(p) -> None:
     p.add_argument("--kind", default="table", help="conversion kind (default table)")
     p.add_argument("--flat-out", action="store_true", help="stream phase as fast as possible instead of real time")
     p.add_argument("--keep", metavar="DIR", help="keep the recording and parameters in DIR")
+    add_zenoh_args(p)
+
+
+class _Sink(Service):
+    """Plain subscriber: decode every counts chunk, count samples (the passthrough yardstick)."""
+
+    name = "bench-sink"
+    Config = dict
+
+    def run(self, stop=None, ready=None) -> dict:
+        return _sink(self.config, stop, ready)
+
+
+class _Source(Service):
+    """Both phases of the source side (one session, one process)."""
+
+    name = "bench-source"
+    Config = dict
+
+    def run(self, stop=None, ready=None) -> dict:
+        return _source(self.config, stop, ready)
 
 
 def _sink(cfg: dict, stop, ready) -> dict:
-    """Plain subscriber: decode every counts chunk, count samples (the passthrough yardstick)."""
+    """See :class:`_Sink`."""
     from mntes_stream.io.messages import CountsChunk
     from mntes_stream.io.transport import QueueSubscriber, open_session
 
@@ -65,7 +89,7 @@ def _sink(cfg: dict, stop, ready) -> dict:
 
 
 def _source(cfg: dict, stop, ready) -> dict:
-    """Both phases of the source side (one session, one process)."""
+    """See :class:`_Source`."""
     from mntes_stream.errors import TransportError
     from mntes_stream.io import keys
     from mntes_stream.io.paramfile import load_params
@@ -138,10 +162,10 @@ def run(args) -> dict:
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.messages import StatusMessage
     from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
-    from mntes_stream.service import Services
     from mntes_stream.service.converter import ConverterConfig
-    from mntes_stream.service.pipeline import PipelineConfig
+    from mntes_stream.service.recorder import RecorderConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
+    from mntes_stream.service.supervise import Services
 
     setup, pass_setup = "bench", "benchpass"
     n = max(1, round(args.chunk_s * args.sample_rate))
@@ -159,27 +183,25 @@ def run(args) -> dict:
     params_file = work / "params.toml"
     dump_params(MinimalSource(sc).params, params_file)
     p_rec, p_conv, p_src, p_sink = (free_tcp_port() for _ in range(4))
-    recorder_doc = {
-        "recorder": {"setup": setup, "directory": str(rec_dir), "flush_interval_s": 1.0, "rotate_s": 0, "log_interval_s": 3600},
-        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{p_rec}"]},
-    }
-    conv_cfg = ConverterConfig(params=str(params_file), kind=args.kind, provenance_interval_s=0,
-                               pipeline=PipelineConfig(setup=setup, status_interval_s=1.0),
-                               zenoh=loopback(p_conv, [p_rec]))
-    src_cfg = {"source": sc, "params": str(params_file), "zenoh": loopback(p_src, [p_conv, p_rec, p_sink]),
+    zenoh = zenoh_layer(args)
+    rec_cfg = RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0, log_interval_s=3600,
+                             zenoh=zenoh.over(loopback(p_rec)))
+    conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, provenance_interval_s=0,
+                               zenoh=zenoh.over(loopback(p_conv, [p_rec])))
+    src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, [p_conv, p_rec, p_sink])),
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
                "flat_out": args.flat_out}
-    sink_cfg = {"zenoh": loopback(p_sink), "key": keys.counts_key(pass_setup, "*", "*")}
+    sink_cfg = {"zenoh": zenoh.over(loopback(p_sink)), "key": keys.counts_key(pass_setup, "*", "*")}
     load_before = os.getloadavg()[0]
     services = Services()
     try:
-        services.start("recorder", "mntes_stream.service:run_recorder_doc", recorder_doc)
-        services.start("converter", "mntes_stream.service.converter:run_converter", conv_cfg)
-        services.start("sink", "mntes_stream.bench.stream:_sink", sink_cfg)
-        services.start("source", "mntes_stream.bench.stream:_source", src_cfg)
+        services.start("recorder", "recorder", rec_cfg)
+        services.start("converter", "converter", conv_cfg)
+        services.start("sink", _Sink, sink_cfg)
+        services.start("source", _Source, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
-        with open_session(loopback(None, [p_conv])) as z:
-            sub = QueueSubscriber(z, [keys.status_key(setup, conv_cfg.pipeline.service)])
+        with open_session(zenoh.over(loopback(None, [p_conv]))) as z:
+            sub = QueueSubscriber(z, [keys.status_key(setup, conv_cfg.name)])
             # The source keeps its session open after publishing (queued is not delivered): wait
             # until the converter has received something, holds nothing and has made no progress
             # for 4.5 s. Its power went out before that, so the recorder has had as long to take it in.

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
@@ -41,11 +42,22 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except MntesError as exc:
-        print(f"mntes-stream: error: {exc}", file=sys.stderr)
-        return 2
+    except MntesError as exc:  # said on purpose: bad config, input or data, a dead endpoint
+        return _error(exc, 2)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # e.g. `mntes-stream inspect ... | head`: the reader has gone
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except OSError as exc:  # a file or directory the command was told to use
+        where = f": {exc.filename}" if exc.filename else ""
+        return _error(f"{exc.strerror or exc}{where}", 1)
+
+
+def _error(what, rc: int) -> int:
+    """One line on stderr, the exit code back."""
+    print(f"mntes-stream: error: {what}", file=sys.stderr)
+    return rc
 
 
 if __name__ == "__main__":

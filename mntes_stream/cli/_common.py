@@ -8,6 +8,14 @@ from mntes_stream.core.params import DetectorParams, table1_params
 from mntes_stream.errors import ConfigError
 
 
+def setup_logging(verbose: bool) -> None:
+    """INFO (``verbose``) or WARNING to stderr, one format for every command."""
+    import logging
+
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                        format="%(asctime)s %(processName)s %(name)s: %(message)s")
+
+
 def add_params_args(parser) -> None:
     parser.add_argument("--params", metavar="FILE", help="detector parameter file (TOML); default: the paper's Table 1 detector")
     parser.add_argument("--detector", metavar="ID", help="detector id in --params (default: the first)")
@@ -30,26 +38,74 @@ def params_from_args(args) -> DetectorParams:
 
 
 def add_zenoh_args(p) -> None:
-    """``--connect/--listen/--mode/--zenoh-config``, overriding a config's [zenoh] table."""
-    g = p.add_argument_group("zenoh (override the config file's [zenoh] table)")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447 (repeatable)")
-    g.add_argument("--mode", choices=("peer", "client", "router"))
-    g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
+    """zenoh's own flags, as its example programs and router take them."""
+    g = p.add_argument_group(
+        "zenoh", "as zenoh's own programs take them; they override the config's [zenoh] table, which overrides "
+                 "the zenoh config file (-c, else [zenoh] config_file, else $ZENOH_CONFIG), which overrides the "
+                 "defaults (peer, listen on loopback only, scouting off)")
+    g.add_argument("-c", "--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
+    g.add_argument("-m", "--mode", choices=("peer", "client", "router"), help="zenoh mode")
+    g.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447 (repeatable)")
+    g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
+                   help="any zenoh config change, VALUE in JSON5, e.g. scouting/gossip/enabled:true (repeatable)")
+    g.add_argument("--no-multicast-scouting", action="store_true", help="multicast scouting off (the default here)")
 
 
-def zenoh_overrides(args, z):
-    """``z`` (a ``transport.ZenohSettings``) with the command line's zenoh options applied."""
-    kw = {}
-    if args.connect:
-        kw["connect"] = tuple(args.connect)
-    if args.listen:
-        kw["listen"] = tuple(args.listen)
-    if args.mode:
-        kw["mode"] = args.mode
-    if args.zenoh_config:
-        kw["config_file"] = args.zenoh_config
-    return dataclasses.replace(z, **kw)
+def zenoh_layer(args):
+    """The command line's zenoh flags as a ``ZenohSettings`` layer (only what was given)."""
+    from mntes_stream.io.transport import ZenohSettings
+
+    return ZenohSettings(
+        config_file=args.zenoh_config,
+        mode=args.mode,
+        connect=tuple(args.connect) if args.connect else None,
+        listen=tuple(args.listen) if args.listen else None,
+        multicast_scouting=False if args.no_multicast_scouting else None,
+        cfg=tuple(args.cfg),
+    )
+
+
+def zenoh_from_args(args, table=None):
+    """Effective zenoh settings: the flags over ``table`` (a config's ``[zenoh]``, default: none)."""
+    from mntes_stream.io.transport import ZenohSettings
+
+    return zenoh_layer(args).over(table if table is not None else ZenohSettings())
+
+
+def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | None = None) -> None:
+    """``--name`` flags for settings of ``cls``, typed and documented from their declarations.
+
+    Every flag defaults to None (not given), so a flag overrides a config file
+    only where it is given; :func:`settings_from_args` collects them.
+    """
+    import argparse
+    import typing
+
+    from mntes_stream.core.settings import declared, expected
+
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    g = p.add_argument_group(title) if title else p
+    for name in names:
+        s, hint = declared(fields[name]), hints[name]
+        flags = [f"--{name.replace('_', '-')}", *(aliases or {}).get(name, ())]
+        default = fields[name].default
+        text = f"{s.doc} [{expected(hint, s)}; default {default!r}]" if default is not dataclasses.MISSING else s.doc
+        text = text.replace("%", "%%")
+        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else hint
+        if hint is bool:
+            g.add_argument(*flags, dest=name, action=argparse.BooleanOptionalAction, default=None, help=text)
+        elif typing.get_origin(hint) is tuple:
+            g.add_argument(*flags, dest=name, nargs="+", type=inner, default=None, metavar=name.upper(), help=text)
+        else:
+            g.add_argument(*flags, dest=name, type=inner if inner in (int, float, str) else str, default=None,
+                           metavar=(s.unit or name).upper() if inner in (int, float) else None, help=text)
+
+
+def settings_from_args(args, names) -> dict:
+    """The settings among ``names`` given on the command line."""
+    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 
 def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:

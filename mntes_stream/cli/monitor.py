@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import sys
 import time
@@ -32,12 +31,11 @@ def _f_hwp(text: str):
 
 
 def _settings(args):
-    from mntes_stream.cli._common import zenoh_overrides
-    from mntes_stream.io.transport import ZenohSettings
+    from mntes_stream.cli._common import zenoh_from_args
     from mntes_stream.monitor.aggregate import MonitorConfig
 
     config = MonitorConfig(history_s=args.history_s, f_hwp_hz=args.f_hwp, silent_s=args.silent_s, hk_stale_s=args.hk_stale_s)
-    return config, zenoh_overrides(args, ZenohSettings())
+    return config, zenoh_from_args(args)
 
 
 def _run_text(sub, args) -> int:
@@ -58,10 +56,15 @@ def _run_text(sub, args) -> int:
 
 
 def run_monitor(args) -> int:
+    from mntes_stream.cli._common import setup_logging
+    from mntes_stream.errors import import_extra
     from mntes_stream.monitor.subscriber import MonitorSubscriber
 
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    setup_logging(args.verbose)
     config, zenoh = _settings(args)
+    if not args.text:
+        import_extra("aiohttp", "monitor")  # the page's server; checked before anything starts
+        import_extra("plotly", "monitor")
     with MonitorSubscriber(args.setup, zenoh, config) as sub:
         try:
             if args.text:

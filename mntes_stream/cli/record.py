@@ -4,49 +4,56 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import warnings
 
-from mntes_stream.cli._common import add_zenoh_args, zenoh_overrides
-
-
-def _logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
-
+from mntes_stream.cli._common import (
+    add_settings_args,
+    add_zenoh_args,
+    settings_from_args,
+    setup_logging,
+    zenoh_layer,
+)
 
 # ---------------------------------------------------------------------------- record
 
-_RECORD_FLAGS = {
-    "setup": "setup",
-    "key_expr": "key_expr",
-    "dir": "directory",
-    "prefix": "prefix",
-    "flush_s": "flush_interval_s",
-    "rotate_mb": "rotate_mb",
-    "rotate_s": "rotate_s",
-    "compression": "compression",
-    "chunk_kb": "chunk_size_kb",
-    "duration": "duration_s",
-}
+_RECORD = ("setup", "key_expr", "directory", "prefix", "flush_interval_s", "rotate_mb", "rotate_s", "compression",
+           "chunk_size_kb", "fsync", "duration_s", "queue_messages")
+_RECORD_ALIASES = {"directory": ("--dir",), "flush_interval_s": ("--flush-s",), "chunk_size_kb": ("--chunk-kb",),
+                   "duration_s": ("--duration",)}
+
+
+def _service_config(service_cls, path, sets, flags: dict, zenoh_flags):
+    """A service's config: its file (``--config``) or its defaults, ``--set`` items, then flags, then zenoh flags."""
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.service.config import load_service_config, with_zenoh
+
+    if path:
+        service, cfg = load_service_config(path, sets)
+        if service is not service_cls:
+            raise ConfigError(f"{path}: a [{service.name}] config, not a [{service_cls.name}] one")
+    elif sets:
+        raise ConfigError("--set needs --config")
+    else:
+        cfg = service_cls.Config()
+    try:
+        cfg = dataclasses.replace(cfg, **flags)
+    except ConfigError as exc:
+        raise ConfigError(f"command line: {exc}") from None
+    return with_zenoh(cfg, zenoh_flags)
 
 
 def run_record(args) -> int:
-    from mntes_stream.service.recorder import RecorderConfig, run_recorder
+    from mntes_stream.service.recorder import RecorderService
 
-    cfg = RecorderConfig.from_toml(args.config) if args.config else RecorderConfig()
-    kw = {field: getattr(args, flag) for flag, field in _RECORD_FLAGS.items() if getattr(args, flag) is not None}
-    if args.fsync:
-        kw["fsync"] = True
-    cfg = dataclasses.replace(cfg, zenoh=zenoh_overrides(args, cfg.zenoh), **kw)
-    _logging(not args.quiet)
-    stats = run_recorder(cfg)
-    out = dataclasses.asdict(stats)
+    cfg = _service_config(RecorderService, args.config, args.set, settings_from_args(args, _RECORD), zenoh_layer(args))
+    setup_logging(not args.quiet)
+    out = RecorderService(cfg).start()
     if args.json:
         print(json.dumps(out, indent=2))
     else:
-        print(f"recorded {stats.messages} messages ({stats.payload_bytes / 1e6:.1f} MB payload, {stats.invalid} invalid, "
-              f"{stats.seq_gaps} sequence gaps) in {stats.duration_s:.1f} s into {len(stats.files)} file(s):")
-        for f in stats.files:
+        print(f"recorded {out['messages']} messages ({out['payload_bytes'] / 1e6:.1f} MB payload, {out['invalid']} invalid, "
+              f"{out['seq_gaps']} sequence gaps) in {out['duration_s']:.1f} s into {len(out['files'])} file(s):")
+        for f in out["files"]:
             print(f"  {f}")
     return 0
 
@@ -55,11 +62,11 @@ def run_record(args) -> int:
 
 
 def run_replay_cmd(args) -> int:
+    from mntes_stream.errors import ConfigError
     from mntes_stream.io.mcap_io import Session
-    from mntes_stream.service.replay import ReplayConfig, parse_time, run_replay
+    from mntes_stream.service.replay import ReplayService, parse_time, run_replay
 
-    cfg = ReplayConfig.from_toml(args.config) if args.config else ReplayConfig()
-    kw: dict = {"source": tuple(args.files)}
+    kw: dict = {"source": tuple(args.files)} if args.files else {}
     if args.afap:
         kw["speed"] = 0.0
     elif args.speed is not None:
@@ -70,14 +77,18 @@ def run_replay_cmd(args) -> int:
         kw["topics"] = tuple(args.topics)
     if args.wait_s is not None:
         kw["wait_subscribers_s"] = args.wait_s
+    cfg = _service_config(ReplayService, args.config, args.set, kw, zenoh_layer(args))
+    if not cfg.source:
+        raise ConfigError("nothing to replay: give recordings (files or directories) or a config with source")
     if args.start is not None or args.end is not None:
-        t0 = Session(args.files, warn=False).start_ns
+        t0 = Session(list(cfg.source), warn=False).start_ns
+        times = {}
         if args.start is not None:
-            kw["start_ns"] = parse_time(args.start, t0)
+            times["start_ns"] = parse_time(args.start, t0)
         if args.end is not None:
-            kw["end_ns"] = parse_time(args.end, t0)
-    cfg = dataclasses.replace(cfg, zenoh=zenoh_overrides(args, cfg.zenoh), **kw)
-    _logging(not args.quiet)
+            times["end_ns"] = parse_time(args.end, t0)
+        cfg = dataclasses.replace(cfg, **times)
+    setup_logging(not args.quiet)
     stats = run_replay(cfg, progress=not args.quiet and not args.json)
     if args.json:
         print(json.dumps(dataclasses.asdict(stats), indent=2))
@@ -130,9 +141,9 @@ def run_convert(args) -> int:
 
     pipeline = None
     if args.config:
-        from mntes_stream.service.converter import ConverterConfig
+        from mntes_stream.service.converter import ConverterService
 
-        pipeline = ConverterConfig.from_toml(args.config).pipeline
+        pipeline = _service_config(ConverterService, args.config, (), {}, None).pipeline
     stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, pipeline_config=pipeline,
                               progress=not args.quiet)
     if args.json:
@@ -145,18 +156,11 @@ def run_convert(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("record", help="record mntes/<setup>/** from zenoh into rotated MCAP files",
                        description="Record every message of a setup into MCAP until SIGINT/SIGTERM (or --duration).")
+    from mntes_stream.service.recorder import RecorderConfig
+
     p.add_argument("--config", metavar="FILE", help="recorder TOML (services/recorder.toml); flags override it")
-    p.add_argument("--setup", help="setup name (records mntes/<setup>/**)")
-    p.add_argument("--key-expr", help="record this key expression instead")
-    p.add_argument("--dir", help="output directory")
-    p.add_argument("--prefix", help="file prefix: <dir>/<prefix>-<seq>.mcap")
-    p.add_argument("--flush-s", type=float, help="flush cadence = the crash-loss bound (s)")
-    p.add_argument("--rotate-mb", type=float, help="new file after this many MB (0: never)")
-    p.add_argument("--rotate-s", type=float, help="new file after this many seconds (0: never)")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"))
-    p.add_argument("--chunk-kb", type=int, help="chunk size (uncompressed kB)")
-    p.add_argument("--fsync", action="store_true", help="fsync at every flush (power-loss safe)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
+    add_settings_args(p, RecorderConfig, _RECORD, _RECORD_ALIASES, title="recorder (override the config file)")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
     p.add_argument("-q", "--quiet", action="store_true")
     add_zenoh_args(p)
@@ -165,8 +169,10 @@ def register(sub) -> None:
     p = sub.add_parser("replay", help="re-publish a recorded session onto zenoh",
                        description="Re-publish recorded messages (default: counts and housekeeping) in log-time order, "
                                    "payloads unchanged, with BLOCK congestion control.")
-    p.add_argument("files", nargs="+", metavar="FILE.mcap", help="recording(s) or a directory of rotated files")
+    p.add_argument("files", nargs="*", metavar="FILE.mcap",
+                   help="recording(s), a directory of rotated files or the folder `up` writes (default: the config's source)")
     p.add_argument("--config", metavar="FILE", help="replay TOML (services/replay.toml)")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--speed", type=float, help="multiple of real time (1: real time; 0: as fast as possible)")
     speed.add_argument("--afap", action="store_true", help="as fast as possible (same as --speed 0)")

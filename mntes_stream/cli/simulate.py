@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from mntes_stream.cli._common import print_mapping
+from mntes_stream.cli._common import add_zenoh_args, print_mapping
 
 
 def _value(text: str):
@@ -16,53 +16,33 @@ def _value(text: str):
 
 
 def _config(args):
-    """(SimConfig, ZenohSettings, run options) from ``--config`` and the command line (which wins)."""
-    import dataclasses
+    """The ``[simulator]`` service config: ``--config``, then the command line (which wins)."""
+    from pathlib import Path
 
-    from mntes_stream.core.sim import HWP_FREQUENCIES_HZ, SimConfig
+    from mntes_stream.cli._common import zenoh_layer
+    from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
     from mntes_stream.errors import ConfigError
-    from mntes_stream.io.transport import ZenohSettings
+    from mntes_stream.service.config import read_toml, with_zenoh
+    from mntes_stream.service.simulator import SimulatorService
 
-    settings: dict = {}
-    zenoh = ZenohSettings()
-    run: dict = {}
-    if args.config:
-        import tomllib
-        from pathlib import Path
-
-        from mntes_stream.service.simulator import SimulatorService
-
-        try:
-            doc = tomllib.loads(Path(args.config).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{args.config}: {exc}") from None
-        svc = SimulatorService.from_dict(doc, args.config, base_dir=str(Path(args.config).parent))
-        settings = svc.config.to_dict()
-        zenoh = svc.zenoh
-        run = {f.name: getattr(svc, f.name) for f in dataclasses.fields(svc) if f.name not in ("config", "zenoh")}
+    doc = read_toml(args.config) if args.config else {}
+    table = dict(doc.get("simulator", {})) if isinstance(doc.get("simulator", {}), dict) else doc["simulator"]
     for name, attr in (("boards", "boards"), ("modules", "modules"), ("channels", "channels"),
-                       ("sample_rate_hz", "sample_rate"), ("seed", "seed")):
+                       ("sample_rate_hz", "sample_rate"), ("seed", "seed"), ("setup", "setup"), ("chunk_s", "chunk_s"),
+                       ("speed", "speed"), ("duration_s", "duration_s"), ("f_hwp_hz", "f_hwp")):
         if getattr(args, attr) is not None:
-            settings[name] = getattr(args, attr)
+            table[name] = getattr(args, attr)
     if args.telescope:
-        settings["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]
-    if args.f_hwp is not None:
-        settings["f_hwp_hz"] = args.f_hwp
+        table["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]
     for item in args.set or []:
         if "=" not in item:
             raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
         key, text = item.split("=", 1)
-        settings[key.strip()] = _value(text)
-    config = SimConfig.from_dict(settings)
-    for name in ("setup", "chunk_s", "speed", "duration_s"):
-        value = getattr(args, name)
-        if value is not None:
-            run[name] = value
-    if args.connect:
-        zenoh = dataclasses.replace(zenoh, connect=tuple(args.connect))
-    if args.listen:
-        zenoh = dataclasses.replace(zenoh, listen=tuple(args.listen))
-    return config, zenoh, run
+        table[key.strip()] = _value(text)
+    where = args.config or "command line"
+    base = str(Path(args.config).resolve().parent) if args.config else None
+    cfg = SimulatorService.config_from_document({**doc, "simulator": table}, where, base_dir=base)
+    return with_zenoh(cfg, zenoh_layer(args))
 
 
 def run(args) -> int:
@@ -72,21 +52,15 @@ def run(args) -> int:
 
     from mntes_stream.errors import ConfigError
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.simulator import (
-        SimulatorService,
-        SimulatorSource,
-        TruthRecorder,
-        perturbed_params,
-        publish_live,
-        write_mcap,
-    )
+    from mntes_stream.service.simulator import SimulatorSource, TruthRecorder, perturbed_params, publish_live, write_mcap
 
-    config, settings, run_opts = _config(args)
-    svc = SimulatorService(config, settings, **run_opts)  # validates; holds the defaults
+    svc = _config(args)
+    config, settings = svc.sim, svc.zenoh
     duration = svc.duration_s
-    live = bool(settings.connect or settings.listen or settings.config_file)
+    live = bool(settings.connect or settings.listen or settings.file)
     if bool(args.mcap) == live:
-        raise ConfigError("simulate: give either --mcap FILE or zenoh endpoints (--connect/--listen or --config)")
+        raise ConfigError("simulate: give either --mcap FILE or zenoh endpoints (-e/--connect, -l/--listen, "
+                          "-c/--zenoh-config or a [zenoh] table)")
     source = SimulatorSource(config, svc.setup, svc.chunk_s)
     stem = Path(args.mcap).with_suffix("") if args.mcap else None
     params_out = args.params_out or (f"{stem}.params.toml" if stem else None)
@@ -107,9 +81,9 @@ def run(args) -> int:
         with tqdm(total=n, desc="simulate", unit="chunk", disable=args.json or None) as bar:
             result = write_mcap(source, args.mcap, duration, truth=truth, progress=bar.update)
     else:
-        from mntes_stream.service import stop_on_signals
+        from mntes_stream.service.base import stop_on_signals
 
-        print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect) + list(settings.listen)}, "
+        print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect or ()) + list(settings.listen or ())}, "
               f"setup {svc.setup!r}, {svc.speed:g}x real time" + (f", {duration:g} s" if duration else ", until Ctrl-C"),
               file=sys.stderr)
         with stop_on_signals() as stop:
@@ -130,8 +104,6 @@ def register(sub) -> None:
                     "per-sample truth (.npz, never read by a converter) next to the output.")
     p.add_argument("--config", metavar="TOML", help="service config with [simulator] and [zenoh] tables")
     p.add_argument("--mcap", metavar="FILE", help="write an MCAP file instead of publishing")
-    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="zenoh endpoint to listen on (repeatable)")
     p.add_argument("--setup", help="setup name in the keys (default lab, as every service)")
     p.add_argument("--boards", type=int)
     p.add_argument("--modules", type=int, help="modules per board")
@@ -154,4 +126,5 @@ def register(sub) -> None:
     p.add_argument("--error-scale", type=float, default=1.0, help="calibration errors in units of the assumed 1-sigma")
     p.add_argument("--error-seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_zenoh_args(p)
     p.set_defaults(func=run)

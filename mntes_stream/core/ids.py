@@ -7,6 +7,8 @@ import re
 from mntes_stream.errors import ConfigError
 
 _PATTERN = re.compile(r"^b(\d+)m(\d+)c(\d+)$")
+# Setup, sensor, service and file-prefix names: one key segment, no wildcards.
+NAME_PATTERN = re.compile(r"\A[A-Za-z0-9_.\-]+\Z")  # \Z: no trailing newline slips through
 
 
 def detector_id(board: int, module: int, channel: int) -> str:

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from mntes_stream.core.checks import finite_float
+from mntes_stream.core.settings import Settings, build, setting, validate
 from mntes_stream.core.transition import (
     ArctanTransition,
     TabulatedTransition,
@@ -66,49 +66,33 @@ class DetectorParams:
         Peak amperes per count of ``I + 1j Q``, including demodulation phase.
     """
 
-    detector_id: str
-    transition: Transition
-    k_w_per_k_n: float
-    n: float
-    z_thev_ohm: complex
-    v_thev_v: float
-    t_bath_k: float = 0.100
-    p_opt_w: float = 0.5e-12
-    c_heat_j_per_k: float = 0.0
-    t_c_shift_k_per_t: float = 0.0
-    t_c_shift_k_per_t2: float = 0.0
-    pickup_a_per_t: complex = 0j
-    current_shift_k_per_a: float = 0.0
-    gain_a_per_count: complex = 1e-12 + 0j
+    detector_id: str = setting(doc="detector id, e.g. b0m3c012")
+    transition: Transition = setting(doc="transition shape T_s(R)")
+    k_w_per_k_n: float = setting(doc="K in P = K (T^n - T_bath^n)", unit="W/K^n", gt=0)
+    n: float = setting(doc="thermal transport exponent", gt=1)
+    z_thev_ohm: complex = setting(doc="Thevenin series impedance at the bias frequency", unit="Ohm")
+    v_thev_v: float = setting(doc="Thevenin bias voltage (RMS) at the tuned operating point", unit="V", ge=0)
+    t_bath_k: float = setting(0.100, "nominal bath temperature", unit="K", gt=0)
+    p_opt_w: float = setting(0.5e-12, "nominal optical loading", unit="W", ge=0)
+    c_heat_j_per_k: float = setting(0.0, "heat capacity of the island", unit="J/K", ge=0)
+    t_c_shift_k_per_t: float = setting(0.0, "c1 of T_c(B) = T_c0 + c1 B + c2 B^2", unit="K/T")
+    t_c_shift_k_per_t2: float = setting(0.0, "c2 of T_c(B)", unit="K/T^2")
+    pickup_a_per_t: complex = setting(0j, "readout pickup m: the measured current gains m B", unit="A/T")
+    current_shift_k_per_a: float = setting(0.0, "gamma: T_c drops by gamma |I| (current suppresses T_c)",
+                                           unit="K/A", ge=0)
+    gain_a_per_count: complex = setting(1e-12 + 0j, "peak amperes per count of I + jQ, with the demodulation phase",
+                                        unit="A/count")
 
     def __post_init__(self) -> None:
-        if not isinstance(self.detector_id, str) or not self.detector_id:
+        try:
+            validate(self)
+        except ConfigError as exc:
+            raise ConfigError(f"{self.detector_id}: {exc}") from None
+        if not self.detector_id:
             raise ConfigError("detector_id must be a non-empty string")
-        if not isinstance(self.transition, (ArctanTransition, TabulatedTransition)):
-            if not isinstance(self.transition, Transition):
-                raise ConfigError(f"{self.detector_id}: transition must implement Transition")
-        object.__setattr__(self, "z_thev_ohm", complex(self.z_thev_ohm))
-        object.__setattr__(self, "pickup_a_per_t", complex(self.pickup_a_per_t))
-        object.__setattr__(self, "gain_a_per_count", complex(self.gain_a_per_count))
-        for name in (
-            "k_w_per_k_n", "n", "v_thev_v", "t_bath_k", "p_opt_w", "c_heat_j_per_k",
-            "t_c_shift_k_per_t", "t_c_shift_k_per_t2", "current_shift_k_per_a",
-        ):
-            object.__setattr__(self, name, finite_float(self.detector_id, name, getattr(self, name)))
-        for name in ("z_thev_ohm", "pickup_a_per_t", "gain_a_per_count"):
-            value = getattr(self, name)
-            if not (math.isfinite(value.real) and math.isfinite(value.imag)):
-                raise ConfigError(f"{self.detector_id}: {name} must be finite, got {value}")
         checks = [
-            (self.k_w_per_k_n > 0, "k_w_per_k_n must be > 0"),
-            (self.n > 1, "n must be > 1"),
-            (self.v_thev_v >= 0, "v_thev_v must be >= 0"),
-            (self.t_bath_k > 0, "t_bath_k must be > 0"),
-            (self.p_opt_w >= 0, "p_opt_w must be >= 0"),
-            (self.c_heat_j_per_k >= 0, "c_heat_j_per_k must be >= 0"),
             (self.z_thev_ohm.real >= 0, "Re(z_thev_ohm) must be >= 0 (a passive network)"),
             (self.gain_a_per_count != 0, "gain_a_per_count must be non-zero"),
-            (self.current_shift_k_per_a >= 0, "current_shift_k_per_a must be >= 0 (current suppresses T_c)"),
         ]
         for ok, message in checks:
             if not ok:
@@ -158,29 +142,42 @@ class DetectorParams:
 _SCALAR_KEYS = {f.name for f in dataclasses.fields(DetectorParams)} - {"transition"}
 _TRANSITION_KEYS = {"transition", "t_c_k", "iqr_k", "r_n_ohm", "transition_t_k", "transition_r_ohm"}
 PARAM_KEYS = frozenset(_SCALAR_KEYS | _TRANSITION_KEYS)
-_COMPLEX_KEYS = {"z_thev_ohm", "pickup_a_per_t", "gain_a_per_count"}
 
 
-def _complex(name: str, value: Any) -> complex:
-    if isinstance(value, (list, tuple)) and len(value) == 2:
-        return complex(float(value[0]), float(value[1]))
-    if isinstance(value, (int, float, complex)):
-        return complex(value)
-    raise ConfigError(f"{name} must be a number or [re, im], got {value!r}")
+@dataclass(frozen=True)
+class TransitionKeys(Settings):
+    """The transition's keys in a parameter file (``transition`` picks the model)."""
+
+    transition: str = setting("arctan", "transition model", choices=("arctan", "tabulated"))
+    t_c_k: float | None = setting(None, "arctan: transition temperature T_c0", unit="K", gt=0)
+    iqr_k: float | None = setting(None, "arctan: interquartile width", unit="K", gt=0)
+    r_n_ohm: float | None = setting(None, "arctan: normal resistance", unit="Ohm", gt=0)
+    transition_t_k: tuple[float, ...] | None = setting(None, "tabulated: temperatures", unit="K", increasing=True)
+    transition_r_ohm: tuple[float, ...] | None = setting(None, "tabulated: resistances", unit="Ohm", ge=0)
 
 
-def params_from_dict(d: dict) -> DetectorParams:
-    """Build parameters from a flat mapping, rejecting unknown and missing keys."""
+def params_from_dict(d: dict, where: str = "") -> DetectorParams:
+    """Build parameters from a flat mapping, every value checked against its declaration.
+
+    >>> params_from_dict({"detector_id": "d", "t_c_k": 0.18, "iqr_k": 1e-3, "r_n_ohm": 1.0, "k_w_per_k_n": 6.8e-10,
+    ...                   "n": 3.6, "z_thev_ohm": [0.05, 0.05], "v_thev_v": 8e-7}).z_thev_ohm
+    (0.05+0.05j)
+    >>> params_from_dict({"detector_id": "d", "t_c_k": "0.18"}, "p.toml [detectors.d]")
+    Traceback (most recent call last):
+    ...
+    mntes_stream.errors.ConfigError: p.toml [detectors.d] t_c_k: expected a number (K) > 0 or absent, got '0.18'
+    """
     unknown = set(d) - PARAM_KEYS
     if unknown:
-        raise ConfigError(f"unknown parameter key(s): {sorted(unknown)}; known: {sorted(PARAM_KEYS)}")
+        raise ConfigError(f"{where + ': ' if where else ''}unknown parameter key(s): {sorted(unknown)}; "
+                          f"known: {sorted(PARAM_KEYS)}")
+    keys_ = build(TransitionKeys, {k: v for k, v in d.items() if k in _TRANSITION_KEYS}, where)
     kwargs = {k: v for k, v in d.items() if k in _SCALAR_KEYS}
-    for key in _COMPLEX_KEYS & set(kwargs):
-        kwargs[key] = _complex(key, kwargs[key])
     missing = {"detector_id", "k_w_per_k_n", "n", "z_thev_ohm", "v_thev_v"} - set(kwargs)
     if missing:
-        raise ConfigError(f"missing parameter(s): {sorted(missing)}")
-    return DetectorParams(transition=transition_from_dict(d), **kwargs)
+        raise ConfigError(f"{where + ': ' if where else ''}missing parameter(s): {sorted(missing)}")
+    transition = transition_from_dict({k: v for k, v in dataclasses.asdict(keys_).items() if v is not None})
+    return build(DetectorParams, {}, where, transition=transition, **kwargs)
 
 
 # --- Table 1 of the paper -------------------------------------------------------------

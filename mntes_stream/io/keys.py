@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import re
 
+from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.errors import ConfigError
 
 PREFIX = "mntes"
 # The setup name every service uses unless told otherwise.
 DEFAULT_SETUP = "lab"
-# Setup, sensor and service names: one path segment, no wildcards.
-NAME_PATTERN = re.compile(r"\A[A-Za-z0-9_.\-]+\Z")  # \Z: no trailing newline slips through
 KINDS = ("counts", "hk", "power", "status", "provenance")
 
 

@@ -67,10 +67,7 @@ def parse_params(doc: dict, source: str = "<params>") -> dict[str, DetectorParam
         merged = dict(defaults)
         merged.update(_expand_preset(overrides, f"{source} [detectors.{det_id}]"))
         merged["detector_id"] = det_id
-        try:
-            out[det_id] = params_from_dict(merged)
-        except ConfigError as exc:
-            raise ConfigError(f"{source} [detectors.{det_id}]: {exc}") from None
+        out[det_id] = params_from_dict(merged, f"{source} [detectors.{det_id}]")
     return out
 
 

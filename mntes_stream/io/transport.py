@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import json
+import os
 import queue
 import socket
 import threading
@@ -24,11 +26,13 @@ import time
 from dataclasses import dataclass, fields
 from typing import Iterable, Iterator
 
+from mntes_stream.core.settings import setting
 from mntes_stream.errors import ConfigError, TransportError
 
 __all__ = [
     "ZenohSettings",
     "zenoh_config",
+    "describe_config",
     "open_session",
     "free_tcp_port",
     "loopback",
@@ -37,93 +41,117 @@ __all__ = [
 ]
 
 _MODES = ("peer", "client", "router")
+# zenoh's own router port: a router named by nothing else listens here, on loopback.
+ROUTER_PORT = 7447
 
 
 @dataclass(frozen=True)
 class ZenohSettings:
-    """How to join the zenoh network (the ``[zenoh]`` table of every service config).
+    """How to join the zenoh network: the ``[zenoh]`` table of a config, and the zenoh flags.
 
-    Attributes
-    ----------
-    mode : {"peer", "client", "router"}
-    connect, listen : tuple of str
-        Endpoints such as ``tcp/127.0.0.1:7447``. A peer given no ``listen``
-        (and no config file) whose ``connect`` endpoints are all on loopback
-        listens on ``tcp/127.0.0.1:0``, never on every interface.
-    config_file : str
-        zenoh JSON5 config read first (e.g. ``services/zenoh-lab.json5``);
-        the fields above override it where given.
-    scouting : bool
-        Multicast and gossip scouting; off by default.
-    gossip : bool
-        Gossip scouting only (no multicast): peers learn each other's
-        endpoints through the peers they are connected to and connect
-        directly, so services that all connect to one peer form a full mesh.
-        Without it (and without a router) a peer receives only from peers it
-        is itself connected to: peers do not forward for each other.
+    Layers, lowest first: built-in defaults < the zenoh JSON5 file
+    (``config_file``, else ``$ZENOH_CONFIG``) < the ``[zenoh]`` table < the
+    command line. A layer sets only what it names: a field left ``None`` (or
+    ``cfg`` empty) leaves the lower layers' value alone. Built-in defaults,
+    each applied only where neither the file nor a setting names it: peer
+    mode, multicast and gossip scouting off, and listening on loopback only
+    (``tcp/127.0.0.1:0``; a router ``tcp/127.0.0.1:7447``; clients do not
+    listen).
     """
 
-    mode: str = "peer"
-    connect: tuple[str, ...] = ()
-    listen: tuple[str, ...] = ()
-    config_file: str = ""
-    scouting: bool = False
-    gossip: bool = False
+    config_file: str | None = setting(None, "zenoh JSON5 config file, read first (default: $ZENOH_CONFIG)", path=True)
+    mode: str | None = setting(None, "peer, client or router (default peer)", choices=_MODES)
+    connect: tuple[str, ...] | None = setting(None, "endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    listen: tuple[str, ...] | None = setting(None, "endpoints to listen on (default: loopback only)")
+    multicast_scouting: bool | None = setting(None, "multicast scouting (default off)")
+    gossip: bool | None = setting(
+        None, "gossip scouting: peers learn of each other through the peers they are connected to (default off)")
+    cfg: tuple[str, ...] = setting((), "zenoh config changes KEY:VALUE (VALUE in JSON5), applied last")
 
     def __post_init__(self):
-        if self.mode not in _MODES:
-            raise ConfigError(f"zenoh mode must be one of {_MODES}, got {self.mode!r}")
-        for name in ("connect", "listen"):
-            value = getattr(self, name)
-            if isinstance(value, str) or not all(isinstance(x, str) for x in value):
-                raise ConfigError(f"zenoh {name} must be a list of endpoint strings, got {value!r}")
-            object.__setattr__(self, name, tuple(value))
+        for item in self.cfg:
+            key, sep, _ = item.partition(":")
+            if not sep or not key:
+                raise ConfigError(f"zenoh cfg {item!r}: expected KEY:VALUE, e.g. transport/unicast/max_links:2")
 
-    @classmethod
-    def from_dict(cls, d: dict, source: str = "[zenoh]", base_dir: str | None = None) -> "ZenohSettings":
-        """From a config table; a relative ``config_file`` is resolved against ``base_dir``."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"{source}: unknown key(s) {sorted(unknown)} (known: {sorted(known)})")
-        d = dict(d)
-        if d.get("config_file") and base_dir is not None:
-            from pathlib import Path
+    def over(self, base: "ZenohSettings") -> "ZenohSettings":
+        """This layer on top of ``base``: what this one names wins; ``cfg`` entries add up."""
+        named = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "cfg" and getattr(self, f.name) is not None}
+        return dataclasses.replace(base, **named, cfg=base.cfg + self.cfg)
 
-            path = Path(d["config_file"])
-            d["config_file"] = str(path if path.is_absolute() else Path(base_dir) / path)
-        try:
-            return cls(**d)
-        except TypeError as exc:
-            raise ConfigError(f"{source}: {exc}") from None
+    @property
+    def file(self) -> str | None:
+        """The zenoh config file in force: ``config_file``, else ``$ZENOH_CONFIG``, else none."""
+        return self.config_file or os.environ.get("ZENOH_CONFIG") or None
+
+
+def _named_paths(path: str) -> set[str]:
+    """Every key path (``scouting/multicast/enabled`` and its parents) a zenoh JSON5 file sets."""
+    import json5
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json5.load(f)
+    except OSError as exc:
+        raise ConfigError(f"zenoh config file {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"zenoh config file {path}: not valid JSON5: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"zenoh config file {path}: expected an object at the top")
+    out: set[str] = set()
+
+    def walk(d: dict, prefix: str) -> None:
+        for k, v in d.items():
+            out.add(prefix + str(k))
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}/")
+
+    walk(doc, "")
+    return out
 
 
 def zenoh_config(settings: ZenohSettings):
-    """A ``zenoh.Config`` for ``settings`` (scouting off unless enabled)."""
+    """The ``zenoh.Config`` for ``settings`` with every layer applied (see :class:`ZenohSettings`)."""
     import zenoh
 
+    s = settings
+    path = s.file
+    named = _named_paths(path) if path else set()
     try:
-        conf = zenoh.Config.from_file(settings.config_file) if settings.config_file else zenoh.Config()
-        conf.insert_json5("mode", json.dumps(settings.mode))
-        if settings.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
-        if settings.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
-        elif settings.mode == "peer" and not settings.config_file and all(map(_is_loopback, settings.connect)):
-            # zenoh's default would listen on every interface (tcp/[::]:0). A
-            # peer must stay reachable for gossip, so: loopback, any free port.
-            conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(settings.scouting)))
-        conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(settings.scouting or settings.gossip)))
-    except Exception as exc:  # zenoh raises ZError for unreadable files and bad values
-        raise ConfigError(f"zenoh config ({settings}): {exc}") from None
+        conf = zenoh.Config.from_file(path) if path else zenoh.Config()
+        mode = s.mode or (json.loads(conf.get_json("mode")) if "mode" in named else None) or "peer"
+        conf.insert_json5("mode", json.dumps(mode))
+        if s.connect is not None:
+            conf.insert_json5("connect/endpoints", json.dumps(list(s.connect)))
+        if s.listen is not None:
+            conf.insert_json5("listen/endpoints", json.dumps(list(s.listen)))
+        for key, value in (("scouting/multicast/enabled", s.multicast_scouting), ("scouting/gossip/enabled", s.gossip)):
+            if value is not None or key not in named:
+                conf.insert_json5(key, json.dumps(bool(value)))
+        for item in s.cfg:
+            key, _, value = item.partition(":")
+            conf.insert_json5(key, value)
+        listen_named = s.listen is not None or "listen/endpoints" in named or any(
+            c.startswith("listen") for c in s.cfg)
+        mode = json.loads(conf.get_json("mode"))
+        if not listen_named and mode != "client":
+            # zenoh's default listens on every interface (tcp/[::]:0, a router tcp/[::]:7447).
+            port = ROUTER_PORT if mode == "router" else 0
+            conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    except Exception as exc:  # zenoh raises ZError for unreadable files and bad keys or values
+        raise ConfigError(f"zenoh config ({path or 'no file'}): {str(exc).splitlines()[0] if str(exc) else exc!r}") from None
     return conf
 
 
-def _is_loopback(endpoint: str) -> bool:
-    """Whether ``proto/host:port`` names this machine's loopback."""
-    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
-    return host in ("localhost", "::1") or host.startswith("127.")
+def describe_config(conf) -> dict:
+    """The parts of a ``zenoh.Config`` a person checks first (``config show``, logs)."""
+    out = {}
+    for key in ("mode", "connect/endpoints", "listen/endpoints", "scouting/multicast/enabled", "scouting/gossip/enabled"):
+        try:
+            out[key] = json.loads(conf.get_json(key))
+        except Exception:  # a key this zenoh version does not have
+            continue
+    return out
 
 
 def open_session(settings: ZenohSettings):
@@ -134,9 +162,10 @@ def open_session(settings: ZenohSettings):
     try:
         return zenoh.open(conf)
     except Exception as exc:  # e.g. a listen port already in use
+        named = describe_config(conf)
         raise TransportError(
-            f"cannot open zenoh session ({settings.mode}, listen={list(settings.listen)}, "
-            f"connect={list(settings.connect)}): {exc}"
+            f"cannot open zenoh session (mode {named.get('mode')}, listen {named.get('listen/endpoints')}, "
+            f"connect {named.get('connect/endpoints')}): {str(exc).splitlines()[0] if str(exc) else exc!r}"
         ) from None
 
 
@@ -152,7 +181,7 @@ def loopback(listen_port: int | None = None, connect_ports: Iterable[int] = ()) 
     """Peer settings on 127.0.0.1: listen on one port, connect to others."""
     return ZenohSettings(
         mode="peer",
-        listen=() if listen_port is None else (f"tcp/127.0.0.1:{int(listen_port)}",),
+        listen=None if listen_port is None else (f"tcp/127.0.0.1:{int(listen_port)}",),
         connect=tuple(f"tcp/127.0.0.1:{int(p)}" for p in connect_ports),
     )
 

@@ -13,107 +13,68 @@ from __future__ import annotations
 
 import logging
 import time
-import tomllib
-from dataclasses import dataclass, field, fields
-from pathlib import Path
+from dataclasses import dataclass, fields
 
+from mntes_stream.core.convert import CONVERTER_KINDS
+from mntes_stream.core.ids import NAME_PATTERN
+from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, open_session
-from mntes_stream.service import split_config, stop_on_signals
-from mntes_stream.service.pipeline import PipelineConfig
+from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.pipeline_config import AlignmentConfig, PipelineConfig
 
-__all__ = ["ConverterConfig", "build_converter", "run_converter", "subscriptions"]
+__all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
 
 log = logging.getLogger("mntes_stream.converter")
 
 
 @dataclass(frozen=True)
-class ConverterConfig:
-    """Everything ``services/converter.toml`` says.
+class StatusConfig(Settings):
+    """The ``[status]`` table."""
 
-    Attributes
-    ----------
-    params : str
-        Detector parameter file (``io.paramfile``); optional when ``tables`` is
-        given (the bank carries its parameters).
-    kind : str
-        ``core.convert`` kind: table, grid, exact, linear, electrical.
-    tables : str
-        Table bank file (``io.tablefile``); built from ``params`` when empty.
-    boards, modules : tuple of int
-        Subscribe to these only (empty: all).
-    duration_s : float
-        Stop by itself after this long (0: until stopped).
-    provenance_interval_s : float
-        Re-publish the provenance this often (0: only at start).
-    pipeline : PipelineConfig
-        ``[alignment]`` and ``[status]`` tables; ``setup`` and ``name`` come from ``[converter]``.
-    """
+    interval_s: float = setting(1.0, "status message cadence", unit="s", gt=0)
 
-    params: str = ""
-    kind: str = "table"
-    tables: str = ""
-    boards: tuple[int, ...] = ()
-    modules: tuple[int, ...] = ()
-    duration_s: float = 0.0
-    provenance_interval_s: float = 10.0
-    queue_size: int = 4096
-    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
-    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
 
-    @property
-    def setup(self) -> str:
-        return self.pipeline.setup
+@dataclass(frozen=True)
+class ConverterConfig(Settings):
+    """Everything ``services/converter.toml`` says: ``[converter]``, ``[alignment]``, ``[status]``, ``[zenoh]``."""
 
-    @classmethod
-    def from_toml(cls, path: str | Path) -> "ConverterConfig":
-        path = Path(path)
-        try:
-            doc = tomllib.loads(path.read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{path}: {exc}") from None
-        return cls.from_dict(doc, str(path), base_dir=path.parent)
-
-    @classmethod
-    def from_dict(cls, doc: dict, source: str = "<config>", base_dir: str | Path | None = None) -> "ConverterConfig":
-        """From a parsed TOML document; relative file names resolve against ``base_dir``."""
-        tables, z = split_config(doc, ("converter", "alignment", "status"), source, base_dir)
-        conv, pipe, status = tables["converter"], tables["alignment"], tables["status"]
-        bad_status = set(status) - {"interval_s"}
-        if bad_status:
-            raise ConfigError(f"{source} [status]: unknown key(s) {sorted(bad_status)} (known: ['interval_s'])")
-        if "interval_s" in status:
-            pipe["status_interval_s"] = status["interval_s"]
-        for name, target in (("setup", "setup"), ("name", "service")):
-            if name in conv:
-                pipe[target] = conv.pop(name)
-        for name in ("params", "tables"):
-            if conv.get(name) and base_dir is not None and not Path(conv[name]).is_absolute():
-                conv[name] = str(Path(base_dir) / conv[name])
-        known = {f.name for f in fields(cls)} - {"pipeline", "zenoh"}
-        unknown = set(conv) - known
-        if unknown:
-            raise ConfigError(f"{source} [converter]: unknown key(s) {sorted(unknown)} (known: {sorted(known | {'setup', 'name'})})")
-        for name in ("boards", "modules"):
-            if name in conv:
-                v = conv[name]
-                if isinstance(v, str) or not all(isinstance(x, int) and x >= 0 for x in v):
-                    raise ConfigError(f"{source} [converter]: {name} must be a list of integers >= 0")
-                conv[name] = tuple(v)
-        pipeline = PipelineConfig.from_dict(pipe, f"{source} [alignment]")
-        try:
-            return cls(pipeline=pipeline, zenoh=z, **conv)
-        except TypeError as exc:
-            raise ConfigError(f"{source} [converter]: {exc}") from None
+    setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/counts|hk|power|status|provenance",
+                         pattern=NAME_PATTERN)
+    name: str = setting("converter", "service name: status on mntes/<setup>/status/<name>", pattern=NAME_PATTERN)
+    params: str = setting("", "detector parameter file (TOML); optional when tables is given", path=True)
+    kind: str = setting("table", "conversion kind (core/convert.py)", choices=CONVERTER_KINDS)
+    tables: str = setting("", "table bank file (mntes-stream tables build); '' = build from params at start",
+                          path=True)
+    boards: tuple[int, ...] = setting((), "subscribe to these boards only ([] = every board)", ge=0)
+    modules: tuple[int, ...] = setting((), "... and these modules ([] = every module)", ge=0)
+    duration_s: float = setting(0.0, "stop by itself after this long (0 = run until stopped)", unit="s", ge=0)
+    provenance_interval_s: float = setting(
+        10.0, "re-publish parameters + table identity this often, for recorders started later (0 = at start only)",
+        unit="s", ge=0)
+    queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
+    alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
+    status: StatusConfig = setting(default_factory=StatusConfig, doc="status cadence ([status])")
+    zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     def __post_init__(self):
+        super().__post_init__()
         if not self.params and not self.tables:
-            raise ConfigError("converter: give params (a parameter file) or tables (a table bank file)")
-        if self.duration_s < 0 or self.provenance_interval_s < 0:
-            raise ConfigError("converter: duration_s and provenance_interval_s must be >= 0")
-        if self.queue_size < 1:
-            raise ConfigError("converter: queue_size must be >= 1")
+            raise ConfigError("give params (a parameter file) or tables (a table bank file)")
+
+    @classmethod
+    def for_pipeline(cls, pipeline: PipelineConfig, **kw) -> "ConverterConfig":
+        """The config whose :attr:`pipeline` is ``pipeline`` (tests, ``up``, benchmarks)."""
+        alignment = AlignmentConfig(**{f.name: getattr(pipeline, f.name) for f in fields(AlignmentConfig)})
+        return cls(setup=pipeline.setup, name=pipeline.service, alignment=alignment,
+                   status=StatusConfig(interval_s=pipeline.status_interval_s), **kw)
+
+    @property
+    def pipeline(self) -> PipelineConfig:
+        """What the :class:`~mntes_stream.service.pipeline.ConverterPipeline` takes."""
+        return PipelineConfig.from_parts(self.alignment, setup=self.setup, service=self.name,
+                                         status_interval_s=self.status.interval_s)
 
 
 def build_converter(cfg: ConverterConfig):
@@ -150,6 +111,14 @@ def _warm_up(conv) -> None:
         log.warning("converter warm-up failed: %s", exc)
 
 
+def _counters(pipe) -> dict:
+    """The pipeline's counters as a plain mapping (for the heartbeat)."""
+    import dataclasses
+
+    c = pipe.counters
+    return dataclasses.asdict(c) if dataclasses.is_dataclass(c) else dict(c)
+
+
 def subscriptions(cfg: ConverterConfig) -> list[str]:
     """Key expressions the converter subscribes to."""
     setup = cfg.setup
@@ -159,7 +128,7 @@ def subscriptions(cfg: ConverterConfig) -> list[str]:
     return [keys.hk_key(setup, "**")] + exprs
 
 
-def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -> dict:
+def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, heartbeat=None) -> dict:
     """Run until stopped; returns the final status as a dict.
 
     Parameters
@@ -171,14 +140,18 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -
         Set once subscribed and the provenance is out.
     converter : optional
         Use this converter instead of building one from ``cfg`` (tests, benchmarks).
+    heartbeat : Heartbeat, optional
+        Gets the pipeline's counters once per status.
     """
     from mntes_stream.service.pipeline import ConverterPipeline
 
     conv = converter if converter is not None else build_converter(cfg)
     _warm_up(conv)
     pipe = ConverterPipeline(conv, cfg.pipeline)
+    beat = heartbeat.beat if heartbeat is not None else (lambda **_: None)
     t_start = time.monotonic()
     prov_key = keys.provenance_key(cfg.setup)
+    status_key = keys.status_key(cfg.setup, cfg.name)
     with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
         pubs = Publishers(session)
         # Channel mode: samples are read on this thread, no callback thread competing for the GIL.
@@ -188,7 +161,7 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -
             pubs.put(prov_key, pipe.provenance_bytes())
             next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
             log.info("converter %s: %d detectors, kind %s, tables %s; subscribed to %s",
-                     cfg.pipeline.service, len(conv.detector_ids), conv.kind, str(conv.identity)[:12], subscriptions(cfg))
+                     cfg.name, len(conv.detector_ids), conv.kind, str(conv.identity)[:12], subscriptions(cfg))
             if ready is not None:
                 ready.set()
             while not stopping.is_set():
@@ -199,6 +172,8 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -
                 outs = pipe.tick(time.time_ns()) if item is None else pipe.handle(*item)
                 for key, payload in outs:
                     pubs.put(key, payload)
+                    if key == status_key:
+                        beat(**_counters(pipe))
                 if time.monotonic() >= next_prov:
                     pubs.put(prov_key, pipe.provenance_bytes())
                     next_prov = time.monotonic() + cfg.provenance_interval_s
@@ -216,3 +191,14 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -
     log.info("converter stopped: %d chunks converted, %d lost, %d bad messages",
              final.chunks_converted, final.chunks_lost, sum(final.bad_messages.values()))
     return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close}
+
+
+class ConverterService(Service):
+    """Counts + housekeeping in, optical power + status + provenance out."""
+
+    name = "converter"
+    Config = ConverterConfig
+    summary = "counts + housekeeping in, power + status + provenance out"
+
+    def run(self, stop=None, ready=None) -> dict:
+        return run_converter(self.config, stop, ready, heartbeat=self.heartbeat)

@@ -54,6 +54,7 @@ from mntes_stream.core.checks import finite_float
 from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
+from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
 from mntes_stream.io.messages import (
     CountsChunk,
     HousekeepingChunk,
@@ -68,112 +69,10 @@ __all__ = ["PipelineConfig", "ConverterPipeline", "SCALAR_SENSORS"]
 
 log = logging.getLogger("mntes_stream.converter")
 
-SCALAR_SENSORS = ("t_bath", "b_field")
 _SEQ_RECENT = 256      # sequence numbers remembered per stream to spot duplicates
 _SEQ_MISSING = 4096    # skipped numbers remembered per stream to spot late arrivals; a longer jump is a restart
 _INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
 _OFFSETS = 32          # counts chunks whose receive delay sets the data clock (median: one bad t_pub_ns cannot move it)
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """How the converter aligns, holds back and reports (the ``[alignment]`` and ``[status]`` tables).
-
-    Attributes
-    ----------
-    setup, service : str
-        Output keys ``mntes/<setup>/power/...`` and ``mntes/<setup>/status/<service>``.
-    required_hk : tuple of str
-        Scalar sensors the conversion needs (subset of ``t_bath``, ``b_field``).
-        Chunks wait for them; without any reading a sample is HK_MISSING (NaN).
-        A sensor not listed uses its reading when there is one, else its default.
-    hk_staleness_s : float
-        Largest age of a scalar housekeeping value before HK_STALE.
-    hk_wait_s : float
-        Longest a chunk waits (receive clock) for housekeeping that brackets it;
-        0 converts on arrival, holding the last reading.
-    bias_staleness_s : float
-        As ``hk_staleness_s`` for the per-channel bias (default: never stale,
-        the bias is a setting that holds until changed).
-    t_bath_default_k, b_field_default_t : float
-        Values for sensors that are not required and never reported.
-    t_bath_range_k, b_field_range_t, bias_range_v : (float, float)
-        Readings outside are flagged ENV_OUT_OF_RANGE.
-    status_interval_s : float
-        Status cadence (receive clock).
-    max_pending : int
-        Chunks held at most; beyond, the oldest is converted at once.
-    hk_retention_s : float
-        Housekeeping history kept behind the data clock; older readings are rejected.
-    hk_max_ahead_s : float
-        Readings stamped further ahead of the data clock are rejected
-        (``bad_messages["hk_time"]``): readings are causal, so only clock
-        offsets between hosts put them ahead at all.
-    """
-
-    setup: str = keys.DEFAULT_SETUP
-    service: str = "converter"
-    required_hk: tuple[str, ...] = SCALAR_SENSORS
-    hk_staleness_s: float = 2.0
-    hk_wait_s: float = 1.0
-    bias_staleness_s: float = math.inf
-    t_bath_default_k: float = 0.100
-    b_field_default_t: float = 0.0
-    t_bath_range_k: tuple[float, float] = (0.02, 0.5)
-    b_field_range_t: tuple[float, float] = (-0.01, 0.01)
-    bias_range_v: tuple[float, float] = (0.0, 1e-3)
-    status_interval_s: float = 1.0
-    max_pending: int = 4096
-    hk_retention_s: float = 600.0
-    hk_max_ahead_s: float = 10.0
-
-    def __post_init__(self):
-        for name in ("setup", "service"):
-            if not isinstance(getattr(self, name), str):
-                raise ConfigError(f"pipeline: {name} must be a string, got {getattr(self, name)!r}")
-        keys.status_key(self.setup, self.service)  # validates both names
-        req = self.required_hk
-        if isinstance(req, str) or not all(isinstance(x, str) for x in req) or set(req) - set(SCALAR_SENSORS):
-            raise ConfigError(f"pipeline: required_hk must be a list from {list(SCALAR_SENSORS)}, got {req!r}")
-        object.__setattr__(self, "required_hk", tuple(req))
-        # Staleness may be infinite (never stale); every other time must be finite.
-        for name in ("hk_staleness_s", "bias_staleness_s", "hk_wait_s", "status_interval_s", "hk_retention_s",
-                     "hk_max_ahead_s"):
-            v = _number(name, getattr(self, name), allow_inf=name.endswith("staleness_s"))
-            if not v >= 0:
-                raise ConfigError(f"pipeline: {name} must be >= 0, got {v}")
-            object.__setattr__(self, name, v)
-        if self.status_interval_s <= 0 or self.hk_retention_s <= 0:
-            raise ConfigError("pipeline: status_interval_s and hk_retention_s must be > 0")
-        for name in ("t_bath_default_k", "b_field_default_t"):
-            object.__setattr__(self, name, _number(name, getattr(self, name)))
-        if not self.t_bath_default_k > 0:
-            raise ConfigError(f"pipeline: t_bath_default_k must be > 0, got {self.t_bath_default_k}")
-        for name in ("t_bath_range_k", "b_field_range_t", "bias_range_v"):
-            v = getattr(self, name)
-            if isinstance(v, str) or len(v) != 2:
-                raise ConfigError(f"pipeline: {name} must be [low, high], got {v!r}")
-            lo, hi = _number(name, v[0]), _number(name, v[1])
-            if not lo < hi:
-                raise ConfigError(f"pipeline: {name} must be [low, high] with low < high, got {v!r}")
-            object.__setattr__(self, name, (lo, hi))
-        if not isinstance(self.max_pending, int) or isinstance(self.max_pending, bool) or self.max_pending < 1:
-            raise ConfigError(f"pipeline: max_pending must be an integer >= 1, got {self.max_pending!r}")
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str = "<config>") -> "PipelineConfig":
-        from mntes_stream.service import dataclass_from_table
-
-        return dataclass_from_table(cls, d, source, tuples=True)
-
-
-def _number(name: str, value, allow_inf: bool = False) -> float:
-    """A config number as float: ConfigError for strings, bools, NaN (and infinity unless allowed)."""
-    if isinstance(value, (str, bool)):
-        raise ConfigError(f"pipeline: {name} must be a number, got {value!r}")
-    if allow_inf and isinstance(value, (int, float)) and math.isinf(value) and value > 0:
-        return math.inf
-    return finite_float("pipeline", name, value)
 
 
 def _ns(seconds: float) -> int | float:

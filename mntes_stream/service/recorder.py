@@ -14,111 +14,50 @@ from __future__ import annotations
 
 import logging
 import time
-import tomllib
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from dataclasses import asdict, dataclass
 
-from mntes_stream.core.checks import finite_float
-from mntes_stream.errors import ConfigError, MntesError, TransportError
+from mntes_stream.core.ids import NAME_PATTERN
+from mntes_stream.core.settings import Settings, setting
+from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service import dataclass_from_table, split_config, stop_on_signals
+from mntes_stream.service.base import Service, stop_on_signals
 
-__all__ = ["RecorderConfig", "RecorderStats", "run_recorder"]
+__all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "run_recorder"]
 
 log = logging.getLogger("mntes_stream.recorder")
 
 
 @dataclass(frozen=True)
-class RecorderConfig:
-    """What to record, where, and how safely.
+class RecorderConfig(Settings):
+    """What to record, where, and how safely: the ``[recorder]`` and ``[zenoh]`` tables.
 
-    Attributes
-    ----------
-    setup : str
-        Records ``mntes/<setup>/**`` unless ``key_expr`` is given.
-    directory, prefix : str
-        Files are ``<directory>/<prefix>-<seq>.mcap``.
-    flush_interval_s : float
-        The crash-loss bound: a killed recorder loses at most this much received data
-        (plus its queue, reported as ``queue_high_water``).
-    rotate_mb, rotate_s : float
-        New file after this size / duration (0 disables either).
-    compression : {"zstd", "lz4", "none"}
-    chunk_size_kb : int
-        Chunks close at this uncompressed size or at the flush cadence, whichever first.
-    fsync : bool
-        fsync at every flush (bounds loss on power failure too).
-    duration_s : float
-        Stop by itself after this long (0: run until stopped).
-    log_interval_s : float
-        Progress log line cadence.
-    queue_messages : int
-        Messages buffered between the zenoh callback and the writer; when full,
-        the callback waits (back-pressure on BLOCK publishers, no loss).
+    A killed recorder loses at most ``flush_interval_s`` of received data
+    (plus its queue, reported as ``queue_high_water``).
     """
 
-    setup: str = keys.DEFAULT_SETUP
-    key_expr: str = ""
-    directory: str = "recordings"
-    prefix: str = "mntes"
-    flush_interval_s: float = 1.0
-    rotate_mb: float = 1024.0
-    rotate_s: float = 3600.0
-    compression: str = "zstd"
-    chunk_size_kb: int = 4096
-    fsync: bool = False
-    duration_s: float = 0.0
-    log_interval_s: float = 10.0
-    queue_messages: int = 4096
-    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
-
-    def __post_init__(self):
-        keys.all_key(self.setup)  # validates the setup name
-        for name in ("key_expr", "directory", "prefix"):
-            if not isinstance(getattr(self, name), str):
-                raise ConfigError(f"recorder: {name} must be a string, got {getattr(self, name)!r}")
-        if not keys.NAME_PATTERN.fullmatch(self.prefix):
-            raise ConfigError(f"recorder: prefix {self.prefix!r} must match [A-Za-z0-9_.-]+")
-        # Finite numbers only: a NaN flush interval never flushes (no crash-loss bound),
-        # a NaN duration never stops.
-        for name, positive in (("flush_interval_s", True), ("log_interval_s", True), ("rotate_mb", False),
-                               ("rotate_s", False), ("duration_s", False)):
-            v = finite_float("recorder", name, getattr(self, name))
-            if v < 0 or (positive and v == 0):
-                raise ConfigError(f"recorder: {name} must be {'> 0' if positive else '>= 0 (0 disables)'}, got {v}")
-            object.__setattr__(self, name, v)
-        for name in ("queue_messages", "chunk_size_kb"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ConfigError(f"recorder: {name} must be an integer >= 1, got {v!r}")
-        if not isinstance(self.fsync, bool):
-            raise ConfigError(f"recorder: fsync must be true or false, got {self.fsync!r}")
-        if self.compression not in ("zstd", "lz4", "none"):
-            raise ConfigError(f"recorder: compression must be zstd, lz4 or none, got {self.compression!r}")
-        if not isinstance(self.zenoh, ZenohSettings):
-            raise ConfigError("recorder: zenoh must be a ZenohSettings (the [zenoh] table)")
+    setup: str = setting(keys.DEFAULT_SETUP, "records mntes/<setup>/** unless key_expr is given", pattern=NAME_PATTERN)
+    key_expr: str = setting("", "record this key expression instead (e.g. mntes/lab/**)")
+    directory: str = setting("recordings", "files: <directory>/<prefix>-<seq>.mcap; seq continues after existing files",
+                             path=True)
+    prefix: str = setting("mntes", "file name prefix", pattern=NAME_PATTERN)
+    flush_interval_s: float = setting(1.0, "crash-loss bound: SIGKILL loses at most this much received data",
+                                      unit="s", gt=0)
+    rotate_mb: float = setting(1024.0, "new file after this size (0: never)", unit="MiB", ge=0)
+    rotate_s: float = setting(3600.0, "... or after this long (0: never)", unit="s", ge=0)
+    compression: str = setting("zstd", "chunk compression", choices=("zstd", "lz4", "none"))
+    chunk_size_kb: int = setting(4096, "chunks close at this uncompressed size or at the flush cadence", unit="KiB",
+                                 ge=1)
+    fsync: bool = setting(False, "fsync each flush, so the loss bound also holds on power loss")
+    duration_s: float = setting(0.0, "stop by itself after this long (0: run until stopped)", unit="s", ge=0)
+    log_interval_s: float = setting(10.0, "progress log cadence", unit="s", gt=0)
+    queue_messages: int = setting(4096, "buffer between zenoh and the writer; when full, publishers are slowed "
+                                        "(BLOCK), never dropped", ge=1)
+    zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     @property
     def subscription(self) -> str:
         return self.key_expr or keys.all_key(self.setup)
-
-    @classmethod
-    def from_toml(cls, path: str | Path) -> RecorderConfig:
-        """Read ``[recorder]`` and ``[zenoh]`` tables (see ``services/recorder.toml``)."""
-        try:
-            doc = tomllib.loads(Path(path).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{path}: {exc}") from None
-        return cls.from_dict(doc, str(path), base_dir=str(Path(path).parent))
-
-    @classmethod
-    def from_dict(cls, doc: dict, source: str = "<config>", base_dir: str | None = None) -> RecorderConfig:
-        tables, z = split_config(doc, ("recorder",), source, base_dir)
-        rec = tables["recorder"]
-        if "zenoh" in rec:
-            raise ConfigError(f"{source}: put zenoh settings in the [zenoh] table")
-        return dataclass_from_table(cls, {**rec, "zenoh": z}, f"{source} [recorder]")
 
     def to_metadata(self) -> dict[str, str]:
         """Flat string form stored in every file's ``mntes.recording`` metadata."""
@@ -156,7 +95,7 @@ class RecorderStats:
     duration_s: float
 
 
-def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> RecorderStats:
+def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=None) -> RecorderStats:
     """Record until ``stop_event`` is set, SIGINT/SIGTERM arrives, or ``duration_s`` passes.
 
     Parameters
@@ -167,6 +106,8 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> Recorde
         SIGINT/SIGTERM also stop it when it runs in the main thread.
     ready : Event-like, optional
         Set once subscribed.
+    heartbeat : Heartbeat, optional
+        Gets the message and byte counts at every log interval.
 
     Returns
     -------
@@ -228,6 +169,9 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> Recorde
                     for item in sub.drain(10_000):  # then check the stop flags once per batch
                         write(item)
                 writer.tick()
+                if heartbeat is not None:
+                    heartbeat.beat(messages=writer.messages, payload_bytes=writer.payload_bytes, invalid=writer.invalid,
+                                   files=len(writer.files))
                 if time.monotonic() >= next_log:
                     next_log += config.log_interval_s
                     log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)
@@ -266,3 +210,14 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None) -> Recorde
     )
     log.info("recorder stopped: %s", stats)
     return stats
+
+
+class RecorderService(Service):
+    """Everything under ``mntes/<setup>/**`` into rotated MCAP files."""
+
+    name = "recorder"
+    Config = RecorderConfig
+    summary = "every message of a setup into rotated MCAP files"
+
+    def run(self, stop=None, ready=None) -> dict:
+        return asdict(run_recorder(self.config, stop, ready, heartbeat=self.heartbeat))

@@ -10,18 +10,16 @@ from __future__ import annotations
 
 import logging
 import time
-import tomllib
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
-from pathlib import Path
 
-from mntes_stream.core.checks import finite_float
+from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service import dataclass_from_table, split_config, stop_on_signals
+from mntes_stream.service.base import Service, stop_on_signals
 
-__all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayStats", "input_topics", "parse_time", "run_replay"]
+__all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayService", "ReplayStats", "input_topics", "parse_time", "run_replay"]
 
 log = logging.getLogger("mntes_stream.replay")
 
@@ -35,66 +33,29 @@ def input_topics(setup: str) -> tuple[str, ...]:
 
 
 @dataclass(frozen=True)
-class ReplayConfig:
-    """What to replay and how fast.
+class ReplayConfig(Settings):
+    """What to replay and how fast: the ``[replay]`` and ``[zenoh]`` tables.
 
-    Attributes
-    ----------
-    source : tuple of str
-        Files or directories (one session; rotated files are read in order).
-    speed : float
-        Multiple of real time; 0 means as fast as possible.
-    start_ns, end_ns : int, optional
-        Replay messages with ``start_ns <= log_time < end_ns``.
-    topics : tuple of str
-        Topics or zenoh-style patterns (``("**",)``: everything); empty (the
-        default): the converter's inputs, i.e. every recorded topic whose kind
-        is in :data:`INPUT_KINDS`, whatever its setup.
-    wait_subscribers_s : float
-        Wait up to this long for every publisher to have a matching subscriber.
-    linger_s : float
-        Keep the session open this long after the last message so it is delivered.
+    ``topics`` empty (the default) replays the converter's inputs: every
+    recorded topic whose kind is in :data:`INPUT_KINDS`, whatever its setup;
+    ``("**",)`` replays everything.
     """
 
-    source: tuple[str, ...] = ()
-    speed: float = 1.0
-    start_ns: int | None = None
-    end_ns: int | None = None
-    topics: tuple[str, ...] = ()
-    wait_subscribers_s: float = 5.0
-    linger_s: float = 0.5
-    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    source: tuple[str, ...] = setting((), "recorded files or directories (one session; rotated files in order)",
+                                      path=True)
+    speed: float = setting(1.0, "multiple of real time; 0 = as fast as possible", ge=0)
+    start_ns: int | None = setting(None, "replay messages with log time >= this (ns since the epoch)")
+    end_ns: int | None = setting(None, "... and < this")
+    topics: tuple[str, ...] = setting((), "topics or zenoh-style patterns; [] = the converter's inputs")
+    wait_subscribers_s: float = setting(5.0, "wait this long for subscribers before the first message", unit="s",
+                                        ge=0)
+    linger_s: float = setting(0.5, "keep the session open this long after the last message", unit="s", ge=0)
+    zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     def __post_init__(self):
-        for name in ("source", "topics"):
-            v = getattr(self, name)
-            if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v):
-                raise ConfigError(f"replay: {name} must be a list of strings, got {v!r}")
-            object.__setattr__(self, name, tuple(v))
-        for name in ("speed", "wait_subscribers_s", "linger_s"):
-            v = finite_float("replay", name, getattr(self, name))
-            if v < 0:
-                raise ConfigError(f"replay: {name} must be >= 0{' (0: as fast as possible)' if name == 'speed' else ''}, got {v}")
-            object.__setattr__(self, name, v)
-        for name in ("start_ns", "end_ns"):
-            v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or isinstance(v, bool)):
-                raise ConfigError(f"replay: {name} must be an integer (ns since the epoch), got {v!r}")
+        super().__post_init__()
         if self.start_ns is not None and self.end_ns is not None and self.end_ns <= self.start_ns:
             raise ConfigError("replay: end must be after start")
-        if not isinstance(self.zenoh, ZenohSettings):
-            raise ConfigError("replay: zenoh must be a ZenohSettings (the [zenoh] table)")
-
-    @classmethod
-    def from_toml(cls, path: str | Path, **overrides) -> ReplayConfig:
-        """Read ``[replay]`` and ``[zenoh]`` tables (see ``services/replay.toml``)."""
-        try:
-            doc = tomllib.loads(Path(path).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{path}: {exc}") from None
-        tables, z = split_config(doc, ("replay",), str(path), str(Path(path).parent))
-        d = {**tables["replay"], "zenoh": z, **overrides}
-        return dataclass_from_table(cls, d, f"{path} [replay]", tuples=True)
 
 
 @dataclass(frozen=True)
@@ -129,7 +90,7 @@ def parse_time(text: str, session_start_ns: int | None) -> int:
     return session_start_ns + int(round(rel * 1e9))
 
 
-def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) -> ReplayStats:
+def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False, heartbeat=None) -> ReplayStats:
     """Publish the selected messages of ``config.source``; returns when done or stopped."""
     from mntes_stream.io.mcap_io import Session, topic_matcher
     from mntes_stream.io.transport import Publishers
@@ -176,6 +137,8 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
             by_kind[kind] = by_kind.get(kind, 0) + 1
             if bar is not None:
                 bar.update(1)
+            if heartbeat is not None and n % 256 == 0:
+                heartbeat.beat(messages=n, payload_bytes=nbytes)
         if bar is not None:
             bar.close()
         time.sleep(config.linger_s)
@@ -193,3 +156,16 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False) ->
     )
     log.info("replay done: %s", stats)
     return stats
+
+
+class ReplayService(Service):
+    """A recorded session back onto zenoh, paced or as fast as possible."""
+
+    name = "replay"
+    Config = ReplayConfig
+    summary = "a recording back onto zenoh"
+
+    def run(self, stop=None, ready=None) -> dict:
+        if ready is not None:
+            ready.set()
+        return asdict(run_replay(self.config, stop, heartbeat=self.heartbeat))

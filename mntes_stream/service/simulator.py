@@ -23,24 +23,24 @@ import math
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import Iterator
 
 import numpy as np
 
 from mntes_stream import __version__
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.sim import ArraySimulator, SimBlock, SimConfig
-from mntes_stream.core.checks import finite_float
+from mntes_stream.core.ids import NAME_PATTERN
+from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
+from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.service.base import Service
 from mntes_stream.service.source import Batch
 
-__all__ = ["SimulatorSource", "SimulatorService", "TruthRecorder", "write_mcap", "publish_live", "run_simulator",
-           "load_truth", "TRUTH_NOTE"]
-
-if TYPE_CHECKING:
-    from mntes_stream.io.transport import ZenohSettings
+__all__ = ["SimulatorSource", "SimulatorService", "SimulatorServiceConfig", "TruthRecorder", "write_mcap",
+           "publish_live", "run_simulator", "load_truth", "TRUTH_NOTE"]
 
 log = logging.getLogger("mntes_stream.simulator")
 
@@ -279,55 +279,49 @@ def perturbed_params(params: list[DetectorParams], scale: float = 1.0, seed: int
 
 
 @dataclass(frozen=True)
-class SimulatorService:
-    """The ``[simulator]`` (+ ``[zenoh]``) tables of a service config.
+class SimulatorServiceConfig(Settings):
+    """The ``[simulator]`` (+ ``[zenoh]``) tables: any :class:`SimConfig` field, plus how to run it."""
 
-    ``[simulator]`` takes any :class:`SimConfig` field plus ``setup``,
-    ``chunk_s``, ``speed`` (x real time, 0: flat out), ``duration_s`` (0:
-    until stopped) and ``linger_s`` (the session stays open this long after
-    the last batch: ``put`` returns when a message is queued, not delivered).
+    sim: SimConfig = setting(default_factory=SimConfig, doc="the simulated array (core.sim.SimConfig)", flatten=True)
+    setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/...", pattern=NAME_PATTERN)
+    chunk_s: float = setting(0.1, "one counts chunk per module this often (whole samples)", unit="s", gt=0)
+    speed: float = setting(1.0, "multiple of real time (0 = as fast as possible)", ge=0)
+    duration_s: float = setting(0.0, "seconds of data (0 = until stopped)", unit="s", ge=0)
+    linger_s: float = setting(1.0, "keep the session open this long after the last batch (queued is not delivered)",
+                              unit="s", ge=0)
+    params_out: str = setting("", "write the truth parameters (the converter's calibration) here at start", path=True)
+    zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
+
+
+def run_simulator(cfg: SimulatorServiceConfig, stop=None, truth: TruthRecorder | None = None, ready=None,
+                  heartbeat=None) -> dict:
+    """Publish until ``duration_s`` of data is out or ``stop`` is set (SIGINT/SIGTERM set it too).
+
+    ``ready`` is set once the truth parameters are written (``params_out``); the
+    clock starts when the converter has subscribed (or after 10 s).
     """
+    from mntes_stream.service.base import stop_on_signals
 
-    config: SimConfig
-    zenoh: "ZenohSettings"
-    setup: str = keys.DEFAULT_SETUP
-    chunk_s: float = 0.1
-    speed: float = 1.0
-    duration_s: float = 0.0
-    linger_s: float = 1.0
+    source = SimulatorSource(cfg.sim, cfg.setup, cfg.chunk_s)
+    if cfg.params_out:
+        from mntes_stream.io.paramfile import dump_params
 
-    def __post_init__(self):
-        if not isinstance(self.setup, str):
-            raise ConfigError(f"simulator: setup must be a string, got {self.setup!r}")
-        keys.counts_key(self.setup)  # validates the name
-        for name in ("chunk_s", "speed", "duration_s", "linger_s"):
-            value = getattr(self, name)
-            if isinstance(value, (str, bool)):
-                raise ConfigError(f"simulator: {name} must be a number, got {value!r}")
-            v = finite_float("simulator", name, value)
-            if v < 0 or (name == "chunk_s" and v == 0):
-                raise ConfigError(f"simulator: {name} must be {'> 0' if name == 'chunk_s' else '>= 0'}, got {v}")
-            object.__setattr__(self, name, v)
-
-    @classmethod
-    def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SimulatorService":
-        from mntes_stream.service import dataclass_from_table, split_config
-
-        tables, z = split_config(doc, ("simulator",), source, base_dir)
-        table = tables["simulator"]
-        run = {f.name: table.pop(f.name) for f in fields(cls) if f.name not in ("config", "zenoh") and f.name in table}
-        try:
-            config = SimConfig.from_dict(table)
-        except ConfigError as exc:
-            raise ConfigError(f"{source} [simulator]: {exc}") from None
-        return dataclass_from_table(cls, {"config": config, "zenoh": z, **run}, f"{source} [simulator]")
-
-
-def run_simulator(svc: SimulatorService, stop=None, truth: TruthRecorder | None = None) -> dict:
-    """Publish until ``duration_s`` of data is out or ``stop`` is set (SIGINT/SIGTERM set it too)."""
-    from mntes_stream.service import stop_on_signals
-
-    source = SimulatorSource(svc.config, svc.setup, svc.chunk_s)
+        dump_params(source.params, cfg.params_out, metadata={"source": "mntes-stream simulator (truth)",
+                                                             "sim_config": json.dumps(cfg.sim.to_dict())})
+    if ready is not None:
+        ready.set()
+    progress = None if heartbeat is None else (lambda counters: heartbeat.beat(**counters))
     with stop_on_signals(stop) as stopping:
-        return publish_live(source, svc.zenoh, speed=svc.speed, duration_s=svc.duration_s, stop=stopping, truth=truth,
-                            linger_s=svc.linger_s)
+        return publish_live(source, cfg.zenoh, speed=cfg.speed, duration_s=cfg.duration_s, stop=stopping, truth=truth,
+                            linger_s=cfg.linger_s, progress=progress)
+
+
+class SimulatorService(Service):
+    """The array simulator live over zenoh (MNTES physics, housekeeping, truth kept apart)."""
+
+    name = "simulator"
+    Config = SimulatorServiceConfig
+    summary = "the simulated DfMux array, live"
+
+    def run(self, stop=None, ready=None) -> dict:
+        return run_simulator(self.config, stop, ready=ready, heartbeat=self.heartbeat)

@@ -20,22 +20,22 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Iterable, Iterator
+from dataclasses import dataclass
+from typing import Iterable, Iterator
 
 import numpy as np
 
-from mntes_stream.core.checks import finite_float
-from mntes_stream.core.ids import detector_id
+from mntes_stream.core.ids import NAME_PATTERN, detector_id
 from mntes_stream.core.params import DetectorParams, ParamArray, table1_params
+from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import SENSOR_UNITS, CountsChunk, HousekeepingChunk
+from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.service.base import Service
 
-__all__ = ["SourceConfig", "SourceService", "MinimalSource", "default_params", "publish", "run_source", "Batch"]
+__all__ = ["SourceConfig", "SourceServiceConfig", "SourceService", "MinimalSource", "default_params", "publish", "run_source", "Batch"]
 
-if TYPE_CHECKING:
-    from mntes_stream.io.transport import ZenohSettings
 
 log = logging.getLogger("mntes_stream.source")
 
@@ -43,71 +43,35 @@ Batch = tuple[int, list[tuple[str, bytes]]]
 
 
 @dataclass(frozen=True)
-class SourceConfig:
+class SourceConfig(Settings):
     """The minimal source's array and signals (the ``[source]`` table).
 
-    Attributes
-    ----------
-    setup : str
-    boards, modules, channels : int
-        Array size: boards x modules per board x channels per module.
-    sample_rate_hz, chunk_s : float
-        One counts chunk per module every ``chunk_s`` (rounded to whole samples).
-    hk_interval_s : float
-        Housekeeping cadence (t_bath and b_field).
-    p_opt_w, hwp_2f_amplitude_w, f_hwp_hz : float
-        Optical loading and its 2f_HWP modulation (phase differs per detector).
-    t_bath_k, t_bath_swing_k, b_field_swing_t : float
-        Bath temperature triangle wave around ``t_bath_k``; field triangle around 0.
-    cycle_s : float
-        Length of the repeated cycle.
-    scatter : float
-        Fractional 1-sigma spread of T_c, K and R_n between detectors.
-    seed : int
+    Bath temperature: a triangle wave around ``t_bath_k``; field: a triangle
+    around 0; optical power: ``p_opt_w`` plus a 2f_HWP sinusoid whose phase
+    differs per detector.
     """
 
-    setup: str = keys.DEFAULT_SETUP
-    boards: int = 1
-    modules: int = 2
-    channels: int = 16
-    sample_rate_hz: float = 152.59
-    chunk_s: float = 0.1
-    hk_interval_s: float = 0.1
-    p_opt_w: float = 0.5e-12
-    hwp_2f_amplitude_w: float = 0.02e-12
-    f_hwp_hz: float = 0.77
-    t_bath_k: float = 0.100
-    t_bath_swing_k: float = 0.5e-3
-    b_field_swing_t: float = 20e-6
-    cycle_s: float = 2.0
-    scatter: float = 0.01
-    seed: int = 0
+    setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/...", pattern=NAME_PATTERN)
+    boards: int = setting(1, "boards", ge=1)
+    modules: int = setting(2, "modules per board", ge=1)
+    channels: int = setting(16, "channels per module", ge=1)
+    sample_rate_hz: float = setting(152.59, "sample rate", unit="Hz", gt=0)
+    chunk_s: float = setting(0.1, "one counts chunk per module this often (whole samples)", unit="s", gt=0)
+    hk_interval_s: float = setting(0.1, "housekeeping cadence (t_bath, b_field)", unit="s", gt=0)
+    p_opt_w: float = setting(0.5e-12, "optical loading", unit="W")
+    hwp_2f_amplitude_w: float = setting(0.02e-12, "2f_HWP modulation amplitude", unit="W")
+    f_hwp_hz: float = setting(0.77, "half-wave plate frequency (2f rounded to whole periods per cycle)", unit="Hz")
+    t_bath_k: float = setting(0.100, "mean bath temperature", unit="K", gt=0)
+    t_bath_swing_k: float = setting(0.5e-3, "bath temperature triangle amplitude", unit="K")
+    b_field_swing_t: float = setting(20e-6, "field triangle amplitude", unit="T")
+    cycle_s: float = setting(2.0, "length of the precomputed cycle that repeats", unit="s", gt=0)
+    scatter: float = setting(0.01, "fractional 1-sigma spread of T_c, K and R_n (generated detectors only)")
+    seed: int = setting(0, "random seed", ge=0)
 
     def __post_init__(self):
-        if not isinstance(self.setup, str):
-            raise ConfigError(f"source: setup must be a string, got {self.setup!r}")
-        keys.counts_key(self.setup)
-        for name in ("boards", "modules", "channels", "seed"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < (0 if name == "seed" else 1):
-                raise ConfigError(f"source: {name} must be an integer >= {0 if name == 'seed' else 1}, got {v!r}")
-        for f in fields(self):
-            if f.type == "float":
-                v = getattr(self, f.name)
-                if isinstance(v, (str, bool)):
-                    raise ConfigError(f"source: {f.name} must be a number, got {v!r}")
-                object.__setattr__(self, f.name, finite_float("source", f.name, v))
-        for name in ("sample_rate_hz", "chunk_s", "hk_interval_s", "cycle_s", "t_bath_k"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"source: {name} must be > 0")
+        super().__post_init__()
         if self.chunk_samples < 1:
             raise ConfigError("source: chunk_s * sample_rate_hz must give at least one sample")
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str = "[source]") -> "SourceConfig":
-        from mntes_stream.service import dataclass_from_table
-
-        return dataclass_from_table(cls, d, source)
 
     @property
     def chunk_samples(self) -> int:
@@ -343,54 +307,23 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
 
 
 @dataclass(frozen=True)
-class SourceService:
-    """The ``[source]`` table: the array (:class:`SourceConfig`) plus how to run it.
+class SourceServiceConfig(Settings):
+    """The ``[source]`` and ``[zenoh]`` tables: the array (:class:`SourceConfig`, same table) plus how to run it."""
 
-    ``params`` is a detector parameter file used as the truth (default: the
-    generated Table-1-like detectors); ``speed`` a multiple of real time (0:
-    flat out); ``duration_s`` of data to publish (0: until stopped);
-    ``linger_s`` how long the session stays open after the last batch
-    (``put`` returns when a message is queued, not when it is delivered).
-    """
-
-    source: SourceConfig
-    zenoh: "ZenohSettings"
-    params: str = ""
-    speed: float = 1.0
-    duration_s: float = 0.0
-    linger_s: float = 1.0
-
-    def __post_init__(self):
-        if not isinstance(self.params, str):
-            raise ConfigError(f"source: params must be a file name, got {self.params!r}")
-        for name in ("speed", "duration_s", "linger_s"):
-            v = getattr(self, name)
-            if isinstance(v, (str, bool)) or not finite_float("source", name, v) >= 0:
-                raise ConfigError(f"source: {name} must be a number >= 0, got {v!r}")
-            object.__setattr__(self, name, float(v))
-
-    @classmethod
-    def from_dict(cls, doc: dict, source: str = "<config>", base_dir=None) -> "SourceService":
-        from pathlib import Path
-
-        from mntes_stream.service import split_config
-
-        tables, z = split_config(doc, ("source",), source, base_dir)
-        table = tables["source"]
-        run = {k: table.pop(k) for k in ("params", "speed", "duration_s", "linger_s") if k in table}
-        if run.get("params") and base_dir is not None and not Path(run["params"]).is_absolute():
-            run["params"] = str(Path(base_dir) / run["params"])
-        return cls(
-            source=SourceConfig.from_dict(table, f"{source} [source]"),
-            zenoh=z,
-            **run,
-        )
+    source: SourceConfig = setting(default_factory=SourceConfig, doc="the array and signals", flatten=True)
+    params: str = setting("", "detector parameter file used as the truth ('' = generated Table-1-like detectors)",
+                          path=True)
+    speed: float = setting(1.0, "multiple of real time (0 = as fast as possible)", ge=0)
+    duration_s: float = setting(0.0, "seconds of data (0 = until stopped)", unit="s", ge=0)
+    linger_s: float = setting(1.0, "keep the session open this long after the last batch (queued is not delivered)",
+                              unit="s", ge=0)
+    zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 
-def run_source(svc: SourceService, stop=None, ready=None, t_start_ns: int | None = None) -> dict:
+def run_source(svc: SourceServiceConfig, stop=None, ready=None, t_start_ns: int | None = None) -> dict:
     """Publish :class:`MinimalSource` batches until done or stopped; returns :func:`publish`'s counters."""
     from mntes_stream.io.transport import Publishers, open_session
-    from mntes_stream.service import stop_on_signals
+    from mntes_stream.service.base import stop_on_signals
 
     params = None
     if svc.params:
@@ -417,3 +350,14 @@ def run_source(svc: SourceService, stop=None, ready=None, t_start_ns: int | None
         stopping.wait(svc.linger_s)
     log.info("source stopped: %s", result)
     return result
+
+
+class SourceService(Service):
+    """The minimal physics source: counts and housekeeping in real time."""
+
+    name = "source"
+    Config = SourceServiceConfig
+    summary = "the minimal physics source (counts + housekeeping)"
+
+    def run(self, stop=None, ready=None) -> dict:
+        return run_source(self.config, stop, ready)

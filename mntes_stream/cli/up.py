@@ -1,0 +1,217 @@
+"""``mntes-stream up``: source -> converter -> recorder on this machine, embedded defaults.
+
+Each service runs in its own process (``service.supervise.Services``:
+*spawn*, so no process forks with a zenoh session open, and the converter
+and recorder get a core each), connected as zenoh peers over explicit
+``tcp/127.0.0.1`` ports. It prints a line per second (power flowing, latency,
+MCAP file growing) and stops after ``--duration`` seconds or on Ctrl-C /
+SIGTERM, in order: source first, then the converter (which converts what it
+holds), then the recorder (which finishes its file). Ctrl-C at any moment
+ends with exit code 130 and the summary of what was written.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from mntes_stream.cli._common import add_zenoh_args, setup_logging, zenoh_layer
+
+
+def _pick_source(setup: str, args, zenoh):
+    """The array simulator (unless ``--minimal``), else the minimal physics source.
+
+    Returns
+    -------
+    (description, truth parameters, registry service name, its config)
+    """
+    n = max(1, round(args.chunk_s * args.sample_rate))
+    if not args.minimal:
+        from mntes_stream.core.sim import SimConfig
+        from mntes_stream.service.simulator import SimulatorServiceConfig, SimulatorSource
+
+        cfg = SimConfig(boards=1, modules=args.modules, channels=args.channels, sample_rate_hz=args.sample_rate)
+        params = SimulatorSource(cfg, setup, args.chunk_s).params
+        return "array simulator", params, "simulator", SimulatorServiceConfig(sim=cfg, setup=setup,
+                                                                               chunk_s=args.chunk_s, zenoh=zenoh)
+    from mntes_stream.service.source import MinimalSource, SourceConfig, SourceServiceConfig
+
+    # Housekeeping once per chunk, read at the chunk boundaries: every chunk is
+    # bracketed when it arrives, so nothing waits (see README: latency).
+    cfg = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
+                       sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate)
+    return "minimal source", MinimalSource(cfg).params, "source", SourceServiceConfig(source=cfg, zenoh=zenoh)
+
+
+def _flagged(st) -> str:
+    """``  flagged: saturated 1.6%, ...`` (share of converted samples), or nothing."""
+    if not st.samples_converted:
+        return ""
+    parts = [f"{name} {100 * n / st.samples_converted:.1f}%" for name, n in st.flag_counts.items() if n]
+    return f"  flagged: {', '.join(parts)}" if parts else ""
+
+
+def _converter_idle(sub, timeout_s: float) -> bool:
+    """Wait for two converter statuses in a row with nothing new received and nothing pending."""
+    from mntes_stream.io.messages import StatusMessage
+
+    deadline = time.monotonic() + timeout_s
+    last = None
+    while time.monotonic() < deadline:
+        item = sub.get(timeout_s=0.2)
+        if item is None:
+            continue
+        st = StatusMessage.from_bytes(item[1])
+        if st.chunks_pending == 0 and st.chunks_received == last:
+            return True
+        last = st.chunks_received
+    return False
+
+
+class _Files:
+    """The MCAP files this run wrote (files already in the directory are not this run's)."""
+
+    def __init__(self, directory: Path):
+        self.directory = directory
+        self._before = set(directory.glob("*.mcap"))
+
+    def now(self) -> tuple[int, int]:
+        files = [f for f in self.directory.glob("*.mcap") if f not in self._before]
+        return len(files), sum(f.stat().st_size for f in files)
+
+
+def run_up(args) -> int:
+    import dataclasses
+
+    from mntes_stream.errors import MntesError
+    from mntes_stream.io import keys
+    from mntes_stream.io.messages import StatusMessage
+    from mntes_stream.io.paramfile import dump_params
+    from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
+    from mntes_stream.service.base import stop_on_signals
+    from mntes_stream.service.converter import ConverterConfig
+    from mntes_stream.service.recorder import RecorderConfig
+    from mntes_stream.service.supervise import Services
+
+    setup_logging(args.verbose)
+    stdout = sys.stderr if args.json else sys.stdout  # --json: stdout is the JSON document alone
+
+    def say(message: str, err: bool = False) -> None:
+        print(message, file=sys.stderr if err else stdout, flush=True)
+
+    flags = zenoh_layer(args)
+    if flags.listen is not None:
+        from mntes_stream.errors import ConfigError
+
+        raise ConfigError("up chooses its own listen ports on 127.0.0.1; use serve for fixed endpoints")
+    layered = lambda z: flags.over(z)  # noqa: E731
+    setup = args.setup
+    out = Path(args.out).resolve()
+    rec_dir = out / "recordings"
+    rec_dir.mkdir(parents=True, exist_ok=True)
+    files = _Files(rec_dir)
+    p_rec, p_conv, p_src = free_tcp_port(), free_tcp_port(), free_tcp_port()
+    what, truth, src_service, src_cfg = _pick_source(setup, args, layered(loopback(p_src, [p_conv, p_rec])))
+    params_file = out / "params.toml"
+    # The truth is the converter's calibration here: what it converts should match what was simulated.
+    dump_params(truth, params_file, metadata={"source": f"mntes-stream up ({what}, truth)"})
+    rec_cfg = RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0,
+                             log_interval_s=3600, zenoh=layered(loopback(p_rec)))
+    conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, zenoh=layered(loopback(p_conv, [p_rec])))
+    conv_cfg = dataclasses.replace(conv_cfg, status=dataclasses.replace(conv_cfg.status, interval_s=1.0))
+
+    services = Services()
+    say(f"mntes-stream up: {what}, {len(truth)} detectors ({args.modules} modules x {args.channels} channels) "
+        f"at {args.sample_rate} Hz -> {args.kind} conversion -> MCAP in {rec_dir}")
+    say(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
+        f"{'until Ctrl-C' if not args.duration else f'for {args.duration:g} s (Ctrl-C stops earlier)'}")
+    status_key = keys.status_key(setup, conv_cfg.name)
+    failed = interrupted = False
+    with stop_on_signals() as stopping:
+        try:
+            services.start("recorder", "recorder", rec_cfg, abort=stopping)
+            services.start("converter", "converter", conv_cfg, abort=stopping)
+            services.start("source", src_service, src_cfg, abort=stopping)
+            with open_session(layered(loopback(None, [p_rec, p_conv, p_src]))) as session:
+                sub = QueueSubscriber(session, [status_key])
+                t_end = time.monotonic() + args.duration if args.duration else float("inf")
+                while not stopping.is_set() and time.monotonic() < t_end:
+                    if not services.alive():
+                        failed = True
+                        say("a service stopped unexpectedly; shutting down", err=True)
+                        break
+                    item = sub.get(timeout_s=0.2)
+                    if item is None or args.quiet:
+                        continue
+                    st = StatusMessage.from_bytes(item[1])
+                    n_files, size = files.now()
+                    p50 = "-" if st.latency_p50_ms is None else f"{st.latency_p50_ms:.1f}"
+                    p99 = "-" if st.latency_p99_ms is None else f"{st.latency_p99_ms:.1f}"
+                    say(f"  t={st.uptime_s:6.1f} s  power chunks {st.chunks_converted:7d}  "
+                        f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
+                        f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
+                        f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}")
+                interrupted = stopping.is_set()
+                # Ordered stop: no new data; the converter takes in and converts what is on its
+                # way (its status says when), converts what it still holds and says so in a
+                # final status; once that status is here, its last power chunks have reached the
+                # recorder, which then finishes its file.
+                failed |= not services.stop("source")
+                if not failed and not _converter_idle(sub, 10.0):
+                    say("the converter did not settle within 10 s; stopping it anyway", err=True)
+                while sub.get() is not None:  # statuses from before the stop
+                    pass
+                failed |= not services.stop("converter")
+                sub.get(timeout_s=2.0)
+                sub.close()
+        except MntesError as exc:
+            interrupted = stopping.is_set()
+            if not interrupted:
+                say(f"mntes-stream: error: {exc}", err=True)
+                failed = True
+        finally:
+            # Also after an error or Ctrl-C: source, converter, recorder (stopping a stopped one is a no-op).
+            failed |= not services.stop("source")
+            failed |= not services.stop("converter")
+            failed |= not services.stop("recorder")
+    summary, ok = services.collect()
+    failed |= not ok and not interrupted
+    n_files, size = files.now()
+    conv = summary.get("converter", {}) if isinstance(summary.get("converter"), dict) else {}
+    rec = summary.get("recorder", {}) if isinstance(summary.get("recorder"), dict) else {}
+    say(f"done{' (interrupted)' if interrupted else ''}: {conv.get('chunks_converted', 0)} power chunks "
+        f"({conv.get('samples_converted', 0) / 1e6:.2f} Msamples), lost {conv.get('chunks_lost', '?')}, "
+        f"recorded {rec.get('messages', 0)} messages into {n_files} MCAP file(s), {size / 1e6:.2f} MB: "
+        f"{', '.join(rec.get('files', [])) or '-'}")
+    if args.json:
+        print(json.dumps({"interrupted": interrupted, "ok": not failed, "params": str(params_file),
+                          "services": summary}, indent=2, default=str))
+    if interrupted:
+        return 130
+    return 1 if failed else 0
+
+
+def register(sub) -> None:
+    from mntes_stream.core.convert import CONVERTER_KINDS
+    from mntes_stream.io.keys import DEFAULT_SETUP
+
+    p = sub.add_parser("up", help="source + converter + recorder on this machine, embedded defaults",
+                       description="Run a simulated array through the converter into an MCAP recording, printing a "
+                                   "status line per second. Stops after --duration or on Ctrl-C (exit code 130).")
+    p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
+    p.add_argument("--out", default="mntes-up", metavar="DIR", help="parameters and recordings go here (default ./mntes-up)")
+    p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
+    p.add_argument("--modules", type=int, default=4, help="readout modules (default 4)")
+    p.add_argument("--channels", type=int, default=64, help="channels per module (default 64)")
+    p.add_argument("--sample-rate", type=float, default=152.59, metavar="HZ", help="default 152.59 (DfMux ground rate)")
+    p.add_argument("--chunk-s", type=float, default=0.1, help="counts chunk length (s)")
+    p.add_argument("--kind", default="table", choices=CONVERTER_KINDS, help="conversion kind (default table)")
+    p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")
+    p.add_argument("--json", action="store_true", help="print one JSON document (the services' final statistics) "
+                                                       "on stdout; progress goes to stderr")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-second lines")
+    p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
+    add_zenoh_args(p)
+    p.set_defaults(func=run_up)

@@ -1,0 +1,61 @@
+"""The converter pipeline's settings: the ``[alignment]`` table, plus keys and status cadence."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+from mntes_stream.core.ids import NAME_PATTERN
+from mntes_stream.core.settings import Settings, setting
+from mntes_stream.io import keys
+
+__all__ = ["SCALAR_SENSORS", "AlignmentConfig", "PipelineConfig"]
+
+SCALAR_SENSORS = ("t_bath", "b_field")
+
+
+@dataclass(frozen=True)
+class AlignmentConfig(Settings):
+    """How the converter aligns housekeeping to samples and holds chunks back (the ``[alignment]`` table).
+
+    A sensor not in ``required_hk`` uses its reading when there is one, else
+    its default. Readings outside a range flag ENV_OUT_OF_RANGE.
+    """
+
+    required_hk: tuple[str, ...] = setting(
+        SCALAR_SENSORS, "sensors chunks wait for; no reading at all -> HK_MISSING (NaN power)", choices=SCALAR_SENSORS)
+    hk_staleness_s: float = setting(2.0, "a value whose nearest reading is older -> HK_STALE (power still given)",
+                                    unit="s", ge=0, allow_inf=True)
+    hk_wait_s: float = setting(1.0, "longest a chunk waits for a reading at/after its last sample (0: never wait)",
+                               unit="s", ge=0)
+    bias_staleness_s: float = setting(math.inf, "as hk_staleness_s for the bias (a setting: held until changed)",
+                                      unit="s", ge=0, allow_inf=True)
+    t_bath_default_k: float = setting(0.100, "bath temperature of a sensor not required and never reported",
+                                      unit="K", gt=0)
+    b_field_default_t: float = setting(0.0, "field of a sensor not required and never reported", unit="T")
+    t_bath_range_k: tuple[float, float] = setting((0.02, 0.5), "[low, high]; readings outside -> ENV_OUT_OF_RANGE",
+                                                  unit="K", increasing=True)
+    b_field_range_t: tuple[float, float] = setting((-0.01, 0.01), "[low, high]; readings outside -> ENV_OUT_OF_RANGE",
+                                                   unit="T", increasing=True)
+    bias_range_v: tuple[float, float] = setting((0.0, 1e-3), "[low, high]; readings outside -> ENV_OUT_OF_RANGE",
+                                                unit="V", increasing=True)
+    max_pending: int = setting(4096, "chunks held at most; beyond, the oldest is converted at once", ge=1)
+    hk_retention_s: float = setting(600.0, "housekeeping history kept behind the data clock; older readings rejected",
+                                    unit="s", gt=0)
+    hk_max_ahead_s: float = setting(10.0, "readings stamped further ahead of the data clock are rejected",
+                                    unit="s", ge=0)
+
+
+@dataclass(frozen=True)
+class PipelineConfig(AlignmentConfig):
+    """Everything :class:`~mntes_stream.service.pipeline.ConverterPipeline` takes: the alignment, plus
+    the keys it publishes on (``mntes/<setup>/power/...``, ``mntes/<setup>/status/<service>``) and the
+    status cadence (receive clock)."""
+
+    setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/...", pattern=NAME_PATTERN)
+    service: str = setting("converter", "status on mntes/<setup>/status/<service>", pattern=NAME_PATTERN)
+    status_interval_s: float = setting(1.0, "status message cadence", unit="s", gt=0)
+
+    @classmethod
+    def from_parts(cls, alignment: AlignmentConfig, **rest) -> "PipelineConfig":
+        return cls(**{f.name: getattr(alignment, f.name) for f in fields(AlignmentConfig)}, **rest)
