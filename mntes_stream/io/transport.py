@@ -38,6 +38,7 @@ __all__ = [
     "loopback",
     "Publishers",
     "QueueSubscriber",
+    "answer",
 ]
 
 _MODES = ("peer", "client", "router")
@@ -186,6 +187,23 @@ def loopback(listen_port: int | None = None, connect_ports: Iterable[int] = ()) 
     )
 
 
+def answer(session, key: str, payload: bytes):
+    """A queryable on ``key`` that replies ``payload`` (bytes, or a callable giving them) to every query.
+
+    Returns the queryable (undeclared when the session closes)."""
+
+    def on_query(query) -> None:
+        try:
+            query.reply(key, payload() if callable(payload) else payload)
+        except Exception:  # a querier that went away: nothing to answer
+            pass
+
+    try:
+        return session.declare_queryable(key, on_query)
+    except Exception as exc:
+        raise TransportError(f"cannot declare queryable on {key!r}: {exc}") from None
+
+
 class Publishers:
     """One BLOCK publisher per key, declared on first use.
 
@@ -292,6 +310,23 @@ class QueueSubscriber:
                 if self._closing.is_set() or (self._stop is not None and self._stop.is_set()):
                     self.dropped_on_close += 1
                     return
+
+    def query(self, session, selector: str, timeout_s: float = 2.0) -> None:
+        """Ask the queryables under ``selector`` (e.g. a converter's provenance) once; their replies
+        join this queue as samples. Returns at once (callback mode only)."""
+        import zenoh
+
+        if self.mode != "callback":
+            raise ConfigError("QueueSubscriber.query needs mode='callback'")
+
+        def on_reply(reply) -> None:
+            if reply.ok is not None:
+                self._on_sample(reply.ok)
+
+        try:
+            session.get(selector, on_reply, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+        except Exception as exc:
+            raise TransportError(f"cannot query {selector!r}: {exc}") from None
 
     def _poll(self):
         if self._leftover:

@@ -20,7 +20,7 @@ from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
-from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, open_session
+from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, answer, open_session
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.pipeline_config import AlignmentConfig, PipelineConfig
 
@@ -157,6 +157,8 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
         # Channel mode: samples are read on this thread, no callback thread competing for the GIL.
         # Housekeeping first (subscriptions() lists it first): a batch's readings before its counts.
         sub = QueueSubscriber(session, subscriptions(cfg), maxsize=cfg.queue_size, stop=stopping, mode="channel")
+        # Provenance on request too: a recorder started later asks instead of waiting for the next one.
+        answer(session, prov_key, pipe.provenance_bytes())
         try:
             pubs.put(prov_key, pipe.provenance_bytes())
             next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))

@@ -157,6 +157,8 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
             # The callback only timestamps and queues; a full queue makes it wait,
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
             sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages)
+            # What is answered on request (a converter's provenance) is recorded from the start too.
+            sub.query(session, config.subscription)
             log.info("recording %s into %s", config.subscription, writer.current_path)
             if ready is not None:
                 ready.set()
