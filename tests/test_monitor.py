@@ -290,13 +290,18 @@ def test_config_rejects_nonsense():
 def test_cli_arguments():
     from mntes_stream.cli import build_parser
 
+    from mntes_stream.cli.monitor import monitor_config
+
     parser = build_parser()
-    args = parser.parse_args(["monitor", "--f-hwp", "auto", "--port", "0"])
-    assert args.f_hwp is None and args.port == 0 and args.bind == "127.0.0.1" and args.update_s == 0.5
-    assert parser.parse_args(["monitor"]).f_hwp == 0.77
-    for bad in (["--f-hwp", "-1"], ["--f-hwp", "x"], ["--port", "70000"], ["--update-s", "0"]):
+    cfg = monitor_config(parser.parse_args(["monitor", "--f-hwp", "auto", "--port", "0"]))
+    assert cfg.view.f_hwp_hz is None and cfg.port == 0 and cfg.bind == "127.0.0.1" and cfg.update_s == 0.5
+    assert monitor_config(parser.parse_args(["monitor"])).view.f_hwp_hz == 0.77
+    for bad in (["--f-hwp", "-1"], ["--f-hwp", "x"]):
         with pytest.raises(SystemExit):
             parser.parse_args(["monitor", *bad])
+    for bad, key in ((["--port", "70000"], "port"), (["--update-s", "0"], "update_s"), (["--history-s", "-1"], "history_s")):
+        with pytest.raises(ConfigError, match=f"command line: {key}: expected"):
+            monitor_config(parser.parse_args(["monitor", *bad]))
 
 
 def test_failed_housekeeping_reading_stays_valid_json():

@@ -35,7 +35,7 @@ def _cli(*args, env=None, cwd=None):
 
 def test_config_check_passes_on_every_file_in_services():
     files = sorted(p for p in SERVICES.iterdir() if p.suffix in (".toml", ".json5"))
-    assert {"converter.toml", "source.toml", "simulator.toml", "recorder.toml", "replay.toml", "params.toml",
+    assert {"converter.toml", "source.toml", "simulator.toml", "recorder.toml", "replay.toml", "monitor.toml", "params.toml",
             "zenoh-lab.json5", "zenoh-local.json5"} <= {p.name for p in files}
     res = _cli("config", "check", *files)
     assert res.returncode == 0, res.stderr
@@ -85,7 +85,7 @@ def test_converter_and_source_configs_agree():
     assert Path(conv.params) == Path(src.params) == SERVICES / "params.toml"
     # The converter listens where every other service connects (zenoh-local.json5).
     port = conv.zenoh.listen[0].rsplit(":", 1)[1]
-    for name in ("source.toml", "simulator.toml", "recorder.toml", "replay.toml"):
+    for name in ("source.toml", "simulator.toml", "recorder.toml", "replay.toml", "monitor.toml"):
         _, cfg = load_service_config(SERVICES / name)
         eff = describe_config(zenoh_config(cfg.zenoh))
         assert any(e.endswith(":" + port) for e in eff["connect/endpoints"]), name
@@ -261,7 +261,7 @@ def test_serve_runs_any_registry_service_and_errors_are_one_line(tmp_path):
 def test_registry_is_the_one_list_of_services():
     from mntes_stream.service.base import Service
 
-    assert set(REGISTRY) == {"converter", "source", "simulator", "recorder", "replay"}
+    assert set(REGISTRY) == {"converter", "source", "simulator", "recorder", "replay", "monitor"}
     for name, cls in REGISTRY.items():
         assert issubclass(cls, Service) and cls.name == name and cls.summary
         # Each service's config builds from an empty document (defaults) or names what it needs.

@@ -108,6 +108,25 @@ def settings_from_args(args, names) -> dict:
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 
+def service_config(service_cls, path, sets, flags: dict, zenoh_flags):
+    """A service's config: its file (``--config``) or its defaults, ``--set`` items, then flags, then zenoh flags."""
+    from mntes_stream.service.config import load_service_config, with_zenoh
+
+    if path:
+        service, cfg = load_service_config(path, sets)
+        if service is not service_cls:
+            raise ConfigError(f"{path}: a [{service.name}] config, not a [{service_cls.name}] one")
+    elif sets:
+        raise ConfigError("--set needs --config")
+    else:
+        cfg = service_cls.Config()
+    try:
+        cfg = dataclasses.replace(cfg, **flags)
+    except ConfigError as exc:
+        raise ConfigError(f"command line: {exc}") from None
+    return with_zenoh(cfg, zenoh_flags)
+
+
 def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:
     """A command's result: one JSON object, or one right-aligned ``key: value`` per line (None skipped)."""
     import json

@@ -9,6 +9,7 @@ import warnings
 from mntes_stream.cli._common import (
     add_settings_args,
     add_zenoh_args,
+    service_config,
     settings_from_args,
     setup_logging,
     zenoh_layer,
@@ -22,30 +23,10 @@ _RECORD_ALIASES = {"directory": ("--dir",), "flush_interval_s": ("--flush-s",), 
                    "duration_s": ("--duration",)}
 
 
-def _service_config(service_cls, path, sets, flags: dict, zenoh_flags):
-    """A service's config: its file (``--config``) or its defaults, ``--set`` items, then flags, then zenoh flags."""
-    from mntes_stream.errors import ConfigError
-    from mntes_stream.service.config import load_service_config, with_zenoh
-
-    if path:
-        service, cfg = load_service_config(path, sets)
-        if service is not service_cls:
-            raise ConfigError(f"{path}: a [{service.name}] config, not a [{service_cls.name}] one")
-    elif sets:
-        raise ConfigError("--set needs --config")
-    else:
-        cfg = service_cls.Config()
-    try:
-        cfg = dataclasses.replace(cfg, **flags)
-    except ConfigError as exc:
-        raise ConfigError(f"command line: {exc}") from None
-    return with_zenoh(cfg, zenoh_flags)
-
-
 def run_record(args) -> int:
     from mntes_stream.service.recorder import RecorderService
 
-    cfg = _service_config(RecorderService, args.config, args.set, settings_from_args(args, _RECORD), zenoh_layer(args))
+    cfg = service_config(RecorderService, args.config, args.set, settings_from_args(args, _RECORD), zenoh_layer(args))
     setup_logging(not args.quiet)
     out = RecorderService(cfg).start()
     if args.json:
@@ -77,7 +58,7 @@ def run_replay_cmd(args) -> int:
         kw["topics"] = tuple(args.topics)
     if args.wait_s is not None:
         kw["wait_subscribers_s"] = args.wait_s
-    cfg = _service_config(ReplayService, args.config, args.set, kw, zenoh_layer(args))
+    cfg = service_config(ReplayService, args.config, args.set, kw, zenoh_layer(args))
     if not cfg.source:
         raise ConfigError("nothing to replay: give recordings (files or directories) or a config with source")
     if args.start is not None or args.end is not None:
@@ -143,7 +124,7 @@ def run_convert(args) -> int:
     if args.config:
         from mntes_stream.service.converter import ConverterService
 
-        pipeline = _service_config(ConverterService, args.config, (), {}, None).pipeline
+        pipeline = service_config(ConverterService, args.config, (), {}, None).pipeline
     stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, pipeline_config=pipeline,
                               progress=not args.quiet)
     if args.json:

@@ -30,7 +30,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
-from mntes_stream.errors import ConfigError
+from mntes_stream.core.settings import Settings, setting
 from mntes_stream.monitor.analysis import (
     decimate_minmax,
     estimate_f_hwp,
@@ -60,7 +60,7 @@ _SCALAR_SENSORS = ("t_bath", "b_field")
 
 
 @dataclass(frozen=True)
-class MonitorConfig:
+class MonitorConfig(Settings):
     """What the monitor keeps and how it reduces it.
 
     Attributes
@@ -88,28 +88,17 @@ class MonitorConfig:
         Page render reports kept for the latency figures.
     """
 
-    history_s: float = 30.0
-    max_points: int = 1200
-    spectrum_points: int = 400
-    f_hwp_hz: float | None = 0.77
-    silent_s: float = 3.0
-    flag_frac: float = 0.1
-    hk_stale_s: float = 2.0
-    max_selected: int = 16
-    latency_reports: int = 600
-
-    def __post_init__(self):
-        for name in ("history_s", "silent_s", "hk_stale_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"monitor: {name} must be a finite number > 0, got {v!r}")
-        if not 0 < self.flag_frac <= 1:
-            raise ConfigError(f"monitor: flag_frac must be in (0, 1], got {self.flag_frac!r}")
-        if self.f_hwp_hz is not None and not (math.isfinite(self.f_hwp_hz) and self.f_hwp_hz > 0):
-            raise ConfigError(f"monitor: f_hwp_hz must be > 0 (or None to estimate), got {self.f_hwp_hz!r}")
-        for name in ("max_points", "spectrum_points", "max_selected", "latency_reports"):
-            if int(getattr(self, name)) < 2:
-                raise ConfigError(f"monitor: {name} must be >= 2")
+    history_s: float = setting(30.0, "full-rate power kept per channel and plotted", unit="s", gt=0)
+    max_points: int = setting(1200, "points per time-stream or housekeeping trace sent to the page", ge=2)
+    spectrum_points: int = setting(400, "log-spaced points per spectrum sent to the page", ge=2)
+    f_hwp_hz: float | None = setting(0.77, "HWP frequency whose 1f/2f/4f are marked (absent: estimated)", unit="Hz",
+                                     gt=0)
+    silent_s: float = setting(3.0, "a module without data this long shows its channels silent", unit="s", gt=0)
+    flag_frac: float = setting(0.1, "share of a channel's samples flagged for it to leave 'transition'", gt=0, le=1)
+    hk_stale_s: float = setting(2.0, "housekeeping or a service status not received this long is stale", unit="s",
+                                gt=0)
+    max_selected: int = setting(16, "channels one page may plot at once", ge=2)
+    latency_reports: int = setting(600, "page render reports kept for the latency figures", ge=2)
 
 
 class ModuleBuffer:
