@@ -91,3 +91,11 @@ def test_the_checker_catches_disguised_edges(tmp_path, source, expected):
     f = tmp_path / "mod.py"
     f.write_text(source)
     assert any(expected in p for p in _problems(f, "mntes_stream.core"))
+
+
+def test_edge_modules_stay_small():
+    """No module in service/ or io/ over 500 lines: one concern each (split a package instead)."""
+    files = [p for d in ("service", "io") for p in (ROOT / "mntes_stream" / d).rglob("*.py")]
+    assert len(files) >= 10
+    big = {str(p.relative_to(ROOT)): n for p in files if (n := len(p.read_text().splitlines())) > 500}
+    assert not big, big
