@@ -123,7 +123,7 @@ def write_demo_session(directory: Path, n_det: int = 16, rate_hz: float = 50.0, 
     from mntes_stream.core.align import sample_times_ns
     from mntes_stream.core.ids import detector_id
     from mntes_stream.io import keys
-    from mntes_stream.io.mcap_io import McapFileWriter
+    from mntes_stream.io.mcap import McapFileWriter
     from mntes_stream.io.messages import PowerChunk, Provenance
 
     rng = np.random.default_rng(seed)

@@ -13,8 +13,20 @@ class ConfigError(MntesError, ValueError):
     """Bad parameters or configuration: unknown key, missing or unphysical value."""
 
 
+# Why a message was rejected: the keys of a status message's ``bad_messages``.
+SCHEMA_REASONS = ("malformed", "unknown_schema", "wrong_schema", "wrong_version", "invalid", "wrong_key")
+
+
 class SchemaError(MntesError, ValueError):
-    """A message or file does not match its schema (name, version, fields, dtypes)."""
+    """A message or file does not match its schema (name, version, fields, dtypes).
+
+    ``reason`` is one of :data:`SCHEMA_REASONS`: the counter a rejected
+    message goes to (``invalid`` unless the raiser knows better).
+    """
+
+    def __init__(self, message: str, reason: str = "invalid"):
+        super().__init__(message)
+        self.reason = reason if reason in SCHEMA_REASONS else "invalid"
 
 
 class TableDomainError(MntesError, ValueError):

@@ -9,7 +9,7 @@ import warnings
 
 import numpy as np
 
-from mntes_stream.io import mcap_io
+from mntes_stream.io import mcap as mcap_io
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance
 from mntes_stream.io.transport import Publishers, free_tcp_port
 

@@ -25,7 +25,7 @@ def _x_msgpack(validator, value, instance, schema):
 MsgpackValidator = jsonschema.validators.extend(Draft202012Validator, {"x-msgpack": _x_msgpack})
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def validator(name: str, version: int | None = None):
     schema = json_schema(name, version)
     Draft202012Validator.check_schema(schema)

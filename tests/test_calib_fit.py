@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mntes_stream.reports.calib_run import fit_campaign
 from mntes_stream.core.calib.campaign import pulls
 from mntes_stream.core.calib.endtoend import REQUIREMENT_PER_PW, calibration_nonlinearity
 from mntes_stream.core.calib.fit import FitOptions, fit_detector, tabulated_transition
@@ -24,6 +23,7 @@ from mntes_stream.core.convert import EnvironmentBlock, make_converter
 from mntes_stream.core.transition import TabulatedTransition
 from mntes_stream.core.validation import expected_linear_nonlinearity_per_w
 from mntes_stream.errors import ConfigError
+from mntes_stream.reports.calib_run import fit_campaign
 
 N_DET = 100
 

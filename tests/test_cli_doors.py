@@ -79,7 +79,7 @@ def test_up_json_is_one_document_and_ctrl_c_during_start_up_is_130(tmp_path):
 def _many_topics(path: Path, n: int) -> None:
     from mcap_helpers import hk_payload
 
-    from mntes_stream.io.mcap_io import McapFileWriter
+    from mntes_stream.io.mcap import McapFileWriter
 
     with McapFileWriter(path) as w:
         for i in range(n):

@@ -18,7 +18,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.feeds import RecordedPower, export_hdf5, iter_power_blocks, read_hdf5, read_power
 from mntes_stream.feeds.blocks import BlockBuffer, GapFill, StreamAssembler, StreamId, iter_pieces
 from mntes_stream.io import keys
-from mntes_stream.io.mcap_io import McapFileWriter, RotatingMcapWriter
+from mntes_stream.io.mcap import McapFileWriter, RotatingMcapWriter
 from mntes_stream.io.messages import PowerChunk, Provenance
 
 T0 = 1_700_000_000_000_000_000
@@ -264,7 +264,7 @@ def test_assembler_property_every_kept_sample_exact_every_hole_flagged(present, 
 def test_file_of_a_killed_recorder_reads_up_to_its_last_flush(tmp_path):
     import shutil
 
-    from mntes_stream.io.mcap_io import TruncatedFileWarning
+    from mntes_stream.io.mcap import TruncatedFileWarning
 
     w = McapFileWriter(tmp_path / "live.mcap", chunk_size_bytes=1024)
     for s in range(8):

@@ -21,7 +21,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import make_converter
 from mntes_stream.feeds import RecordedPower, export_hdf5, read_hdf5
 from mntes_stream.io import keys
-from mntes_stream.io import mcap_io as mio
+from mntes_stream.io import mcap as mio
 from mntes_stream.io.messages import PowerChunk
 from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
 from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig

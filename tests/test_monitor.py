@@ -289,7 +289,6 @@ def test_config_rejects_nonsense():
 
 def test_cli_arguments():
     from mntes_stream.cli import build_parser
-
     from mntes_stream.cli.monitor import monitor_config
 
     parser = build_parser()

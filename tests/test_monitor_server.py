@@ -241,7 +241,7 @@ def test_monitor_shows_a_replayed_recording(tmp_path):
     """simulate -> MCAP -> offline convert -> ``mntes-stream replay --all`` -> the monitor holds the recorded power."""
     from mntes_stream.cli import main
     from mntes_stream.core.sim import ArraySimulator, SimConfig
-    from mntes_stream.io.mcap_io import Session
+    from mntes_stream.io.mcap import Session
 
     with contextlib.redirect_stdout(None):
         assert main(["simulate", "--mcap", str(tmp_path / "in.mcap"), "--duration", "4", "--modules", "1",

@@ -280,9 +280,8 @@ def test_status_cadence_and_schema(source, converter):
     {"t_bath_range_k": [0.05, float("nan")]}, {"bias_range_v": [0.0]}, {"b_field_range_t": "ab"},
 ])
 def test_config_validation(bad):
-    from mntes_stream.errors import ConfigError
-
     from mntes_stream.core.settings import build
+    from mntes_stream.errors import ConfigError
 
     with pytest.raises(ConfigError):
         build(PipelineConfig, bad)
@@ -486,4 +485,4 @@ def test_a_chunk_that_cannot_be_converted_is_dropped_once_and_counted(source, co
     st = pipe.status()
     assert pipe.pending == 0 and st.chunks_pending == 0
     assert st.bad_messages == {"internal_error": 1} and "clock unavailable" in st.last_error
-    assert pipe.counters["chunks_failed"] == 1
+    assert pipe.counters.chunks_failed == 1

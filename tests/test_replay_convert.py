@@ -10,10 +10,17 @@ import time
 from pathlib import Path
 
 import pytest
-from mcap_helpers import counts_payload, hk_payload, matched_publishers, provenance_payload, readable_messages, running_recorder
+from mcap_helpers import (
+    counts_payload,
+    hk_payload,
+    matched_publishers,
+    provenance_payload,
+    readable_messages,
+    running_recorder,
+)
 
 from mntes_stream.errors import ConfigError
-from mntes_stream.io import mcap_io as mio
+from mntes_stream.io import mcap as mio
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.replay import ReplayConfig, parse_time, run_replay
 

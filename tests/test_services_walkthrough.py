@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, open_session, ZenohSettings
+from mntes_stream.io.transport import QueueSubscriber, ZenohSettings, free_tcp_port, open_session
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow

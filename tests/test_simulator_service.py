@@ -11,11 +11,13 @@ import time
 
 import numpy as np
 import pytest
+from schema_check import validate_payload
 
 from mntes_stream.cli import main
 from mntes_stream.core.sim import ArraySimulator, SimConfig
+from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
-from mntes_stream.io.mcap_io import Session, read_metadata
+from mntes_stream.io.mcap import Session, read_metadata
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, decode, detector_ids_for
 from mntes_stream.io.paramfile import load_params
 from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
@@ -27,9 +29,6 @@ from mntes_stream.service.simulator import (
     publish_live,
     write_mcap,
 )
-from mntes_stream.errors import ConfigError
-
-from schema_check import validate_payload
 
 CFG = SimConfig(channels=8, modules=2, bias_steps=((1.3, 0.02),), jupiter_t_s=1.0, jupiter_period_s=0.0,
                 jupiter_peak_w=0.3e-12)

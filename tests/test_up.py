@@ -10,7 +10,7 @@ import sys
 import threading
 import time
 
-from mntes_stream.io.mcap_io import Session
+from mntes_stream.io.mcap import Session
 from mntes_stream.io.messages import PowerChunk, decode
 
 

@@ -85,7 +85,7 @@ def test_template_and_windowed_gain():
 
 def test_perturb_params_changes_exactly_one_thing():
     p = table1_params(t_c_shift_k_per_t=2.0, t_c_shift_k_per_t2=1e4, pickup_a_per_t=2e-4j)
-    for name, (_, sigma, mode, _) in CALIBRATION_ERRORS.items():
+    for name, (_, sigma, _mode, _) in CALIBRATION_ERRORS.items():
         q = perturb_params(p, {name: sigma})
         diff = {k for k, v in q.to_dict().items() if v != p.to_dict()[k]}
         expected = {"z_re_ohm": {"z_thev_ohm"}, "z_im_ohm": {"z_thev_ohm"},

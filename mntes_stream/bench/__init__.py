@@ -5,8 +5,8 @@ Each module ``mntes_stream.bench.<name>`` defines ``HELP`` (one line),
 and memory targets live here and in ``benchmarks/``, never in timed unit tests.
 """
 
-import platform
 import os
+import platform
 
 
 def machine() -> dict:

@@ -42,7 +42,7 @@ def write_session(directory: Path, modules: int, rate_hz: float, chunk_s: float,
     from mntes_stream.core import flags as fl
     from mntes_stream.core.ids import detector_id
     from mntes_stream.io import keys
-    from mntes_stream.io.mcap_io import RotatingMcapWriter
+    from mntes_stream.io.mcap import RotatingMcapWriter
     from mntes_stream.io.messages import PowerChunk
 
     rng = np.random.default_rng(seed)

@@ -58,9 +58,9 @@ def _chunks(modules: int, n_samp: int, rate_hz: float, n_chunks: int, t0_ns: int
 
 def _in_process(args) -> dict:
     from mntes_stream.io import keys
+    from mntes_stream.io.transport import ZenohSettings
     from mntes_stream.monitor.aggregate import MonitorConfig
     from mntes_stream.monitor.subscriber import MonitorSubscriber
-    from mntes_stream.io.transport import ZenohSettings
 
     n_samp = max(1, int(round(args.rate_hz * args.chunk_s)))
     n_chunks = int(round(args.seconds / args.chunk_s))

@@ -2,9 +2,9 @@
 
 The recorder's side of the stream target: counts and power chunks of
 ``--modules`` 128-channel modules at ``--rate-hz`` in ``--chunk-s`` chunks go
-through :class:`~mntes_stream.io.mcap_io.RotatingMcapWriter` (zstd, flush
+through :class:`~mntes_stream.io.mcap.RotatingMcapWriter` (zstd, flush
 cadence, rotation) into a temporary directory and are read back with
-:func:`~mntes_stream.io.mcap_io.iter_messages`. Payloads are real encoded
+:func:`~mntes_stream.io.mcap.iter_messages`. Payloads are real encoded
 messages (pre-generated pool, so encoding is not timed); counts carry a DC
 level plus white noise, power a level plus noise, like a quiet sky.
 """
@@ -58,7 +58,7 @@ def _pool(modules: int, n_samp: int, rng, variants: int = 4):
 def run(args) -> dict:
     from mntes_stream.errors import TransportError
     from mntes_stream.io import keys
-    from mntes_stream.io.mcap_io import RotatingMcapWriter, Session
+    from mntes_stream.io.mcap import RotatingMcapWriter, Session
 
     n_samp = int(round(args.rate_hz * args.chunk_s))
     rng = np.random.default_rng(0)

@@ -134,7 +134,7 @@ def _source(cfg: dict, stop, ready) -> dict:
 
 
 def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window_end_ns: int | None):
-    from mntes_stream.io.mcap_io import iter_messages
+    from mntes_stream.io.mcap import iter_messages
     from mntes_stream.io.messages import PowerChunk
 
     lat_ms, seen = [], set()
@@ -159,8 +159,8 @@ def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window
 def run(args) -> dict:
     from mntes_stream.errors import TransportError
     from mntes_stream.io import keys
-    from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.messages import StatusMessage
+    from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
     from mntes_stream.service.converter import ConverterConfig
     from mntes_stream.service.recorder import RecorderConfig

@@ -68,10 +68,10 @@ def _info(args) -> int:
 def _fit(args) -> int:
     from tqdm import tqdm
 
-    from mntes_stream.reports.calib_run import fit_campaign
     from mntes_stream.core.calib.fit import FitOptions, tabulated_transition
     from mntes_stream.errors import ConfigError, MntesError
     from mntes_stream.io.calib_file import read_campaign, read_truth, write_covariance, write_fit_params
+    from mntes_stream.reports.calib_run import fit_campaign
 
     out = Path(args.out)
     cov_path = Path(args.covariance) if args.covariance else out.with_suffix(".cov.json")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from mntes_stream.cli._common import print_mapping
 from mntes_stream.errors import ConfigError
@@ -22,8 +22,8 @@ def parse_time_ns(text: str) -> int:
         except ValueError as exc:
             raise ConfigError(f"cannot read time {text!r}: {exc}") from None
         if dt.tzinfo is None:
-            dt = dt.replace(tzinfo=timezone.utc)
-        delta = dt - datetime(1970, 1, 1, tzinfo=timezone.utc)
+            dt = dt.replace(tzinfo=UTC)
+        delta = dt - datetime(1970, 1, 1, tzinfo=UTC)
         return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1_000
     raise ConfigError(f"time {text!r}: give integer ns since the epoch or ISO 8601 (2025-01-31T12:00:00Z)")
 

@@ -44,7 +44,7 @@ def run_record(args) -> int:
 
 def run_replay_cmd(args) -> int:
     from mntes_stream.errors import ConfigError
-    from mntes_stream.io.mcap_io import Session
+    from mntes_stream.io.mcap import Session
     from mntes_stream.service.replay import ReplayService, parse_time, run_replay
 
     kw: dict = {"source": tuple(args.files)} if args.files else {}
@@ -83,7 +83,7 @@ def run_replay_cmd(args) -> int:
 
 
 def run_inspect(args) -> int:
-    from mntes_stream.io.mcap_io import Session
+    from mntes_stream.io.mcap import Session
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

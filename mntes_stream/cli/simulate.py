@@ -52,7 +52,13 @@ def run(args) -> int:
 
     from mntes_stream.errors import ConfigError
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.simulator import SimulatorSource, TruthRecorder, perturbed_params, publish_live, write_mcap
+    from mntes_stream.service.simulator import (
+        SimulatorSource,
+        TruthRecorder,
+        perturbed_params,
+        publish_live,
+        write_mcap,
+    )
 
     svc = _config(args)
     config, settings = svc.sim, svc.zenoh

@@ -8,10 +8,9 @@ import json
 def run(args) -> int:
     from tqdm import tqdm
 
+    from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
     from mntes_stream.core.validation import JSON_KEYS, StudyConfig, run_study
     from mntes_stream.reports.validation_report import headline_rows, to_jsonable, write_report
-
-    from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
 
     opts = {"seed": args.seed, "sample_rate_hz": args.sample_rate, "f_hwp_hz": HWP_FREQUENCIES_HZ[args.telescope]}
     cfg = StudyConfig.quick_config(**opts) if args.quick else StudyConfig(**opts)

@@ -44,9 +44,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from mntes_stream.core import _kernels
+from mntes_stream.core import _kernels, model
 from mntes_stream.core import flags as fl
-from mntes_stream.core import model
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.tables import TableBank, build_bank, params_identity
 from mntes_stream.errors import ConfigError, SchemaError

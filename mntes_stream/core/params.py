@@ -15,7 +15,6 @@ Conventions (stated once, here and in the README):
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,7 +23,6 @@ import numpy as np
 from mntes_stream.core.settings import Settings, build, setting, validate
 from mntes_stream.core.transition import (
     ArctanTransition,
-    TabulatedTransition,
     Transition,
     transition_from_dict,
 )
@@ -116,7 +114,7 @@ class DetectorParams:
         t_c = float(self.transition.temperature_k(0.5 * self.r_normal_ohm))
         return self.k_w_per_k_n * (t_c**self.n - self.t_bath_k**self.n)
 
-    def replace(self, **changes: Any) -> "DetectorParams":
+    def replace(self, **changes: Any) -> DetectorParams:
         """A copy with fields changed (transition fields by their own names too)."""
         t_changes = {k: changes.pop(k) for k in list(changes) if k in ("t_c_k", "iqr_k", "r_n_ohm")}
         if t_changes:
@@ -255,7 +253,7 @@ class ParamArray:
     gain_a_per_count: np.ndarray
 
     @classmethod
-    def from_params(cls, params: list[DetectorParams]) -> "ParamArray":
+    def from_params(cls, params: list[DetectorParams]) -> ParamArray:
         if not params:
             raise ConfigError("ParamArray needs at least one detector")
         if not all(isinstance(p.transition, ArctanTransition) for p in params):

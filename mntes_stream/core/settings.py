@@ -38,13 +38,16 @@ mntes_stream.errors.ConfigError: demo.toml [demo] rate_hz: expected a number (Hz
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import operator
 import os.path
 import re
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 from mntes_stream.errors import ConfigError
 
@@ -141,7 +144,7 @@ def _optional_inner(hint: Any) -> Any | None:
     origin, args = _args(hint)
     if origin in (typing.Union, types.UnionType) and type(None) in args:
         rest = [a for a in args if a is not type(None)]
-        return rest[0] if len(rest) == 1 else typing.Union[tuple(rest)]
+        return rest[0] if len(rest) == 1 else functools.reduce(operator.or_, rest)
     return None
 
 

@@ -31,8 +31,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 from scipy import integrate
@@ -185,7 +186,7 @@ class SimConfig:
     def n_detectors(self) -> int:
         return self.boards * self.modules * self.channels
 
-    def replace(self, **changes: Any) -> "SimConfig":
+    def replace(self, **changes: Any) -> SimConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
@@ -194,7 +195,7 @@ class SimConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SimConfig":
+    def from_dict(cls, d: dict) -> SimConfig:
         """Build from a mapping (e.g. a TOML table), rejecting unknown keys."""
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - known
@@ -209,7 +210,7 @@ class SimConfig:
             raise ConfigError(f"simulator: {exc}") from None
 
     @classmethod
-    def noise_free(cls, **changes: Any) -> "SimConfig":
+    def noise_free(cls, **changes: Any) -> SimConfig:
         """A single clean detector: no scatter, noise, environment changes or extra signals."""
         base = dict(
             boards=1, modules=1, channels=1, saturated_per_module=0, latched_per_module=0,

@@ -135,7 +135,7 @@ class TableDomain:
         return {k: list(getattr(self, k)) for k in ("p_opt_w", "t_bath_k", "b_field_t", "v_frac")}
 
     @classmethod
-    def from_dict(cls, d: Mapping) -> "TableDomain":
+    def from_dict(cls, d: Mapping) -> TableDomain:
         unknown = set(d) - {"p_opt_w", "t_bath_k", "b_field_t", "v_frac"}
         if unknown:
             raise ConfigError(f"table domain: unknown key(s) {sorted(unknown)}")
@@ -445,7 +445,7 @@ class TableBank:
         }
 
     @classmethod
-    def from_header(cls, header: Mapping, arrays: Mapping[str, np.ndarray]) -> "TableBank":
+    def from_header(cls, header: Mapping, arrays: Mapping[str, np.ndarray]) -> TableBank:
         """Inverse of :meth:`header` (raises SchemaError/ConfigError on anything wrong)."""
         if header.get("format") != TABLE_FORMAT:
             raise SchemaError(f"not a table bank (format {header.get('format')!r}, expected {TABLE_FORMAT!r})")

@@ -33,8 +33,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -377,7 +378,7 @@ class StudyConfig:
     seed: int = 0
 
     @classmethod
-    def quick_config(cls, **changes: Any) -> "StudyConfig":
+    def quick_config(cls, **changes: Any) -> StudyConfig:
         base = dict(quick=True, nonlinearity_s=60.0, noisy_s=120.0, dipole_periods=3, dipole_period_s=30.0,
                     drift_s=60.0, drift_window_s=5.0, robustness_draws=40,
                     jupiter_sweep_w=(0.1e-12, 0.4e-12, 0.8e-12))

@@ -29,13 +29,14 @@ converter published.
 from __future__ import annotations
 
 import bisect
-import collections
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from mntes_stream.core import flags as fl
+from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.errors import ConfigError
 
 __all__ = ["TodBlock", "StreamId", "StreamStats", "StreamAssembler", "BlockBuffer", "GapFill", "Piece",
@@ -46,7 +47,6 @@ DEFAULT_BLOCK_SAMPLES = 8192
 DEFAULT_MAX_GAP_S = 3600.0  # a longer step is a segment break, not a hole to fill
 # Backstop for a hole within max_gap_s but of absurdly many samples (a corrupt sample rate).
 MAX_FILL_SAMPLES = 1 << 24
-_RECENT_KEYS = 1024  # (seq, t_first) pairs remembered per stream to spot duplicates
 
 
 @dataclass(frozen=True, order=True)
@@ -155,7 +155,7 @@ class TodBlock:
         """Sample times in float64 seconds since the epoch (sub-microsecond resolution)."""
         return self.t_ns / 1e9
 
-    def select(self, detectors: Iterable[str]) -> "TodBlock":
+    def select(self, detectors: Iterable[str]) -> TodBlock:
         """The rows of ``detectors`` (in that order); ConfigError for an id not here."""
         row = {d: r for r, d in enumerate(self.detectors)}
         want = list(detectors)
@@ -200,7 +200,7 @@ class StreamStats:
     gaps, gap_samples : int
         Holes in time and the samples filled with NaN + GAP.
     seq_gaps : int
-        Sequence numbers skipped between consecutive chunks.
+        Sequence numbers skipped and not received since (``core.sequence``).
     absent_samples : int
         Detector-samples filled with NaN + UNKNOWN_CHANNEL (absent detectors).
     invalid_messages : int
@@ -295,10 +295,8 @@ class StreamAssembler:
         self._hi = (1 << 63) - 1 if end_ns is None else int(end_ns)
         self.max_gap_ns = int(max_gap_s * 1e9)
         self.last_t_ns: int | None = None
-        self.last_seq: int | None = None
         self.period_ns: float | None = None
-        self._recent: collections.deque = collections.deque(maxlen=_RECENT_KEYS)
-        self._recent_set: set = set()
+        self.sequence = StreamSequence()
         self._maps: dict[tuple, tuple] = {}
         self.stats = StreamStats()
 
@@ -326,12 +324,6 @@ class StreamAssembler:
         self._row = {d: r for r, d in enumerate(self.detectors)}
         self._maps.clear()
         return True
-
-    def _remember(self, key: tuple) -> None:
-        if len(self._recent) == self._recent.maxlen:
-            self._recent_set.discard(self._recent[0])
-        self._recent.append(key)
-        self._recent_set.add(key)
 
     def _fill(self, period_ns: float, n_fill: int, t_next_ns: int) -> GapFill:
         """The grid points ``1..n_fill`` after the last sample that lie before ``t_next_ns`` and in range."""
@@ -372,11 +364,10 @@ class StreamAssembler:
         n = int(t_ns.size)
         if n == 0:
             return []
-        key = (int(seq), int(t_ns[0]))
-        if key in self._recent_set:
+        if self.sequence.observe(seq, int(t_ns[0])) == "duplicate":
             st.duplicate_chunks += 1
             return []
-        self._remember(key)
+        st.seq_gaps = max(self.sequence.lost, 0)
         if sample_rate_hz:
             period = 1e9 / float(sample_rate_hz)
         elif n >= 2:
@@ -410,8 +401,6 @@ class StreamAssembler:
                         st.gap_samples += fill.size
                         st.samples += fill.size
                         out.append(fill)
-            if self.last_seq is not None and seq > self.last_seq + 1:
-                st.seq_gaps += int(seq) - self.last_seq - 1
         t = t_ns[keep]
         sel = (t >= self._lo) & (t < self._hi)
         if not sel.all():
@@ -420,7 +409,6 @@ class StreamAssembler:
         else:
             cols = None
         self.last_t_ns = int(t_ns[-1])
-        self.last_seq = int(seq)
         if period:
             self.period_ns = period
         if t.size == 0:

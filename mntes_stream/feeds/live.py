@@ -107,7 +107,7 @@ class LivePowerFeed:
 
     # ------------------------------------------------------------------ session
 
-    def open(self) -> "LivePowerFeed":
+    def open(self) -> LivePowerFeed:
         """Open the zenoh session and subscribe (idempotent)."""
         from mntes_stream.io.transport import QueueSubscriber, open_session
 
@@ -131,7 +131,7 @@ class LivePowerFeed:
             if session is not None:
                 session.close()
 
-    def __enter__(self) -> "LivePowerFeed":
+    def __enter__(self) -> LivePowerFeed:
         return self.open()
 
     def __exit__(self, *exc) -> None:

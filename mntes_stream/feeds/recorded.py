@@ -125,7 +125,7 @@ class RecordedPower:
     def __init__(self, source, *, setup: str | None = None, detectors: Iterable[str] | None = None,
                  start_ns: int | None = None, end_ns: int | None = None, board: int | None = None,
                  module: int | None = None, max_gap_s: float = DEFAULT_MAX_GAP_S, progress: bool = False):
-        from mntes_stream.io.mcap_io import Session
+        from mntes_stream.io.mcap import Session
 
         if start_ns is not None and end_ns is not None and int(end_ns) <= int(start_ns):
             raise ConfigError(f"empty time range: end_ns {end_ns} <= start_ns {start_ns}")
@@ -286,7 +286,7 @@ class RecordedPower:
                     st.next += 1
         for st in state.values():
             if st.held:  # a chunk the index saw was not found again: assemble what there is
-                warnings.warn(f"{st.buf.stream.name}: {len(st.order) - st.next - len(st.held)} indexed chunk(s) not re-read")
+                warnings.warn(f"{st.buf.stream.name}: {len(st.order) - st.next - len(st.held)} indexed chunk(s) not re-read", stacklevel=2)
                 for i in sorted(st.held):
                     yield from st.take(st.held.pop(i))
             yield from st.buf.flush()
@@ -316,7 +316,7 @@ class RecordedPower:
         -------
         list of (Provenance, log_time_ns, path)
         """
-        from mntes_stream.io.mcap_io import PROVENANCE_ATTACHMENT
+        from mntes_stream.io.mcap import PROVENANCE_ATTACHMENT
         from mntes_stream.io.messages import Provenance
 
         seen, out = set(), []

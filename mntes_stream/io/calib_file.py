@@ -2,7 +2,7 @@
 
 Measurement file (one detector or a whole array)
 ------------------------------------------------
-An MCAP file written with :class:`mntes_stream.io.mcap_io.McapFileWriter`:
+An MCAP file written with :class:`mntes_stream.io.mcap.McapFileWriter`:
 every message is an msgpack map whose JSON Schema is stored as its channel's
 schema (``schemas/calib_*.v1.json``), so the file explains itself.
 
@@ -133,7 +133,7 @@ def decode_message(payload: bytes) -> DetectorCalibration | Sweep:
 
 def write_campaign(path: str | Path, campaign: Campaign, *, overwrite: bool = False) -> int:
     """Write a campaign to one MCAP file; returns the number of messages."""
-    from mntes_stream.io.mcap_io import McapFileWriter, writer_description
+    from mntes_stream.io.mcap import McapFileWriter, writer_description
 
     path = Path(path)
     if path.exists():
@@ -163,7 +163,7 @@ def read_campaign(path: str | Path) -> Campaign:
     Raises SchemaError for a malformed calibration message; sweeps whose
     detector has no header are kept as :attr:`Campaign.orphans` (flagged by the fit).
     """
-    from mntes_stream.io.mcap_io import iter_messages, read_metadata
+    from mntes_stream.io.mcap import iter_messages, read_metadata
 
     headers, sweeps = [], []
     try:

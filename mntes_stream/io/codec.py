@@ -41,7 +41,7 @@ def _schema_dir():
     return resources.files("mntes_stream") / "schemas"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _schemas() -> dict[tuple[str, int], dict]:
     out = {}
     for entry in _schema_dir().iterdir():
@@ -137,19 +137,19 @@ def unpack(payload: bytes, expected: str | tuple[str, ...] | None = None) -> dic
     try:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     except Exception as exc:  # msgpack raises several unrelated types
-        raise SchemaError(f"malformed msgpack: {type(exc).__name__}: {exc}") from None
+        raise SchemaError(f"malformed msgpack: {type(exc).__name__}: {exc}", "malformed") from None
     if not isinstance(msg, dict):
-        raise SchemaError(f"message is a {type(msg).__name__}, not a map")
+        raise SchemaError(f"message is a {type(msg).__name__}, not a map", "malformed")
     name, version = msg.get("schema"), msg.get("version")
     if not isinstance(name, str) or not isinstance(version, int) or isinstance(version, bool):
-        raise SchemaError("message lacks a string 'schema' and an integer 'version'")
+        raise SchemaError("message lacks a string 'schema' and an integer 'version'", "malformed")
     if expected is not None:
         names = (expected,) if isinstance(expected, str) else expected
         if name not in names:
-            raise SchemaError(f"expected schema {'/'.join(names)}, got {name!r}")
+            raise SchemaError(f"expected schema {'/'.join(names)}, got {name!r}", "wrong_schema")
     current = schema_versions().get(name)
     if current is None:
-        raise SchemaError(f"unknown message schema {name!r}")
+        raise SchemaError(f"unknown message schema {name!r}", "unknown_schema")
     if version != current:
-        raise SchemaError(f"{name}: version {version} not supported (this build speaks version {current})")
+        raise SchemaError(f"{name}: version {version} not supported (this build speaks version {current})", "wrong_version")
     return msg

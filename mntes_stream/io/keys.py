@@ -9,8 +9,6 @@
 
 from __future__ import annotations
 
-import re
-
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.errors import ConfigError
 

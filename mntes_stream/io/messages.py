@@ -13,18 +13,17 @@ Sample times of counts and power chunks are either ``t0_ns`` plus
 from __future__ import annotations
 
 import functools
-import math
-import operator
-import re
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 import numpy as np
 
-from mntes_stream.core.align import last_sample_offset_ns, sample_times_ns
+from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
-from mntes_stream.errors import ConfigError, SchemaError
-from mntes_stream.io.codec import decode_array, encode_array, json_schema, pack, unpack
+from mntes_stream.errors import SCHEMA_REASONS, SchemaError
+from mntes_stream.io import fields as fc
+from mntes_stream.io.codec import decode_array, encode_array, pack, unpack
+from mntes_stream.io.fields import SAMPLE_RATE_RANGE_HZ
 from mntes_stream.io.keys import NAME_PATTERN
 
 __all__ = [
@@ -39,147 +38,21 @@ __all__ = [
     "MESSAGE_TYPES",
     "decode",
     "detector_ids_for",
-    "reason_of",
 ]
 
 # Why a message was rejected; the keys of StatusMessage.bad_messages.
-REASONS = ("malformed", "unknown_schema", "wrong_schema", "wrong_version", "invalid", "wrong_key")
+REASONS = SCHEMA_REASONS
 SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V"}
-# Sample rates a chunk may declare (from the schema, the one source): beyond,
-# sample times lose meaning (1e-300 Hz puts sample 1 beyond int64 ns).
-_RATE_SCHEMA = json_schema("mntes.counts")["properties"]["sample_rate_hz"]
-SAMPLE_RATE_RANGE_HZ = (float(_RATE_SCHEMA["minimum"]), float(_RATE_SCHEMA["maximum"]))
-_INT64_MAX = (1 << 63) - 1
-
-
-def _error(reason: str, message: str) -> SchemaError:
-    exc = SchemaError(message)
-    exc.reason = reason
-    return exc
-
-
-def reason_of(exc: SchemaError) -> str:
-    """The rejection reason of a decoding error (one of :data:`REASONS`)."""
-    reason = getattr(exc, "reason", None)
-    if reason in REASONS:
-        return reason
-    text = str(exc)
-    # codec.unpack's messages, mapped once here.
-    if text.startswith(("malformed msgpack", "message is a", "message lacks")):
-        return "malformed"
-    if text.startswith("unknown message schema"):
-        return "unknown_schema"
-    if text.startswith("expected schema"):
-        return "wrong_schema"
-    if "not supported (this build speaks" in text:
-        return "wrong_version"
-    return "invalid"
-
 
 def _unpack(payload: Any, expected=None) -> dict:
     if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise _error("malformed", f"payload must be bytes, got {type(payload).__name__}")
-    try:
-        msg = unpack(bytes(payload))
-    except SchemaError as exc:
-        raise _error(reason_of(exc), str(exc)) from None
+        raise SchemaError(f"payload must be bytes, got {type(payload).__name__}", "malformed")
+    msg = unpack(bytes(payload))
     # Checked after the envelope so an unknown name or version is reported as such.
     names = (expected,) if isinstance(expected, str) else expected
     if names is not None and msg["schema"] not in names:
-        raise _error("wrong_schema", f"expected schema {'/'.join(names)}, got {msg['schema']!r}")
+        raise SchemaError(f"expected schema {'/'.join(names)}, got {msg['schema']!r}", "wrong_schema")
     return msg
-
-
-# --- field checks (raise SchemaError "invalid") -----------------------------------------
-
-
-def _int(value: Any, name: str, lo: int = 0, hi: int = _INT64_MAX) -> int:
-    if isinstance(value, (bool, np.bool_)):
-        raise _error("invalid", f"{name} must be an integer, got a bool")
-    try:
-        v = operator.index(value)
-    except TypeError:
-        raise _error("invalid", f"{name} must be an integer, got {type(value).__name__}") from None
-    if not lo <= v <= hi:
-        raise _error("invalid", f"{name} = {v} outside [{lo}, {hi}]")
-    return v
-
-
-def _str(value: Any, name: str, pattern: re.Pattern | None = None) -> str:
-    if not isinstance(value, str):
-        raise _error("invalid", f"{name} must be a string, got {type(value).__name__}")
-    if pattern is not None and not pattern.match(value):
-        raise _error("invalid", f"{name} {value!r} does not match {pattern.pattern}")
-    return value
-
-
-def _float(value: Any, name: str, positive: bool = False, optional: bool = False) -> float | None:
-    if value is None and optional:
-        return None
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise _error("invalid", f"{name} must be a number, got {type(value).__name__}")
-    v = float(value)
-    if not math.isfinite(v) or (positive and v <= 0):
-        raise _error("invalid", f"{name} = {v} must be finite{' and > 0' if positive else ''}")
-    return v
-
-
-def _array(value: Any, name: str, dtype: str, ndim: int | tuple[int, ...]) -> np.ndarray:
-    """Coerce to the wire dtype: integers only into integer types, in range."""
-    a = np.asarray(value)
-    ndims = (ndim,) if isinstance(ndim, int) else ndim
-    if a.ndim not in ndims:
-        raise _error("invalid", f"{name}: expected {' or '.join(map(str, ndims))} dimensions, got shape {a.shape}")
-    target = np.dtype(dtype)
-    if a.dtype == target:
-        return a
-    if target.kind in "iu":
-        if a.dtype.kind not in "iu":
-            raise _error("invalid", f"{name}: integer array required, got dtype {a.dtype}")
-        info = np.iinfo(target)
-        if a.size and (int(a.min()) < info.min or int(a.max()) > info.max):
-            raise _error("invalid", f"{name}: values outside the range of {target}")
-    elif a.dtype.kind not in "iuf":
-        raise _error("invalid", f"{name}: real numeric array required, got dtype {a.dtype}")
-    return np.ascontiguousarray(a, dtype=target)
-
-
-def _channels(value: Any) -> np.ndarray:
-    ch = _array(value, "channels", "<i4", 1)
-    if ch.size and int(ch.min()) < 0:
-        raise _error("invalid", "channels must be >= 0")
-    if np.unique(ch).size != ch.size:
-        raise _error("invalid", "channels must be distinct")
-    return ch
-
-
-def _times(obj, n_samp: int) -> None:
-    """Check the (t0_ns, sample_rate_hz) xor t_ns convention on a chunk."""
-    if obj.t_ns is not None:
-        if obj.t0_ns is not None or obj.sample_rate_hz is not None:
-            raise _error("invalid", "give either t_ns or (t0_ns, sample_rate_hz), not both")
-        t = _array(obj.t_ns, "t_ns", "<i8", 1)
-        if t.size != n_samp:
-            raise _error("invalid", f"t_ns has {t.size} entries for {n_samp} samples")
-        if t.size and (int(t.min()) < 0 or np.any(np.diff(t) < 0)):
-            raise _error("invalid", "t_ns must be >= 0 and non-decreasing")
-        object.__setattr__(obj, "t_ns", t)
-    else:
-        if obj.t0_ns is None or obj.sample_rate_hz is None:
-            raise _error("invalid", "t0_ns and sample_rate_hz (or t_ns) are required")
-        t0 = _int(obj.t0_ns, "t0_ns")
-        rate = _float(obj.sample_rate_hz, "sample_rate_hz", positive=True)
-        lo, hi = SAMPLE_RATE_RANGE_HZ
-        if not lo <= rate <= hi:
-            raise _error("invalid", f"sample_rate_hz = {rate} outside [{lo:g}, {hi:g}]")
-        try:
-            last = t0 + last_sample_offset_ns(rate, n_samp)
-        except ConfigError as exc:
-            raise _error("invalid", str(exc)) from None
-        if last > _INT64_MAX:
-            raise _error("invalid", f"the last of {n_samp} samples from t0_ns = {t0} at {rate} Hz is beyond int64 ns")
-        object.__setattr__(obj, "t0_ns", t0)
-        object.__setattr__(obj, "sample_rate_hz", rate)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -233,7 +106,7 @@ class _Message:
         names = {f.name for f in fields(cls)}
         extra = set(msg) - names - {"schema", "version"}
         if extra:
-            raise _error("invalid", f"{cls.SCHEMA}: unknown field(s) {sorted(map(str, extra))}")
+            raise SchemaError(f"{cls.SCHEMA}: unknown field(s) {sorted(map(str, extra))}")
         kwargs = {}
         for name in names:
             if name not in msg:
@@ -244,16 +117,16 @@ class _Message:
                 try:
                     value = decode_array(value, name, dtype, ndim if isinstance(ndim, int) else None)
                 except SchemaError as exc:
-                    raise _error("invalid", f"{cls.SCHEMA}: {exc}") from None
+                    raise SchemaError(f"{cls.SCHEMA}: {exc}") from None
             kwargs[name] = value
         for name in cls._OPTIONAL:
             kwargs.setdefault(name, None)
         try:
             return cls(**kwargs)
         except SchemaError as exc:
-            raise _error(reason_of(exc), f"{cls.SCHEMA}: {exc}") from None
+            raise SchemaError(f"{cls.SCHEMA}: {exc}", exc.reason) from None
         except TypeError as exc:  # missing required fields
-            raise _error("invalid", f"{cls.SCHEMA}: {exc}") from None
+            raise SchemaError(f"{cls.SCHEMA}: {exc}") from None
 
 
 # --- messages --------------------------------------------------------------------------
@@ -297,18 +170,18 @@ class CountsChunk(_Message):
     t_ns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", NAME_PATTERN)
+        fc.as_str(self.setup, "setup", NAME_PATTERN)
         for name in ("board", "module", "seq", "t_pub_ns"):
-            object.__setattr__(self, name, _int(getattr(self, name), name))
-        ch = _channels(self.channels)
-        ci = _array(self.counts_i, "counts_i", "<i4", 2)
-        cq = _array(self.counts_q, "counts_q", "<i4", 2)
+            object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
+        ch = fc.as_channels(self.channels)
+        ci = fc.as_array(self.counts_i, "counts_i", "<i4", 2)
+        cq = fc.as_array(self.counts_q, "counts_q", "<i4", 2)
         if ci.shape != cq.shape or ci.shape[0] != ch.size:
-            raise _error("invalid", f"counts_i {ci.shape} and counts_q {cq.shape} must both be (n_ch={ch.size}, n_samp)")
+            raise SchemaError(f"counts_i {ci.shape} and counts_q {cq.shape} must both be (n_ch={ch.size}, n_samp)")
         object.__setattr__(self, "channels", ch)
         object.__setattr__(self, "counts_i", ci)
         object.__setattr__(self, "counts_q", cq)
-        _times(self, ci.shape[1])
+        fc.check_times(self, ci.shape[1])
 
     @property
     def n_samples(self) -> int:
@@ -353,30 +226,30 @@ class HousekeepingChunk(_Message):
     channels: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", NAME_PATTERN)
+        fc.as_str(self.setup, "setup", NAME_PATTERN)
         if self.sensor not in SENSOR_UNITS:
-            raise _error("invalid", f"sensor {self.sensor!r} not one of {sorted(SENSOR_UNITS)}")
+            raise SchemaError(f"sensor {self.sensor!r} not one of {sorted(SENSOR_UNITS)}")
         if self.unit != SENSOR_UNITS[self.sensor]:
-            raise _error("invalid", f"{self.sensor} unit must be {SENSOR_UNITS[self.sensor]!r}, got {self.unit!r}")
-        object.__setattr__(self, "seq", _int(self.seq, "seq"))
-        t = _array(self.t_ns, "t_ns", "<i8", 1)
+            raise SchemaError(f"{self.sensor} unit must be {SENSOR_UNITS[self.sensor]!r}, got {self.unit!r}")
+        object.__setattr__(self, "seq", fc.as_int(self.seq, "seq"))
+        t = fc.as_array(self.t_ns, "t_ns", "<i8", 1)
         if t.size and (int(t.min()) < 0 or np.any(np.diff(t) <= 0)):
-            raise _error("invalid", "t_ns must be >= 0 and strictly increasing")
+            raise SchemaError("t_ns must be >= 0 and strictly increasing")
         per_channel = self.sensor == "bias"
-        v = _array(self.value, "value", "<f8", 2 if per_channel else 1)
+        v = fc.as_array(self.value, "value", "<f8", 2 if per_channel else 1)
         if v.shape[0] != t.size:
-            raise _error("invalid", f"value has {v.shape[0]} rows for {t.size} times")
+            raise SchemaError(f"value has {v.shape[0]} rows for {t.size} times")
         if per_channel:
             if self.board is None or self.module is None or self.channels is None:
-                raise _error("invalid", "bias readings need board, module and channels")
-            object.__setattr__(self, "board", _int(self.board, "board"))
-            object.__setattr__(self, "module", _int(self.module, "module"))
-            ch = _channels(self.channels)
+                raise SchemaError("bias readings need board, module and channels")
+            object.__setattr__(self, "board", fc.as_int(self.board, "board"))
+            object.__setattr__(self, "module", fc.as_int(self.module, "module"))
+            ch = fc.as_channels(self.channels)
             if v.shape[1] != ch.size:
-                raise _error("invalid", f"bias value has {v.shape[1]} columns for {ch.size} channels")
+                raise SchemaError(f"bias value has {v.shape[1]} columns for {ch.size} channels")
             object.__setattr__(self, "channels", ch)
         elif self.board is not None or self.module is not None or self.channels is not None:
-            raise _error("invalid", f"{self.sensor} readings take no board/module/channels")
+            raise SchemaError(f"{self.sensor} readings take no board/module/channels")
         object.__setattr__(self, "t_ns", t)
         object.__setattr__(self, "value", v)
 
@@ -425,26 +298,26 @@ class PowerChunk(_Message):
     t_ns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", NAME_PATTERN)
+        fc.as_str(self.setup, "setup", NAME_PATTERN)
         for name in ("board", "module", "seq", "source_t_pub_ns", "t_pub_ns"):
-            object.__setattr__(self, name, _int(getattr(self, name), name))
-        _str(self.table_identity, "table_identity")
-        _str(self.converter_kind, "converter_kind")
-        ch = _channels(self.channels)
+            object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
+        fc.as_str(self.table_identity, "table_identity")
+        fc.as_str(self.converter_kind, "converter_kind")
+        ch = fc.as_channels(self.channels)
         if not isinstance(self.detector_ids, (list, tuple)):
-            raise _error("invalid", "detector_ids must be a list of strings")
+            raise SchemaError("detector_ids must be a list of strings")
         ids = tuple(self.detector_ids)
         if ids != detector_ids_for(self.board, self.module, ch):
-            raise _error("invalid", "detector_ids do not match board/module/channels")
-        p = _array(self.p_opt_w, "p_opt_w", "<f8", 2)
-        f = _array(self.flags, "flags", "<u2", 2)
+            raise SchemaError("detector_ids do not match board/module/channels")
+        p = fc.as_array(self.p_opt_w, "p_opt_w", "<f8", 2)
+        f = fc.as_array(self.flags, "flags", "<u2", 2)
         if p.shape != f.shape or p.shape[0] != ch.size:
-            raise _error("invalid", f"p_opt_w {p.shape} and flags {f.shape} must both be (n_ch={ch.size}, n_samp)")
+            raise SchemaError(f"p_opt_w {p.shape} and flags {f.shape} must both be (n_ch={ch.size}, n_samp)")
         object.__setattr__(self, "channels", ch)
         object.__setattr__(self, "detector_ids", ids)
         object.__setattr__(self, "p_opt_w", p)
         object.__setattr__(self, "flags", f)
-        _times(self, p.shape[1])
+        fc.check_times(self, p.shape[1])
 
     @property
     def n_samples(self) -> int:
@@ -459,8 +332,8 @@ class PowerChunk(_Message):
 
 def _count_map(value: Any, name: str) -> dict:
     if not isinstance(value, dict):
-        raise _error("invalid", f"{name} must be a map")
-    return {_str(k, f"{name} key"): _int(v, f"{name}[{k}]") for k, v in value.items()}
+        raise SchemaError(f"{name} must be a map")
+    return {fc.as_str(k, f"{name} key"): fc.as_int(v, f"{name}[{k}]") for k, v in value.items()}
 
 
 @dataclass(frozen=True, eq=False)
@@ -500,27 +373,33 @@ class StatusMessage(_Message):
     latency_max_ms: float | None = None
     last_error: str = ""
 
+    _RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
+    _LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms")
+    _COUNTERS: ClassVar[tuple[str, ...]] = (
+        "t_ns", "chunks_received", "chunks_converted", "chunks_pending", "samples_converted", "chunks_lost",
+        "chunks_duplicated", "chunks_out_of_order", "hk_received", "hk_stale_samples", "hk_missing_samples",
+        "unknown_channel_samples",
+    )
+
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", NAME_PATTERN)
-        _str(self.service, "service")
-        _str(self.last_error, "last_error")
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "int":
-                object.__setattr__(self, f.name, _int(value, f.name))
-            elif f.type == "float":
-                v = _float(value, f.name)
-                if v < 0:
-                    raise _error("invalid", f"{f.name} must be >= 0")
-                object.__setattr__(self, f.name, v)
-            elif f.type == "float | None":  # latencies: negative when clocks disagree
-                object.__setattr__(self, f.name, _float(value, f.name, optional=True))
+        fc.as_str(self.setup, "setup", NAME_PATTERN)
+        fc.as_str(self.service, "service")
+        fc.as_str(self.last_error, "last_error")
+        for name in self._RATES:
+            v = fc.as_float(getattr(self, name), name)
+            if v < 0:
+                raise SchemaError(f"{name} must be >= 0")
+            object.__setattr__(self, name, v)
+        for name in self._LATENCIES:  # may be negative when clocks disagree
+            object.__setattr__(self, name, fc.as_float(getattr(self, name), name, optional=True))
+        for name in self._COUNTERS:
+            object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
         object.__setattr__(self, "bad_messages", _count_map(self.bad_messages, "bad_messages"))
         object.__setattr__(self, "flag_counts", _count_map(self.flag_counts, "flag_counts"))
         if not isinstance(self.hk_age_s, dict):
-            raise _error("invalid", "hk_age_s must be a map")
+            raise SchemaError("hk_age_s must be a map")
         object.__setattr__(
-            self, "hk_age_s", {_str(k, "hk_age_s key"): float(_float(v, f"hk_age_s[{k}]")) for k, v in self.hk_age_s.items()}
+            self, "hk_age_s", {fc.as_str(k, "hk_age_s key"): float(fc.as_float(v, f"hk_age_s[{k}]")) for k, v in self.hk_age_s.items()}
         )
 
     def _body(self) -> dict:
@@ -531,7 +410,7 @@ class StatusMessage(_Message):
     def _from_map(cls, msg: dict):
         missing = {f.name for f in fields(cls)} - set(msg)
         if missing:
-            raise _error("invalid", f"{cls.SCHEMA}: missing field(s) {sorted(missing)}")
+            raise SchemaError(f"{cls.SCHEMA}: missing field(s) {sorted(missing)}")
         return super()._from_map(msg)
 
 
@@ -558,10 +437,10 @@ class Provenance(_Message):
     t_ns: int
 
     def __post_init__(self) -> None:
-        _str(self.setup, "setup", NAME_PATTERN)
+        fc.as_str(self.setup, "setup", NAME_PATTERN)
         for name in ("params_toml", "table_identity", "converter_kind", "software_version"):
-            _str(getattr(self, name), name)
-        object.__setattr__(self, "t_ns", _int(self.t_ns, "t_ns"))
+            fc.as_str(getattr(self, name), name)
+        object.__setattr__(self, "t_ns", fc.as_int(self.t_ns, "t_ns"))
 
 
 MESSAGE_TYPES: dict[str, type] = {
@@ -574,5 +453,5 @@ def decode(payload: bytes, expected: str | tuple[str, ...] | None = None):
     msg = _unpack(payload, expected)
     cls = MESSAGE_TYPES.get(msg["schema"])
     if cls is None:  # a schema in schemas/ without a class here
-        raise _error("unknown_schema", f"no message class for schema {msg['schema']!r}")
+        raise SchemaError(f"no message class for schema {msg['schema']!r}", "unknown_schema")
     return cls._from_map(msg)

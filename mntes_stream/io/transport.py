@@ -23,8 +23,8 @@ import queue
 import socket
 import threading
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, fields
-from typing import Iterable, Iterator
 
 from mntes_stream.core.settings import setting
 from mntes_stream.errors import ConfigError, TransportError
@@ -75,7 +75,7 @@ class ZenohSettings:
             if not sep or not key:
                 raise ConfigError(f"zenoh cfg {item!r}: expected KEY:VALUE, e.g. transport/unicast/max_links:2")
 
-    def over(self, base: "ZenohSettings") -> "ZenohSettings":
+    def over(self, base: ZenohSettings) -> ZenohSettings:
         """This layer on top of ``base``: what this one names wins; ``cfg`` entries add up."""
         named = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "cfg" and getattr(self, f.name) is not None}
         return dataclasses.replace(base, **named, cfg=base.cfg + self.cfg)

@@ -23,13 +23,14 @@ from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
+from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.monitor.analysis import (
     decimate_minmax,
@@ -127,8 +128,7 @@ class ModuleBuffer:
         self.newest_t_ns: int | None = None
         self.newest_t_pub_ns = 0
         self.last_recv_ns: int | None = None
-        self.last_seq: int | None = None
-        self.lost = 0
+        self.sequence = StreamSequence()
         self.late = 0
         self.restarts = 0
         self.state = np.full(n_ch, STATE_SILENT, dtype=np.uint8)
@@ -148,10 +148,7 @@ class ModuleBuffer:
         """Append one chunk: times (n,), power and flags (n_ch, n)."""
         self.last_recv_ns = int(t_recv_ns)
         self.newest_t_pub_ns = max(self.newest_t_pub_ns, int(t_pub_ns))
-        if self.last_seq is not None and seq > self.last_seq + 1:
-            self.lost += seq - self.last_seq - 1
-        if self.last_seq is None or seq > self.last_seq:
-            self.last_seq = int(seq)
+        self.sequence.observe(seq, int(t_ns[0]) if t_ns.size else int(t_pub_ns))
         sat = (flags & fl.SATURATED) != 0
         sc = (flags & fl.SUPERCONDUCTING) != 0
         other = ((flags & _OTHER_FLAGS) != 0) | (~np.isfinite(p_opt_w) & ~sat & ~sc)
@@ -467,7 +464,7 @@ class Aggregator:
                 "latency_p50_ms": float(np.median(lat)) if lat.size else None,
                 "latency_max_ms": float(lat.max()) if lat.size else None,
                 "power_chunks": self.power_chunks,
-                "lost_chunks": int(sum(b.lost for b in mods)),
+                "lost_chunks": int(sum(max(b.sequence.lost, 0) for b in mods)),
                 "late_chunks": int(sum(b.late for b in mods)),
                 "dropped": self.dropped,
                 "bad_messages": dict(self.bad_messages),

@@ -18,7 +18,7 @@ import time
 
 from mntes_stream.errors import SchemaError
 from mntes_stream.io import keys
-from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage, reason_of
+from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.monitor.aggregate import Aggregator, MonitorConfig
 
@@ -59,7 +59,7 @@ class MonitorSubscriber:
 
     # ------------------------------------------------------------------ lifecycle
 
-    def __enter__(self) -> "MonitorSubscriber":
+    def __enter__(self) -> MonitorSubscriber:
         self.start()
         return self
 
@@ -132,7 +132,7 @@ class MonitorSubscriber:
         try:
             msg = cls.from_bytes(payload)
         except SchemaError as exc:
-            agg.add_bad(reason_of(exc))
+            agg.add_bad(exc.reason)
             log.debug("rejected %s: %s", key, exc)
             return
         if kind == "power":

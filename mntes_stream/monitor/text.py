@@ -26,7 +26,7 @@ def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
     """
     h = tick["health"]
     mon = h["monitor"]
-    when = _dt.datetime.fromtimestamp(tick["t_ns"] / 1e9, _dt.timezone.utc).strftime("%H:%M:%S UTC")
+    when = _dt.datetime.fromtimestamp(tick["t_ns"] / 1e9, _dt.UTC).strftime("%H:%M:%S UTC")
     lines = [f"mntes-stream monitor  {when}  channels {mon['channels']} in {mon['modules']} modules"]
     lines.append(f"{'source':<12}{'in/s':>8}{'out/s':>8}{'Msamp/s':>9}{'lat p50':>9}{'p99':>8}{'max ms':>8}"
                  f"{'lost':>6}{'pend':>6}{'hk stale':>10}{'bad':>5}{'age s':>7}")

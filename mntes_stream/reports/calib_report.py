@@ -140,7 +140,7 @@ def _figure_kind(path: Path, kind: str, per_det: dict, fits: dict, n_examples: i
     if examples:
         a.legend(fontsize=7)
     chi = []
-    for d, (det, rows) in per_det.items():
+    for det, rows in per_det.values():
         for s, _, res in rows:
             if s.kind != kind:
                 continue

@@ -26,7 +26,8 @@ import contextlib
 import signal
 import threading
 import time
-from typing import Any, ClassVar, Mapping
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 from mntes_stream.core.settings import build_document
 

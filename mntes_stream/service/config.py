@@ -12,8 +12,9 @@ from __future__ import annotations
 import dataclasses
 import os
 import tomllib
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from mntes_stream.core.settings import declared, document_tables, to_table
 from mntes_stream.errors import ConfigError
@@ -144,7 +145,7 @@ def show_file(path: str | Path, overrides: Iterable[str] = ()) -> str:
         return "\n".join(f"{k}: {json.dumps(v)}" for k, v in effective.items())
     doc = read_toml(path)
     if file_kind(path, doc) == "params":
-        from mntes_stream.io.paramfile import parse_params, params_to_toml
+        from mntes_stream.io.paramfile import params_to_toml, parse_params
 
         return params_to_toml(list(parse_params(doc, str(path)).values()))
     service, config = load_service_config(path, overrides)

@@ -64,7 +64,7 @@ class ConverterConfig(Settings):
             raise ConfigError("give params (a parameter file) or tables (a table bank file)")
 
     @classmethod
-    def for_pipeline(cls, pipeline: PipelineConfig, **kw) -> "ConverterConfig":
+    def for_pipeline(cls, pipeline: PipelineConfig, **kw) -> ConverterConfig:
         """The config whose :attr:`pipeline` is ``pipeline`` (tests, ``up``, benchmarks)."""
         alignment = AlignmentConfig(**{f.name: getattr(pipeline, f.name) for f in fields(AlignmentConfig)})
         return cls(setup=pipeline.setup, name=pipeline.service, alignment=alignment,
@@ -109,14 +109,6 @@ def _warm_up(conv) -> None:
         conv.convert(conv.detector_ids[:1], counts, counts, EnvironmentBlock(np.full(2, t_bath), np.zeros(2)))
     except Exception as exc:  # a converter that cannot convert shows it on real data, with a status
         log.warning("converter warm-up failed: %s", exc)
-
-
-def _counters(pipe) -> dict:
-    """The pipeline's counters as a plain mapping (for the heartbeat)."""
-    import dataclasses
-
-    c = pipe.counters
-    return dataclasses.asdict(c) if dataclasses.is_dataclass(c) else dict(c)
 
 
 def subscriptions(cfg: ConverterConfig) -> list[str]:
@@ -175,7 +167,7 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                 for key, payload in outs:
                     pubs.put(key, payload)
                     if key == status_key:
-                        beat(**_counters(pipe))
+                        beat(**pipe.counters.as_dict())
                 if time.monotonic() >= next_prov:
                     pubs.put(prov_key, pipe.provenance_bytes())
                     next_prov = time.monotonic() + cfg.provenance_interval_s

@@ -80,7 +80,7 @@ def recorded_calibrations(session) -> list:
 
     Parameters
     ----------
-    session : mcap_io.Session
+    session : mcap.Session
 
     Returns
     -------
@@ -90,7 +90,7 @@ def recorded_calibrations(session) -> list:
         the latest provenance with its original receive time: counted once.
     """
     from mntes_stream.errors import SchemaError
-    from mntes_stream.io.mcap_io import PROVENANCE_ATTACHMENT
+    from mntes_stream.io.mcap import PROVENANCE_ATTACHMENT
     from mntes_stream.io.messages import Provenance
 
     first: dict[tuple[int, bytes], int] = {}
@@ -184,7 +184,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     from tqdm import tqdm
 
     from mntes_stream.io import keys
-    from mntes_stream.io.mcap_io import McapFileWriter, Session, writer_description
+    from mntes_stream.io.mcap import McapFileWriter, Session, writer_description
     from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.replay import INPUT_KINDS, input_topics
 

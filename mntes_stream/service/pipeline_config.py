@@ -57,5 +57,5 @@ class PipelineConfig(AlignmentConfig):
     status_interval_s: float = setting(1.0, "status message cadence", unit="s", gt=0)
 
     @classmethod
-    def from_parts(cls, alignment: AlignmentConfig, **rest) -> "PipelineConfig":
+    def from_parts(cls, alignment: AlignmentConfig, **rest) -> PipelineConfig:
         return cls(**{f.name: getattr(alignment, f.name) for f in fields(AlignmentConfig)}, **rest)

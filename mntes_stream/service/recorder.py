@@ -3,7 +3,7 @@
 The zenoh callback only timestamps the sample and puts it on a bounded queue
 (:class:`~mntes_stream.io.transport.QueueSubscriber`); the calling thread of
 :func:`run_recorder` drains it into a
-:class:`~mntes_stream.io.mcap_io.RotatingMcapWriter`, flushing every
+:class:`~mntes_stream.io.mcap.RotatingMcapWriter`, flushing every
 ``flush_interval_s`` so a killed recorder loses at most that span (plus what
 was still queued). Nothing is dropped: a full queue makes the callback wait,
 which BLOCK publishers feel as back-pressure; the high-water mark is reported
@@ -17,6 +17,7 @@ import time
 from dataclasses import asdict, dataclass
 
 from mntes_stream.core.ids import NAME_PATTERN
+from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
@@ -75,9 +76,9 @@ class RecorderStats:
 
     ``by_kind`` counts messages per key kind (counts, hk, power, status,
     provenance, other); ``seq_gaps`` sums the sequence numbers skipped per
-    topic (messages the recorder never received), ``seq_repeats`` the
-    messages whose ``seq`` did not increase (duplicates, reordering, a
-    restarted publisher); ``invalid`` the payloads that were not a valid
+    topic (messages the recorder never received and that never came late),
+    ``seq_repeats`` the messages whose ``seq`` did not increase (duplicates,
+    reordering, a restarted publisher; ``core.sequence``); ``invalid`` the payloads that were not a valid
     envelope (recorded anyway); ``dropped_on_close`` the samples a full
     queue could not take while the subscriber was being closed.
     """
@@ -114,7 +115,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
     RecorderStats
         After the last file is finished (summary and footer written).
     """
-    from mntes_stream.io.mcap_io import RotatingMcapWriter
+    from mntes_stream.io.mcap import RotatingMcapWriter
     from mntes_stream.io.transport import QueueSubscriber
 
     writer = RotatingMcapWriter(
@@ -128,26 +129,21 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         fsync=config.fsync,
         metadata=config.to_metadata(),
     )
-    last_seq: dict[str, int] = {}
+    sequences: dict[str, StreamSequence] = {}
     by_kind: dict[str, int] = {}
-    gaps = repeats = 0
     t_start = time.monotonic()
     next_log = t_start + config.log_interval_s
 
     def write(item) -> None:
-        nonlocal gaps, repeats
         topic, payload, t_ns = item
         env = writer.write(topic, payload, t_ns)
         kind = keys.kind_of(topic) or "other"
         by_kind[kind] = by_kind.get(kind, 0) + 1
         if env.seq is not None:
-            prev = last_seq.get(topic)
-            if prev is not None:
-                if env.seq > prev + 1:
-                    gaps += env.seq - prev - 1
-                elif env.seq <= prev:
-                    repeats += 1
-            last_seq[topic] = env.seq
+            seq = sequences.get(topic)
+            if seq is None:
+                seq = sequences[topic] = StreamSequence()
+            seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
 
     session = sub = None
     error: BaseException | None = None
@@ -202,8 +198,8 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         payload_bytes=writer.payload_bytes,
         by_kind=by_kind,
         invalid=writer.invalid,
-        seq_gaps=gaps,
-        seq_repeats=repeats,
+        seq_gaps=max(sum(q.lost for q in sequences.values()), 0),
+        seq_repeats=sum(q.duplicated + q.out_of_order + q.resets for q in sequences.values()),
         files=tuple(str(p) for p in writer.files),
         flushes=writer.flushes,
         queue_high_water=sub.high_water,

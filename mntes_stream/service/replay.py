@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
@@ -83,7 +83,7 @@ def parse_time(text: str, session_start_ns: int | None) -> int:
         except ValueError:
             raise ConfigError(f"time {text!r}: give seconds from the start or an ISO-8601 time") from None
         if dt.tzinfo is None:
-            dt = dt.replace(tzinfo=timezone.utc)
+            dt = dt.replace(tzinfo=UTC)
         return int(round(dt.timestamp() * 1e9))
     if session_start_ns is None:
         raise ConfigError("the session has no messages to count time from")
@@ -92,7 +92,7 @@ def parse_time(text: str, session_start_ns: int | None) -> int:
 
 def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False, heartbeat=None) -> ReplayStats:
     """Publish the selected messages of ``config.source``; returns when done or stopped."""
-    from mntes_stream.io.mcap_io import Session, topic_matcher
+    from mntes_stream.io.mcap import Session, topic_matcher
     from mntes_stream.io.transport import Publishers
 
     if not config.source:

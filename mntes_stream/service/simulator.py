@@ -21,17 +21,17 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from mntes_stream import __version__
-from mntes_stream.core.params import DetectorParams
-from mntes_stream.core.sim import ArraySimulator, SimBlock, SimConfig
 from mntes_stream.core.ids import NAME_PATTERN
+from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.settings import Settings, setting
+from mntes_stream.core.sim import ArraySimulator, SimBlock, SimConfig
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
@@ -87,7 +87,7 @@ class SimulatorSource:
             return None
         return max(1, math.ceil(duration_s * self.config.sample_rate_hz / self.chunk_samples))
 
-    def batches(self, t_start_ns: int, duration_s: float = 0.0, truth: "TruthRecorder | None" = None,
+    def batches(self, t_start_ns: int, duration_s: float = 0.0, truth: TruthRecorder | None = None,
                 blocks: list | None = None) -> Iterator[Batch]:
         """Batches from ``t_start_ns`` on, ``duration_s`` of data (0: forever).
 
@@ -188,7 +188,7 @@ def load_truth(path: str | Path) -> dict:
 
 
 def _metadata(source: SimulatorSource) -> dict[str, dict[str, str]]:
-    from mntes_stream.io.mcap_io import writer_description
+    from mntes_stream.io.mcap import writer_description
     from mntes_stream.io.paramfile import params_to_toml
 
     return {
@@ -212,7 +212,7 @@ def write_mcap(source: SimulatorSource, path: str | Path, duration_s: float, t_s
     dict
         ``path``, ``chunks``, ``messages``, ``bytes``, ``samples``, ``elapsed_s``.
     """
-    from mntes_stream.io.mcap_io import McapFileWriter
+    from mntes_stream.io.mcap import McapFileWriter
 
     if not duration_s > 0:
         raise ConfigError("simulate --mcap needs a duration > 0")

@@ -177,7 +177,7 @@ class Design:
     gain_abs_a_per_count: float
 
     @classmethod
-    def from_detector(cls, det: DetectorCalibration, sweeps: tuple[Sweep, ...] | None = None) -> "Design":
+    def from_detector(cls, det: DetectorCalibration, sweeps: tuple[Sweep, ...] | None = None) -> Design:
         sweeps = tuple(det.sweeps if sweeps is None else sweeps)
         if not sweeps:
             raise ConfigError(f"{det.detector_id}: no sweeps")

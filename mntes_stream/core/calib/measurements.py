@@ -155,7 +155,7 @@ class Sweep:
             ok &= self.swept > 0
         return ok
 
-    def select(self, mask: np.ndarray) -> "Sweep":
+    def select(self, mask: np.ndarray) -> Sweep:
         """The sweep restricted to the points where ``mask`` is True."""
         return Sweep(self.kind, self.detector_id, self.swept[mask], self.fixed, self.counts[mask], self.sigma_counts[mask])
 
@@ -214,7 +214,7 @@ class DetectorCalibration:
     def kinds(self) -> set[str]:
         return {s.kind for s in self.sweeps}
 
-    def replace_sweeps(self, sweeps: Iterable[Sweep]) -> "DetectorCalibration":
+    def replace_sweeps(self, sweeps: Iterable[Sweep]) -> DetectorCalibration:
         return DetectorCalibration(
             self.detector_id, self.bias_freq_hz, self.gain_abs_a_per_count,
             self.p_opt_w, self.t_bath_k, self.b_field_t, tuple(sweeps),

@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from mcap_helpers import counts_payload, hk_payload, provenance_payload
 
 from mntes_stream.errors import ConfigError, SchemaError, TransportError
-from mntes_stream.io import mcap_io as mio
+from mntes_stream.io import mcap as mio
 from mntes_stream.io.codec import json_schema
 
 T0 = 1_700_000_000_000_000_000
@@ -210,6 +210,43 @@ def test_unreadable_inputs_raise_transport_error(tmp_path):
         mio.McapFileWriter(tmp_path / "junk.mcap")  # never overwrite a recording
     with pytest.raises(ConfigError):
         mio.McapFileWriter(tmp_path / "y.mcap", compression="gzip")
+
+
+_FULL_DISK = """
+import os, resource, signal, sys
+from mntes_stream.errors import TransportError
+from mntes_stream.io.mcap import McapFileWriter
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG instead
+resource.setrlimit(resource.RLIMIT_FSIZE, (200, 200))
+before = len(os.listdir("/proc/self/fd"))
+try:
+    McapFileWriter(sys.argv[1], metadata={"big": {"k": "x" * 4096}})
+except TransportError as exc:
+    print("error:", exc)
+print("leaked:", len(os.listdir("/proc/self/fd")) - before)
+"""
+
+
+def test_a_writer_that_cannot_start_closes_its_file(tmp_path):
+    """A disk that fills up while the file starts: a one-line error and no leaked handle."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-c", _FULL_DISK, str(tmp_path / "full.mcap")],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "error: cannot write" in res.stdout and "File too large" in res.stdout
+    assert "leaked: 0" in res.stdout
+
+
+def test_the_folder_up_writes_is_a_session(tmp_path):
+    rec = tmp_path / "mntes-up" / "recordings"
+    rec.mkdir(parents=True)
+    (tmp_path / "mntes-up" / "params.toml").write_text("")
+    with mio.McapFileWriter(rec / "mntes-000001.mcap") as w:
+        w.write("mntes/t/counts/0/0", counts_payload(1), T0)
+    assert mio.session_files(tmp_path / "mntes-up") == [rec / "mntes-000001.mcap"]
+    assert [m.topic for m in _read(tmp_path / "mntes-up")] == ["mntes/t/counts/0/0"]
 
 
 def test_damaged_chunk_is_skipped_with_a_warning(chunked, tmp_path):

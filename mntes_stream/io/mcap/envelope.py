@@ -1,0 +1,113 @@
+"""What a recorded payload claims to be, read without trusting it; the file-level names and records."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import msgpack
+
+from mntes_stream import __version__
+from mntes_stream.errors import SchemaError
+
+MESSAGE_ENCODING = "msgpack"
+SCHEMA_ENCODING = "jsonschema"
+PROVENANCE_SCHEMA = "mntes.provenance"
+PROVENANCE_ATTACHMENT = "mntes.provenance.msgpack"
+RECORDING_METADATA = "mntes.recording"
+
+
+
+@dataclass(frozen=True, slots=True)
+class Envelope:
+    """What the recorder needs to know about a payload without trusting it."""
+
+    schema: str  # "" if the payload is not an mntes envelope
+    version: int  # 0 if unknown
+    publish_time_ns: int | None
+    seq: int | None
+    problem: str  # "" if the envelope is well formed
+
+
+def peek_envelope(payload: bytes) -> Envelope:
+    """Read ``schema``, ``version``, ``t_pub_ns``/``t_ns`` and ``seq``; never raises."""
+    try:
+        msg = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several unrelated types
+        return Envelope("", 0, None, None, f"malformed msgpack ({type(exc).__name__})")
+    if not isinstance(msg, dict):
+        return Envelope("", 0, None, None, f"payload is a {type(msg).__name__}, not a map")
+    name, version = msg.get("schema"), msg.get("version")
+    if not isinstance(name, str) or not isinstance(version, int) or isinstance(version, bool):
+        return Envelope("", 0, None, None, "no string 'schema' and integer 'version'")
+    t_pub = next((msg[k] for k in ("t_pub_ns", "t_ns") if _is_int(msg.get(k))), None)
+    seq = msg.get("seq") if _is_int(msg.get("seq")) else None
+    return Envelope(name, version, t_pub, seq, "")
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def schema_text(name: str, version: int) -> bytes | None:
+    from mntes_stream.io.codec import json_schema
+
+    try:
+        return json.dumps(json_schema(name, version), indent=1).encode()
+    except SchemaError:
+        return None
+
+
+def as_metadata(fields: Mapping) -> dict[str, str]:
+    """Flatten a decoded message to MCAP metadata (str -> str); bytes are summarised. Never raises."""
+    out = {}
+    for k, v in fields.items():
+        if isinstance(v, str):
+            out[str(k)] = v
+        elif isinstance(v, (bytes, bytearray)):
+            out[str(k)] = f"<{len(v)} bytes: see attachment {PROVENANCE_ATTACHMENT}>"
+        else:
+            try:
+                out[str(k)] = json.dumps(v, default=repr, sort_keys=True)
+            except (TypeError, ValueError):  # e.g. bytes or mixed-type map keys
+                out[str(k)] = repr(v)
+    return out
+
+
+def check_provenance(payload: bytes, env: Envelope) -> Envelope:
+    """``env``, or ``env`` with a problem if a ``mntes.provenance`` envelope does not decode as one.
+
+    Only a valid provenance becomes an attachment and a metadata record; any
+    peer on the setup's keys can publish, so nothing here may raise.
+    """
+    if env.problem or env.schema != PROVENANCE_SCHEMA:
+        return env
+    from mntes_stream.io.messages import Provenance
+
+    try:
+        Provenance.from_bytes(payload)
+    except Exception as exc:  # SchemaError normally; anything else must not stop a recorder either
+        # A bounded set of problem strings: each distinct one is a channel.
+        reason = getattr(exc, "reason", "") or type(exc).__name__
+        return Envelope(env.schema, env.version, env.publish_time_ns, env.seq, f"invalid {PROVENANCE_SCHEMA} message ({reason})")
+    return env
+
+
+def writer_description(**extra) -> dict[str, str]:
+    """The ``mntes.recording`` metadata: who wrote the file, where, when."""
+    import mcap
+
+    desc = {
+        "software": f"mntes-stream {__version__}",
+        "mcap_library": f"mcap-python {getattr(mcap, '__version__', '?')}",
+        "host": socket.gethostname(),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    desc.update({k: v if isinstance(v, str) else json.dumps(v, default=str) for k, v in extra.items()})
+    return desc
+
+
+# ----------------------------------------------------------------------------- writer

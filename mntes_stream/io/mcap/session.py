@@ -1,0 +1,295 @@
+"""Reading a recorded session (a file, a directory, the folder ``up`` writes, or a list) in time order."""
+
+from __future__ import annotations
+
+import heapq
+import re
+import warnings
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.opcode import Opcode
+from mcap.records import Attachment, Chunk, Message, Metadata, Schema
+
+from mntes_stream.errors import TransportError
+from mntes_stream.io.mcap.envelope import PROVENANCE_ATTACHMENT
+from mntes_stream.io.mcap.recovery import (
+    FileIndex,
+    TruncatedFileWarning,
+    chunk_records,
+    index_file,
+    read_record,
+)
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedMessage:
+    """One recorded message; ``payload`` is exactly the bytes received."""
+
+    topic: str
+    schema_name: str  # "" when the payload was not an mntes envelope
+    log_time_ns: int
+    publish_time_ns: int
+    payload: bytes
+    schema_version: int = 0
+    sequence: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedMetadata:
+    name: str
+    data: dict
+    path: str
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedAttachment:
+    name: str
+    media_type: str
+    log_time_ns: int
+    create_time_ns: int
+    data: bytes
+    path: str
+
+
+
+def session_files(source: str | Path | Iterable[str | Path]) -> list[Path]:
+    """The files of a session, sorted by name within a directory.
+
+    Parameters
+    ----------
+    source : path, directory, or iterable of them
+        An ``.mcap`` file; a directory of them (rotated files); or the folder
+        that ``mntes-stream up`` writes, whose files are in ``recordings/``.
+    """
+    if isinstance(source, (str, Path)):
+        p = Path(source)
+        if p.is_dir():
+            files = sorted(p.glob("*.mcap")) or sorted((p / "recordings").glob("*.mcap"))
+            if not files:
+                raise TransportError(f"no .mcap files in {p} (nor in {p / 'recordings'})")
+            return files
+        if not p.exists():
+            raise TransportError(f"no such file: {p}")
+        return [p]
+    files = [f for s in source for f in session_files(s)]
+    if not files:
+        raise TransportError("no MCAP files given")
+    return files
+
+
+def _glob_regex(expr: str) -> re.Pattern:
+    """zenoh key-expression wildcards: ``*`` one chunk, ``**`` any number of chunks."""
+    toks = expr.split("/")
+    if toks == ["**"]:
+        return re.compile(r".+$")
+    rx = ""
+    for i, tok in enumerate(toks):
+        if tok == "**":
+            rx += "(?:[^/]+/)*" if i == 0 else "(?:/[^/]+)*"
+            continue
+        pat = "[^/]+" if tok == "*" else re.escape(tok).replace(r"\*", "[^/]*")
+        rx += pat if i == 0 or (i == 1 and toks[0] == "**") else "/" + pat
+    return re.compile(rx + "$")
+
+
+def topic_matcher(topics: str | Iterable[str] | None):
+    """A predicate on topics: exact names, or zenoh-style ``*`` / ``**`` patterns."""
+    if topics is None:
+        return lambda t: True
+    topics = [topics] if isinstance(topics, str) else list(topics)
+    exact = {t for t in topics if "*" not in t}
+    patterns = [_glob_regex(t) for t in topics if "*" in t]
+    return lambda t: t in exact or any(p.match(t) for p in patterns)
+
+
+class Session:
+    """One recorded session: a file, a directory, or several (rotated) files.
+
+    Indexing happens at construction: a finished file is indexed from its
+    summary; an unfinished one by walking its records (every complete chunk
+    is kept; see :attr:`files` for what was recovered). A file that is not
+    MCAP at all raises :class:`TransportError`.
+
+    Parameters
+    ----------
+    source : path, directory, or iterable of paths
+    warn : bool
+        Emit a :class:`TruncatedFileWarning` per unfinished file.
+    """
+
+    def __init__(self, source, *, warn: bool = True):
+        self._index = [index_file(p) for p in session_files(source)]
+        self.files = [ix.info() for ix in self._index]
+        if warn:
+            for fi in self.files:
+                if not fi.complete:
+                    warnings.warn(
+                        f"{fi.path}: not finished by its writer ({fi.problem}); recovered "
+                        f"{fi.messages} messages in {fi.chunks} complete chunks, "
+                        f"{fi.recovered_bytes} of {fi.size_bytes} bytes",
+                        TruncatedFileWarning,
+                        stacklevel=3,
+                    )
+                elif fi.problem:
+                    warnings.warn(f"{fi.path}: {fi.problem}", TruncatedFileWarning, stacklevel=3)
+
+    @property
+    def complete(self) -> bool:
+        """True when every file was finished by its writer."""
+        return all(fi.complete for fi in self.files)
+
+    def message_counts(self) -> dict[str, int]:
+        """Messages per topic (recoverable ones, for unfinished files)."""
+        out: dict[str, int] = {}
+        for ix in self._index:
+            for cid, n in ix.counts.items():
+                ch = ix.channels.get(cid)
+                if ch is not None:
+                    out[ch.topic] = out.get(ch.topic, 0) + n
+        return out
+
+    def count(self, topics=None) -> int:
+        match = topic_matcher(topics)
+        return sum(n for t, n in self.message_counts().items() if match(t))
+
+    @property
+    def start_ns(self) -> int | None:
+        return min((fi.start_ns for fi in self.files if fi.start_ns is not None), default=None)
+
+    @property
+    def end_ns(self) -> int | None:
+        return max((fi.end_ns for fi in self.files if fi.end_ns is not None), default=None)
+
+    def iter_messages(self, topics=None, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[RecordedMessage]:
+        """Messages in log-time order (ties keep file order), ``start_ns <= t < end_ns``.
+
+        Parameters
+        ----------
+        topics : str or iterable of str, optional
+            Exact topics or zenoh-style patterns (``mntes/lab/counts/**``).
+        """
+        match = topic_matcher(topics)
+        lo = -1 if start_ns is None else int(start_ns)
+        hi = 1 << 64 if end_ns is None else int(end_ns)
+        refs = []  # (start, file, order, chunk ref or loose messages)
+        for fi, ix in enumerate(self._index):
+            wanted = {cid for cid, ch in ix.channels.items() if match(ch.topic)}
+            if not wanted:
+                continue
+            for k, c in enumerate(ix.chunks):
+                if c.end_ns >= lo and c.start_ns < hi:
+                    refs.append((c.start_ns, fi, k, c))
+            if ix.loose:
+                refs.append((min(m.log_time for m in ix.loose), fi, len(ix.chunks), ix.loose))
+        refs.sort(key=lambda r: r[:3])
+        handles: dict[int, object] = {}
+        heap: list = []
+        i = orphans = 0
+        try:
+            while i < len(refs) or heap:
+                # Load every chunk that may hold a message older than the heap's head.
+                while i < len(refs) and (not heap or refs[i][0] <= heap[0][0]):
+                    _, fi, k, ref = refs[i]
+                    i += 1
+                    ix = self._index[fi]
+                    for j, msg in enumerate(self._load(ix, fi, ref, handles)):
+                        ch = ix.channels.get(msg.channel_id)
+                        if ch is None:  # its channel record was in a damaged chunk
+                            orphans += 1
+                            continue
+                        if not match(ch.topic) or not lo <= msg.log_time < hi:
+                            continue
+                        heapq.heappush(heap, (msg.log_time, fi, k, j, ch, msg))
+                if heap:
+                    t, _, _, _, ch, msg = heapq.heappop(heap)
+                    yield RecordedMessage(
+                        ch.topic, ch.schema_name, t, msg.publish_time, bytes(msg.data), ch.schema_version, msg.sequence
+                    )
+        finally:
+            for h in handles.values():
+                h.close()
+        if orphans:
+            warnings.warn(f"{orphans} messages skipped: their channel was defined in a damaged chunk",
+                          TruncatedFileWarning, stacklevel=2)
+
+    def _load(self, ix: FileIndex, fi: int, ref, handles) -> list[Message]:
+        if isinstance(ref, list):
+            return ref
+        f = handles.get(fi)
+        if f is None:
+            f = handles[fi] = open(ix.path, "rb")
+        try:
+            chunk = Chunk.read(read_record(f, ref.offset, ref.length, Opcode.CHUNK))
+            out = []
+            for rec in chunk_records(chunk):
+                if isinstance(rec, Message):
+                    out.append(rec)
+                elif isinstance(rec, Schema):
+                    ix.schemas.setdefault(rec.id, rec)
+                elif rec.id not in ix.channels:
+                    ix.add_channel(rec)
+            return out
+        except Exception as exc:
+            warnings.warn(f"{ix.path}: damaged chunk at byte {ref.offset} skipped ({exc})", TruncatedFileWarning, stacklevel=4)
+            return []
+
+    def _records(self, which: str, opcode: int, read) -> Iterator:
+        """``read(stream, path)`` of every indexed record of one kind; a damaged one is skipped with a warning."""
+        for ix in self._index:
+            try:
+                f = open(ix.path, "rb")
+            except OSError as exc:
+                raise TransportError(f"cannot read {ix.path}: {exc}") from None
+            with f:
+                for off, length in getattr(ix, which):
+                    try:
+                        rec = read(read_record(f, off, length, opcode), str(ix.path))
+                    except Exception as exc:  # no CRC on these records: a damaged one is unreadable
+                        warnings.warn(f"{ix.path}: damaged record (opcode {opcode:#x}) at byte {off} skipped ({exc})",
+                                      TruncatedFileWarning, stacklevel=4)
+                        continue
+                    yield rec
+
+    def metadata(self) -> list[RecordedMetadata]:
+        """Every metadata record, in file order (a name may repeat, e.g. provenance changes)."""
+        def read(stream, path):
+            m = Metadata.read(stream)
+            return RecordedMetadata(m.name, dict(m.metadata), path)
+
+        return list(self._records("metadata", Opcode.METADATA, read))
+
+    def attachments(self) -> list[RecordedAttachment]:
+        """Every attachment, in file order."""
+        def read(stream, path):
+            a = Attachment.read(stream)
+            return RecordedAttachment(a.name, a.media_type, a.log_time, a.create_time, bytes(a.data), path)
+
+        return list(self._records("attachments", Opcode.ATTACHMENT, read))
+
+
+def iter_messages(source, topics=None, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[RecordedMessage]:
+    """Recorded messages of a file, directory or list of files, in log-time order.
+
+    Unfinished files (writer killed) are recovered up to their last complete
+    chunk with a :class:`TruncatedFileWarning`; a file that is not MCAP raises
+    :class:`TransportError`. See :meth:`Session.iter_messages`.
+    """
+    return Session(source).iter_messages(topics, start_ns, end_ns)
+
+
+def read_metadata(source) -> list[RecordedMetadata]:
+    """Metadata records of a file, directory or list of files (file order)."""
+    return Session(source, warn=False).metadata()
+
+
+def read_attachments(source) -> list[RecordedAttachment]:
+    """Attachments of a file, directory or list of files (file order)."""
+    return Session(source, warn=False).attachments()
+
+
+def latest_provenance(source) -> bytes | None:
+    """The most recent ``mntes.provenance`` payload stored in the session, or None."""
+    found = [(a.log_time_ns, k, a.data) for k, a in enumerate(read_attachments(source)) if a.name == PROVENANCE_ATTACHMENT]
+    return max(found)[2] if found else None
