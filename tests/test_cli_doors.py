@@ -52,6 +52,14 @@ def test_up_json_is_one_document_and_ctrl_c_during_start_up_is_130(tmp_path):
     conv, rec = doc["services"]["converter"], doc["services"]["recorder"]
     assert conv["chunks_converted"] > 0 and conv["chunks_lost"] == 0 and len(rec["files"]) == 1
     assert "mntes-stream up:" in res.stderr and "done:" in res.stderr  # the lines went to stderr
+    # The folder up wrote is a recording for every command that reads one.
+    assert _run("inspect", out).returncode == 0
+    res = _run("export", out, "--out", tmp_path / "x.h5", "--json")
+    assert res.returncode == 0 and json.loads(res.stdout), res.stderr
+    res = _run("convert", out, tmp_path / "re.mcap", "--json")
+    assert res.returncode == 0 and (tmp_path / "re.mcap").stat().st_size > 0, res.stderr
+    res = _run("replay", out, "--afap", "--json", "-l", "tcp/127.0.0.1:0", "--no-multicast-scouting")
+    assert res.returncode == 0 and json.loads(res.stdout)["messages"] > 0, res.stderr
     first_files = set((out / "recordings").glob("*.mcap"))
     # Ctrl-C while the services start: clean stop, exit code 130, a summary of this run only.
     proc = subprocess.Popen([*CLI, "up", "--duration", "0", "--modules", "1", "--channels", "4", "--out", str(out)],

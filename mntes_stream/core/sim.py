@@ -43,6 +43,7 @@ from mntes_stream.core import model
 from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
 from mntes_stream.core.params import PRESETS, ParamArray
+from mntes_stream.core.settings import Settings, build, setting
 from mntes_stream.core.transition import ArctanTransition
 from mntes_stream.errors import ConfigError, MntesError
 
@@ -77,7 +78,7 @@ _NOISE_BLOCK = 4096
 
 
 @dataclass(frozen=True)
-class SimConfig:
+class SimConfig(Settings):
     """Everything the simulator needs (SI units; frozen, so a run is its config).
 
     Scatter values are 1-sigma (fractional where the name ends in ``_frac``).
@@ -87,100 +88,80 @@ class SimConfig:
     """
 
     # --- array -----------------------------------------------------------------------
-    boards: int = 1
-    modules: int = 1
-    channels: int = 64                  # per module (DfMux: 64 or 128)
-    sample_rate_hz: float = 152.59      # DfMux ground rate; 19.1 Hz is flight-like
-    seed: int = 0
+    boards: int = setting(1, "readout boards", ge=1)
+    modules: int = setting(1, "modules per board", ge=1)
+    channels: int = setting(64, "per module (DfMux: 64 or 128)", ge=1, le=1024)
+    sample_rate_hz: float = setting(152.59, "DfMux ground rate; 19.1 Hz is flight-like", unit="Hz", gt=0)
+    seed: int = setting(0, "random seed: a run is reproduced by its config", ge=0)
     # --- detectors: preset, tuning, scatter ------------------------------------------
-    preset: str = "table1"
-    r_frac: float = 0.7                 # bias tuned to R = r_frac R_n at nominal loading
-    loading_w: float = 0.5e-12          # nominal optical loading (tuning point)
-    loading_offset_frac: float = 0.0    # actual loading = nominal (1 + this): not re-tuned
-    scatter_t_c_frac: float = 0.01
-    scatter_r_n_frac: float = 0.03
-    scatter_k_frac: float = 0.05
-    scatter_iqr_frac: float = 0.10
-    scatter_z_ohm: float = 0.005        # on Re z and Im z each
-    scatter_loading_frac: float = 0.05
-    scatter_gain_frac: float = 0.05
-    gain_a_per_count: float = 1e-12     # |gain|; the demodulation phase is random per channel
-    t_c_shift_k_per_t: float = 2.0      # c1, assumed: 2 uK per uT
-    t_c_shift_k_per_t2: float = 1.0e4   # c2, assumed: 25 uK at 50 uT
-    pickup_a_per_t: float = 2.0e-4      # |m|, assumed: 0.2 nA per uT; random phase
-    scatter_b_coeff_frac: float = 0.2
-    saturated_per_module: int = 1       # channels per module with loading above saturation
-    latched_per_module: int = 1         # channels per module biased into the superconducting state
-    saturated_loading_factor: float = 3.0  # x P_sat (arctan tails: R ~ 0.997 R_n, not exactly normal)
-    latched_bias_factor: float = 0.25      # x tuned bias
+    preset: str = setting("table1", "detector parameter preset (core.params.PRESETS)", choices=tuple(PRESETS))
+    r_frac: float = setting(0.7, "bias tuned to R = r_frac R_n at nominal loading", unit="fraction", gt=0, lt=1)
+    loading_w: float = setting(0.5e-12, "nominal optical loading (tuning point)", unit="W", ge=0)
+    loading_offset_frac: float = setting(0.0, "actual loading = nominal (1 + this): not re-tuned", unit="fraction")
+    scatter_t_c_frac: float = setting(0.01, "1-sigma scatter of T_c", unit="fraction", ge=0)
+    scatter_r_n_frac: float = setting(0.03, "1-sigma scatter of R_n", unit="fraction", ge=0)
+    scatter_k_frac: float = setting(0.05, "1-sigma scatter of the thermal conductance coefficient", unit="fraction", ge=0)
+    scatter_iqr_frac: float = setting(0.10, "1-sigma scatter of the transition width parameters", unit="fraction", ge=0)
+    scatter_z_ohm: float = setting(0.005, "on Re z and Im z each", unit="Ohm", ge=0)
+    scatter_loading_frac: float = setting(0.05, "1-sigma scatter of the optical loading", unit="fraction", ge=0)
+    scatter_gain_frac: float = setting(0.05, "1-sigma scatter of the readout gain", unit="fraction", ge=0)
+    gain_a_per_count: float = setting(1e-12, "|gain|; the demodulation phase is random per channel", unit="A/count", gt=0)
+    t_c_shift_k_per_t: float = setting(2.0, "c1, assumed: 2 uK per uT", unit="K/T")
+    t_c_shift_k_per_t2: float = setting(1.0e4, "c2, assumed: 25 uK at 50 uT", unit="K/T^2")
+    pickup_a_per_t: float = setting(2.0e-4, "|m|, assumed: 0.2 nA per uT; random phase", unit="A/T")
+    scatter_b_coeff_frac: float = setting(0.2, "1-sigma scatter of the magnetic coefficients", unit="fraction", ge=0)
+    saturated_per_module: int = setting(1, "channels per module with loading above saturation", ge=0)
+    latched_per_module: int = setting(1, "channels per module biased into the superconducting state", ge=0)
+    saturated_loading_factor: float = setting(3.0, "x P_sat (arctan tails: R ~ 0.997 R_n, not exactly normal)", gt=0)
+    latched_bias_factor: float = setting(0.25, "x tuned bias", gt=0)
     # --- optical signals ---------------------------------------------------------------
-    f_hwp_hz: float = HWP_FREQUENCIES_HZ["LFT"]
-    hwp_1f_w: float = 0.0
-    hwp_2f_w: float = 10e-15
-    hwp_4f_w: float = 0.0
-    hwp_random_phase: bool = True       # per-detector phase of each harmonic
-    jupiter_peak_w: float = 0.8e-12     # at the beam centre (448 GHz, paper sect. 2.2)
-    jupiter_t_s: float = 30.0           # first crossing (beam-centre detector)
-    jupiter_period_s: float = 600.0     # 0: only one crossing
-    jupiter_fwhm_s: float = 1.0         # beam FWHM / scan speed
-    jupiter_spread: bool = True         # per-detector impact parameter and delay
-    dipole_k: float = 3.36e-3           # CMB dipole amplitude, K_CMB
-    dipole_period_s: float = 1200.0     # spin period (0.05 rpm)
-    band_center_hz: float = 140e9       # assumed band for the dipole conversion
-    fractional_bandwidth: float = 0.30
-    optical_efficiency: float = 0.5
+    f_hwp_hz: float = setting(HWP_FREQUENCIES_HZ["LFT"], "half-wave-plate rotation frequency (LFT by default)", unit="Hz", ge=0)
+    hwp_1f_w: float = setting(0.0, "HWP-synchronous signal at 1 f_HWP", unit="W")
+    hwp_2f_w: float = setting(10e-15, "HWP-synchronous signal at 2 f_HWP", unit="W")
+    hwp_4f_w: float = setting(0.0, "HWP-synchronous signal at 4 f_HWP", unit="W")
+    hwp_random_phase: bool = setting(True, "per-detector phase of each harmonic")
+    jupiter_peak_w: float = setting(0.8e-12, "at the beam centre (448 GHz, paper sect. 2.2)", unit="W")
+    jupiter_t_s: float = setting(30.0, "first crossing (beam-centre detector)", unit="s")
+    jupiter_period_s: float = setting(600.0, "0: only one crossing", unit="s", ge=0)
+    jupiter_fwhm_s: float = setting(1.0, "beam FWHM / scan speed", unit="s", ge=0)
+    jupiter_spread: bool = setting(True, "per-detector impact parameter and delay")
+    dipole_k: float = setting(3.36e-3, "CMB dipole amplitude, K_CMB", unit="K")
+    dipole_period_s: float = setting(1200.0, "spin period (0.05 rpm)", unit="s", ge=0)
+    band_center_hz: float = setting(140e9, "assumed band for the dipole conversion", unit="Hz", gt=0)
+    fractional_bandwidth: float = setting(0.30, "fractional bandwidth of the assumed band", gt=0)
+    optical_efficiency: float = setting(0.5, "assumed optical efficiency for the dipole", gt=0, le=1)
     # --- noise -------------------------------------------------------------------------
-    nep_w_rthz: float = 1.0e-17         # photon NEP (one-sided PSD = NEP^2)
-    f_knee_hz: float = 0.02             # 1/f knee of the optical noise
-    nei_a_rthz: float = 10e-12          # readout noise current per quadrature
+    nep_w_rthz: float = setting(1.0e-17, "photon NEP (one-sided PSD = NEP^2)", unit="W/rtHz", ge=0)
+    f_knee_hz: float = setting(0.02, "1/f knee of the optical noise", unit="Hz", ge=0)
+    nei_a_rthz: float = setting(10e-12, "readout noise current per quadrature", unit="A/rtHz", ge=0)
     # --- environment -------------------------------------------------------------------
-    t_bath_k: float = 0.100             # nominal (tuning point)
-    t_bath_offset_k: float = 0.0        # environment offset from nominal at t = 0: not re-tuned
-    t_bath_ramp_k_per_s: float = 0.0
-    t_bath_wander_k: float = 0.2e-3     # slow sinusoidal drift amplitude
-    t_bath_wander_period_s: float = 1800.0
-    t_bath_fluct_k: float = 5e-6        # rms of fluctuations between 1 mHz and 1 Hz
-    b_field_t: float = 0.0              # static field (the tuning point)
-    b_field_offset_t: float = 0.0       # offset from it at t = 0: not re-tuned
-    b_field_amp_t: float = 10e-6        # spin-synchronous amplitude
-    b_field_period_s: float = 1200.0
-    b_field_ramp_t_per_s: float = 0.0
-    b_field_fluct_t: float = 0.1e-6
-    bias_steps: tuple = ((90.0, 0.01),)  # (time s, fractional change of every bias)
+    t_bath_k: float = setting(0.100, "nominal (tuning point)", unit="K", gt=0)
+    t_bath_offset_k: float = setting(0.0, "environment offset from nominal at t = 0: not re-tuned", unit="K")
+    t_bath_ramp_k_per_s: float = setting(0.0, "linear bath temperature drift", unit="K/s")
+    t_bath_wander_k: float = setting(0.2e-3, "slow sinusoidal drift amplitude", unit="K", ge=0)
+    t_bath_wander_period_s: float = setting(1800.0, "period of the slow bath drift", unit="s", gt=0)
+    t_bath_fluct_k: float = setting(5e-6, "rms of fluctuations between 1 mHz and 1 Hz", unit="K", ge=0)
+    b_field_t: float = setting(0.0, "static field (the tuning point)", unit="T")
+    b_field_offset_t: float = setting(0.0, "offset from it at t = 0: not re-tuned", unit="T")
+    b_field_amp_t: float = setting(10e-6, "spin-synchronous amplitude", unit="T", ge=0)
+    b_field_period_s: float = setting(1200.0, "period of the spin-synchronous field", unit="s", gt=0)
+    b_field_ramp_t_per_s: float = setting(0.0, "linear field drift", unit="T/s")
+    b_field_fluct_t: float = setting(0.1e-6, "rms field fluctuation", unit="T", ge=0)
+    bias_steps: tuple[tuple[float, float], ...] = setting(((90.0, 0.01),), "(time s, fractional change of every bias)")
     # --- housekeeping ------------------------------------------------------------------
-    hk_t_bath_rate_hz: float = 5.0
-    hk_b_field_rate_hz: float = 10.0
-    hk_bias_rate_hz: float = 1.0
-    hk_t_bath_noise_k: float = 1e-6
-    hk_b_field_noise_t: float = 0.05e-6
+    hk_t_bath_rate_hz: float = setting(5.0, "bath thermometer readout rate", unit="Hz", ge=0)
+    hk_b_field_rate_hz: float = setting(10.0, "magnetometer readout rate", unit="Hz", ge=0)
+    hk_bias_rate_hz: float = setting(1.0, "bias readback rate", unit="Hz", ge=0)
+    hk_t_bath_noise_k: float = setting(1e-6, "bath thermometer noise (rms per reading)", unit="K", ge=0)
+    hk_b_field_noise_t: float = setting(0.05e-6, "magnetometer noise (rms per reading)", unit="T", ge=0)
 
     def __post_init__(self) -> None:
-        for name in ("boards", "modules", "channels"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"simulator: {name} must be >= 1")
-        if self.channels > 1024:
-            raise ConfigError("simulator: at most 1024 channels per module")
-        if not self.sample_rate_hz > 0:
-            raise ConfigError("simulator: sample_rate_hz must be > 0")
-        if self.preset not in PRESETS:
-            raise ConfigError(f"simulator: unknown preset {self.preset!r} (known: {sorted(PRESETS)})")
+        super().__post_init__()  # every declared setting: type, range, choices
         if self.saturated_per_module + self.latched_per_module > self.channels:
-            raise ConfigError("simulator: more saturated + latched channels than channels per module")
-        if min(self.saturated_per_module, self.latched_per_module) < 0:
-            raise ConfigError("simulator: saturated/latched counts must be >= 0")
-        for name in ("nep_w_rthz", "nei_a_rthz", "f_knee_hz", "jupiter_fwhm_s", "gain_a_per_count",
-                     "loading_w", "hk_t_bath_rate_hz", "hk_b_field_rate_hz", "hk_bias_rate_hz"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ConfigError(f"simulator: {name} must be finite and >= 0, got {value}")
-        if self.gain_a_per_count == 0:
-            raise ConfigError("simulator: gain_a_per_count must be > 0")
-        steps = tuple(tuple(float(x) for x in s) for s in self.bias_steps)
-        if any(len(s) != 2 for s in steps):
-            raise ConfigError("simulator: bias_steps must be (time_s, fraction) pairs")
-        if any(1.0 + f <= 0 for _, f in steps):
-            raise ConfigError("simulator: a bias step may not take the bias to zero or below")
-        object.__setattr__(self, "bias_steps", tuple(sorted(steps)))
+            raise ConfigError("more saturated + latched channels than channels per module")
+        if any(1.0 + f <= 0 for _, f in self.bias_steps):
+            raise ConfigError("a bias step may not take the bias to zero or below")
+        object.__setattr__(self, "bias_steps", tuple(sorted(self.bias_steps)))
 
     @property
     def n_detectors(self) -> int:
@@ -195,19 +176,9 @@ class SimConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> SimConfig:
-        """Build from a mapping (e.g. a TOML table), rejecting unknown keys."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ConfigError(f"simulator: unknown setting(s) {sorted(unknown)}")
-        d = dict(d)
-        if "bias_steps" in d:
-            d["bias_steps"] = tuple(tuple(s) for s in d["bias_steps"])
-        try:
-            return cls(**d)
-        except TypeError as exc:
-            raise ConfigError(f"simulator: {exc}") from None
+    def from_dict(cls, d: dict, where: str = "simulator") -> SimConfig:
+        """Build from a mapping (e.g. a TOML table), every value checked against its declaration."""
+        return build(cls, d, where)
 
     @classmethod
     def noise_free(cls, **changes: Any) -> SimConfig:
@@ -581,7 +552,7 @@ class ArraySimulator:
         ph_m, ph_gain = uniform(0, 2 * np.pi), uniform(0, 2 * np.pi)
         ph_hwp = rng.uniform(0, 2 * np.pi, (n_det, 3))
         jup_x, jup_delay = uniform(-1.5, 1.5), uniform(0.0, 5.0)
-        base = PRESETS[c.preset]("preset")
+        base = PRESETS[c.preset]("detector parameter preset (core.params.PRESETS)")
         if not isinstance(base.transition, ArctanTransition):
             raise ConfigError("simulator: the preset must use the arctan transition")
         tr = base.transition
