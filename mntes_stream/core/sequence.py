@@ -6,33 +6,41 @@ feeds, the monitor) books its numbers here, so "lost" means the same
 everywhere:
 
 - a number above the next expected one: the skipped numbers are *lost*
-  (and remembered, up to ``max_missing``, in case they turn up late);
-- a skipped number that turns up: no longer lost, *out of order*;
+  (and remembered as ranges, up to ``max_missing`` numbers, in case they turn
+  up late), if the jump is plausible: when the chunks' first sample times
+  are given, a jump must agree with the time that passed (a corrupt or forged
+  number that claims thousands of chunks went by in one chunk's time is a
+  *reset*, not a loss);
+- a skipped number that turns up with older samples: no longer lost, *late*;
 - a number seen recently (the last ``max_recent``) with the same first sample
   time: a *duplicate* (the caller drops it);
-- a recent number with other sample times, or a jump of more than
-  ``max_missing`` either way: the source *restarted*; the tracker starts over
-  from it and counts a reset, not thousands of lost or late chunks.
+- a source that started over: a jump of more than ``max_missing`` either way,
+  a recent number with other sample times, or an old number with samples
+  newer than any seen: a *reset*; the tracker starts over from it.
 
-Memory per stream is bounded by ``max_recent + max_missing`` entries.
+Memory per stream is bounded: ``max_recent`` numbers and at most
+``_MAX_RANGES`` missing ranges, whatever the numbers a sender chooses.
 
 >>> s = StreamSequence()
 >>> [s.observe(n, t_first_ns=10 * n) for n in (0, 1, 3, 2, 2)]
 ['new', 'new', 'new', 'late', 'duplicate']
 >>> s.lost, s.out_of_order, s.duplicated
 (0, 1, 1)
->>> s.observe(100_000, t_first_ns=0), s.resets
+>>> s.observe(100_000, t_first_ns=40), s.resets  # 99,996 chunks cannot fit in 10 ns
 ('reset', 1)
 """
 
 from __future__ import annotations
 
+import bisect
 import collections
 
 __all__ = ["StreamSequence"]
 
 MAX_RECENT = 256  # numbers remembered to spot duplicates
-MAX_MISSING = 4096  # skipped numbers remembered to spot late arrivals; a longer jump is a restart
+MAX_MISSING = 4096  # a longer jump is a restart; skipped numbers remembered (as ranges) for late arrivals
+_MAX_RANGES = 64  # missing ranges kept; the oldest are forgotten first (they stay counted as lost)
+_SLACK = 2  # chunks a jump may exceed what the elapsed time allows (jitter, a partial chunk)
 
 
 class StreamSequence:
@@ -41,12 +49,12 @@ class StreamSequence:
     Attributes
     ----------
     lost : int
-        Numbers skipped and not (yet) seen since.
+        Numbers skipped and not seen since.
     out_of_order, duplicated, resets : int
         Chunks that came late, came twice, or restarted the stream.
     """
 
-    __slots__ = ("next", "_recent", "_recent_t", "_missing", "max_recent", "max_missing",
+    __slots__ = ("next", "_recent", "_recent_t", "_missing", "max_recent", "max_missing", "_last_t", "_period",
                  "lost", "out_of_order", "duplicated", "resets")
 
     def __init__(self, max_recent: int = MAX_RECENT, max_missing: int = MAX_MISSING):
@@ -55,7 +63,9 @@ class StreamSequence:
         self.next: int | None = None
         self._recent: collections.deque[int] = collections.deque()
         self._recent_t: dict[int, int] = {}  # seq -> first sample time: a duplicate has both equal
-        self._missing: collections.OrderedDict[int, None] = collections.OrderedDict()
+        self._missing: list[list[int]] = []  # sorted disjoint [lo, hi) ranges of skipped numbers
+        self._last_t: int | None = None  # newest first-sample time seen
+        self._period: int | None = None  # smallest positive first-sample step per number seen
         self.lost = self.out_of_order = self.duplicated = self.resets = 0
 
     def observe(self, seq: int, t_first_ns: int) -> str:
@@ -65,47 +75,74 @@ class StreamSequence:
         ----------
         seq : int
         t_first_ns : int
-            Time of the chunk's first sample (tells a duplicate from a restart).
+            Time of the chunk's first sample (tells a duplicate from a restart,
+            and a plausible gap from a forged number).
 
         Returns
         -------
         str
-            ``"new"``, ``"late"`` (a skipped number turned up, or one older
-            than anything remembered), ``"duplicate"`` (drop it) or ``"reset"``
+            ``"new"``, ``"late"``, ``"duplicate"`` (drop it) or ``"reset"``
             (the stream restarted at this number; take it).
         """
-        seq = int(seq)
+        seq, t = int(seq), int(t_first_ns)
         seen = self._recent_t.get(seq)
-        if seen == t_first_ns:
+        if seen == t:
             self.duplicated += 1
             return "duplicate"
         verdict = "new"
-        if seen is not None or (self.next is not None and abs(seq - self.next) > self.max_missing):
+        if self.next is not None and (seen is not None or self._restarted(seq, t)):
             self.resets += 1
             self._forget()
             verdict = "reset"
         if self.next is None or seq >= self.next:
             if self.next is not None and seq > self.next:
                 self.lost += seq - self.next
-                for missing in range(max(self.next, seq - self.max_missing), seq):
-                    self._missing[missing] = None
-                while len(self._missing) > self.max_missing:
-                    self._missing.popitem(last=False)
+                self._add_missing(self.next, seq)
+            if self.next is not None and self._last_t is not None and t > self._last_t:
+                step = (t - self._last_t) // (seq - self.next + 1)
+                self._period = step if self._period is None else min(self._period, step)
             self.next = seq + 1
         else:
-            if seq in self._missing:
-                del self._missing[seq]
+            if self._take_missing(seq):
                 self.lost -= 1
             self.out_of_order += 1
             verdict = "late"
+        self._last_t = t if self._last_t is None else max(self._last_t, t)
         self._recent.append(seq)
-        self._recent_t[seq] = int(t_first_ns)
+        self._recent_t[seq] = t
         if len(self._recent) > self.max_recent:
             self._recent_t.pop(self._recent.popleft(), None)
         return verdict
+
+    def _restarted(self, seq: int, t: int) -> bool:
+        if abs(seq - self.next) > self.max_missing:
+            return True
+        if self._last_t is None:
+            return False
+        if seq < self.next:  # a late chunk carries older samples than the newest seen
+            return t > self._last_t
+        if seq > self.next and self._period:  # the jump must fit in the time that passed
+            return (seq - self.next) > (t - self._last_t) // self._period + _SLACK
+        return False
+
+    def _add_missing(self, lo: int, hi: int) -> None:
+        self._missing.append([max(lo, hi - self.max_missing), hi])
+        if len(self._missing) > _MAX_RANGES:
+            del self._missing[0]
+
+    def _take_missing(self, seq: int) -> bool:
+        i = bisect.bisect_right(self._missing, [seq, float("inf")]) - 1
+        if i < 0 or not self._missing[i][0] <= seq < self._missing[i][1]:
+            return False
+        lo, hi = self._missing[i]
+        pieces = [r for r in ([lo, seq], [seq + 1, hi]) if r[0] < r[1]]
+        self._missing[i:i + 1] = pieces
+        return True
 
     def _forget(self) -> None:
         self.next = None
         self._recent.clear()
         self._recent_t.clear()
         self._missing.clear()
+        self._period = None
+        self._last_t = None  # the new run's times may be anywhere relative to the old one's
