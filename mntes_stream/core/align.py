@@ -41,6 +41,9 @@ def last_sample_offset_ns(sample_rate_hz: float, n: int) -> int:
 
     Raises ConfigError unless the rate is finite and > 0 with a finite period
     and the offset is finite.
+
+    >>> last_sample_offset_ns(20e6 / 2**17, 2)  # one DfMux sample: 655,360 ticks of 10 ns
+    6553600
     """
     rate = float(sample_rate_hz)
     step = 1e9 / rate if math.isfinite(rate) and rate > 0 else math.nan
@@ -58,6 +61,9 @@ def sample_times_ns(t0_ns: int, sample_rate_hz: float, n: int) -> np.ndarray:
     """Times of a regularly sampled chunk: ``t0_ns + round(k * 1e9 / rate)``, int64 (n,).
 
     Raises ConfigError when the last time does not fit int64 (numpy would wrap it silently).
+
+    >>> sample_times_ns(1_000, 3.0, 4).tolist()
+    [1000, 333334333, 666667667, 1000001000]
     """
     n, t0 = int(n), int(t0_ns)
     last = t0 + last_sample_offset_ns(sample_rate_hz, n)

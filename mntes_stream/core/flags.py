@@ -40,11 +40,18 @@ UNUSABLE = SATURATED | SUPERCONDUCTING | OUT_OF_TABLE | HK_MISSING | INVALID_INP
 
 
 def describe(mask: int) -> list[str]:
-    """Names of the bits set in ``mask``."""
+    """Names of the bits set in ``mask``.
+
+    >>> describe(SATURATED | HK_STALE)
+    ['saturated', 'hk_stale']"""
     return [name for bit, name in NAMES.items() if mask & bit]
 
 
 def counts_by_flag(flags: np.ndarray) -> dict[str, int]:
-    """How many samples carry each flag (for status messages)."""
+    """How many samples carry each flag (for status messages).
+
+    >>> c = counts_by_flag(np.array([[SATURATED, 0], [SATURATED | GAP, 0]], dtype=FLAG_DTYPE))
+    >>> c[NAMES[SATURATED]], c[NAMES[GAP]], sum(c.values())
+    (2, 1, 3)"""
     flags = np.asarray(flags)
     return {name: int(np.count_nonzero(flags & bit)) for bit, name in NAMES.items()}

@@ -12,7 +12,12 @@ NAME_PATTERN = re.compile(r"\A[A-Za-z0-9_.\-]+\Z")  # \Z: no trailing newline sl
 
 
 def detector_id(board: int, module: int, channel: int) -> str:
-    """``b{board}m{module}c{channel:03d}``, the id used in parameter files."""
+    """``b{board}m{module}c{channel:03d}``, the id used in parameter files.
+
+    >>> detector_id(0, 3, 7)
+    'b0m3c007'
+    >>> parse_detector_id(detector_id(12, 1, 127))
+    (12, 1, 127)"""
     return f"b{int(board)}m{int(module)}c{int(channel):03d}"
 
 

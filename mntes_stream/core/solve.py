@@ -26,6 +26,12 @@ def bracketed_root(f, lo, hi, *, xtol=0.0, rtol=4e-16, max_iter=200):
     -------
     ndarray, shape S
         The root to within ``xtol + rtol * |x|``.
+
+    Examples
+    --------
+    >>> x = bracketed_root(lambda x: x**2 - np.array([2.0, 9.0]), np.zeros(2), np.full(2, 4.0))
+    >>> bool(np.allclose(x, [2**0.5, 3.0], rtol=1e-15))
+    True
     """
     a = np.array(lo, dtype=float, copy=True)
     b = np.array(hi, dtype=float, copy=True)
