@@ -216,3 +216,20 @@ def test_series_prunes_against_the_callers_clock():
     quiet = HkSeries(retention_ns=10)
     quiet.add([5, 6], [0.1, 0.2], now_ns=10**12)
     assert quiet.t_ns.tolist() == [6]
+
+
+@given(st.lists(st.tuples(st.integers(0, 40), st.floats(-1, 1)), min_size=1, max_size=40),
+       st.integers(1, 7), st.randoms())
+def test_unsorted_batches_with_repeated_times_keep_the_last_write(readings, batch, rnd):
+    """Per-channel series, unsorted batches that repeat times: the history equals a dict of last writes."""
+    s = HkSeries(width=2)
+    last = {}
+    for i in range(0, len(readings), batch):
+        part = readings[i:i + batch]
+        rnd.shuffle(part)
+        for t, v in part:
+            last[t] = v
+        s.add([t for t, _ in part], [[v, -v] for _, v in part])
+    times = sorted(last)
+    np.testing.assert_array_equal(s.t_ns, times)
+    np.testing.assert_array_equal(s.value, [[last[t], -last[t]] for t in times])

@@ -397,3 +397,57 @@ def test_any_damage_to_an_unchunked_file_is_recovered_or_a_transport_error(tmp_p
             session.metadata(), session.attachments()
         except TransportError:  # e.g. the magic itself was hit
             pass
+
+
+def test_inspect_verify_calls_a_crc_damaged_file_what_it_is(chunked, tmp_path):
+    """A finished file whose chunk fails its CRC: the summary alone says complete; --verify does not."""
+    import subprocess
+    import sys
+
+    data, sent, idx = chunked
+    bad = bytearray(data)
+    c = idx[3]
+    bad[c.chunk_start_offset + c.chunk_length - 20] ^= 0xFF
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(bytes(bad))
+    from mntes_stream.io.mcap.repair import verify_file
+
+    check = verify_file(path)
+    assert check.complete and not check.ok and [off for off, _ in check.damaged_chunks] == [c.chunk_start_offset]
+    assert check.readable_messages == len(sent) - 10
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "inspect", "--verify", "--json", str(path)],
+                         capture_output=True, text=True, timeout=60)
+    doc = json.loads(res.stdout)
+    assert res.returncode == 0 and doc["complete"] is False and doc["verified"][0]["readable_messages"] == len(sent) - 10
+    assert verify_file(_write_ok(tmp_path)).ok
+
+
+def _write_ok(tmp_path):
+    p = tmp_path / "ok.mcap"
+    with mio.McapFileWriter(p) as w:
+        w.write("mntes/t/counts/0/0", counts_payload(1), T0)
+    return p
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frac=st.floats(0.05, 1))
+def test_recover_writes_a_killed_recording_that_any_reader_opens(chunked, tmp_path_factory, frac):
+    """mntes-stream recover: every complete chunk of a cut file, in a finished file mcap's own reader indexes."""
+    from mntes_stream.io.mcap.repair import recover_file
+
+    data, sent, idx = chunked
+    cut = int(frac * len(data))
+    d = tmp_path_factory.mktemp("rec")
+    (d / "cut.mcap").write_bytes(data[:cut])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", mio.TruncatedFileWarning)
+        expected = [m.payload for m in mio.Session(d / "cut.mcap").iter_messages()]
+    check = recover_file(d / "cut.mcap", d / "fixed.mcap")
+    assert check.readable_messages == len(expected)
+    with open(d / "fixed.mcap", "rb") as f:  # the reference reader, from the summary it now has
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        got = [bytes(m.data) for _, _, m in reader.iter_messages(log_time_order=True)]
+    assert summary is not None and summary.statistics.message_count == len(expected)
+    assert got == expected
+    assert mio.Session(d / "fixed.mcap").complete

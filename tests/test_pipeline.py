@@ -8,6 +8,7 @@ import pytest
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock, make_converter
+from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance, StatusMessage, decode
 from mntes_stream.io.paramfile import parse_params
@@ -200,15 +201,15 @@ def test_unknown_channels_are_flagged_nan_and_counted(source, converter):
     pipe = ConverterPipeline(converter)
     power, _ = _split(_run(pipe, msgs + extra) + pipe.flush())
     mixed = [pw for pw in power if pw.seq >= 100]
-    alien = [pw for pw in power if pw.board == 7]
-    assert mixed and alien
+    assert mixed and not [pw for pw in power if pw.board == 7]  # a module nobody knows gets no power...
     for pw in mixed:
         assert not pw.flags[0].any() and np.all(np.isfinite(pw.p_opt_w[0]))
         assert np.all(pw.flags[1] & fl.UNKNOWN_CHANNEL) and np.all(np.isnan(pw.p_opt_w[1]))
-    for pw in alien:
-        assert np.all(pw.flags & fl.UNKNOWN_CHANNEL) and np.all(np.isnan(pw.p_opt_w))
     st = pipe.status()
-    assert st.unknown_channel_samples == 20 * (len(mixed) + 2 * len(alien))
+    assert st.unknown_channel_samples == 20 * len(mixed)
+    n_alien = sum(1 for k, _, _ in extra if k.endswith("counts/7/7"))
+    assert st.bad_messages["unknown_stream"] == n_alien  # ...and no state: counted at the door, said in last_error
+    assert (7, 7) not in pipe._streams and (7, 7) not in pipe._pace
 
 
 def test_converter_failure_flags_the_chunk_only(source):
@@ -291,9 +292,12 @@ def test_config_normalises():
     from mntes_stream.core.settings import build
 
     cfg = build(PipelineConfig, {"t_bath_range_k": [0.05, 0.2], "required_hk": ["t_bath"], "hk_wait_s": 1,
-                                 "hk_staleness_s": float("inf")})
+                                 "hk_staleness_s": 5})
     assert cfg.t_bath_range_k == (0.05, 0.2) and cfg.required_hk == ("t_bath",)
-    assert isinstance(cfg.hk_wait_s, float) and cfg.hk_staleness_s == float("inf")
+    assert isinstance(cfg.hk_wait_s, float) and cfg.hk_staleness_s == 5.0
+    for name in ("hk_staleness_s", "bias_staleness_s"):  # every environment input goes stale some time
+        with pytest.raises(ConfigError, match=name):
+            build(PipelineConfig, {name: float("inf")})
     assert PipelineConfig().setup == keys.DEFAULT_SETUP
 
 

@@ -98,11 +98,24 @@ def run_inspect(args) -> int:
         "metadata": [{"name": m.name, "file": m.path, **({"data": m.data} if args.full else {})} for m in meta],
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data), "log_time_ns": a.log_time_ns, "file": a.path} for a in s.attachments()],
     }
+    checks = None
+    if args.verify:
+        from mntes_stream.io.mcap.repair import verify_file
+
+        checks = {c.path: c for c in (verify_file(f.path) for f in s.files)}
+        out["verified"] = [dataclasses.asdict(c) | {"ok": c.ok} for c in checks.values()]
+        out["complete"] = all(c.ok for c in checks.values())
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
     for f in s.files:
         state = "complete" if f.complete else f"UNFINISHED ({f.problem}); recovered {f.recovered_bytes}/{f.size_bytes} bytes"
+        c = checks[f.path] if checks else None
+        if c is not None and c.damaged_chunks:
+            state = (f"{len(c.damaged_chunks)} of {c.chunks} chunks DAMAGED (first at byte {c.damaged_chunks[0][0]}: "
+                     f"{c.damaged_chunks[0][1]}); {c.readable_messages} of {f.messages} messages readable")
+        elif c is not None:
+            state += ", every chunk verified"
         print(f"{f.path}: {f.messages} messages, {f.chunks} chunks, {state}")
     if s.start_ns is not None:
         print(f"span: {(s.end_ns - s.start_ns) / 1e9:.3f} s of receive time")
@@ -111,6 +124,18 @@ def run_inspect(args) -> int:
         print(f"  {n:>9d}  {t}")
     print("metadata: " + ", ".join(sorted({m.name for m in meta})))
     print(f"attachments: {len(out['attachments'])}")
+    return 0
+
+
+def run_recover(args) -> int:
+    from mntes_stream.io.mcap.repair import recover_file
+
+    c = recover_file(args.input, args.output)
+    if args.json:
+        print(json.dumps(dataclasses.asdict(c), indent=2))
+    else:
+        print(f"{args.output}: {c.readable_messages} messages from {c.path} ({c.chunks} chunks, "
+              f"{len(c.damaged_chunks)} unreadable, source {'finished' if c.complete else 'unfinished'})")
     return 0
 
 
@@ -185,5 +210,14 @@ def register(sub) -> None:
     p = sub.add_parser("inspect", help="summarise MCAP recordings (topics, counts, completeness, metadata)")
     p.add_argument("files", nargs="+", metavar="FILE.mcap")
     p.add_argument("--full", action="store_true", help="include metadata values")
+    p.add_argument("--verify", action="store_true",
+                   help="read every chunk and check its CRC (a summary alone can call a damaged file complete)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=run_inspect)
+    p = sub.add_parser("recover", help="rewrite a recording whose writer was killed into a finished MCAP file",
+                       description="Copy every readable record of IN (a file whose writer died: no index, no footer) "
+                                   "into OUT with summary, index and footer, so any MCAP reader opens it.")
+    p.add_argument("input", metavar="IN.mcap")
+    p.add_argument("output", metavar="OUT.mcap")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=run_recover)

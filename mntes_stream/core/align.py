@@ -231,14 +231,24 @@ class HkSeries:
             self.t_ns = np.concatenate([self.t_ns, t])
             self.value = np.concatenate([self.value, v])
         else:
-            all_t = np.concatenate([self.t_ns, t])
-            all_v = np.concatenate([self.value, v])
-            # Stable sort then keep the last of equal times: newest message wins.
-            order = np.argsort(all_t, kind="stable")
-            all_t, all_v = all_t[order], all_v[order]
-            keep = np.ones(all_t.size, dtype=bool)
-            keep[:-1] = all_t[1:] != all_t[:-1]
-            self.t_ns, self.value = all_t[keep], all_v[keep]
+            # Out of order: sort only the new readings (last of equal times wins), then place
+            # them by binary search. A trickle of old readings costs O(k log n) searches and
+            # one copy, never a re-sort of the whole history.
+            order = np.argsort(t, kind="stable")
+            t, v = t[order], v[order]
+            last = np.ones(t.size, dtype=bool)
+            last[:-1] = t[1:] != t[:-1]
+            t, v = t[last], v[last]
+            pos = np.searchsorted(self.t_ns, t, side="left")
+            inside = pos < self.t_ns.size
+            same = np.zeros(t.size, dtype=bool)
+            same[inside] = self.t_ns[pos[inside]] == t[inside]
+            if same.any():  # a reading at an existing time replaces it: newest message wins
+                self.value = self.value.copy()
+                self.value[pos[same]] = v[same]
+            new = ~same
+            self.t_ns = np.insert(self.t_ns, pos[new], t[new])
+            self.value = np.insert(self.value, pos[new], v[new], axis=0)
         ref = int(self.t_ns[-1]) if now_ns is None else int(now_ns)
         # The newest reading always stays: a silent sensor's last value holds (flagged stale).
         cut = min(int(np.searchsorted(self.t_ns, max(ref - self.retention_ns, _INT64_MIN), side="left")),

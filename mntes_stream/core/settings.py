@@ -309,7 +309,8 @@ def _place(where: str, name: str) -> str:
 
 def _resolve(value: Any, base_dir: str) -> Any:
     if isinstance(value, str):
-        return os.path.join(base_dir, value) if value and not os.path.isabs(value) else value
+        # "~/x" names a home directory, not a path relative to the config file.
+        return os.path.join(base_dir, value) if value and not os.path.isabs(os.path.expanduser(value)) else value
     if isinstance(value, (list, tuple)):
         return type(value)(_resolve(v, base_dir) for v in value)
     return value

@@ -47,6 +47,9 @@ class ConverterConfig(Settings):
     kind: str = setting("table", "conversion kind (core/convert.py)", choices=CONVERTER_KINDS)
     tables: str = setting("", "table bank file (mntes-stream tables build); '' = build from params at start",
                           path=True)
+    table_cache: str = setting(
+        "~/.cache/mntes-stream/tables", "banks built from params are kept here, keyed by parameters, kind and "
+        "software version, so a restart loads instead of rebuilding ('' = no cache)", path=True)
     boards: tuple[int, ...] = setting((), "subscribe to these boards only ([] = every board)", ge=0)
     modules: tuple[int, ...] = setting((), "... and these modules ([] = every module)", ge=0)
     duration_s: float = setting(0.0, "stop by itself after this long (0 = run until stopped)", unit="s", ge=0)
@@ -78,7 +81,7 @@ class ConverterConfig(Settings):
 
 
 def build_converter(cfg: ConverterConfig):
-    """The ``core.convert`` converter the config asks for (tables loaded or built)."""
+    """The ``core.convert`` converter the config asks for (tables loaded, taken from the cache, or built)."""
     from mntes_stream.core.convert import make_converter
 
     params = None
@@ -91,7 +94,38 @@ def build_converter(cfg: ConverterConfig):
         from mntes_stream.io.tablefile import load_bank
 
         bank = load_bank(cfg.tables)
+    elif cfg.table_cache and cfg.kind in ("table", "grid") and params:
+        bank = _cached_bank(cfg, params)
     return make_converter(cfg.kind, params, bank)
+
+
+def _cached_bank(cfg: ConverterConfig, params):
+    """The bank for ``params`` from the cache, or built and put there (a broken cache entry is rebuilt)."""
+    import os
+    from pathlib import Path
+
+    from mntes_stream import __version__
+    from mntes_stream.core.tables import TABLE_FORMAT, build_bank, params_identity
+    from mntes_stream.errors import MntesError
+    from mntes_stream.io.tablefile import load_bank, save_bank
+
+    key = params_identity(list(params.values()), {"kind": cfg.kind, "format": TABLE_FORMAT, "software": __version__})
+    directory = Path(os.path.expanduser(cfg.table_cache))
+    path = directory / f"{cfg.kind}-{key[:32]}.npz"
+    if path.exists():
+        try:
+            bank = load_bank(path)  # verifies the content hash: a damaged entry is not used
+            log.info("table bank %s from the cache %s", bank.identity[:12], path)
+            return bank
+        except MntesError as exc:
+            log.warning("table cache entry %s unusable (%s): rebuilding", path, exc)
+    bank = build_bank(params, kind=cfg.kind)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        save_bank(bank, path)
+    except OSError as exc:  # a read-only home must not stop the converter
+        log.warning("cannot write the table cache %s: %s", path, exc)
+    return bank
 
 
 def _warm_up(conv) -> None:

@@ -1,9 +1,12 @@
 """The converter's housekeeping state: sensor histories, per-module bias, the data clock.
 
 Free of zenoh like the pipeline that owns it. Readings are kept relative to
-the *data clock* (the receive clock minus the median delay of the latest
-counts chunks), so a replayed old recording is judged by its own time and one
-bad ``t_pub_ns`` cannot move it.
+the *data clock*: the receive clock minus the median over streams of each
+stream's latest delay (receive time minus ``t_pub_ns``), so a replayed old
+recording is judged by its own time and one stream, whatever its
+``t_pub_ns``, has one vote. Readings outside physical acceptance ranges and
+oversized messages are rejected, never held: one bad reading cannot poison a
+module until the next good one.
 """
 
 from __future__ import annotations
@@ -16,19 +19,59 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.align import HkSeries
+from mntes_stream.core.ids import parse_detector_id
+from mntes_stream.errors import ConfigError
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
 
-__all__ = ["Housekeeping", "ns"]
+__all__ = ["DelayFloor", "Housekeeping", "known_modules", "ns"]
 
 _INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
-_OFFSETS = 32  # counts chunks whose receive delay sets the data clock
 _ENV_CACHE = 1024  # aligned (times, sensor) results kept: every module of a step shares its times
 
 
 def ns(seconds: float) -> int | float:
     """Seconds to integer ns; infinity stays infinite (a disabled limit)."""
     return math.inf if math.isinf(seconds) else int(round(seconds * 1e9))
+
+
+def known_modules(detector_ids) -> frozenset[tuple[int, int]] | None:
+    """``(board, module)`` of every ``b<B>m<M>c<C>`` id; None when some id is not of that form (then any module)."""
+    out = set()
+    for d in detector_ids:
+        try:
+            b, m, _ = parse_detector_id(d)
+        except ConfigError:
+            return None
+        out.add((b, m))
+    return frozenset(out)
+
+
+class DelayFloor:
+    """The smallest receive delay of one stream over the last ``window_ns`` of its data time.
+
+    A chunk's delay above this floor is how far it is behind its own stream's
+    pace: zero in steady state (whatever the clock offset or a replay's age),
+    growing when the converter falls behind. A sliding-window minimum
+    (monotone queue): O(1) amortised per chunk, at most ``max_entries`` kept.
+    """
+
+    __slots__ = ("_q", "window_ns", "max_entries")
+
+    def __init__(self, window_ns: int = 60 * 10**9, max_entries: int = 4096):
+        self._q: collections.deque[tuple[int, int]] = collections.deque()
+        self.window_ns = int(window_ns)
+        self.max_entries = int(max_entries)
+
+    def add(self, t_ns: int, delay_ns: int) -> int:
+        """Book one chunk (its first sample time and delay); returns the floor including it."""
+        q = self._q
+        while q and q[-1][1] >= delay_ns:
+            q.pop()
+        q.append((t_ns, delay_ns))
+        while q[0][0] < t_ns - self.window_ns or len(q) > self.max_entries:
+            q.popleft()
+        return q[0][1]
 
 
 class Housekeeping:
@@ -39,44 +82,71 @@ class Housekeeping:
     config : PipelineConfig
     nominal_bias_v : dict of str to float
         Bias per detector id, used before any bias reading of its module.
+    modules : set of (board, module), optional
+        The modules whose bias is kept (the ones the parameters know); None: any.
     """
 
-    def __init__(self, config: PipelineConfig, nominal_bias_v: dict[str, float]):
+    def __init__(self, config: PipelineConfig, nominal_bias_v: dict[str, float], modules=None):
         self.config = config
         self._nominal_bias_v = nominal_bias_v
+        self._modules = modules
+        self._accept = {"t_bath": config.t_bath_accept_k, "b_field": config.b_field_accept_t,
+                        "bias": config.bias_accept_v}
         self._staleness_ns = ns(config.hk_staleness_s)
         self._bias_staleness_ns = ns(config.bias_staleness_s)
         self._retention_ns = ns(config.hk_retention_s)
         self._ahead_ns = ns(config.hk_max_ahead_s)
         self.sensors: dict[str, HkSeries] = {s: HkSeries(None, self._retention_ns) for s in SCALAR_SENSORS}
         self._bias: dict[tuple[int, int], tuple[np.ndarray, HkSeries]] = {}
-        self._delays: collections.deque[int] = collections.deque(maxlen=_OFFSETS)  # receive minus t_pub_ns
+        self._delays: dict[tuple[int, int], int] = {}  # latest receive minus t_pub_ns per counts stream
+        self._offset_ns: int | None = None  # median of _delays, refreshed when a reading arrives
         self._env_cache: dict[tuple, tuple] = {}
 
-    def note_delay(self, delay_ns: int) -> None:
+    def note_delay(self, stream: tuple[int, int], delay_ns: int) -> None:
         """One counts chunk's receive time minus its ``t_pub_ns`` (sets the data clock)."""
-        self._delays.append(int(delay_ns))
+        self._delays[stream] = int(delay_ns)
+        self._offset_ns = None
 
     def data_clock(self, t_recv_ns: int) -> int:
-        """Receive clock minus the counts' median delay (none yet: the receive clock)."""
-        return t_recv_ns - (int(statistics.median_low(self._delays)) if self._delays else 0)
+        """Receive clock minus the median over streams of their latest delay (none yet: the receive clock)."""
+        if self._offset_ns is None:
+            self._offset_ns = int(statistics.median_low(self._delays.values())) if self._delays else 0
+        return t_recv_ns - self._offset_ns
 
-    def add(self, hk: HousekeepingChunk, t_recv_ns: int) -> str:
-        """Keep a chunk's readings; returns why some were dropped ("" if none were).
+    def add(self, hk: HousekeepingChunk, t_recv_ns: int) -> list[tuple[str, str]]:
+        """Keep a chunk's readings; returns ``(reason, detail)`` of each kind of reading dropped (none: []).
 
-        Readings stamped more than ``hk_max_ahead_s`` ahead of the data clock,
-        or (bias excepted: a setting holds) more than ``hk_retention_s`` behind
-        it once the data clock is known, are dropped.
+        Rejected whole: more than ``max_hk_readings`` readings (``too_large``),
+        bias of a module the parameters do not know (``unknown_stream``).
+        Dropped: readings outside the sensor's acceptance range (``hk_range``),
+        stamped more than ``hk_max_ahead_s`` ahead of the data clock, or (bias
+        excepted: a setting holds) more than ``hk_retention_s`` behind it once
+        the data clock is known (``hk_time``).
         """
+        cfg = self.config
+        if hk.t_ns.size > cfg.max_hk_readings:
+            return [("too_large", f"{hk.t_ns.size} readings in one message (at most {cfg.max_hk_readings})")]
+        if hk.sensor == "bias" and self._modules is not None and (hk.board, hk.module) not in self._modules:
+            return [("unknown_stream", f"bias of board {hk.board} module {hk.module}: not in the parameters")]
         now = self.data_clock(t_recv_ns)
         t_ns, value = hk.t_ns, hk.value
+        lo_v, hi_v = self._accept[hk.sensor]
+        in_range = (value >= lo_v) & (value <= hi_v) | ~np.isfinite(value)  # non-finite: a failed read, dropped later
+        in_range = in_range if in_range.ndim == 1 else in_range.all(axis=1)
+        problems = []
+        if not in_range.all():
+            problems.append(("hk_range", f"{int((~in_range).sum())} {hk.sensor} reading(s) outside [{lo_v:g}, {hi_v:g}]"))
+            t_ns, value = t_ns[in_range], value[in_range]
+        return problems + self._keep(hk, t_ns, value, now)
+
+    def _keep(self, hk: HousekeepingChunk, t_ns: np.ndarray, value: np.ndarray, now: int) -> list[tuple[str, str]]:
         lo = now - self._retention_ns if self._delays and hk.sensor != "bias" else _INT64_MIN
         ok = (t_ns >= max(lo, _INT64_MIN)) & (t_ns <= min(now + self._ahead_ns, _INT64_MAX))
-        problem = ""
+        problem = []
         if not ok.all():
             bad = t_ns[~ok]
-            problem = (f"{bad.size} reading(s) stamped {(int(bad[0]) - now) / 1e9:+.4g} s from the data clock "
-                       f"(accepted: -{self.config.hk_retention_s:g} s to +{self.config.hk_max_ahead_s:g} s)")
+            problem = [("hk_time", f"{bad.size} reading(s) stamped {(int(bad[0]) - now) / 1e9:+.4g} s from the data "
+                        f"clock (accepted: -{self.config.hk_retention_s:g} s to +{self.config.hk_max_ahead_s:g} s)")]
             t_ns, value = t_ns[ok], value[ok]
         if hk.sensor == "bias":
             module = (hk.board, hk.module)

@@ -57,7 +57,7 @@ from mntes_stream.io.messages import (
     StatusMessage,
     detector_ids_for,
 )
-from mntes_stream.service.housekeeping import Housekeeping, ns
+from mntes_stream.service.housekeeping import DelayFloor, Housekeeping, known_modules, ns
 from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
 
 __all__ = ["PipelineConfig", "ConverterPipeline", "PipelineCounters", "SCALAR_SENSORS"]
@@ -72,6 +72,7 @@ class PipelineCounters:
     chunks_converted: int = 0
     chunks_failed: int = 0
     samples_converted: int = 0
+    chunks_shed: int = 0
     hk_received: int = 0
     hk_stale_samples: int = 0
     hk_missing_samples: int = 0
@@ -118,10 +119,14 @@ class ConverterPipeline:
             params = list(params.values())
         self._params = list(params) if params is not None else []
         self._known = frozenset(converter.detector_ids)
+        self._modules = known_modules(self._known)
         self._wait_ns = ns(self.config.hk_wait_s)
         self._status_ns = ns(self.config.status_interval_s)
-        self.hk = Housekeeping(self.config, {p.detector_id: float(p.v_thev_v) for p in self._params})
+        self._max_lag_ns = ns(self.config.max_lag_s)
+        self.hk = Housekeeping(self.config, {p.detector_id: float(p.v_thev_v) for p in self._params}, self._modules)
+        # Per-stream state exists only for the modules the parameters know: bounded by construction.
         self._streams: dict[tuple[int, int], StreamSequence] = {}
+        self._pace: dict[tuple[int, int], DelayFloor] = {}
         self._pending: collections.deque[_Pending] = collections.deque()
         self._rows: dict[tuple, tuple] = {}
         self._provenance: bytes | None = None
@@ -277,15 +282,32 @@ class ConverterPipeline:
         if chunk.setup != self.config.setup or info["board"] != str(chunk.board) or info["module"] != str(chunk.module):
             self._bad("wrong_key", f"payload is setup {chunk.setup} board {chunk.board} module {chunk.module}", key)
             return
+        stream = (chunk.board, chunk.module)
+        if self._modules is not None and stream not in self._modules:
+            self._bad("unknown_stream", f"board {chunk.board} module {chunk.module}: no detector of it in the "
+                                        "parameters (given no state, not converted)", key)
+            return
         self.counters.chunks_received += 1
         t = chunk.times_ns()
-        if not self._sequence((chunk.board, chunk.module), chunk.seq, int(t[0]) if t.size else chunk.t_pub_ns, key):
+        t_first = int(t[0]) if t.size else chunk.t_pub_ns
+        verdict = self._sequence(stream, chunk.seq, t_first, key)
+        if verdict == "duplicate":
             return
-        self.hk.note_delay(t_recv_ns - chunk.t_pub_ns)
+        delay = t_recv_ns - chunk.t_pub_ns
+        pace = self._pace.get(stream)
+        if pace is None or verdict == "reset":
+            pace = self._pace[stream] = DelayFloor()
+        lag = delay - pace.add(t_first, delay)
+        self.hk.note_delay(stream, delay)
+        if lag > self._max_lag_ns and self.config.overload == "shed":
+            # Behind its own stream's pace: converting it would only make every later chunk later too.
+            self.counters.chunks_shed += 1
+            self._bad("overload", f"chunk seq {chunk.seq} {lag / 1e9:.3g} s behind its stream: shed", key)
+            return
         self._pending.append(_Pending(chunk, t_recv_ns, t, int(t.max()) if t.size else None))
 
-    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> bool:
-        """Book-keep a sequence number; False for a duplicate (to drop)."""
+    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> str:
+        """Book-keep a sequence number; the tracker's verdict (``duplicate``: drop it)."""
         s = self._streams.get(stream_id)
         if s is None:
             s = self._streams[stream_id] = StreamSequence()
@@ -294,7 +316,7 @@ class ConverterPipeline:
         if verdict == "reset":
             # Counted as a reset, not as a jump of lost chunks or a run of late ones.
             self._bad("seq_reset", f"sequence number {seq}, expected {expected}: stream restarted", key)
-        return verdict != "duplicate"
+        return verdict
 
     def _on_hk(self, info: dict, hk: HousekeepingChunk, key: str, t_recv_ns: int) -> None:
         sensor = info["sensor"]
@@ -303,9 +325,8 @@ class ConverterPipeline:
             self._bad("wrong_key", f"payload is setup {hk.setup} sensor {expected}", key)
             return
         self.counters.hk_received += 1
-        problem = self.hk.add(hk, t_recv_ns)
-        if problem:
-            self._bad("hk_time", problem, key)
+        for reason, detail in self.hk.add(hk, t_recv_ns):
+            self._bad(reason, detail, key)
 
     def _release(self, out: list, force: bool = False) -> None:
         if not self._pending:

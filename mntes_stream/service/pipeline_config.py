@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 
 from mntes_stream.core.ids import NAME_PATTERN
@@ -25,11 +24,11 @@ class AlignmentConfig(Settings):
     required_hk: tuple[str, ...] = setting(
         SCALAR_SENSORS, "sensors chunks wait for; no reading at all -> HK_MISSING (NaN power)", choices=SCALAR_SENSORS)
     hk_staleness_s: float = setting(2.0, "a value whose nearest reading is older -> HK_STALE (power still given)",
-                                    unit="s", ge=0, allow_inf=True)
+                                    unit="s", ge=0)
     hk_wait_s: float = setting(1.0, "longest a chunk waits for a reading at/after its last sample (0: never wait)",
                                unit="s", ge=0)
-    bias_staleness_s: float = setting(math.inf, "as hk_staleness_s for the bias (a setting: held until changed)",
-                                      unit="s", ge=0, allow_inf=True)
+    bias_staleness_s: float = setting(600.0, "as hk_staleness_s for the bias (a setting, read back seldom)",
+                                      unit="s", ge=0)
     t_bath_default_k: float = setting(0.100, "bath temperature of a sensor not required and never reported",
                                       unit="K", gt=0)
     b_field_default_t: float = setting(0.0, "field of a sensor not required and never reported", unit="T")
@@ -39,6 +38,19 @@ class AlignmentConfig(Settings):
                                                    unit="T", increasing=True)
     bias_range_v: tuple[float, float] = setting((0.0, 1e-3), "[low, high]; readings outside -> ENV_OUT_OF_RANGE",
                                                 unit="V", increasing=True)
+    t_bath_accept_k: tuple[float, float] = setting(
+        (0.0, 5.0), "[low, high]; readings outside are physically impossible here: rejected, counted (hk_range)",
+        unit="K", increasing=True)
+    b_field_accept_t: tuple[float, float] = setting((-1.0, 1.0), "as t_bath_accept_k for the field", unit="T",
+                                                    increasing=True)
+    bias_accept_v: tuple[float, float] = setting((-1.0, 1.0), "as t_bath_accept_k for the bias", unit="V",
+                                                 increasing=True)
+    max_hk_readings: int = setting(10_000, "readings one housekeeping message may carry; more: rejected (too_large)",
+                                   ge=1)
+    overload: str = setting("shed", "a chunk further behind its stream's own pace than max_lag_s: shed (counted "
+                            "'overload') or convert anyway (keep: latency grows without bound)", choices=("shed", "keep"))
+    max_lag_s: float = setting(2.0, "how far behind its stream's pace a chunk may be before overload applies",
+                               unit="s", gt=0)
     max_pending: int = setting(4096, "chunks held at most; beyond, the oldest is converted at once", ge=1)
     hk_retention_s: float = setting(600.0, "housekeeping history kept behind the data clock; older readings rejected",
                                     unit="s", gt=0)

@@ -57,6 +57,7 @@ class _ChannelInfo:
     topic: str
     schema_name: str
     schema_version: int
+    record: Channel  # as written: what a rewrite of the file copies
 
 
 @dataclass
@@ -82,7 +83,7 @@ class FileIndex:
             version = int(meta.get("mntes.version", "0"))
         except ValueError:
             version = 0
-        self.channels[ch.id] = _ChannelInfo(ch.topic, name, version)
+        self.channels[ch.id] = _ChannelInfo(ch.topic, name, version, ch)
 
     def info(self) -> FileInfo:
         msgs = sum(self.counts.values())
