@@ -1,0 +1,90 @@
+"""A converter process under a flood of made-up streams over real zenoh (loopback): memory stays bounded.
+
+Measured before issue 18: 10,000 made-up board/module streams (20,000 tiny valid messages) grew the
+converter from 195 MB to 2,006 MB for good; 10,000 made-up bias modules added 911 MB.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from mntes_stream.io import keys
+from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, Provenance, StatusMessage, decode
+from mntes_stream.io.paramfile import dump_params
+from mntes_stream.io.transport import Publishers, QueueSubscriber, free_tcp_port, loopback, open_session
+from mntes_stream.service.source import MinimalSource, SourceConfig, publish
+
+SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1)
+BUDGET_MB = 100  # growth allowed under the flood (the table bank and zenoh buffers are already there)
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def _wait(sub, pred, timeout_s):
+    got = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        item = sub.get(timeout_s=0.05)
+        if item is not None:
+            got.append(decode(item[1]))
+            if pred(got):
+                return got
+    raise AssertionError(f"timed out after {len(got)} messages")
+
+
+def test_ten_thousand_made_up_streams_do_not_grow_the_converter(tmp_path):
+    source = MinimalSource(SRC)
+    dump_params(source.params, tmp_path / "params.toml")
+    port = free_tcp_port()
+    (tmp_path / "converter.toml").write_text(
+        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
+        # The real chunks after the flood carry the t_pub of before it: not an overload to shed here.
+        '[alignment]\nmax_lag_s = 120.0\n'
+        f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+    log = tmp_path / "serve.log"
+    with open(log, "wb") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml", "-q"],
+                                stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+    try:
+        with open_session(loopback(None, [port])) as z:
+            sub = QueueSubscriber(z, ["mntes/lab/power/**", "mntes/lab/status/**", "mntes/lab/provenance"])
+            _wait(sub, lambda m: any(isinstance(x, Provenance) for x in m), 60)
+            real = list(source.batches(time.time_ns(), duration_s=1.0))
+            publish(z, real[:5], speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
+            _wait(sub, lambda m: sum(isinstance(x, PowerChunk) for x in m) >= 10, 30)
+            before = _rss_mb(proc.pid)
+            c = CountsChunk.from_bytes(next(p for k, p in real[0][1] if "/counts/" in k))
+            pubs = Publishers(z)
+            for i in range(10_000):
+                b, m = 1 + i // 100, i % 100
+                fake = CountsChunk("lab", b, m, c.channels, 4096 * i, c.t0_ns, c.sample_rate_hz,
+                                   c.counts_i, c.counts_q, c.t_pub_ns)
+                pubs.put(keys.counts_key("lab", b, m), fake.to_bytes())
+                bias = HousekeepingChunk("lab", "bias", i, np.array([c.t0_ns]), np.full((1, 4), 1e-6), "V",
+                                         board=b, module=m, channels=np.arange(4, dtype=np.int32))
+                pubs.put(keys.hk_key("lab", keys.bias_sensor(b, m)), bias.to_bytes())
+            # The real streams go on, and are converted, after the flood.
+            publish(z, real[5:], speed=0)
+            got = _wait(sub, lambda m: any(isinstance(x, StatusMessage) and x.bad_messages.get("unknown_stream", 0)
+                                           >= 20_000 and x.chunks_converted >= 20 for x in m), 120)
+            after = _rss_mb(proc.pid)
+            pubs.close()
+            sub.close()
+        status = [x for x in got if isinstance(x, StatusMessage)][-1]
+        assert status.chunks_converted == 20 and status.chunks_lost == 0
+        print(f"converter RSS {before:.0f} -> {after:.0f} MB under the flood")
+        assert after - before < BUDGET_MB, f"RSS {before:.0f} -> {after:.0f} MB"
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    assert "Traceback" not in log.read_text()
