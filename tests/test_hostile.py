@@ -132,7 +132,7 @@ def test_chunks_far_behind_their_stream_are_shed_and_counted(source, converter):
     """Overload: a converter that falls 5 s behind sheds (counted) instead of growing its latency without bound."""
     msgs = _messages(source, 30)
     late = []
-    for i, (key, payload, t) in enumerate(msgs):
+    for key, payload, t in msgs:
         # From the 10th step on, everything is received 5 s late and later (the converter fell behind).
         lag = 0 if t < T0 + 10 * 10**8 else 5 * 10**9 + (t - T0)
         late.append((key, payload, t + lag))

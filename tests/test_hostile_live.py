@@ -88,3 +88,35 @@ def test_ten_thousand_made_up_streams_do_not_grow_the_converter(tmp_path):
         proc.terminate()
         proc.wait(30)
     assert "Traceback" not in log.read_text()
+
+
+def test_a_subscriber_queue_bounded_in_bytes_blocks_upstream_and_loses_nothing():
+    """The recorder's policy under overload: hold at most max_bytes, slow the publisher (BLOCK), drop nothing."""
+    import threading
+
+    port = free_tcp_port()
+    # 300 MB offered: more than zenoh and TCP buffer (~57 MB measured), so the publisher must wait.
+    n, size, budget = 1500, 200_000, 1_000_000
+    with open_session(loopback(port)) as zs, open_session(loopback(None, [port])) as zp:
+        sub = QueueSubscriber(zs, ["mntes/t/big/**"], maxsize=4096, max_bytes=budget)
+        pubs = Publishers(zp)
+        assert pubs.wait_matching(["mntes/t/big/x"], 30.0)
+        done = threading.Event()
+
+        def publish_all():
+            for i in range(n):
+                pubs.put("mntes/t/big/x", i.to_bytes(4, "little") + bytes(size))
+            done.set()
+
+        threading.Thread(target=publish_all, daemon=True).start()
+        time.sleep(2.0)  # nobody reads: the queue fills to its byte budget and the publisher waits
+        assert not done.is_set() and sub.queued_bytes <= budget and sub.qsize() <= budget // size
+        got = []
+        deadline = time.monotonic() + 60
+        while len(got) < n and time.monotonic() < deadline:
+            item = sub.get(timeout_s=0.1)
+            if item is not None:
+                got.append(int.from_bytes(item[1][:4], "little"))
+        assert got == list(range(n)) and sub.high_water_bytes <= budget and sub.dropped_on_close == 0
+        pubs.close()
+        sub.close()

@@ -276,11 +276,20 @@ class QueueSubscriber:
       zenoh's receive path: back-pressure as above.
     """
 
-    def __init__(self, session, key_exprs: Iterable[str], maxsize: int = 4096, stop=None, mode: str = "callback"):
+    def __init__(self, session, key_exprs: Iterable[str], maxsize: int = 4096, stop=None, mode: str = "callback",
+                 max_bytes: int = 0):
         if mode not in ("callback", "channel"):
             raise ConfigError(f"QueueSubscriber mode must be 'callback' or 'channel', got {mode!r}")
+        if max_bytes and mode != "callback":
+            raise ConfigError("QueueSubscriber max_bytes needs mode='callback'")
         self.mode = mode
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
+        # Payload bytes queued, bounded by max_bytes (0: by count only): a queue of big messages
+        # must not hold gigabytes. Full means the callback waits, as for a full count.
+        self.max_bytes = int(max_bytes)
+        self.queued_bytes = 0
+        self.high_water_bytes = 0
+        self._bytes_free = threading.Condition()
         self._closing = threading.Event()
         self._stop = stop
         self.received = 0
@@ -301,6 +310,9 @@ class QueueSubscriber:
 
     def _on_sample(self, sample) -> None:
         item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        if self.max_bytes and not self._reserve(len(item[1])):
+            self.dropped_on_close += 1
+            return
         while True:
             try:
                 self._queue.put(item, timeout=0.05)
@@ -309,7 +321,21 @@ class QueueSubscriber:
             except queue.Full:
                 if self._closing.is_set() or (self._stop is not None and self._stop.is_set()):
                     self.dropped_on_close += 1
+                    if self.max_bytes:
+                        with self._bytes_free:
+                            self.queued_bytes -= len(item[1])
                     return
+
+    def _reserve(self, n: int) -> bool:
+        """Wait until ``n`` more bytes fit (one message always fits an empty queue); False once closing."""
+        with self._bytes_free:
+            while self.queued_bytes and self.queued_bytes + n > self.max_bytes:
+                if self._closing.is_set() or (self._stop is not None and self._stop.is_set()):
+                    return False
+                self._bytes_free.wait(0.05)
+            self.queued_bytes += n
+            self.high_water_bytes = max(self.high_water_bytes, self.queued_bytes)
+            return True
 
     def query(self, session, selector: str, timeout_s: float = 2.0) -> None:
         """Ask the queryables under ``selector`` (e.g. a converter's provenance) once; their replies
@@ -353,6 +379,10 @@ class QueueSubscriber:
         except queue.Empty:
             return None
         self.high_water = max(self.high_water, self._queue.qsize() + 1)
+        if self.max_bytes:
+            with self._bytes_free:
+                self.queued_bytes -= len(item[1])
+                self._bytes_free.notify()
         return item
 
     def drain(self, limit: int = 1 << 30) -> Iterator[tuple[str, bytes, int]]:

@@ -54,6 +54,8 @@ class RecorderConfig(Settings):
     log_interval_s: float = setting(10.0, "progress log cadence", unit="s", gt=0)
     queue_messages: int = setting(4096, "buffer between zenoh and the writer; when full, publishers are slowed "
                                         "(BLOCK), never dropped", ge=1)
+    queue_mb: float = setting(256.0, "... and at most this much payload: big messages cannot fill memory", unit="MB",
+                              gt=0)
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     @property
@@ -92,6 +94,7 @@ class RecorderStats:
     files: tuple[str, ...]
     flushes: int
     queue_high_water: int
+    queue_high_water_mb: float
     dropped_on_close: int
     duration_s: float
 
@@ -152,7 +155,8 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
             session = open_session(config.zenoh)
             # The callback only timestamps and queues; a full queue makes it wait,
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
-            sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages)
+            sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages,
+                                  max_bytes=int(config.queue_mb * 1e6))
             # What is answered on request (a converter's provenance) is recorded from the start too.
             sub.query(session, config.subscription)
             log.info("recording %s into %s", config.subscription, writer.current_path)
@@ -203,6 +207,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         files=tuple(str(p) for p in writer.files),
         flushes=writer.flushes,
         queue_high_water=sub.high_water,
+        queue_high_water_mb=sub.high_water_bytes / 1e6,
         dropped_on_close=sub.dropped_on_close,
         duration_s=time.monotonic() - t_start,
     )
