@@ -1,0 +1,8 @@
+"""Foxglove: a setup live over the Foxglove WebSocket protocol, and json channels in MCAP files.
+
+``translate`` (mntes messages -> json messages with JSON Schemas; no foxglove
+import), ``service`` (the ``foxglove`` registry service; foxglove-sdk, the
+``foxglove`` extra), ``transcode`` (json channels beside the msgpack originals
+of a recording; ``mntes-stream transcode --foxglove`` and the recorder's
+``foxglove_channels``).
+"""

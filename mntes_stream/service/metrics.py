@@ -1,0 +1,210 @@
+"""Prometheus metrics of any service (``[metrics]`` table; prometheus-client, the ``metrics`` extra).
+
+:meth:`Service.start <mntes_stream.service.base.Service.start>` serves
+``http://<bind>:<port>/metrics`` for the whole run when ``port`` is set; a
+service needs nothing of its own. What is measured comes from three places:
+
+- every message the service publishes (``Publishers.put`` calls
+  :meth:`ServiceMetrics.observe`): messages and bytes by kind, power samples,
+  and the latency of each power chunk (source publication to power
+  publication) as a histogram;
+- the latest status message it published (converter): lost, duplicated,
+  out-of-order chunks, bad messages by reason, flagged samples by flag name,
+  housekeeping age by sensor, chunks pending;
+- its heartbeat: state, uptime, queue depth, and a recorder's bytes and files.
+
+Metric names are the contract of ``services/grafana/mntes.json`` (a test
+checks every name it uses exists on a live endpoint).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from dataclasses import dataclass
+
+from mntes_stream.core.settings import Settings, setting
+from mntes_stream.errors import ConfigError, SchemaError
+
+__all__ = ["MetricsSettings", "ServiceMetrics", "LATENCY_BUCKETS_S", "metrics_for"]
+
+log = logging.getLogger("mntes_stream.metrics")
+
+LATENCY_BUCKETS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
+
+
+@dataclass(frozen=True)
+class MetricsSettings(Settings):
+    """The ``[metrics]`` table of a service config."""
+
+    port: int = setting(0, "serve Prometheus metrics on http://<bind>:<port>/metrics (0: off)", ge=0, le=65535)
+    bind: str = setting("127.0.0.1", "address of the metrics endpoint (anything but loopback exposes it)")
+
+
+def _require():
+    from mntes_stream.errors import import_extra
+
+    return import_extra("prometheus_client", "metrics")
+
+
+class ServiceMetrics:
+    """The metrics of one running service, in a registry of its own.
+
+    Parameters
+    ----------
+    service : Service
+        Its heartbeat is read at every scrape.
+    """
+
+    def __init__(self, service):
+        pc = _require()
+        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+        self._gauge, self._counter = GaugeMetricFamily, CounterMetricFamily
+        self.service = service
+        self.registry = pc.CollectorRegistry(auto_describe=True)
+        labels = {"service": service.name, "name": service.instance_name()}
+        self._labels = labels
+        ln = list(labels)
+        self.messages = pc.Counter("mntes_published_messages", "messages published, by key kind", [*ln, "kind"],
+                                   registry=self.registry)
+        self.bytes = pc.Counter("mntes_published_bytes", "payload bytes published, by key kind", [*ln, "kind"],
+                                registry=self.registry)
+        self.power_samples = pc.Counter("mntes_power_samples", "detector samples of optical power published", ln,
+                                        registry=self.registry).labels(**labels)
+        self.latency = pc.Histogram("mntes_latency_seconds", "source publication to power publication, per chunk",
+                                    ln, buckets=LATENCY_BUCKETS_S, registry=self.registry).labels(**labels)
+        self.registry.register(self)
+        self._status = None
+        self._lock = threading.Lock()
+        self._server = None
+
+    # ------------------------------------------------------------------ feeding
+
+    def observe(self, key: str, payload: bytes) -> None:
+        """One published message (called by ``Publishers.put``; never raises)."""
+        from mntes_stream.io import keys
+
+        kind = keys.kind_of(key) or "other"
+        self.messages.labels(**self._labels, kind=kind).inc()
+        self.bytes.labels(**self._labels, kind=kind).inc(len(payload))
+        try:
+            if kind == "power":
+                self._power(payload)
+            elif kind == "status":
+                from mntes_stream.io.messages import StatusMessage
+
+                status = StatusMessage.from_bytes(payload)
+                with self._lock:
+                    self._status = status
+        except (SchemaError, ValueError, TypeError, KeyError):  # our own messages; a bug must not stop a service
+            log.debug("metrics: cannot read a %s message", kind, exc_info=True)
+
+    def _power(self, payload: bytes) -> None:
+        import msgpack
+
+        msg = msgpack.unpackb(payload, raw=False)
+        shape = msg["p_opt_w"]["shape"]
+        self.power_samples.inc(int(shape[0]) * int(shape[1]))
+        self.latency.observe((int(msg["t_pub_ns"]) - int(msg["source_t_pub_ns"])) / 1e9)
+
+    # ------------------------------------------------------------------ collecting (at scrape)
+
+    def describe(self):
+        return []  # names are dynamic; nothing to check at registration
+
+    def collect(self):
+        g, c, lab = self._gauge, self._counter, self._labels
+        ln, lv = list(lab), list(lab.values())
+        snap = self.service.status()
+        up = g("mntes_service_up", "1 while the service is running", labels=ln)
+        up.add_metric(lv, 1.0 if snap["state"] == "running" else 0.0)
+        yield up
+        uptime = g("mntes_service_uptime_seconds", "time since the service started", labels=ln)
+        uptime.add_metric(lv, float(snap["uptime_s"]))
+        yield uptime
+        depth = g("mntes_queue_depth", "messages waiting in the service's input queue", labels=[*ln, "queue"])
+        if "queue_depth" in snap:
+            depth.add_metric([*lv, "input"], float(snap["queue_depth"]))
+        with self._lock:
+            status = self._status
+        if status is not None:
+            depth.add_metric([*lv, "pending_chunks"], float(status.chunks_pending))
+        yield depth
+        if "payload_bytes" in snap and "files" in snap:  # a recorder
+            for name, doc, value in (
+                ("mntes_recorder_messages", "messages recorded", snap.get("messages", 0)),
+                ("mntes_recorder_bytes", "payload bytes recorded", snap["payload_bytes"]),
+                ("mntes_recorder_file_rotations", "new files started after the first", max(int(snap["files"]) - 1, 0)),
+                ("mntes_recorder_invalid_messages", "payloads recorded that were not a valid envelope",
+                 snap.get("invalid", 0)),
+            ):
+                m = c(name, doc, labels=ln)
+                m.add_metric(lv, float(value))
+                yield m
+        if status is None:
+            return
+        chunks = c("mntes_chunks", "counts chunks by outcome (cumulative, from the status)", labels=[*ln, "outcome"])
+        for outcome, value in (("received", status.chunks_received), ("converted", status.chunks_converted),
+                               ("lost", status.chunks_lost), ("duplicated", status.chunks_duplicated),
+                               ("out_of_order", status.chunks_out_of_order)):
+            chunks.add_metric([*lv, outcome], float(value))
+        yield chunks
+        bad = c("mntes_bad_messages", "messages rejected, by reason", labels=[*ln, "reason"])
+        for reason, value in status.bad_messages.items():
+            bad.add_metric([*lv, reason], float(value))
+        yield bad
+        flagged = c("mntes_flagged_samples", "converted samples carrying each flag (schemas/flags.v1.json)",
+                    labels=[*ln, "flag"])
+        for flag, value in status.flag_counts.items():
+            flagged.add_metric([*lv, flag], float(value))
+        yield flagged
+        samples = c("mntes_samples_converted", "samples converted (cumulative, from the status)", labels=ln)
+        samples.add_metric(lv, float(status.samples_converted))
+        yield samples
+        age = g("mntes_hk_age_seconds", "age of the latest housekeeping reading, by sensor", labels=[*ln, "sensor"])
+        for sensor, value in status.hk_age_s.items():
+            age.add_metric([*lv, sensor], float(value))
+        yield age
+
+    # ------------------------------------------------------------------ serving
+
+    def serve(self, settings: MetricsSettings) -> int:
+        """Start the endpoint; returns the port. ConfigError if it cannot listen."""
+        pc = _require()
+        try:
+            self._server, _ = pc.start_http_server(settings.port, addr=settings.bind, registry=self.registry)
+        except OSError as exc:
+            raise ConfigError(f"metrics: cannot serve on {settings.bind}:{settings.port}: {exc}") from None
+        return self._server.server_port
+
+    def close(self) -> None:
+        if self._server is not None:
+            self._server.shutdown()
+            self._server.server_close()
+            self._server = None
+
+
+@contextlib.contextmanager
+def metrics_for(service):
+    """Serve ``service``'s metrics while the block runs, if its config has a ``[metrics]`` port; else nothing.
+
+    Messages published from this thread by ``Publishers`` created inside the block are observed.
+    """
+    settings = getattr(service.config, "metrics", None)
+    if not isinstance(settings, MetricsSettings) or not settings.port:
+        yield None
+        return
+    from mntes_stream.io.transport import set_publish_observer
+
+    metrics = ServiceMetrics(service)
+    port = metrics.serve(settings)
+    service.heartbeat.beat(metrics_port=port)
+    log.info("%s: metrics on http://%s:%d/metrics", service.instance_name(), settings.bind, port)
+    set_publish_observer(metrics.observe)
+    try:
+        yield metrics
+    finally:
+        set_publish_observer(None)
+        metrics.close()
