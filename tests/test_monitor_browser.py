@@ -30,13 +30,14 @@ import pytest
 from test_monitor_server import Worker
 
 from mntes_stream.core.sim import ArraySimulator, SimConfig
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk
 from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
 
 SIM = SimConfig(modules=2, channels=16)  # what `simulate --modules 2 --channels 16` runs (default seed)
-RATE_HZ = 152.59
+RATE_HZ = DFMUX_SAMPLE_RATE_HZ
 NORMAL_ID = "b0m2c000"
 
 

@@ -24,6 +24,7 @@ from mntes_stream.core.sim import (
     cmb_dpdt_w_per_k,
     solve_quasi_static,
 )
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.errors import ConfigError
 
 SMALL = SimConfig(channels=8, modules=2, jupiter_t_s=1.0, jupiter_period_s=3.0, bias_steps=((0.7, 0.02),))
@@ -142,7 +143,7 @@ def test_exact_inverse_recovers_truth_within_quantisation():
 
 
 def test_photon_and_readout_noise_levels():
-    fs = 152.59
+    fs = DFMUX_SAMPLE_RATE_HZ
     cfg = SimConfig.noise_free(channels=16, nep_w_rthz=2e-17, f_knee_hz=1.0)
     sim = ArraySimulator(cfg)
     blk = sim.next_block(int(200 * fs))
@@ -196,7 +197,7 @@ def test_housekeeping_cadence_and_alignment():
 
 
 def test_signal_components():
-    fs = 152.59
+    fs = DFMUX_SAMPLE_RATE_HZ
     jup = ArraySimulator(SimConfig.noise_free(jupiter_peak_w=0.3e-12, jupiter_t_s=20.0, jupiter_period_s=0.0,
                                               jupiter_fwhm_s=1.0))
     p = jup.next_block(int(40 * fs)).truth_p_opt_w[0] - 0.5e-12

@@ -15,6 +15,7 @@ from schema_check import validate_payload
 
 from mntes_stream.cli import main
 from mntes_stream.core.sim import ArraySimulator, SimConfig
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap import Session, read_metadata
@@ -63,7 +64,7 @@ def test_batches_are_valid_messages_from_the_core_simulation():
                 assert isinstance(msg, HousekeepingChunk) and np.all(msg.t_ns < t_pub)
                 hk_keys.add(key)
     assert hk_keys == {"mntes/lab/hk/t_bath", "mntes/lab/hk/b_field", "mntes/lab/hk/bias/0/0", "mntes/lab/hk/bias/0/1"}
-    assert len(batches) == src.n_chunks(2.0) == 21  # ceil(2 s * 152.59 Hz / 15 samples)
+    assert len(batches) == src.n_chunks(2.0) == 21  # ceil(2 s * 152.588 Hz / 15 samples)
     seqs = [decode(p).seq for t, b in batches for k, p in b if k.endswith("counts/0/1")]
     assert seqs == list(range(21))
 
@@ -116,7 +117,7 @@ def test_recorded_session_converts_back_to_the_truth(tmp_path):
     ids = list(t["detector_ids"])
     kinds = {ch.detector_id: ch.kind for ch in ArraySimulator(cfg).channels}
     # Readout noise alone: NEI sqrt(fs/2) per quadrature, through |dI/dP| ~ 1.9e6 A/W.
-    sigma_w = 10e-12 * np.sqrt(152.59 / 2) / 1.7e6
+    sigma_w = 10e-12 * np.sqrt(DFMUX_SAMPLE_RATE_HZ / 2) / 1.7e6
     n_power = 0
     for m in Session(tmp_path / "out.mcap").iter_messages(topics="mntes/sim/power/**"):
         msg = decode(m.payload)

@@ -12,6 +12,7 @@ import pytest
 from mntes_stream.cli import main
 from mntes_stream.core import model
 from mntes_stream.core.params import table1_params
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.core.validation import (
     CALIBRATION_ERRORS,
     JSON_KEYS,
@@ -24,7 +25,7 @@ from mntes_stream.core.validation import (
 )
 from mntes_stream.errors import ConfigError
 
-FS = 152.59
+FS = DFMUX_SAMPLE_RATE_HZ
 T = np.arange(int(60 * FS)) / FS
 
 

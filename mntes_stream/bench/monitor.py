@@ -23,12 +23,14 @@ import time
 
 import numpy as np
 
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+
 HELP = "quick-look monitor: aggregation cost and page latency for a full focal plane"
 
 
 def add_arguments(p) -> None:
     p.add_argument("--modules", type=int, default=40, help="128-channel modules (default 40 = 5120 channels)")
-    p.add_argument("--rate-hz", type=float, default=152.59)
+    p.add_argument("--rate-hz", type=float, default=DFMUX_SAMPLE_RATE_HZ)
     p.add_argument("--chunk-s", type=float, default=0.1)
     p.add_argument("--seconds", type=float, default=20.0, help="stream time")
     p.add_argument("--selected", type=int, default=4, help="channels plotted by the page")

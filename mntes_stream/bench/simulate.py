@@ -18,6 +18,7 @@ import statistics
 import time
 
 from mntes_stream.bench import machine
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 HELP = "simulator throughput: detector-samples per second, core and with messages"
 
@@ -25,7 +26,7 @@ HELP = "simulator throughput: detector-samples per second, core and with message
 def add_arguments(p) -> None:
     p.add_argument("--modules", type=int, default=8)
     p.add_argument("--channels", type=int, default=128)
-    p.add_argument("--rate-hz", type=float, default=152.59)
+    p.add_argument("--rate-hz", type=float, default=DFMUX_SAMPLE_RATE_HZ)
     p.add_argument("--chunk-s", type=float, default=0.1)
     p.add_argument("--seconds", type=float, default=10.0, help="stream time per run")
     p.add_argument("--repeat", type=int, default=3)

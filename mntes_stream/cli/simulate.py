@@ -6,6 +6,7 @@ import json
 import sys
 
 from mntes_stream.cli._common import add_zenoh_args, print_mapping
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 
 def _value(text: str):
@@ -114,7 +115,7 @@ def register(sub) -> None:
     p.add_argument("--boards", type=int)
     p.add_argument("--modules", type=int, help="modules per board")
     p.add_argument("--channels", type=int, help="channels per module (DfMux: 64 or 128)")
-    p.add_argument("--sample-rate", type=float, metavar="HZ", help="default 152.59 (19.1 is flight-like)")
+    p.add_argument("--sample-rate", type=float, metavar="HZ", help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux, 20 MHz / 2**17; 19.1 is flight-like)")
     hwp = p.add_mutually_exclusive_group()
     hwp.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], help="HWP frequency of a LiteBIRD telescope")
     hwp.add_argument("--f-hwp", type=float, metavar="HZ", help="HWP rotation frequency")

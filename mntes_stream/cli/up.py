@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from mntes_stream.cli._common import add_zenoh_args, setup_logging, zenoh_layer
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 
 def _pick_source(setup: str, args, zenoh):
@@ -205,7 +206,8 @@ def register(sub) -> None:
     p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
     p.add_argument("--modules", type=int, default=4, help="readout modules (default 4)")
     p.add_argument("--channels", type=int, default=64, help="channels per module (default 64)")
-    p.add_argument("--sample-rate", type=float, default=152.59, metavar="HZ", help="default 152.59 (DfMux ground rate)")
+    p.add_argument("--sample-rate", type=float, default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
+                   help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground rate, 20 MHz / 2**17)")
     p.add_argument("--chunk-s", type=float, default=0.1, help="counts chunk length (s)")
     p.add_argument("--kind", default="table", choices=CONVERTER_KINDS, help="conversion kind (default table)")
     p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+
 
 def run(args) -> int:
     from tqdm import tqdm
@@ -53,6 +55,6 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="simulation seed")
     p.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], default="LFT",
                    help="HWP frequency: LFT 0.77, MFT 0.65, HFT 1.02 Hz (default LFT)")
-    p.add_argument("--sample-rate", type=float, default=152.59, metavar="HZ",
-                   help="default 152.59 (DfMux ground); 19.1 is flight-like")
+    p.add_argument("--sample-rate", type=float, default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
+                   help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground, 20 MHz / 2**17); 19.1 is flight-like")
     p.set_defaults(func=run)

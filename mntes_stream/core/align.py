@@ -42,7 +42,8 @@ def last_sample_offset_ns(sample_rate_hz: float, n: int) -> int:
     Raises ConfigError unless the rate is finite and > 0 with a finite period
     and the offset is finite.
 
-    >>> last_sample_offset_ns(20e6 / 2**17, 2)  # one DfMux sample: 655,360 ticks of 10 ns
+    >>> from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+    >>> last_sample_offset_ns(DFMUX_SAMPLE_RATE_HZ, 2)  # one DfMux sample: 655,360 ticks of 10 ns
     6553600
     """
     rate = float(sample_rate_hz)

@@ -44,6 +44,7 @@ from mntes_stream.core.align import sample_times_ns
 from mntes_stream.core.ids import detector_id
 from mntes_stream.core.params import PRESETS, ParamArray
 from mntes_stream.core.settings import Settings, build, setting
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.core.transition import ArctanTransition
 from mntes_stream.errors import ConfigError, MntesError
 
@@ -91,7 +92,8 @@ class SimConfig(Settings):
     boards: int = setting(1, "readout boards", ge=1)
     modules: int = setting(1, "modules per board", ge=1)
     channels: int = setting(64, "per module (DfMux: 64 or 128)", ge=1, le=1024)
-    sample_rate_hz: float = setting(152.59, "DfMux ground rate; 19.1 Hz is flight-like", unit="Hz", gt=0)
+    sample_rate_hz: float = setting(DFMUX_SAMPLE_RATE_HZ, "DfMux ground rate, 20 MHz / 2**17 exactly; 19.1 Hz is flight-like",
+                                          unit="Hz", gt=0)
     seed: int = setting(0, "random seed: a run is reproduced by its config", ge=0)
     # --- detectors: preset, tuning, scatter ------------------------------------------
     preset: str = setting("table1", "detector parameter preset (core.params.PRESETS)", choices=tuple(PRESETS))

@@ -42,6 +42,7 @@ import numpy as np
 from mntes_stream.core import model
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.sim import HWP_FREQUENCIES_HZ, ArraySimulator, SimBlock, SimConfig
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.errors import ConfigError
 
 __all__ = [
@@ -351,7 +352,7 @@ class StudyConfig:
     """
 
     quick: bool = False
-    sample_rate_hz: float = 152.59
+    sample_rate_hz: float = DFMUX_SAMPLE_RATE_HZ
     f_hwp_hz: float = HWP_FREQUENCIES_HZ["LFT"]
     # 2f amplitude for the nonlinearity measurement: small enough that higher orders
     # move the linear conversion's eps by only 0.4%, large enough to beat quantisation.

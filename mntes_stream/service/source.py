@@ -28,6 +28,7 @@ import numpy as np
 from mntes_stream.core.ids import NAME_PATTERN, detector_id
 from mntes_stream.core.params import DetectorParams, ParamArray, table1_params
 from mntes_stream.core.settings import Settings, setting
+from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import SENSOR_UNITS, CountsChunk, HousekeepingChunk
@@ -55,7 +56,7 @@ class SourceConfig(Settings):
     boards: int = setting(1, "boards", ge=1)
     modules: int = setting(2, "modules per board", ge=1)
     channels: int = setting(16, "channels per module", ge=1)
-    sample_rate_hz: float = setting(152.59, "sample rate", unit="Hz", gt=0)
+    sample_rate_hz: float = setting(DFMUX_SAMPLE_RATE_HZ, "sample rate (DfMux: 20 MHz / 2**17)", unit="Hz", gt=0)
     chunk_s: float = setting(0.1, "one counts chunk per module this often (whole samples)", unit="s", gt=0)
     hk_interval_s: float = setting(0.1, "housekeeping cadence (t_bath, b_field)", unit="s", gt=0)
     p_opt_w: float = setting(0.5e-12, "optical loading", unit="W")
