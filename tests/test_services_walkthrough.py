@@ -99,7 +99,7 @@ def test_services_readme_walkthrough(tmp_path):
     assert len(blocks) == 3 and len(blocks[0]) == 5 and len(blocks[1]) == 2 and len(blocks[2]) == 2, blocks
     shutil.copytree(ROOT / "services", tmp_path / "services", ignore=shutil.ignore_patterns("recordings", "*-params.toml"))
     port = free_tcp_port()
-    for name in ("converter.toml", "zenoh-local.json5"):
+    for name in ("zenoh-converter.json5", "zenoh-local.json5"):
         f = tmp_path / "services" / name
         f.write_text(f.read_text().replace("7447", str(port)))
     conv_cmd, rec_cmd, src_cmd, mon_cmd, inspect_cmd = blocks[0]

@@ -5,6 +5,7 @@
     mntes/<setup>/power/<board>/<module>    power chunks   (schema mntes.power)
     mntes/<setup>/status/<service>          service status (schema mntes.status)
     mntes/<setup>/provenance                parameters + table identity (schema mntes.provenance)
+    mntes/<setup>/alive/<service>/<name>    liveliness token + heartbeat queryable (io/presence.py)
 """
 
 from __future__ import annotations
@@ -53,6 +54,11 @@ def status_key(setup: str, service: str = "*") -> str:
 
 def provenance_key(setup: str) -> str:
     return f"{PREFIX}/{_check(setup, 'setup')}/provenance"
+
+
+def alive_key(setup: str, service: str = "*", name: str = "*") -> str:
+    """A running service's liveliness token and heartbeat queryable."""
+    return f"{PREFIX}/{_check(setup, 'setup')}/alive/{service}/{name}"
 
 
 def all_key(setup: str) -> str:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, fields
 
 from mntes_stream.core.settings import setting
 from mntes_stream.errors import ConfigError, TransportError
+from mntes_stream.io.presence import announce
 
 __all__ = [
     "ZenohSettings",
@@ -161,13 +162,16 @@ def open_session(settings: ZenohSettings):
 
     conf = zenoh_config(settings)
     try:
-        return zenoh.open(conf)
+        session = zenoh.open(conf)
     except Exception as exc:  # e.g. a listen port already in use
         named = describe_config(conf)
         raise TransportError(
             f"cannot open zenoh session (mode {named.get('mode')}, listen {named.get('listen/endpoints')}, "
             f"connect {named.get('connect/endpoints')}): {str(exc).splitlines()[0] if str(exc) else exc!r}"
         ) from None
+    # A running service is seen on every session it opens (liveliness token, heartbeat, dead endpoints).
+    announce(session, tuple(describe_config(conf).get("connect/endpoints") or ()))
+    return session
 
 
 

@@ -30,6 +30,8 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from mntes_stream.core.settings import build_document
+from mntes_stream.io import keys
+from mntes_stream.io.presence import Presence, presence
 
 __all__ = ["Service", "Heartbeat", "StopFlag", "stop_on_signals"]
 
@@ -84,6 +86,7 @@ class Heartbeat:
     """
 
     STATES = ("starting", "running", "stopping", "stopped", "failed")
+    MAX_WARNINGS = 8
 
     def __init__(self, service: str, name: str = ""):
         self.service = service
@@ -93,6 +96,12 @@ class Heartbeat:
         self._t_start = time.monotonic()
         self._t_beat = self._t_start
         self._counters: dict[str, Any] = {}
+        self._warnings: tuple[str, ...] = ()
+
+    def warn(self, message: str) -> None:
+        """Keep ``message`` in the snapshot's ``warnings`` (the last few, oldest dropped)."""
+        with self._lock:
+            self._warnings = (self._warnings + (message,))[-self.MAX_WARNINGS:]
 
     def beat(self, **counters: Any) -> None:
         with self._lock:
@@ -111,11 +120,12 @@ class Heartbeat:
         return self._state
 
     def snapshot(self) -> dict[str, Any]:
-        """``service``, ``name``, ``state``, ``uptime_s``, ``since_beat_s`` and the counters."""
+        """``service``, ``name``, ``state``, ``uptime_s``, ``since_beat_s``, the counters and ``warnings``."""
         with self._lock:
             now = time.monotonic()
             return {"service": self.service, "name": self.name, "state": self._state,
-                    "uptime_s": now - self._t_start, "since_beat_s": now - self._t_beat, **self._counters}
+                    "uptime_s": now - self._t_start, "since_beat_s": now - self._t_beat, **self._counters,
+                    "warnings": list(self._warnings)}
 
 
 class _Ready:
@@ -164,10 +174,22 @@ class Service(abc.ABC):
         """The heartbeat snapshot (cheap; any thread)."""
         return self.heartbeat.snapshot()
 
+    def owns(self) -> dict[str, Any]:
+        """What part of the setup this instance serves (e.g. a converter's boards and modules); for ``ps``."""
+        return {}
+
+    def presence(self) -> Presence:
+        """How this instance shows itself on zenoh while it runs (``io/presence.py``)."""
+        return Presence(setup=getattr(self.config, "setup", None) or keys.DEFAULT_SETUP, service=self.name,
+                        name=self.instance_name(), snapshot=lambda: {**self.status(), "owns": self.owns()},
+                        warn=self.heartbeat.warn)
+
     def start(self, stop=None, ready=None) -> dict[str, Any]:
-        """:meth:`run` with the heartbeat's state kept: what ``serve`` and the supervisor call."""
+        """:meth:`run` with the heartbeat's state kept and the service announced on every zenoh
+        session it opens: what ``serve`` and the supervisor call."""
         try:
-            result = self.run(stop, _Ready(self.heartbeat, ready))
+            with presence(self.presence()):
+                result = self.run(stop, _Ready(self.heartbeat, ready))
         except BaseException:
             self.heartbeat.set_state("failed")
             raise

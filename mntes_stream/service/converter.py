@@ -20,6 +20,7 @@ from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
+from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, answer, open_session
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.pipeline_config import AlignmentConfig, PipelineConfig
@@ -200,8 +201,10 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                 outs = pipe.tick(time.time_ns()) if item is None else pipe.handle(*item)
                 for key, payload in outs:
                     pubs.put(key, payload)
-                    if key == status_key:
-                        beat(**pipe.counters.as_dict())
+                    if key == status_key:  # what the status says, in the heartbeat too (ps)
+                        st = decode(payload)
+                        beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost, latency_p99_ms=st.latency_p99_ms,
+                             bad_messages=sum(st.bad_messages.values()), samples_per_s=st.rate_msamples_per_s * 1e6)
                 if time.monotonic() >= next_prov:
                     pubs.put(prov_key, pipe.provenance_bytes())
                     next_prov = time.monotonic() + cfg.provenance_interval_s
@@ -227,6 +230,9 @@ class ConverterService(Service):
     name = "converter"
     Config = ConverterConfig
     summary = "counts + housekeeping in, power + status + provenance out"
+
+    def owns(self) -> dict:
+        return {"boards": list(self.config.boards) or "*", "modules": list(self.config.modules) or "*"}
 
     def run(self, stop=None, ready=None) -> dict:
         return run_converter(self.config, stop, ready, heartbeat=self.heartbeat)

@@ -13,6 +13,7 @@ from mntes_stream.service.base import Service
 from mntes_stream.service.converter import ConverterService
 from mntes_stream.service.recorder import RecorderService
 from mntes_stream.service.replay import ReplayService
+from mntes_stream.service.router import RouterService
 from mntes_stream.service.simulator import SimulatorService
 from mntes_stream.service.source import SourceService
 
@@ -25,6 +26,7 @@ SERVICES: dict[str, type[Service]] = {cls.name: cls for cls in (
     RecorderService,
     ReplayService,
     MonitorService,
+    RouterService,
 )}
 
 
