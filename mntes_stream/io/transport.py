@@ -112,6 +112,22 @@ def _named_paths(path: str) -> set[str]:
     return out
 
 
+def _names_listen_endpoints(item: str) -> bool:
+    """Whether a ``KEY:VALUE`` change names where to listen (``listen/timeout_ms`` does not)."""
+    import json5
+
+    key, _, value = item.partition(":")
+    key = key.strip("/")
+    if key.startswith("listen/endpoints"):
+        return True
+    if key != "listen":
+        return False
+    try:
+        return "endpoints" in json5.loads(value)
+    except (ValueError, TypeError):  # zenoh itself reports a value it cannot take
+        return False
+
+
 def zenoh_config(settings: ZenohSettings):
     """The ``zenoh.Config`` for ``settings`` with every layer applied (see :class:`ZenohSettings`)."""
     import zenoh
@@ -133,8 +149,7 @@ def zenoh_config(settings: ZenohSettings):
         for item in s.cfg:
             key, _, value = item.partition(":")
             conf.insert_json5(key, value)
-        listen_named = s.listen is not None or "listen/endpoints" in named or any(
-            c.startswith("listen") for c in s.cfg)
+        listen_named = s.listen is not None or "listen/endpoints" in named or any(map(_names_listen_endpoints, s.cfg))
         mode = json.loads(conf.get_json("mode"))
         if not listen_named and mode != "client":
             # zenoh's default listens on every interface (tcp/[::]:0, a router tcp/[::]:7447).
