@@ -148,3 +148,69 @@ def test_live_bridge_serves_advertised_channels_and_the_converters_power(tmp_pat
         matched += 1
     assert matched >= 20
     assert 0.1 < np.median([v for m in got for v in m["p_opt_pw"].values()]) < 5  # pW: a plausible optical load
+
+
+def _validate_json_channels(path) -> dict[str, int]:
+    """Every json message of ``path`` against its channel's JSON Schema, with the plain mcap reader; counts per topic."""
+    from mcap.reader import make_reader
+
+    counts: dict[str, int] = {}
+    validators: dict[int, jsonschema.Draft202012Validator] = {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            if channel.message_encoding != "json":
+                assert channel.message_encoding == "msgpack"
+                continue
+            assert schema.encoding == "jsonschema" and schema.name.startswith("mntes.foxglove.")
+            v = validators.get(schema.id)
+            if v is None:
+                doc = json.loads(schema.data)
+                jsonschema.Draft202012Validator.check_schema(doc)
+                v = validators[schema.id] = jsonschema.Draft202012Validator(doc)
+            v.validate(json.loads(message.data))  # raises on the first message that does not fit
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    return counts
+
+
+def test_recorder_foxglove_channels_and_transcode_validate_with_an_independent_reader(tmp_path):
+    import dataclasses
+    import subprocess
+    import sys
+
+    from mntes_stream.io.mcap import Session
+    from mntes_stream.service.recorder import RecorderConfig, RecorderService
+
+    rec_dir = tmp_path / "rec"
+    with live_setup(tmp_path) as zport:
+        rec = RecorderService(RecorderConfig(directory=str(rec_dir), foxglove_channels=True,
+                                             zenoh=dataclasses.replace(loopback(None, [zport]), gossip=True)))
+        with running(rec):
+            time.sleep(2.5)
+    (recorded,) = sorted(rec_dir.glob("*.mcap"))
+    live_counts = _validate_json_channels(recorded)
+    assert any(t.startswith("/mntes/lab/power/") for t in live_counts), live_counts
+    assert "/mntes/lab/status/converter" in live_counts and "/mntes/lab/flag_rates/converter" in live_counts
+    print(live_counts)
+
+    # The same recording's msgpack originals only, transcoded by the command line.
+    plain = tmp_path / "plain.mcap"
+    from mntes_stream.foxglove.transcode import transcode
+
+    transcode(recorded, plain, foxglove=False)
+    assert _validate_json_channels(plain) == {}
+    out = tmp_path / "fox.mcap"
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "transcode", str(plain), str(out), "--foxglove",
+                          "--per-module", "0"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    counts = _validate_json_channels(out)
+    before, after = Session(plain).message_counts(), Session(out).message_counts()
+    assert {t: n for t, n in after.items() if not t.startswith("/")} == before  # originals all kept
+    n_power = sum(n for t, n in before.items() if "/power/" in t)
+    # Every power sample of every detector is a json value (--per-module 0, no rate limit).
+    power_json = sum(n for t, n in counts.items() if "/power/" in t)
+    assert n_power > 0 and power_json == n_power * SRC.chunk_samples
+    assert "/mntes/lab/flag_rates/converter" in counts
+    # Units and flag names travel with the json schema; a person reads them without project code.
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "transcode", str(plain), str(out), "--foxglove"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode != 0 and "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1

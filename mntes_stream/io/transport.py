@@ -40,6 +40,7 @@ __all__ = [
     "Publishers",
     "QueueSubscriber",
     "answer",
+    "set_publish_observer",
 ]
 
 _MODES = ("peer", "client", "router")
@@ -211,9 +212,15 @@ def answer(session, key: str, payload: bytes):
 
     Returns the queryable (undeclared when the session closes)."""
 
+    import zenoh
+
+    from mntes_stream.io.describe import zenoh_encoding
+
+    encoding = zenoh.Encoding(zenoh_encoding(key))
+
     def on_query(query) -> None:
         try:
-            query.reply(key, payload() if callable(payload) else payload)
+            query.reply(key, payload() if callable(payload) else payload, encoding=encoding)
         except Exception:  # a querier that went away: nothing to answer
             pass
 
@@ -223,8 +230,20 @@ def answer(session, key: str, payload: bytes):
         raise TransportError(f"cannot declare queryable on {key!r}: {exc}") from None
 
 
+_PUBLISH_OBSERVER = threading.local()
+
+
+def set_publish_observer(fn) -> None:
+    """``fn(key, payload)`` sees every message put by :class:`Publishers` created later in this thread
+    (a service's metrics, ``service/metrics.py``); None stops it."""
+    _PUBLISH_OBSERVER.fn = fn
+
+
 class Publishers:
     """One BLOCK publisher per key, declared on first use.
+
+    Each publisher sets the sample encoding ``application/msgpack;<schema>.v<version>``
+    (``io/describe.py``): a subscriber knows what a payload is before decoding it.
 
     Parameters
     ----------
@@ -241,12 +260,18 @@ class Publishers:
         self._pubs: dict[str, object] = {}
         self.messages = 0
         self.bytes = 0
+        self._observe = getattr(_PUBLISH_OBSERVER, "fn", None)
 
     def publisher(self, key: str):
         pub = self._pubs.get(key)
         if pub is None:
+            import zenoh
+
+            from mntes_stream.io.describe import zenoh_encoding
+
             try:
-                pub = self._session.declare_publisher(key, congestion_control=self._cc)
+                pub = self._session.declare_publisher(key, congestion_control=self._cc,
+                                                      encoding=zenoh.Encoding(zenoh_encoding(key)))
             except Exception as exc:
                 raise TransportError(f"cannot declare publisher on {key!r}: {exc}") from None
             self._pubs[key] = pub
@@ -256,6 +281,8 @@ class Publishers:
         self.publisher(key).put(payload)
         self.messages += 1
         self.bytes += len(payload)
+        if self._observe is not None:
+            self._observe(key, payload)
 
     def wait_matching(self, keys: Iterable[str], timeout_s: float, stop=None) -> bool:
         """Wait until every key has a matching subscriber (True) or the timeout passes."""

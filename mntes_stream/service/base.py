@@ -32,6 +32,7 @@ from typing import Any, ClassVar
 from mntes_stream.core.settings import build_document
 from mntes_stream.io import keys
 from mntes_stream.io.presence import Presence, presence
+from mntes_stream.service.metrics import metrics_for
 
 __all__ = ["Service", "Heartbeat", "StopFlag", "stop_on_signals"]
 
@@ -188,7 +189,7 @@ class Service(abc.ABC):
         """:meth:`run` with the heartbeat's state kept and the service announced on every zenoh
         session it opens: what ``serve`` and the supervisor call."""
         try:
-            with presence(self.presence()):
+            with presence(self.presence()), metrics_for(self):
                 result = self.run(stop, _Ready(self.heartbeat, ready))
         except BaseException:
             self.heartbeat.set_state("failed")

@@ -23,6 +23,7 @@ from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "run_recorder"]
 
@@ -56,6 +57,9 @@ class RecorderConfig(Settings):
                                         "(BLOCK), never dropped", ge=1)
     queue_mb: float = setting(256.0, "... and at most this much payload: big messages cannot fill memory", unit="MB",
                               gt=0)
+    foxglove_channels: bool = setting(False, "also write json channels the Foxglove app reads (power of the first "
+                                             "detectors per module, flag rates, housekeeping, status; foxglove/)")
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     @property
@@ -66,6 +70,7 @@ class RecorderConfig(Settings):
         """Flat string form stored in every file's ``mntes.recording`` metadata."""
         d = asdict(self)
         z = d.pop("zenoh")
+        d.pop("metrics")
         out = {f"recorder.{k}": str(v) for k, v in d.items()}
         out.update({f"recorder.zenoh.{k}": str(list(v) if isinstance(v, tuple) else v) for k, v in z.items()})
         out["recorder.subscription"] = self.subscription
@@ -132,6 +137,11 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         fsync=config.fsync,
         metadata=config.to_metadata(),
     )
+    json_channels = None
+    if config.foxglove_channels:
+        from mntes_stream.foxglove.transcode import JsonChannels
+
+        json_channels = JsonChannels(writer)
     sequences: dict[str, StreamSequence] = {}
     by_kind: dict[str, int] = {}
     t_start = time.monotonic()
@@ -140,6 +150,8 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
     def write(item) -> None:
         topic, payload, t_ns = item
         env = writer.write(topic, payload, t_ns)
+        if json_channels is not None and not env.problem:
+            json_channels.add(env.schema, payload)
         kind = keys.kind_of(topic) or "other"
         by_kind[kind] = by_kind.get(kind, 0) + 1
         if env.seq is not None:
@@ -157,8 +169,9 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
             sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages,
                                   max_bytes=int(config.queue_mb * 1e6))
-            # What is answered on request (a converter's provenance) is recorded from the start too.
-            sub.query(session, config.subscription)
+            # A converter's provenance, answered on request, is recorded from the start too (only that:
+            # the heartbeat queryables under alive/ answer a wider query, and are not data).
+            sub.query(session, keys.provenance_key(config.setup))
             log.info("recording %s into %s", config.subscription, writer.current_path)
             if ready is not None:
                 ready.set()
@@ -173,7 +186,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
                 writer.tick()
                 if heartbeat is not None:
                     heartbeat.beat(messages=writer.messages, payload_bytes=writer.payload_bytes, invalid=writer.invalid,
-                                   files=len(writer.files))
+                                   files=len(writer.files), queue_depth=sub.qsize())
                 if time.monotonic() >= next_log:
                     next_log += config.log_interval_s
                     log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)

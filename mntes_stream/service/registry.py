@@ -8,6 +8,7 @@ A new service is one module and one line here.
 from __future__ import annotations
 
 from mntes_stream.errors import ConfigError
+from mntes_stream.foxglove.service import FoxgloveService
 from mntes_stream.monitor.service import MonitorService
 from mntes_stream.service.base import Service
 from mntes_stream.service.converter import ConverterService
@@ -26,6 +27,7 @@ SERVICES: dict[str, type[Service]] = {cls.name: cls for cls in (
     RecorderService,
     ReplayService,
     MonitorService,
+    FoxgloveService,
     RouterService,
 )}
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import numbers
 import os
 import re
@@ -17,6 +18,7 @@ from mntes_stream import __version__
 from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, SchemaError, TransportError
 from mntes_stream.io import keys
+from mntes_stream.io.describe import mcap_metadata
 from mntes_stream.io.mcap.envelope import (
     MESSAGE_ENCODING,
     PROVENANCE_ATTACHMENT,
@@ -80,9 +82,12 @@ class McapFileWriter:
             raise TransportError(f"cannot create {self.path}: {exc}") from None
         self._fsync = fsync
         self._schemas: dict[tuple[str, int], int] = {}
+        self._json_schemas: dict[str, int] = {}
+        self._json_channels: dict[str, int] = {}
         self._channels: dict[tuple[str, str, int, str], int] = {}
         self._provenance: tuple[bytes, int] | None = None
         self.messages = 0
+        self.json_messages = 0
         self.payload_bytes = 0
         self.unflushed_bytes = 0
         self.invalid = 0
@@ -90,7 +95,8 @@ class McapFileWriter:
         try:
             self._writer = Writer(self._file, chunk_size=chunk_size_bytes, compression=_COMPRESSION[compression])
             self._writer.start(profile="", library=f"mntes-stream {__version__}")
-            for name, data in (metadata or {}).items():
+            # Flag bits and units in every file: a reader needs no project code to know what bit 3 means.
+            for name, data in {**mcap_metadata(), **(metadata or {})}.items():
                 self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
             if provenance is not None:
                 self._add_provenance(*provenance)
@@ -143,6 +149,26 @@ class McapFileWriter:
         if env.schema == PROVENANCE_SCHEMA and not env.problem and (self._provenance is None or payload != self._provenance[0]):
             self._add_provenance(payload, log_time_ns)
         return env
+
+    def write_json(self, topic: str, schema_name: str, schema: Mapping, message: Mapping, log_time_ns: int) -> None:
+        """One json message (encoding ``json``, its JSON Schema registered once as ``jsonschema``), e.g. the
+        Foxglove channels of ``mntes_stream.foxglove.translate`` beside the msgpack originals."""
+        sid = self._json_schemas.get(schema_name)
+        if sid is None:
+            sid = self._json_schemas[schema_name] = self._writer.register_schema(
+                schema_name, SCHEMA_ENCODING, json.dumps(schema, separators=(",", ":")).encode())
+        cid = self._json_channels.get(topic)
+        if cid is None:
+            cid = self._json_channels[topic] = self._writer.register_channel(topic, "json", sid,
+                                                                             {"mntes.schema": schema_name})
+        data = json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
+        self._writer.add_message(cid, log_time=int(log_time_ns), data=data, publish_time=int(log_time_ns))
+        self.json_messages += 1
+        self.unflushed_bytes += len(data)
+
+    def add_attachment(self, name: str, media_type: str, data: bytes, log_time_ns: int, create_time_ns: int) -> None:
+        self._writer.add_attachment(create_time=int(create_time_ns), log_time=int(log_time_ns), name=name,
+                                    media_type=media_type, data=bytes(data))
 
     def _add_provenance(self, payload: bytes, log_time_ns: int) -> None:
         """Attachment + metadata for a provenance payload that :func:`check_provenance` accepted."""
@@ -291,6 +317,10 @@ class RotatingMcapWriter:
     @property
     def current_path(self) -> Path:
         return self._current.path
+
+    def write_json(self, topic: str, schema_name: str, schema: Mapping, message: Mapping, log_time_ns: int) -> None:
+        """:meth:`McapFileWriter.write_json` on the current file (schemas and channels are per file)."""
+        self._current.write_json(topic, schema_name, schema, message, log_time_ns)
 
     def write(self, key: str, payload: bytes, log_time_ns: int) -> Envelope:
         env = self._current.write(key, payload, log_time_ns)
