@@ -8,8 +8,8 @@ import math
 
 from mntes_stream.cli._common import add_zenoh_args, service_config, settings_from_args, setup_logging, zenoh_layer
 
-_SERVICE = ("setup", "bind", "port", "update_s", "text", "duration_s")
-_VIEW = ("history_s", "silent_s", "hk_stale_s")
+_SERVICE = ("setup", "bind", "allowed_hosts", "port", "update_s", "text", "duration_s", "params")
+_VIEW = ("history_s", "long_history_s", "memory_mb", "silent_s", "hk_stale_s")
 
 
 def _f_hwp(text: str):
@@ -65,7 +65,8 @@ def register(sub) -> None:
         "monitor",
         help="quick-look web page (or --text table) of power, housekeeping and service health",
         description="Subscribe to mntes/<setup>/{power,hk,status} and serve a live page on 127.0.0.1 "
-        "(time streams, spectrum with HWP harmonics, channel-state grid, housekeeping, service health). "
+        "(time streams over 30 s to 1 h, spectrum with HWP harmonics, focal-plane view by state, power, flag "
+        "rate or noise, housekeeping, service health, a badge that turns red when data stop). "
         "Works the same on a live converter and on `mntes-stream replay`. The [monitor] service of "
         "`serve`, with flags.",
     )

@@ -32,6 +32,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.core.settings import Settings, setting
+from mntes_stream.errors import ConfigError
 from mntes_stream.monitor.analysis import (
     decimate_minmax,
     estimate_f_hwp,
@@ -39,6 +40,7 @@ from mntes_stream.monitor.analysis import (
     log_bin,
     welch_psd,
 )
+from mntes_stream.monitor.history import Ring, SlowRing
 
 __all__ = [
     "STATE_NAMES",
@@ -58,17 +60,34 @@ STATE_TRANSITION, STATE_SATURATED, STATE_SUPERCONDUCTING, STATE_FLAGGED, STATE_S
 # Flags that make a channel "flagged" (saturated and superconducting have their own states).
 _OTHER_FLAGS = np.uint16(sum(fl.NAMES) & ~(fl.SATURATED | fl.SUPERCONDUCTING))
 _SCALAR_SENSORS = ("t_bath", "b_field")
+_LATENCIES_KEPT = 10_000  # per tick interval: the latency figures' sample
 
 
 @dataclass(frozen=True)
 class MonitorConfig(Settings):
-    """What the monitor keeps and how it reduces it.
+    """What the monitor keeps, how it reduces it, and its memory budget.
 
     Attributes
     ----------
     history_s : float
-        Full-rate power kept per channel (the time-stream window and the
-        spectrum's data), and housekeeping history.
+        Full-rate power kept for every channel (the default time-stream window
+        and the spectrum's data), and housekeeping history.
+    long_history_s : float
+        History of the plotted channels at full rate, and of every channel as
+        ``slow_bin_s`` means.
+    slow_bin_s : float
+        Bin of the downsampled long history of every channel.
+    full_rate_channels : int
+        Channels (the most recently plotted) kept at full rate for ``long_history_s``.
+    max_rate_hz : float
+        Rings hold ``window x max_rate_hz`` samples at most: they are sized
+        from configuration, never from the rate a message claims (a faster
+        stream keeps a shorter window).
+    memory_mb : float
+        Budget of every buffer; a new stream that does not fit evicts idle
+        ones, else it is refused and counted (``over_budget``).
+    max_services : int
+        Service statuses kept (the stalest is evicted first).
     max_points : int
         Points per time-stream or housekeeping trace sent to the page.
     spectrum_points : int
@@ -77,7 +96,13 @@ class MonitorConfig(Settings):
         HWP rotation frequency whose 1f/2f/4f are marked; None estimates it
         from the spectra (:func:`~mntes_stream.monitor.analysis.estimate_f_hwp`).
     silent_s : float
-        A module with no power chunk for this long shows its channels silent.
+        A module with no power chunk for this long shows its channels silent
+        (and may be evicted for a new one).
+    stale_chunks, stale_min_s : float
+        No power for more than ``stale_chunks`` chunk intervals (at least
+        ``stale_min_s``) makes the whole view stale.
+    replay_after_s : float
+        Power published longer than this before it arrives is a replay.
     flag_frac : float
         Fraction of a channel's samples (since the last tick) that must be
         saturated, superconducting or otherwise flagged for it to leave "transition".
@@ -89,49 +114,98 @@ class MonitorConfig(Settings):
         Page render reports kept for the latency figures.
     """
 
-    history_s: float = setting(30.0, "full-rate power kept per channel and plotted", unit="s", gt=0)
+    history_s: float = setting(30.0, "full-rate power kept per channel and plotted", unit="s", gt=0, le=3600)
+    long_history_s: float = setting(3600.0, "history of plotted channels at full rate, of the rest downsampled",
+                                    unit="s", gt=0, le=86400)
+    slow_bin_s: float = setting(1.0, "bin of the downsampled history of every channel", unit="s", gt=0)
+    full_rate_channels: int = setting(16, "plotted channels kept at full rate over long_history_s", ge=0, le=1024)
+    max_rate_hz: float = setting(200.0, "rings hold window x this many samples at most (never sized from a "
+                                 "claimed rate)", unit="Hz", gt=0, le=1e5)
+    memory_mb: float = setting(768.0, "budget of every buffer: new streams beyond it evict idle ones or are refused",
+                               unit="MB", gt=0)
+    max_services: int = setting(64, "service statuses kept (the stalest evicted first)", ge=1)
     max_points: int = setting(1200, "points per time-stream or housekeeping trace sent to the page", ge=2)
     spectrum_points: int = setting(400, "log-spaced points per spectrum sent to the page", ge=2)
     f_hwp_hz: float | None = setting(0.77, "HWP frequency whose 1f/2f/4f are marked (absent: estimated)", unit="Hz",
                                      gt=0)
     silent_s: float = setting(3.0, "a module without data this long shows its channels silent", unit="s", gt=0)
+    stale_chunks: float = setting(3.0, "no power for this many chunk intervals: the view is stale", gt=0)
+    stale_min_s: float = setting(0.5, "the stale threshold is at least this", unit="s", ge=0)
+    replay_after_s: float = setting(60.0, "power published longer than this before it arrives is a replay",
+                                    unit="s", gt=0)
     flag_frac: float = setting(0.1, "share of a channel's samples flagged for it to leave 'transition'", gt=0, le=1)
     hk_stale_s: float = setting(2.0, "housekeeping or a service status not received this long is stale", unit="s",
                                 gt=0)
     max_selected: int = setting(16, "channels one page may plot at once", ge=2)
     latency_reports: int = setting(600, "page render reports kept for the latency figures", ge=2)
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.full_rate_bytes() >= self.memory_mb * 1e6:
+            raise ConfigError(f"memory_mb: {self.memory_mb} MB does not even hold the {self.full_rate_channels} "
+                              f"full-rate channels ({self.full_rate_bytes() / 1e6:.0f} MB); raise it or lower "
+                              "full_rate_channels, long_history_s or max_rate_hz")
+
+    def ring_samples(self, window_s: float, rate_hz: float) -> int:
+        """Samples a ring over ``window_s`` holds: the window at the stream's rate, capped by ``max_rate_hz``."""
+        return max(int(math.ceil(window_s * min(rate_hz, self.max_rate_hz))), 16)
+
+    def full_rate_bytes(self) -> int:
+        """Bytes reserved for the full-rate long history of ``full_rate_channels``."""
+        return self.full_rate_channels * Ring.max_nbytes(1, self.ring_samples(self.long_history_s, self.max_rate_hz))
+
+    def module_bytes(self, n_ch: int) -> int:
+        """Bytes reserved for one module of ``n_ch`` channels (rings at their cap, counters, ids)."""
+        return (Ring.max_nbytes(n_ch, self.ring_samples(self.history_s, self.max_rate_hz))
+                + SlowRing.max_nbytes(n_ch, self.slow_bin_s, self.long_history_s)
+                + _MODULE_OVERHEAD_B + _CHANNEL_OVERHEAD_B * n_ch)
+
+
+# Python objects around a module's arrays (sequence tracker, dicts, ids): measured order of magnitude.
+_MODULE_OVERHEAD_B = 16_000
+_CHANNEL_OVERHEAD_B = 200
+
 
 class ModuleBuffer:
-    """Full-rate power ring and state counters of one ``(board, module)`` stream.
+    """Full-rate power ring, downsampled long history and state counters of one ``(board, module)`` stream.
 
     Parameters
     ----------
     board, module : int
     channels : ndarray of int32, shape (n_ch,)
     sample_rate_hz : float
-    history_s : float
+        As the chunks claim it: it sets the window, never the memory
+        (see :meth:`MonitorConfig.ring_samples`).
+    config : MonitorConfig
     """
 
-    def __init__(self, board: int, module: int, channels: np.ndarray, sample_rate_hz: float, history_s: float):
+    def __init__(self, board: int, module: int, channels: np.ndarray, sample_rate_hz: float, config: MonitorConfig):
         self.board = int(board)
         self.module = int(module)
         self.channels = np.asarray(channels, dtype=np.int32).copy()
         self.ids = tuple(detector_id(board, module, c) for c in self.channels.tolist())
         self.sample_rate_hz = float(sample_rate_hz)
-        self.capacity = max(int(math.ceil(history_s * self.sample_rate_hz)), 16)
+        self.config = config
         n_ch = self.channels.size
-        self._t = np.zeros(self.capacity, dtype=np.int64)
-        self._p = np.full((n_ch, self.capacity), np.nan, dtype=np.float32)
-        self._head = 0      # next write position
-        self.count = 0      # valid samples in the ring
+        self.capacity = config.ring_samples(config.history_s, self.sample_rate_hz)
+        self.ring = Ring(n_ch, self.capacity)
+        self.slow = SlowRing(n_ch, config.slow_bin_s, config.long_history_s)
+        self.watched: dict[int, Ring] = {}  # row -> full-rate long history of a plotted channel
+        self.reserved_bytes = config.module_bytes(n_ch)
         self.newest_t_ns: int | None = None
         self.newest_t_pub_ns = 0
         self.last_recv_ns: int | None = None
+        self._recv_gaps: collections.deque = collections.deque(maxlen=9)
+        self._chunk_s = 0.1
+        self.replay = False
         self.sequence = StreamSequence()
         self.late = 0
         self.restarts = 0
         self.state = np.full(n_ch, STATE_SILENT, dtype=np.uint8)
+        # Focal-plane figures of the last tick with samples (NaN: none yet).
+        self.power_w = np.full(n_ch, np.nan)
+        self.flag_frac = np.full(n_ch, np.nan)
+        self.noise_w_rthz = np.full(n_ch, np.nan)
         self._reset_counters()
 
     def _reset_counters(self) -> None:
@@ -140,22 +214,51 @@ class ModuleBuffer:
         self._n_sat = np.zeros(n_ch, dtype=np.int64)
         self._n_sc = np.zeros(n_ch, dtype=np.int64)
         self._n_other = np.zeros(n_ch, dtype=np.int64)
+        self._n_flag = np.zeros(n_ch, dtype=np.int64)
+        self._sum_p = np.zeros(n_ch)
+        self._n_p = np.zeros(n_ch, dtype=np.int64)
+        self._sum_d2 = np.zeros(n_ch)
+        self._n_d2 = np.zeros(n_ch, dtype=np.int64)
+
+    @property
+    def capacity_bytes(self) -> int:
+        """Bytes the buffers hold now (grows with the data received, up to :attr:`reserved_bytes`)."""
+        return self.ring.nbytes + self.slow.nbytes + sum(r.nbytes for r in self.watched.values())
 
     def matches(self, channels: np.ndarray, sample_rate_hz: float) -> bool:
         return np.array_equal(channels, self.channels) and abs(sample_rate_hz - self.sample_rate_hz) <= 1e-6 * self.sample_rate_hz
 
+    def chunk_interval_s(self) -> float:
+        """Time between this stream's chunks: the median receive gap, else one chunk's span."""
+        if len(self._recv_gaps) >= 2:
+            return float(np.median(self._recv_gaps))
+        return self._chunk_s
+
     def add(self, t_ns: np.ndarray, p_opt_w: np.ndarray, flags: np.ndarray, seq: int, t_pub_ns: int, t_recv_ns: int) -> None:
         """Append one chunk: times (n,), power and flags (n_ch, n)."""
+        if self.last_recv_ns is not None and t_recv_ns > self.last_recv_ns:
+            self._recv_gaps.append((t_recv_ns - self.last_recv_ns) / 1e9)
         self.last_recv_ns = int(t_recv_ns)
+        self._chunk_s = min(max(t_ns.size / self.sample_rate_hz, 1e-3), 60.0)
+        self.replay = t_recv_ns - t_pub_ns > self.config.replay_after_s * 1e9
         self.newest_t_pub_ns = max(self.newest_t_pub_ns, int(t_pub_ns))
         self.sequence.observe(seq, int(t_ns[0]) if t_ns.size else int(t_pub_ns))
         sat = (flags & fl.SATURATED) != 0
         sc = (flags & fl.SUPERCONDUCTING) != 0
-        other = ((flags & _OTHER_FLAGS) != 0) | (~np.isfinite(p_opt_w) & ~sat & ~sc)
+        finite = np.isfinite(p_opt_w)
+        other = ((flags & _OTHER_FLAGS) != 0) | (~finite & ~sat & ~sc)
         self._n += flags.shape[1]
         self._n_sat += sat.sum(axis=1)
         self._n_sc += sc.sum(axis=1)
         self._n_other += other.sum(axis=1)
+        self._n_flag += ((flags != 0) | ~finite).sum(axis=1)
+        self._sum_p += np.where(finite, p_opt_w, 0.0).sum(axis=1)
+        self._n_p += finite.sum(axis=1)
+        if p_opt_w.shape[1] > 1:
+            d = np.diff(p_opt_w, axis=1)
+            ok = np.isfinite(d)
+            self._sum_d2 += np.square(np.where(ok, d, 0.0)).sum(axis=1)
+            self._n_d2 += ok.sum(axis=1)
         n = t_ns.size
         if n == 0:
             return
@@ -164,23 +267,21 @@ class ModuleBuffer:
             if int(t_ns[-1]) < self.newest_t_ns - history_ns:
                 # Much older than anything held: a replay started over; start afresh.
                 self.restarts += 1
-                self.count = 0
-                self._head = 0
+                self.ring.clear()
+                self.slow.clear()
+                for ring in self.watched.values():
+                    ring.clear()
             else:
-                self.late += 1  # counted in the state, not drawn: the ring stays time-ordered
+                self.late += 1  # counted in the state, not drawn: the rings stay time-ordered
                 return
-        if n >= self.capacity:
-            t_ns, p_opt_w = t_ns[-self.capacity:], p_opt_w[:, -self.capacity:]
-            n = self.capacity
-        idx = (self._head + np.arange(n)) % self.capacity
-        self._t[idx] = t_ns
-        self._p[:, idx] = p_opt_w
-        self._head = (self._head + n) % self.capacity
-        self.count = min(self.count + n, self.capacity)
+        self.ring.append(t_ns, p_opt_w)
+        self.slow.add(t_ns, p_opt_w)
+        for row, ring in self.watched.items():
+            ring.append(t_ns, p_opt_w[row:row + 1])
         self.newest_t_ns = int(t_ns[-1])
 
     def classify(self, now_ns: int, config: MonitorConfig) -> None:
-        """Set :attr:`state` from the counters since the last call, then reset them."""
+        """Set :attr:`state` and the focal-plane figures from the counters since the last call, then reset them."""
         if self.last_recv_ns is None or now_ns - self.last_recv_ns > config.silent_s * 1e9:
             self.state[:] = STATE_SILENT
         elif self._n > 0:
@@ -190,17 +291,30 @@ class ModuleBuffer:
             state = codes[worst]
             state[counts.max(axis=0) < config.flag_frac * self._n] = STATE_TRANSITION
             self.state = state
+        if self._n > 0:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                self.power_w = np.where(self._n_p > 0, self._sum_p / np.maximum(self._n_p, 1), np.nan)
+                self.flag_frac = self._n_flag / self._n
+                # White-noise ASD from sample differences: var(d) = 2 sigma^2, one-sided PSD = 2 sigma^2 / fs.
+                sigma2 = np.where(self._n_d2 > 0, self._sum_d2 / np.maximum(self._n_d2, 1) / 2, np.nan)
+                self.noise_w_rthz = np.sqrt(2 * sigma2 / self.sample_rate_hz)
         self._reset_counters()
 
     def read(self, rows: np.ndarray, since_ns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Samples held for ``rows``, oldest first: times (m,), power float64 (len(rows), m)."""
-        start = (self._head - self.count) % self.capacity
-        idx = (start + np.arange(self.count)) % self.capacity
-        t = self._t[idx]
-        if since_ns is not None:
-            keep = t >= since_ns
-            idx, t = idx[keep], t[keep]
-        return t, self._p[np.asarray(rows)[:, None], idx[None, :]].astype(np.float64)
+        return self.ring.read(rows, since_ns)
+
+    def watch(self, row: int) -> None:
+        """Keep ``row`` at full rate over ``long_history_s``, starting from what the short ring holds."""
+        if row in self.watched:
+            return
+        ring = Ring(1, self.config.ring_samples(self.config.long_history_s, self.sample_rate_hz))
+        t, p = self.ring.read(np.array([row]))
+        ring.append(t, p)
+        self.watched[row] = ring
+
+    def unwatch(self, row: int) -> None:
+        self.watched.pop(row, None)
 
 
 def _round_list(a: np.ndarray, decimals: int) -> list:
@@ -224,8 +338,9 @@ def _sig_list(a: np.ndarray, digits: int = 4) -> list:
 class _HkHistory:
     """Readings of one scalar sensor over the last ``history_s`` (data clock)."""
 
-    def __init__(self, history_s: float):
+    def __init__(self, history_s: float, max_n: int):
         self.history_ns = int(history_s * 1e9)
+        self.max_n = int(max_n)
         self.t = np.zeros(0, dtype=np.int64)
         self.v = np.zeros(0)
         self.last_recv_ns: int | None = None
@@ -244,7 +359,7 @@ class _HkHistory:
         self.v = np.concatenate([self.v, value])
         if self.t.size:
             keep = self.t >= self.t[-1] - self.history_ns
-            self.t, self.v = self.t[keep], self.v[keep]
+            self.t, self.v = self.t[keep][-self.max_n:], self.v[keep][-self.max_n:]
 
 
 class Aggregator:
@@ -257,13 +372,21 @@ class Aggregator:
     selected channels. Not thread-safe: the caller holds a lock.
     """
 
-    def __init__(self, config: MonitorConfig | None = None):
+    def __init__(self, config: MonitorConfig | None = None, positions: dict | None = None):
         self.config = config or MonitorConfig()
+        self.positions: dict[str, tuple[float, float]] = dict(positions or {})
         self.modules: dict[tuple[int, int], ModuleBuffer] = {}
+        self.reserved_bytes = 0
+        self.budget_bytes = int(self.config.memory_mb * 1e6) - self.config.full_rate_bytes()
+        self.over_budget = 0
+        self.evicted = 0
+        self.services_evicted = 0
+        self._watched: collections.OrderedDict = collections.OrderedDict()  # det id -> None, oldest first
         self._index: dict[str, tuple[tuple[int, int], int]] = {}
         self.layout_version = 0
         self._layout_cache: tuple[int, list] | None = None
-        self.hk: dict[str, _HkHistory] = {s: _HkHistory(self.config.history_s) for s in _SCALAR_SENSORS}
+        hk_max = self.config.ring_samples(self.config.history_s, self.config.max_rate_hz)
+        self.hk: dict[str, _HkHistory] = {s: _HkHistory(self.config.history_s, hk_max) for s in _SCALAR_SENSORS}
         self.bias_readings = 0
         self.statuses: dict[str, tuple] = {}  # service -> (status, t_recv_ns, input rate or None)
         self.bad_messages: collections.Counter = collections.Counter()
@@ -272,7 +395,7 @@ class Aggregator:
         self.power_samples = 0
         self._interval_chunks = 0
         self._interval_samples = 0
-        self._interval_latency_ms: list[float] = []
+        self._interval_latency_ms: collections.deque = collections.deque(maxlen=_LATENCIES_KEPT)
         self._last_tick_ns: int | None = None
         self._renders: collections.deque = collections.deque(maxlen=self.config.latency_reports)
 
@@ -287,15 +410,77 @@ class Aggregator:
             rate = 1e9 / float(np.median(np.diff(t_ns))) if t_ns.size > 1 else 1.0
         buf = self.modules.get(key)
         if buf is None or not buf.matches(chunk.channels, rate):
-            buf = ModuleBuffer(key[0], key[1], chunk.channels, rate, self.config.history_s)
-            self.modules[key] = buf
-            self._reindex()
+            buf = self._admit(key, chunk.channels, rate, int(t_recv_ns))
+            if buf is None:
+                return
         buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns)
         self.power_chunks += 1
         self.power_samples += int(chunk.p_opt_w.size)
         self._interval_chunks += 1
         self._interval_samples += int(chunk.p_opt_w.size)
-        self._interval_latency_ms.append((int(t_recv_ns) - int(chunk.t_pub_ns)) / 1e6)
+        if buf.replay:  # the recording's own clock: its samples' end to its publication
+            if t_ns.size:
+                self._interval_latency_ms.append((int(chunk.t_pub_ns) - int(t_ns[-1])) / 1e6)
+        else:
+            self._interval_latency_ms.append((int(t_recv_ns) - int(chunk.t_pub_ns)) / 1e6)
+
+    def _admit(self, key: tuple[int, int], channels: np.ndarray, rate_hz: float, t_recv_ns: int) -> ModuleBuffer | None:
+        """A new buffer for ``key`` if its reservation fits the budget (evicting idle modules), else None (counted)."""
+        old = self.modules.pop(key, None)
+        if old is not None:
+            self.reserved_bytes -= old.reserved_bytes
+        need = self.config.module_bytes(int(np.asarray(channels).size))
+        if self.reserved_bytes + need > self.budget_bytes:
+            idle_ns = t_recv_ns - int(self.config.silent_s * 1e9)
+            idle = sorted((b.last_recv_ns or 0, k) for k, b in self.modules.items() if (b.last_recv_ns or 0) < idle_ns)
+            for _, k in idle:
+                if self.reserved_bytes + need <= self.budget_bytes:
+                    break
+                self.reserved_bytes -= self.modules.pop(k).reserved_bytes
+                self.evicted += 1
+        if self.reserved_bytes + need > self.budget_bytes:
+            self.over_budget += 1
+            if old is not None:
+                self._reindex()
+            return None
+        buf = ModuleBuffer(key[0], key[1], channels, rate_hz, self.config)
+        self.modules[key] = buf
+        self.reserved_bytes += need
+        self._reindex()
+        for det in self._watched:  # a replaced module keeps its plotted channels at full rate
+            where = self._index.get(det)
+            if where is not None and where[0] == key:
+                buf.watch(where[1])
+        return buf
+
+    def watch(self, selection: Iterable[str]) -> None:
+        """The channels a page plots: kept at full rate over ``long_history_s`` (the most recent
+        ``full_rate_channels`` of them; older ones fall back to the downsampled history)."""
+        for det in self.resolve(selection):
+            if det in self._watched:
+                self._watched.move_to_end(det)
+                continue
+            self._watched[det] = None
+            key, row = self._index[det]
+            if self.config.full_rate_channels > 0:
+                self.modules[key].watch(row)
+        while len(self._watched) > self.config.full_rate_channels:
+            det, _ = self._watched.popitem(last=False)
+            where = self._index.get(det)
+            if where is not None:
+                self.modules[where[0]].unwatch(where[1])
+
+    def memory(self) -> dict:
+        """What the buffers hold and reserve, in bytes, and what the budget refused."""
+        return {
+            "held_bytes": int(sum(b.capacity_bytes for b in self.modules.values())),
+            "reserved_bytes": int(self.reserved_bytes + self.config.full_rate_bytes()),
+            "budget_bytes": int(self.config.memory_mb * 1e6),
+            "over_budget": self.over_budget,
+            "evicted": self.evicted,
+            "services_evicted": self.services_evicted,
+            "full_rate_channels": sorted(self._watched),
+        }
 
     def add_hk(self, chunk, t_recv_ns: int) -> None:
         """One :class:`~mntes_stream.io.messages.HousekeepingChunk`."""
@@ -312,6 +497,10 @@ class Aggregator:
             dn = status.chunks_received - prev[0].chunks_received
             if dn >= 0:
                 rate = dn / ((status.t_ns - prev[0].t_ns) / 1e9)
+        if prev is None and len(self.statuses) >= self.config.max_services:
+            stalest = min(self.statuses, key=lambda s: self.statuses[s][1])
+            del self.statuses[stalest]
+            self.services_evicted += 1
         self.statuses[status.service] = (status, int(t_recv_ns), rate)
 
     def add_bad(self, reason: str) -> None:
@@ -334,7 +523,13 @@ class Aggregator:
     def layout(self) -> list[dict]:
         """The grid's rows: one per module, sorted, with its channel numbers."""
         if self._layout_cache is None or self._layout_cache[0] != self.layout_version:
-            rows = [{"board": b, "module": m, "channels": self.modules[(b, m)].channels.tolist()} for b, m in sorted(self.modules)]
+            rows = []
+            for b, m in sorted(self.modules):
+                buf = self.modules[(b, m)]
+                row = {"board": b, "module": m, "channels": buf.channels.tolist()}
+                if self.positions:  # sky position [x, y] in degrees where the parameter file gives one
+                    row["positions"] = [self.positions.get(d) for d in buf.ids]
+                rows.append(row)
             self._layout_cache = (self.layout_version, rows)
         return self._layout_cache[1]
 
@@ -389,7 +584,9 @@ class Aggregator:
             ``t_ns``, ``layout_version``, ``codes`` (one digit per channel in
             :meth:`layout` order, an index into ``state_names``),
             ``state_counts``, ``hk`` (decimated history per sensor),
-            ``health``.
+            ``health``, ``freshness`` (:meth:`freshness`), ``focal`` (per
+            channel in layout order: ``power_pw``, ``flag_pct``,
+            ``noise_aw_rthz``, None where unknown), ``memory``.
         """
         now_ns = int(now_ns)
         for buf in self.modules.values():
@@ -404,12 +601,49 @@ class Aggregator:
             "state_counts": {name: int(np.count_nonzero(states == i)) for i, name in enumerate(STATE_NAMES)},
             "hk": self._hk_view(),
             "health": self._health(now_ns, interval_s),
+            "freshness": self.freshness(now_ns),
+            "focal": self._focal(),
+            "memory": self.memory(),
         }
         self._interval_chunks = 0
         self._interval_samples = 0
-        self._interval_latency_ms = []
+        self._interval_latency_ms.clear()
         self._last_tick_ns = now_ns
         return out
+
+    def freshness(self, now_ns: int) -> dict:
+        """Is the view live? Age of the newest power against ``stale_chunks`` chunk intervals.
+
+        Returns
+        -------
+        dict
+            ``state``: "waiting" (no power yet), "live", "stale" or
+            "replay" (live, but the data were published long before, see
+            ``replay_after_s``); ``age_s`` of the newest power chunk (receive
+            clock), ``threshold_s``, ``chunk_interval_s``, ``newest_t_ns``
+            (sample time of the newest data: the recording's clock in a replay).
+        """
+        bufs = [b for b in self.modules.values() if b.last_recv_ns is not None]
+        if not bufs:
+            return {"state": "waiting", "age_s": None, "threshold_s": None, "chunk_interval_s": None,
+                    "newest_t_ns": None, "replay": False, "stale_chunks": self.config.stale_chunks}
+        newest = max(bufs, key=lambda b: b.last_recv_ns)
+        recent = [b for b in bufs if newest.last_recv_ns - b.last_recv_ns <= self.config.silent_s * 1e9]
+        interval = float(np.median([b.chunk_interval_s() for b in recent]))
+        threshold = max(self.config.stale_chunks * interval, self.config.stale_min_s)
+        age = max(int(now_ns) - newest.last_recv_ns, 0) / 1e9
+        state = "stale" if age > threshold else ("replay" if newest.replay else "live")
+        return {"state": state, "age_s": age, "threshold_s": threshold, "chunk_interval_s": interval,
+                "newest_t_ns": newest.newest_t_ns, "replay": bool(newest.replay), "stale_chunks": self.config.stale_chunks}
+
+    def _focal(self) -> dict:
+        parts = [self.modules[k] for k in sorted(self.modules)]
+
+        def cat(name):
+            return np.concatenate([getattr(b, name) for b in parts]) if parts else np.zeros(0)
+
+        return {"power_pw": _sig_list(cat("power_w") * 1e12), "flag_pct": _sig_list(cat("flag_frac") * 100, 3),
+                "noise_aw_rthz": _sig_list(cat("noise_w_rthz") * 1e18, 3)}
 
     def _hk_view(self) -> dict:
         out = {}
@@ -482,6 +716,14 @@ class Aggregator:
             "hk": hk,
         }
 
+    @staticmethod
+    def _window(t: np.ndarray, p: np.ndarray, window_s: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """The last ``window_s`` of ``t`` (m,), ``p`` (rows, m)."""
+        if window_s is None or t.size == 0:
+            return t, p
+        keep = t >= t[-1] - int(window_s * 1e9)
+        return t[keep], p[:, keep]
+
     def resolve(self, selection: Iterable[str]) -> list[str]:
         """The known detector ids of ``selection``, in order, at most ``max_selected``."""
         out = []
@@ -490,7 +732,7 @@ class Aggregator:
                 out.append(det)
         return out[: self.config.max_selected]
 
-    def view(self, selection: Iterable[str], f_hwp_hz: float | None | str = "config") -> dict:
+    def view(self, selection: Iterable[str], f_hwp_hz: float | None | str = "config", window_s: float | None = None) -> dict:
         """Time streams and spectra of the selected channels (JSON-ready dict).
 
         Parameters
@@ -500,12 +742,18 @@ class Aggregator:
         f_hwp_hz : float, None or "config"
             Harmonics to mark: a frequency, None to estimate from these
             spectra, "config" for :attr:`MonitorConfig.f_hwp_hz`.
+        window_s : float, optional
+            Time-stream window (default ``history_s``). Beyond ``history_s``
+            a channel comes from its full-rate long history if it has one
+            (:meth:`watch`), else from the downsampled one; the spectrum
+            always uses the last ``history_s`` at full rate.
 
         Returns
         -------
         dict
             ``streams``: per channel ``id``, ``state``, ``t_ms`` and ``p_pw``
-            (min/max decimated, pW, None where flagged); ``spectrum``: per
+            (min/max decimated, pW, None where flagged), ``resolution``
+            ("full rate" or the bin of the means); ``spectrum``: per
             channel ``f_hz`` and ``log10_asd`` (ASD in aW/sqrt(Hz)), plus
             ``f_hwp_hz``, ``f_hwp_source`` and ``harmonics_hz``;
             ``newest_t_pub_ns``: publication time of the newest power chunk
@@ -529,18 +777,28 @@ class Aggregator:
             newest_pub = max(newest_pub, buf.newest_t_pub_ns)
             rows = np.array([r for r, _ in members])
             t, p = buf.read(rows)
-            td, pd = decimate_minmax(t, p, self.config.max_points)
+            td, pd = decimate_minmax(*self._window(t, p, window_s), self.config.max_points)
             f, psd = welch_psd(p, buf.sample_rate_hz)
             if f.size:
                 fb, pb = log_bin(f, psd, self.config.spectrum_points)
             if f_hwp_hz is None:  # finest resolution to locate the lines
                 estimates.append(estimate_f_hwp(*welch_psd(p, buf.sample_rate_hz, segments=1)))
             for i, (row, det) in enumerate(members):
+                t_i, p_i, resolution = td, pd[i], "full rate"
+                if window_s is not None and window_s > self.config.history_s:
+                    if row in buf.watched:
+                        t_l, p_l = buf.watched[row].read()
+                    else:
+                        t_l, p_l = buf.slow.read(np.array([row]))
+                        resolution = f"{self.config.slow_bin_s:g} s means"
+                    t_i, p_l = decimate_minmax(*self._window(t_l, p_l, window_s), self.config.max_points)
+                    p_i = p_l[0]
                 streams[det] = {
                     "id": det,
                     "state": STATE_NAMES[int(buf.state[row])],
-                    "t_ms": _round_list(td / 1e6, 0),
-                    "p_pw": _round_list(pd[i] * 1e12, 7),
+                    "resolution": resolution,
+                    "t_ms": _round_list(t_i / 1e6, 0),
+                    "p_pw": _round_list(p_i * 1e12, 7),
                 }
                 if f.size and np.all(np.isfinite(pb[i])) and np.all(pb[i] > 0):
                     spectra[det] = {"id": det, "f_hz": _sig_list(fb, 5), "log10_asd": _round_list(np.log10(np.sqrt(pb[i]) * 1e18), 4)}

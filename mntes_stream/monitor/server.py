@@ -8,12 +8,21 @@ Routes::
     GET /api/state          the latest shared update (JSON), for scripts and curl
     GET /api/view?ch=ID&ch=ID[&f_hwp=0.77|auto]   time streams + spectra (JSON)
     GET /ws                 websocket: the server sends ``update`` messages every
-                            ``update_s``; the page sends ``select``, ``f_hwp``
-                            and ``rendered`` (see static/monitor.js)
+                            ``update_s``; the page sends ``select``, ``f_hwp``,
+                            ``window``, ``focal`` and ``rendered`` (see static/monitor.js)
 
 One ticker classifies the channels and builds the shared part of the update
 once per period; each page then gets its own selected channels reduced on the
 server (:meth:`Aggregator.view`), so what travels is what is drawn.
+
+Locked down (:class:`WebGuard`): every request must name an allowed ``Host``
+(loopback names, the bind address, ``allowed_hosts``: a DNS-rebinding page
+names its own), a request with an ``Origin`` (every websocket a browser opens)
+must come from the page's own origin, and a browser's cross-site request
+(``Sec-Fetch-Site: cross-site``) is refused; responses forbid framing and
+cross-origin reads. Each websocket client has a send queue of one update (a
+slow client skips ticks, never piles them up) and is closed when one update
+takes longer than ``send_timeout_s`` to go out.
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ from aiohttp import WSMsgType, web
 
 from mntes_stream.errors import ConfigError
 
-__all__ = ["is_loopback", "plotly_js_path", "make_app", "serve"]
+__all__ = ["WebGuard", "is_loopback", "plotly_js_path", "make_app", "serve"]
 
 log = logging.getLogger("mntes_stream.monitor")
 
@@ -50,6 +59,69 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+_LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+_FOCAL_METRICS = ("state", "power_pw", "flag_pct", "noise_aw_rthz")
+_WINDOWS_S = (30.0, 300.0, 3600.0)
+
+# No framing, no cross-origin reads, nothing loaded from elsewhere (plotly is served from the wheel).
+_SECURITY_HEADERS = {
+    "Content-Security-Policy": ("default-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
+                                "connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; form-action 'none'"),
+    "X-Frame-Options": "DENY",
+    "X-Content-Type-Options": "nosniff",
+    "Cross-Origin-Resource-Policy": "same-origin",
+    "Cross-Origin-Opener-Policy": "same-origin",
+    "Referrer-Policy": "no-referrer",
+}
+
+
+def _split_host(value: str) -> tuple[str, str | None]:
+    """``host[:port]`` or ``[v6][:port]`` -> (lower-case host without brackets, port or None)."""
+    value = value.strip().lower()
+    if value.startswith("["):
+        host, _, rest = value[1:].partition("]")
+        return host, rest[1:] if rest.startswith(":") else None
+    if value.count(":") == 1:
+        host, port = value.split(":")
+        return host, port
+    return value, None
+
+
+class WebGuard:
+    """Which ``Host`` and ``Origin`` headers the page answers (see the module docstring).
+
+    Parameters
+    ----------
+    bind : str
+        The listen address; allowed as a host name unless it is a wildcard.
+    allowed_hosts : tuple of str
+        Further names the page may be reached as (e.g. the machine's DNS
+        name when ``bind`` is not loopback); loopback names always are.
+    """
+
+    def __init__(self, bind: str = "127.0.0.1", allowed_hosts: tuple[str, ...] = ()):
+        hosts = set(_LOOPBACK_NAMES)
+        if bind not in ("0.0.0.0", "::", ""):
+            hosts.add(_split_host(bind)[0] if bind.startswith("[") else bind.lower())
+        hosts.update(_split_host(h)[0] for h in allowed_hosts)
+        self.hosts = frozenset(hosts)
+
+    def refusal(self, headers) -> str | None:
+        """Why a request with these headers is refused, or None."""
+        host_header = headers.get("Host", "")
+        host, _ = _split_host(host_header)
+        if host not in self.hosts:
+            return f"Host {host_header!r} is not allowed (allowed_hosts)"
+        if headers.get("Sec-Fetch-Site", "") == "cross-site":
+            return "cross-site request"
+        origin = headers.get("Origin")
+        if origin is not None:
+            scheme, _, rest = origin.partition("://")
+            if scheme not in ("http", "https") or rest.lower() != host_header.strip().lower():
+                return f"Origin {origin!r} is not this page's"
+        return None
 
 
 def plotly_js_path() -> Path:
@@ -108,7 +180,8 @@ def _parse_f_hwp(value):
     return f
 
 
-def make_app(subscriber, update_s: float = 0.5):
+def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, max_clients: int = 32,
+             send_timeout_s: float = 10.0):
     """The aiohttp application serving ``subscriber`` (a :class:`MonitorSubscriber`).
 
     Parameters
@@ -117,9 +190,35 @@ def make_app(subscriber, update_s: float = 0.5):
         Anything with ``view(selection, f_hwp)``, ``lock`` and ``aggregator``.
     update_s : float
         Update period of the page (the ticker's period).
+    guard : WebGuard, optional
+        Allowed hosts and origins (default: loopback only).
+    max_clients : int
+        Websocket clients served at once; more get HTTP 503.
+    send_timeout_s : float
+        A client that takes longer than this to accept one update is closed.
     """
     plotly_js = plotly_js_path()
+    guard = guard or WebGuard()
     clients: set = set()
+    refused: dict[str, int] = {"host_or_origin": 0, "too_many_clients": 0, "slow_client": 0}
+
+    @web.middleware
+    async def lock_down(request, handler):
+        why = guard.refusal(request.headers)
+        if why is not None:
+            refused["host_or_origin"] += 1
+            if refused["host_or_origin"] <= 5 or refused["host_or_origin"] % 1000 == 0:
+                log.warning("monitor refused %s %s: %s (%d refused)", request.method, request.path, why,
+                            refused["host_or_origin"])
+            raise web.HTTPForbidden(text=why, headers=_SECURITY_HEADERS)
+        try:
+            resp = await handler(request)
+        except web.HTTPException as exc:
+            exc.headers.update(_SECURITY_HEADERS)
+            raise
+        if not resp.prepared:  # a websocket's handshake went out already
+            resp.headers.update(_SECURITY_HEADERS)
+        return resp
 
     def _tick():
         with subscriber.lock:
@@ -161,7 +260,8 @@ def make_app(subscriber, update_s: float = 0.5):
     async def api_state(request):
         hub = request.app[_HUB]
         tick, layout = hub.snapshot or ({}, [])
-        return web.Response(text=_dumps({"seq": hub.seq, "layout": layout, **tick}), content_type="application/json")
+        body = {"seq": hub.seq, "layout": layout, **tick, "web": {"clients": len(clients), "refused": dict(refused)}}
+        return web.Response(text=_dumps(body), content_type="application/json")
 
     async def api_view(request):
         try:
@@ -172,11 +272,15 @@ def make_app(subscriber, update_s: float = 0.5):
         return web.Response(text=_dumps(view), content_type="application/json")
 
     async def ws_handler(request):
+        if len(clients) >= max_clients:
+            refused["too_many_clients"] += 1
+            raise web.HTTPServiceUnavailable(text=f"monitor: {max_clients} clients already (max_clients)")
         ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=1 << 16)
         await ws.prepare(request)
         clients.add(ws)
         hub = request.app[_HUB]
-        client = {"selection": None, "f_hwp": "config", "layout_version": -1, "wake": asyncio.Event()}
+        client = {"selection": None, "f_hwp": "config", "window_s": None, "focal": "state", "layout_version": -1,
+                  "wake": asyncio.Event()}
 
         async def send_loop():
             seen = 0
@@ -196,7 +300,15 @@ def make_app(subscriber, update_s: float = 0.5):
                 except Exception as exc:  # tell the page, keep serving it
                     log.exception("monitor update failed")
                     msg = _dumps({"type": "error", "message": f"server: {type(exc).__name__}: {exc}"})
-                await ws.send_str(msg)
+                try:
+                    await asyncio.wait_for(ws.send_str(msg), send_timeout_s)
+                except TimeoutError:
+                    refused["slow_client"] += 1
+                    log.warning("monitor closed a client that took over %.0f s to take one update", send_timeout_s)
+                    # A peer that reads nothing never completes a closing handshake either: drop the transport.
+                    if request.transport is not None:
+                        request.transport.abort()
+                    return
 
         def _update(hub, client) -> str:
             tick, layout = hub.snapshot
@@ -204,8 +316,13 @@ def make_app(subscriber, update_s: float = 0.5):
                 agg = subscriber.aggregator
                 if client["selection"] is None and agg.modules:
                     client["selection"] = agg.default_selection()
-                view = agg.view(client["selection"] or [], client["f_hwp"])
-                msg = {"type": "update", "seq": hub.seq, "t_server_ns": time.time_ns(), **tick, **view}
+                agg.watch(client["selection"] or [])
+                view = agg.view(client["selection"] or [], client["f_hwp"], client["window_s"])
+                focal = client["focal"]
+                shared = {k: v for k, v in tick.items() if k != "focal"}
+                msg = {"type": "update", "seq": hub.seq, "t_server_ns": time.time_ns(), **shared, **view,
+                       "window_s": client["window_s"] or agg.config.history_s,
+                       "focal": {"metric": focal, "values": tick["focal"].get(focal)}}
             if client["layout_version"] != tick["layout_version"]:  # the grid rows of this tick's codes
                 msg["layout"] = layout
                 client["layout_version"] = tick["layout_version"]
@@ -233,6 +350,17 @@ def make_app(subscriber, update_s: float = 0.5):
                     elif kind == "f_hwp":
                         client["f_hwp"] = _parse_f_hwp(req.get("value"))
                         client["wake"].set()
+                    elif kind == "window":
+                        value = req.get("seconds")
+                        if value not in _WINDOWS_S:
+                            raise ConfigError(f"window must be one of {list(_WINDOWS_S)} s, got {value!r}")
+                        client["window_s"] = float(value)
+                        client["wake"].set()
+                    elif kind == "focal":
+                        if req.get("metric") not in _FOCAL_METRICS:
+                            raise ConfigError(f"focal metric must be one of {list(_FOCAL_METRICS)}")
+                        client["focal"] = req["metric"]
+                        client["wake"].set()
                     elif kind == "rendered":
                         try:
                             t_pub, t_render = int(req["newest_t_pub_ns"]), int(req["t_render_ns"])
@@ -250,7 +378,7 @@ def make_app(subscriber, update_s: float = 0.5):
             clients.discard(ws)
         return ws
 
-    app = web.Application()
+    app = web.Application(middlewares=[lock_down], client_max_size=1 << 16)
     app.on_startup.append(on_startup)
     app.on_shutdown.append(on_shutdown)
     app.router.add_get("/", index)
@@ -275,8 +403,9 @@ def _listen_socket(bind: str, port: int) -> socket.socket:
     return sock
 
 
-async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: float, on_ready, stop_event) -> None:
-    app = make_app(subscriber, update_s)
+async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: float, on_ready, stop_event,
+                 web_options: dict) -> None:
+    app = make_app(subscriber, update_s, **web_options)
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
     sock = _listen_socket(bind, port)
@@ -299,13 +428,18 @@ async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: 
 
 
 def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float = 0.5,
-          duration_s: float = 0.0, on_ready=None, stop_event=None) -> None:
+          duration_s: float = 0.0, on_ready=None, stop_event=None, allowed_hosts: tuple[str, ...] = (),
+          max_clients: int = 32, send_timeout_s: float = 10.0) -> None:
     """Serve the page until SIGINT/SIGTERM, ``duration_s`` or ``stop_event``; returns after a clean shutdown.
 
     ``on_ready(host, port)`` is called once listening (``port=0`` picks a free port).
-    ``stop_event`` (anything with ``is_set()``) lets another thread stop it.
+    ``stop_event`` (anything with ``is_set()``) lets another thread stop it. ``allowed_hosts``,
+    ``max_clients`` and ``send_timeout_s``: see :class:`WebGuard` and :func:`make_app`.
     """
     if not is_loopback(bind):
         log.warning("monitor listening on %s, beyond loopback: anyone who can reach it sees the stream "
                     "(there is no authentication)", bind)
-    asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None), stop_event))
+    web_options = {"guard": WebGuard(bind, tuple(allowed_hosts)), "max_clients": max_clients,
+                   "send_timeout_s": send_timeout_s}
+    asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None), stop_event,
+                       web_options))

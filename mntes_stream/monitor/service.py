@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import time
+import tomllib
 from dataclasses import dataclass
+from pathlib import Path
 
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
+from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.monitor.aggregate import MonitorConfig
 from mntes_stream.service.base import Service, stop_on_signals
 
-__all__ = ["MonitorServiceConfig", "MonitorService"]
+__all__ = ["MonitorServiceConfig", "MonitorService", "load_positions"]
 
 log = logging.getLogger("mntes_stream.monitor")
 
@@ -26,11 +30,44 @@ class MonitorServiceConfig(Settings):
     view: MonitorConfig = setting(default_factory=MonitorConfig, doc="what the monitor keeps", flatten=True)
     setup: str = setting(keys.DEFAULT_SETUP, "watch mntes/<setup>/{power,hk,status}", pattern=NAME_PATTERN)
     bind: str = setting("127.0.0.1", "address the page listens on (anything but loopback exposes the stream)")
+    allowed_hosts: tuple[str, ...] = setting((), "host names the page may be reached as besides loopback and bind "
+                                             "(every other Host header and foreign Origin is refused)")
+    max_clients: int = setting(32, "websocket clients served at once", ge=1, le=1024)
+    send_timeout_s: float = setting(10.0, "a page that takes longer to accept one update is disconnected", unit="s",
+                                    gt=0)
+    params: str | None = setting(None, "parameter file whose [metadata.focal_plane] gives sky positions "
+                                 "(detector id = [x_deg, y_deg]) for the focal-plane view")
     port: int = setting(8050, "HTTP port (0: any free port)", ge=0, le=65535)
     update_s: float = setting(0.5, "update period of the page or table", unit="s", ge=0.05, le=60)
     text: bool = setting(False, "print a terminal table instead of serving the page")
     duration_s: float = setting(0.0, "stop after this long (0: until stopped)", unit="s", ge=0)
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
+
+
+def load_positions(path: str | Path) -> dict[str, tuple[float, float]]:
+    """Sky positions ``{detector id: (x_deg, y_deg)}`` from a parameter file's ``[metadata.focal_plane]`` table.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, or a position that is not two finite numbers.
+    """
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"monitor params {path}: {exc}") from None
+    table = doc.get("metadata", {}).get("focal_plane", {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: [metadata.focal_plane] must be a table of detector id = [x_deg, y_deg]")
+    out = {}
+    for det, xy in table.items():
+        ok = (isinstance(xy, list) and len(xy) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                          and math.isfinite(v) for v in xy))
+        if not ok:
+            raise ConfigError(f"{path}: metadata.focal_plane.{det} must be [x_deg, y_deg], got {xy!r}")
+        out[str(det)] = (float(xy[0]), float(xy[1]))
+    return out
 
 
 def _run_text(sub, cfg: MonitorServiceConfig, stop, out=sys.stdout) -> None:
@@ -61,7 +98,8 @@ class MonitorService(Service):
         from mntes_stream.monitor.subscriber import MonitorSubscriber
 
         cfg = self.config
-        with stop_on_signals(stop) as stopping, MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view) as sub:
+        positions = load_positions(cfg.params) if cfg.params else None
+        with stop_on_signals(stop) as stopping, MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions) as sub:
             if cfg.text:
                 if ready is not None:
                     ready.set()
@@ -75,7 +113,8 @@ class MonitorService(Service):
                     if ready is not None:
                         ready.set()
 
-                serve(sub, cfg.bind, cfg.port, cfg.update_s, cfg.duration_s, on_ready, stopping)
+                serve(sub, cfg.bind, cfg.port, cfg.update_s, cfg.duration_s, on_ready, stopping,
+                      allowed_hosts=cfg.allowed_hosts, max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s)
             with sub.lock:
                 health = sub.aggregator.tick(time.time_ns())["health"]["monitor"]
         return {k: v for k, v in health.items() if isinstance(v, (int, float, str))}

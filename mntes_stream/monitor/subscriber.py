@@ -42,15 +42,26 @@ class MonitorSubscriber:
     config : MonitorConfig, optional
     queue_size : int
         Messages held between the zenoh callback and the ingest thread.
+    queue_mb : float
+        Bytes held there at most; a message beyond either bound is dropped (counted).
+    max_message_mb : float
+        A larger message is refused unread (counted as ``too_large``).
+    positions : dict, optional
+        Sky positions for the focal-plane view (:func:`~mntes_stream.monitor.service.load_positions`).
     """
 
-    def __init__(self, setup: str, zenoh: ZenohSettings, config: MonitorConfig | None = None, queue_size: int = 8192):
+    def __init__(self, setup: str, zenoh: ZenohSettings, config: MonitorConfig | None = None, queue_size: int = 8192,
+                 positions: dict | None = None, queue_mb: float = 64.0, max_message_mb: float = 16.0):
         self.setup = setup
         self.key_exprs = (keys.power_key(setup), keys.hk_key(setup), keys.status_key(setup))
         self.zenoh = zenoh
-        self.aggregator = Aggregator(config)
+        self.aggregator = Aggregator(config, positions)
         self.lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._queue_max_bytes = int(queue_mb * 1e6)
+        self._max_message_bytes = int(max_message_mb * 1e6)
+        self._queued_bytes = 0  # approximate (updated by two threads without a lock): a bound, not a count
+        self._too_large = 0
         self._stop = threading.Event()
         self._session = None
         self._subs: list = []
@@ -96,8 +107,17 @@ class MonitorSubscriber:
 
     def _on_sample(self, sample) -> None:
         # zenoh thread: stamp and hand over, never block (see the module docstring).
+        t_recv_ns = time.time_ns()
+        size = len(sample.payload)
+        if size > self._max_message_bytes:
+            self._too_large += 1
+            return
+        if self._queued_bytes + size > self._queue_max_bytes:
+            self._dropped += 1
+            return
         try:
-            self._queue.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+            self._queue.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), t_recv_ns))
+            self._queued_bytes += size
         except queue.Full:
             self._dropped += 1
 
@@ -112,7 +132,10 @@ class MonitorSubscriber:
             with contextlib.suppress(queue.Empty):
                 while len(batch) < 64:
                     batch.append(self._queue.get_nowait())
+            self._queued_bytes -= sum(len(p) for _, p, _ in batch)
             with self.lock:
+                if self._too_large:
+                    self.aggregator.bad_messages["too_large"] = self._too_large
                 for key, payload, t_recv_ns in batch:
                     try:
                         self.handle(key, payload, t_recv_ns)

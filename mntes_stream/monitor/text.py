@@ -6,11 +6,25 @@ import datetime as _dt
 
 from mntes_stream.monitor.aggregate import STATE_NAMES, Aggregator
 
-__all__ = ["render_text"]
+__all__ = ["freshness_text", "render_text"]
 
 
 def _f(v, fmt: str = "{:.1f}") -> str:
     return "-" if v is None else fmt.format(v)
+
+
+def freshness_text(fr: dict) -> str:
+    """The badge as words: LIVE, REPLAY (with the recording's time), STALE with the age, or WAITING."""
+    if fr["state"] == "waiting":
+        return "WAITING: no power received yet"
+    if fr["state"] == "stale":
+        return (f"STALE: no data for {fr['age_s']:.1f} s (> {fr['threshold_s']:.2f} s = "
+                f"{fr['stale_chunks']:g} chunk intervals of {fr['chunk_interval_s']:.3f} s)")
+    if fr["state"] == "replay":
+        t = fr["newest_t_ns"]
+        rec = "-" if t is None else _dt.datetime.fromtimestamp(t / 1e9, _dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+        return f"REPLAY: recorded {rec}, latency on the recording's clock (newest {fr['age_s']:.1f} s ago)"
+    return f"LIVE (newest data {fr['age_s']:.1f} s ago)"
 
 
 def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
@@ -27,7 +41,8 @@ def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
     h = tick["health"]
     mon = h["monitor"]
     when = _dt.datetime.fromtimestamp(tick["t_ns"] / 1e9, _dt.UTC).strftime("%H:%M:%S UTC")
-    lines = [f"mntes-stream monitor  {when}  channels {mon['channels']} in {mon['modules']} modules"]
+    lines = [f"mntes-stream monitor  {when}  channels {mon['channels']} in {mon['modules']} modules  "
+             + freshness_text(tick["freshness"])]
     lines.append(f"{'source':<12}{'in/s':>8}{'out/s':>8}{'Msamp/s':>9}{'lat p50':>9}{'p99':>8}{'max ms':>8}"
                  f"{'lost':>6}{'pend':>6}{'hk stale':>10}{'bad':>5}{'age s':>7}")
     for s in h["services"]:
