@@ -46,6 +46,32 @@ def _pick_source(setup: str, args, zenoh):
     return "minimal source", MinimalSource(cfg).params, "source", SourceServiceConfig(source=cfg, zenoh=zenoh)
 
 
+def _metrics_ports(args) -> dict:
+    """``--metrics-port``: each service serves its own endpoint on a free loopback port (merged by the parent)."""
+    if args.metrics_port is None:
+        return {}
+    from mntes_stream.io.transport import free_tcp_port
+    from mntes_stream.service.metrics import MetricsSettings, require_metrics
+
+    require_metrics()  # one line naming the extra, before anything starts
+    return {label: MetricsSettings(port=free_tcp_port()) for label in ("recorder", "converter", "source")}
+
+
+def _metrics_of(metrics: dict, label: str) -> dict:
+    return {"metrics": metrics[label]} if metrics else {}
+
+
+def _serve_merged(args, metrics: dict, say):
+    """The services' metrics on one endpoint, ``127.0.0.1:--metrics-port`` (0: any free port)."""
+    from mntes_stream.service.metrics import MergedMetrics, MetricsSettings
+
+    merged = MergedMetrics({label: f"http://{m.bind}:{m.port}/metrics" for label, m in metrics.items()})
+    port = merged.serve(MetricsSettings(port=args.metrics_port))
+    say(f"  Prometheus metrics of every service: http://127.0.0.1:{port}/metrics "
+        f"(dashboard: services/grafana/mntes.json)")
+    return merged
+
+
 def _flagged(st) -> str:
     """``  flagged: saturated 1.6%, ...`` (share of converted samples), or nothing."""
     if not st.samples_converted:
@@ -115,12 +141,16 @@ def run_up(args) -> int:
     files = _Files(rec_dir)
     p_rec, p_conv, p_src = free_tcp_port(), free_tcp_port(), free_tcp_port()
     what, truth, src_service, src_cfg = _pick_source(setup, args, layered(loopback(p_src, [p_conv, p_rec])))
+    metrics = _metrics_ports(args)  # {label: MetricsSettings} of each service, or {} without --metrics-port
+    if metrics:
+        src_cfg = dataclasses.replace(src_cfg, metrics=metrics["source"])
     params_file = out / "params.toml"
     # The truth is the converter's calibration here: what it converts should match what was simulated.
     dump_params(truth, params_file, metadata={"source": f"mntes-stream up ({what}, truth)"})
     rec_cfg = RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0,
-                             log_interval_s=3600, zenoh=layered(loopback(p_rec)))
-    conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, zenoh=layered(loopback(p_conv, [p_rec])))
+                             log_interval_s=3600, zenoh=layered(loopback(p_rec)), **_metrics_of(metrics, "recorder"))
+    conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, zenoh=layered(loopback(p_conv, [p_rec])),
+                               **_metrics_of(metrics, "converter"))
     conv_cfg = dataclasses.replace(conv_cfg, status=dataclasses.replace(conv_cfg.status, interval_s=1.0))
 
     services = Services()
@@ -130,11 +160,14 @@ def run_up(args) -> int:
         f"{'until Ctrl-C' if not args.duration else f'for {args.duration:g} s (Ctrl-C stops earlier)'}")
     status_key = keys.status_key(setup, conv_cfg.name)
     failed = interrupted = False
+    merged = None
     with stop_on_signals() as stopping:
         try:
             services.start("recorder", "recorder", rec_cfg, abort=stopping)
             services.start("converter", "converter", conv_cfg, abort=stopping)
             services.start("source", src_service, src_cfg, abort=stopping)
+            if metrics:
+                merged = _serve_merged(args, metrics, say)
             with open_session(layered(loopback(None, [p_rec, p_conv, p_src]))) as session:
                 sub = QueueSubscriber(session, [status_key])
                 t_end = time.monotonic() + args.duration if args.duration else float("inf")
@@ -177,6 +210,8 @@ def run_up(args) -> int:
             failed |= not services.stop("source")
             failed |= not services.stop("converter")
             failed |= not services.stop("recorder")
+            if merged is not None:
+                merged.close()
     summary, ok = services.collect()
     failed |= not ok and not interrupted
     n_files, size = files.now()
@@ -214,6 +249,9 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON document (the services' final statistics) "
                                                        "on stdout; progress goes to stderr")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-second lines")
+    p.add_argument("--metrics-port", type=int, metavar="PORT",
+                   help="serve every service's Prometheus metrics on http://127.0.0.1:PORT/metrics (0: any free port; "
+                        "needs the metrics extra)")
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
     add_zenoh_args(p)
     p.set_defaults(func=run_up)

@@ -23,6 +23,7 @@ from mntes_stream.io import keys
 from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, answer, open_session
 from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.metrics import MetricsSettings
 from mntes_stream.service.pipeline_config import AlignmentConfig, PipelineConfig
 
 __all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
@@ -60,6 +61,7 @@ class ConverterConfig(Settings):
     queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
     alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
     status: StatusConfig = setting(default_factory=StatusConfig, doc="status cadence ([status])")
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     def __post_init__(self):

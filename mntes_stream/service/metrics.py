@@ -25,12 +25,13 @@ import threading
 from dataclasses import dataclass
 
 from mntes_stream.core.settings import Settings, setting
-from mntes_stream.errors import ConfigError, SchemaError
+from mntes_stream.errors import SCHEMA_REASONS, ConfigError, SchemaError
 
-__all__ = ["MetricsSettings", "ServiceMetrics", "LATENCY_BUCKETS_S", "metrics_for"]
+__all__ = ["MetricsSettings", "ServiceMetrics", "MergedMetrics", "LATENCY_BUCKETS_S", "metrics_for", "require_metrics"]
 
 log = logging.getLogger("mntes_stream.metrics")
 
+_OWN_KEYS = frozenset({"uptime_s", "since_beat_s", "metrics_port"})
 LATENCY_BUCKETS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 
 
@@ -124,6 +125,16 @@ class ServiceMetrics:
         uptime = g("mntes_service_uptime_seconds", "time since the service started", labels=ln)
         uptime.add_metric(lv, float(snap["uptime_s"]))
         yield uptime
+        since = g("mntes_service_heartbeat_age_seconds", "time since the service last reported progress", labels=ln)
+        since.add_metric(lv, float(snap["since_beat_s"]))
+        yield since
+        # Whatever else the heartbeat counts (a monitor's drops, the bridge's logged messages, a router's links).
+        counters = g("mntes_service_counter", "the service's own heartbeat counters (what `ps` shows)",
+                     labels=[*ln, "counter"])
+        for key, value in snap.items():
+            if key not in _OWN_KEYS and isinstance(value, (int, float)) and not isinstance(value, bool):
+                counters.add_metric([*lv, key], float(value))
+        yield counters
         depth = g("mntes_queue_depth", "messages waiting in the service's input queue", labels=[*ln, "queue"])
         if "queue_depth" in snap:
             depth.add_metric([*lv, "input"], float(snap["queue_depth"]))
@@ -152,7 +163,7 @@ class ServiceMetrics:
             chunks.add_metric([*lv, outcome], float(value))
         yield chunks
         bad = c("mntes_bad_messages", "messages rejected, by reason", labels=[*ln, "reason"])
-        for reason, value in status.bad_messages.items():
+        for reason, value in {**dict.fromkeys(SCHEMA_REASONS, 0), **status.bad_messages}.items():
             bad.add_metric([*lv, reason], float(value))
         yield bad
         flagged = c("mntes_flagged_samples", "converted samples carrying each flag (schemas/flags.v1.json)",
@@ -184,6 +195,71 @@ class ServiceMetrics:
             self._server.shutdown()
             self._server.server_close()
             self._server = None
+
+
+class MergedMetrics:
+    """One endpoint for several services (``up --metrics-port``): every scrape reads each service's own
+    endpoint (loopback) and serves their families merged by name; ``mntes_target_up`` says which answered.
+
+    Parameters
+    ----------
+    urls : dict[str, str]
+        ``{label: "http://127.0.0.1:<port>/metrics"}`` of each service.
+    timeout_s : float
+        Per service and scrape.
+    """
+
+    def __init__(self, urls: dict[str, str], timeout_s: float = 2.0):
+        pc = _require()
+        self.urls, self.timeout_s = dict(urls), float(timeout_s)
+        self.registry = pc.CollectorRegistry(auto_describe=False)
+        self.registry.register(self)
+        self._server = None
+
+    def describe(self):
+        return []
+
+    def collect(self):
+        import urllib.request
+
+        from prometheus_client.core import GaugeMetricFamily
+        from prometheus_client.parser import text_string_to_metric_families
+
+        families: dict[str, object] = {}
+        up = GaugeMetricFamily("mntes_target_up", "1 if the service's own endpoint answered this scrape",
+                               labels=["target"])
+        for label, url in self.urls.items():
+            try:
+                with urllib.request.urlopen(url, timeout=self.timeout_s) as r:
+                    text = r.read().decode()
+            except OSError:  # stopped or not yet serving: say so, serve the others
+                up.add_metric([label], 0.0)
+                continue
+            up.add_metric([label], 1.0)
+            for fam in text_string_to_metric_families(text):
+                have = families.get(fam.name)
+                if have is None:
+                    families[fam.name] = fam
+                else:  # the same metric from another service: its samples differ by the service label
+                    have.samples.extend(fam.samples)
+        yield from families.values()
+        yield up
+
+    def serve(self, settings: MetricsSettings) -> int:
+        """Start the endpoint; returns the port (``settings.port`` 0: any free one)."""
+        pc = _require()
+        try:
+            self._server, _ = pc.start_http_server(settings.port, addr=settings.bind, registry=self.registry)
+        except OSError as exc:
+            raise ConfigError(f"metrics: cannot serve on {settings.bind}:{settings.port}: {exc}") from None
+        return self._server.server_port
+
+    close = ServiceMetrics.close
+
+
+def require_metrics() -> None:
+    """A one-line MissingExtraError naming the ``metrics`` extra if prometheus-client is absent."""
+    _require()
 
 
 @contextlib.contextmanager

@@ -18,6 +18,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayService", "ReplayStats", "input_topics", "parse_time", "run_replay"]
 
@@ -50,6 +51,7 @@ class ReplayConfig(Settings):
     wait_subscribers_s: float = setting(5.0, "wait this long for subscribers before the first message", unit="s",
                                         ge=0)
     linger_s: float = setting(0.5, "keep the session open this long after the last message", unit="s", ge=0)
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
     def __post_init__(self):

@@ -19,6 +19,7 @@ from mntes_stream.core.settings import Settings, setting
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.metrics import MetricsSettings
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +32,7 @@ class RouterConfig(Settings):
     name: str = setting("router", "instance name (ps, logs)", pattern=NAME_PATTERN)
     duration_s: float = setting(0.0, "stop after this long (0: until stopped)", unit="s", ge=0)
     log_interval_s: float = setting(10.0, "how often the connected peers and clients are logged", unit="s", gt=0)
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to listen and which routers to join ([zenoh])")
 
 

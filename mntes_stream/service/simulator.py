@@ -37,6 +37,7 @@ from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.service.base import Service
+from mntes_stream.service.metrics import MetricsSettings
 from mntes_stream.service.source import Batch
 
 __all__ = ["SimulatorSource", "SimulatorService", "SimulatorServiceConfig", "TruthRecorder", "write_mcap",
@@ -290,6 +291,7 @@ class SimulatorServiceConfig(Settings):
     linger_s: float = setting(1.0, "keep the session open this long after the last batch (queued is not delivered)",
                               unit="s", ge=0)
     params_out: str = setting("", "write the truth parameters (the converter's calibration) here at start", path=True)
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 

@@ -34,6 +34,7 @@ from mntes_stream.io import keys
 from mntes_stream.io.messages import SENSOR_UNITS, CountsChunk, HousekeepingChunk
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.service.base import Service
+from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["SourceConfig", "SourceServiceConfig", "SourceService", "MinimalSource", "default_params", "publish", "run_source", "Batch"]
 
@@ -318,6 +319,7 @@ class SourceServiceConfig(Settings):
     duration_s: float = setting(0.0, "seconds of data (0 = until stopped)", unit="s", ge=0)
     linger_s: float = setting(1.0, "keep the session open this long after the last batch (queued is not delivered)",
                               unit="s", ge=0)
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 
