@@ -34,9 +34,30 @@ def _detectors(values) -> list[str] | None:
     return [d for v in values for d in (s.strip() for s in v.split(",")) if d]
 
 
+# --format -> (module, export function, extra) of the mapmaking frameworks (mntes_stream.feeds.frameworks).
+_FRAMEWORKS = {
+    "toast": ("toast", "export_toast", "toast"),
+    "sotodlib": ("sotodlib.core", "export_sotodlib", "sotodlib"),
+    "litebird_sim": ("litebird_sim", "export_litebird", "litebird"),
+}
+
+
+def _framework_export(fmt: str, args, selection: dict):
+    from mntes_stream.errors import import_extra
+
+    module, func, extra = _FRAMEWORKS[fmt]
+    # Before any session is read: toast/so3g must be loaded before spt3g in a process (else a segfault).
+    import_extra(module, extra)
+    import mntes_stream.feeds.frameworks as fw
+
+    kwargs = {} if fmt == "toast" else {"compression": None if args.compression == "none" else args.compression}
+    return getattr(fw, func)(args.session, args.out, overwrite=args.overwrite, **kwargs, **selection)
+
+
 def run_export(args) -> int:
     from mntes_stream.feeds.hdf5 import export_hdf5
 
+    fmt = getattr(args, "format", "hdf5")
     selection = {
         "setup": args.setup,
         "detectors": _detectors(args.detectors),
@@ -47,9 +68,13 @@ def run_export(args) -> int:
     }
     if args.max_gap_s is not None:
         selection["max_gap_s"] = args.max_gap_s
-    summary = export_hdf5(args.session, args.out, compression=args.compression, block_samples=args.block_samples,
-                          overwrite=args.overwrite, progress=not args.json, **selection)
+    if fmt != "hdf5":
+        summary = _framework_export(fmt, args, selection)
+    else:
+        summary = export_hdf5(args.session, args.out, compression=args.compression, block_samples=args.block_samples,
+                              overwrite=args.overwrite, progress=not args.json, **selection)
     result = {
+        "format": fmt,
         "path": summary.path,
         "observations": list(summary.observations),
         "detector_samples": summary.samples,
@@ -66,9 +91,16 @@ def run_export(args) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("export", help="export recorded power to HDF5 (one group per module: tod, time, flags, detectors)")
+    p = sub.add_parser("export", help="export recorded power to HDF5 (one group per module: tod, time, flags, detectors) "
+                       "or to TOAST / sotodlib / litebird_sim files")
     p.add_argument("session", nargs="+", help="MCAP file(s) or a directory of rotated files")
-    p.add_argument("--out", required=True, help="HDF5 file to write")
+    p.add_argument("--out", required=True,
+                   help="HDF5 file to write (hdf5, sotodlib); a directory of one .h5 per observation (toast, litebird_sim)")
+    p.add_argument("--format", default="hdf5", choices=("hdf5", *_FRAMEWORKS),
+                   help="hdf5 (default): this package's layout; toast: toast.io.save_hdf5 (uncompressed), one file per "
+                   "observation; sotodlib: AxisManager.save, one group per observation; litebird_sim: "
+                   "write_list_of_observations (float64), one file per observation. A module's power is split into "
+                   "observations at segment breaks")
     p.add_argument("--start", help="first sample time: integer ns since the epoch or ISO 8601 (UTC)")
     p.add_argument("--end", help="end (exclusive) sample time, same forms as --start")
     p.add_argument("--detectors", action="append", metavar="IDS", help="comma-separated detector ids (repeatable)")

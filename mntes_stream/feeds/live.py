@@ -170,6 +170,30 @@ class LivePowerFeed:
                            (ident,) if ident else ())
             self._emitted[sid] += int(t.size)
 
+    def collect(self) -> dict[str, TodBlock]:
+        """Run the feed to its end (``duration_s``, ``max_blocks`` or idle) and return each stream as one block."""
+        from mntes_stream.feeds.blocks import concat_blocks
+
+        parts: dict[str, list[TodBlock]] = {}
+        for block in self:
+            parts.setdefault(block.name, []).append(block)
+        out = {}
+        for name, blocks in parts.items():
+            # Rows grow while detectors appear (no selection): keep the spans of the final rows.
+            last = blocks[-1]
+            out[name] = concat_blocks([b if b.detectors == last.detectors else _widen(b, last) for b in blocks])
+        return out
+
+    def to_framework(self, framework: str, **kwargs) -> list:
+        """Run the feed to its end and return a framework's objects, one per stream and segment.
+
+        ``framework`` is ``toast``, ``sotodlib`` or ``litebird_sim``
+        (:mod:`mntes_stream.feeds.frameworks`); ``kwargs`` go to the converter.
+        """
+        from mntes_stream.feeds.frameworks import from_blocks
+
+        return from_blocks(self.collect(), framework, **kwargs)
+
     def __iter__(self) -> Iterator[TodBlock]:
         from mntes_stream.io.messages import PowerChunk
 
@@ -199,3 +223,20 @@ class LivePowerFeed:
                         return
         finally:
             self.close()
+
+
+def _widen(block: TodBlock, last: TodBlock) -> TodBlock:
+    """``block`` on the rows of ``last`` (a superset): rows it lacks are NaN + UNKNOWN_CHANNEL, as absent detectors."""
+    import numpy as np
+
+    from mntes_stream.core import flags as fl
+
+    rows = last.detectors
+    have = {d: r for r, d in enumerate(block.detectors)}
+    p = np.full((len(rows), block.n_samples), np.nan)
+    f = np.full((len(rows), block.n_samples), fl.UNKNOWN_CHANNEL, dtype=fl.FLAG_DTYPE)
+    for i, d in enumerate(rows):
+        if d in have:
+            p[i], f[i] = block.p_opt_w[have[d]], block.flags[have[d]]
+    return TodBlock(block.setup, block.board, block.module, rows, last.channels, block.t_ns, p, f,
+                    block.first_sample, block.table_identities)

@@ -307,6 +307,22 @@ class RecordedPower:
                                          np.zeros(0, np.int64), np.zeros((n, 0)), np.zeros((n, 0), np.uint16))
         return out
 
+    def to_framework(self, framework: str, **kwargs) -> list:
+        """Every selected stream as a mapmaking framework's objects, one per stream and segment (small sessions).
+
+        Parameters
+        ----------
+        framework : {"toast", "sotodlib", "litebird_sim"}
+            ``toast.Observation``, sotodlib ``AxisManager`` or ``litebird_sim.Observation``
+            (:mod:`mntes_stream.feeds.frameworks`), with the streams' nominal sample rates.
+        **kwargs
+            Passed to the converter (``positions=``, ...).
+        """
+        from mntes_stream.feeds.frameworks import from_blocks
+
+        rates = {sid.name: ix.sample_rate_hz for sid, ix in self.streams.items()}
+        return from_blocks(self.read(), framework, sample_rates=rates, **kwargs)
+
     # ------------------------------------------------------------------ provenance
 
     def provenance(self) -> list:
