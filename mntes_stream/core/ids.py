@@ -6,9 +6,11 @@ import re
 
 from mntes_stream.errors import ConfigError
 
-_PATTERN = re.compile(r"^b(\d+)m(\d+)c(\d+)$")
+_PATTERN = re.compile(r"\Ab(\d+)m(\d+)c(\d+)\Z")
 # Setup, sensor, service and file-prefix names: one key segment, no wildcards.
 NAME_PATTERN = re.compile(r"\A[A-Za-z0-9_.\-]+\Z")  # \Z: no trailing newline slips through
+# Detector ids end up in file names, HDF5 paths and zenoh keys downstream: one safe name, never a path.
+DETECTOR_ID_PATTERN = re.compile(r"\A[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}\Z")
 
 
 def detector_id(board: int, module: int, channel: int) -> str:
@@ -19,6 +21,22 @@ def detector_id(board: int, module: int, channel: int) -> str:
     >>> parse_detector_id(detector_id(12, 1, 127))
     (12, 1, 127)"""
     return f"b{int(board)}m{int(module)}c{int(channel):03d}"
+
+
+def check_detector_id(det_id, where: str = "") -> str:
+    """``det_id`` if it is a safe id (letters, digits, ``_ . -``, not starting with ``.``, up to 128 characters).
+
+    >>> check_detector_id("b0m3c007")
+    'b0m3c007'
+    >>> check_detector_id("../../x", "p.toml")
+    Traceback (most recent call last):
+    ...
+    mntes_stream.errors.ConfigError: p.toml: detector id '../../x' is not a safe name (letters, digits, '_', '.', '-'; not starting with '.'; up to 128 characters)
+    """
+    if not isinstance(det_id, str) or not DETECTOR_ID_PATTERN.match(det_id):
+        raise ConfigError(f"{where + ': ' if where else ''}detector id {det_id!r} is not a safe name (letters, digits, "
+                          "'_', '.', '-'; not starting with '.'; up to 128 characters)")
+    return det_id
 
 
 def parse_detector_id(det_id: str) -> tuple[int, int, int]:

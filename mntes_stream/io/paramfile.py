@@ -23,6 +23,7 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
+from mntes_stream.core.ids import check_detector_id
 from mntes_stream.core.params import PRESETS, DetectorParams, params_from_dict
 from mntes_stream.errors import ConfigError
 
@@ -33,11 +34,13 @@ PARAMS_VERSION = 1
 
 
 def _expand_preset(d: dict, where: str) -> dict:
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where} must be a table of parameter values, got {d!r}"[:300])
     d = dict(d)
     preset = d.pop("preset", None)
     if preset is None:
         return d
-    if preset not in PRESETS:
+    if not isinstance(preset, str) or preset not in PRESETS:
         raise ConfigError(f"{where}: unknown preset {preset!r} (known: {sorted(PRESETS)})")
     base = PRESETS[preset]().to_dict()
     base.pop("detector_id")
@@ -62,6 +65,7 @@ def parse_params(doc: dict, source: str = "<params>") -> dict[str, DetectorParam
         raise ConfigError(f"{source}: no [detectors.<id>] tables")
     out: dict[str, DetectorParams] = {}
     for det_id, overrides in detectors.items():
+        check_detector_id(det_id, source)
         if not isinstance(overrides, dict):
             raise ConfigError(f"{source}: detectors.{det_id} must be a table")
         merged = dict(defaults)
@@ -78,6 +82,8 @@ def load_params(path: str | Path) -> dict[str, DetectorParams]:
         doc = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"parameter file not found: {path}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text (UTF-8 TOML) file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     return parse_params(doc, str(path))
