@@ -150,6 +150,10 @@ def run_convert(args) -> int:
         from mntes_stream.service.converter import ConverterService
 
         pipeline = service_config(ConverterService, args.config, (), {}, None).pipeline
+    if _g3_name(args.input) or _g3_name(args.output):  # SPT-3G G3 in or out (mntes_stream.g3)
+        from mntes_stream.cli.g3 import run_g3_convert
+
+        return run_g3_convert(args, pipeline)
     stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, pipeline_config=pipeline,
                               progress=not args.quiet)
     if args.json:
@@ -157,6 +161,10 @@ def run_convert(args) -> int:
     else:
         print(stats.summary())
     return 0
+
+
+def _g3_name(path) -> bool:
+    return any(str(path).lower().endswith(s) for s in (".g3", ".g3.gz", ".g3.zst", ".g3.bz2"))
 
 
 def register(sub) -> None:
@@ -197,7 +205,8 @@ def register(sub) -> None:
                        description="Feed the recorded counts and housekeeping of IN through the converter pipeline and "
                                    "write inputs plus new power and status to OUT. Parameters and tables default to "
                                    "the provenance stored in IN.")
-    p.add_argument("input", metavar="IN.mcap", help="recording (file or directory of rotated files)")
+    p.add_argument("input", metavar="IN.mcap", help="recording (file or directory of rotated files), or a G3 run "
+                                                    "(RUN.g3, raw Timepoints or collated Scans; a quoted glob for several)")
     p.add_argument("output", metavar="OUT.mcap")
     p.add_argument("--tables", metavar="FILE", help="response tables to use instead of the recorded ones")
     p.add_argument("--params", metavar="FILE", help="detector parameter TOML to use instead of the recorded one")
@@ -205,6 +214,9 @@ def register(sub) -> None:
                                                     "(default: the pipeline defaults for the recorded setup)")
     p.add_argument("--json", action="store_true")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    from mntes_stream.cli.g3 import add_g3_convert_args
+
+    add_g3_convert_args(p)
     p.set_defaults(func=run_convert)
 
     p = sub.add_parser("inspect", help="summarise MCAP recordings (topics, counts, completeness, metadata)")

@@ -1,0 +1,94 @@
+"""``mntes-stream g3-bridge`` and the G3 side of ``convert`` (SPT-3G readout in and out)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from mntes_stream.cli._common import add_zenoh_args, print_mapping
+
+
+def add_g3_convert_args(p) -> None:
+    """``convert``'s options for G3 input or output."""
+    g = p.add_argument_group("G3 (SPT-3G)", "when IN or OUT is a .g3 file: RUN.g3 -> OUT.g3 appends MntesOpticalPower "
+                                            "and MntesFlags to every Scan frame; RUN.g3 -> OUT.mcap converts through "
+                                            "the live pipeline; REC.mcap -> OUT.g3 writes the power as Scan frames")
+    g.add_argument("--kind", default="table", choices=("table", "grid", "exact", "linear", "electrical"),
+                   help="converter kind for G3 input (electrical needs no --params: minus spt3g's electrical power)")
+    g.add_argument("--wiring", metavar="RUN.g3", help="REC.mcap -> OUT.g3: a G3 file whose wiring map names the "
+                                                      "bolometers (default: detector ids as names)")
+    g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
+    g.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="its unit (default G3Units)")
+    g.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a run without one")
+    g.add_argument("--b-field-t", type=float, metavar="T", help="constant field (spt3g has no field source; default 0)")
+    g.add_argument("--setup", default="lab", help="RUN.g3 -> OUT.mcap: the setup name of the messages")
+    g.add_argument("--scan-samples", type=int, default=1000, help="raw Timepoint input: samples per Scan frame")
+
+
+def g3_input_config(args):
+    from mntes_stream.g3.mapping import G3InputConfig
+
+    given = {"t_bath_key": args.t_bath_key, "t_bath_unit": args.t_bath_unit,
+             "t_bath_default_k": args.t_bath_default_k, "b_field_t": args.b_field_t}
+    return G3InputConfig(**{k: v for k, v in given.items() if v is not None})
+
+
+def run_g3_convert(args, pipeline) -> int:
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3 import files
+
+    g3_in, g3_out = files.is_g3(args.input), files.is_g3(args.output)
+    if g3_in and g3_out:
+        if args.tables:
+            raise ConfigError("RUN.g3 -> OUT.g3 builds its converter from --params (and --kind); --tables is for MCAP")
+        result = files.g3_to_g3(args.input, args.output, params=args.params, kind=args.kind,
+                                config=g3_input_config(args), scan_samples=args.scan_samples)
+    elif g3_in:
+        stats = files.g3_to_mcap(args.input, args.output, params=args.params, tables=args.tables,
+                                 config=g3_input_config(args), setup=args.setup, pipeline_config=pipeline,
+                                 progress=not (args.quiet or args.json))
+        result = dataclasses.asdict(stats)
+        if not args.json:
+            print(stats.summary())
+            return 0
+    else:
+        result = files.mcap_to_g3(args.input, args.output, params=args.params, tables=args.tables,
+                                  wiring=args.wiring, pipeline_config=pipeline)
+    if args.json:
+        print(json.dumps(result, indent=2, default=str))
+    else:
+        print_mapping(result, False)
+    return 0
+
+
+def run_bridge(args) -> int:
+    from mntes_stream.cli._common import zenoh_layer
+    from mntes_stream.g3.bridge import G3BridgeService, bridge_config
+    from mntes_stream.service.base import stop_on_signals
+    from mntes_stream.service.config import with_zenoh
+
+    cfg = with_zenoh(bridge_config(args), zenoh_layer(args))
+    with stop_on_signals() as stop:
+        result = G3BridgeService(cfg).start(stop=stop)
+    print_mapping(result, args.json)
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("g3-bridge", help="publish SPT-3G DfMux readout (G3 over TCP or a G3 file) on zenoh",
+                       description="Read G3 frames from a DAQ's G3NetworkSender (tcp://HOST:PORT) or a G3 file and "
+                                   "publish counts, bias and bath-temperature housekeeping as the project's messages, "
+                                   "so the converter, recorder and monitor run unchanged on real readout. Reconnects "
+                                   "when the DAQ restarts; missing samples are counted.")
+    p.add_argument("--from", dest="source", metavar="tcp://HOST:PORT|RUN.g3",
+                   help="the DAQ's network tee (e.g. tcp://daq:5353) or a G3 file")
+    p.add_argument("--config", metavar="FILE", help="bridge TOML ([g3-bridge], [g3], [zenoh]); flags override it")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
+    p.add_argument("--setup", help="setup name in the keys (default lab)")
+    p.add_argument("--chunk-samples", type=int, help="Timepoints per counts chunk (default 16, ~0.1 s)")
+    p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="stop after this long (0: never)")
+    p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
+    p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a DAQ without one")
+    p.add_argument("--json", action="store_true")
+    add_zenoh_args(p)
+    p.set_defaults(func=run_bridge)

@@ -1,0 +1,242 @@
+"""``convert`` and ``export`` on G3 files: either layout in, G3 or MCAP out, and recordings out to G3.
+
+- G3 -> G3: :class:`~mntes_stream.g3.power.OpticalPower` in a ``G3Pipeline``
+  (raw Timepoint files go through spt3g's ``FixedLengthScans`` and
+  ``DfMuxCollator`` first); the housekeeping of the whole run is read ahead.
+- G3 -> MCAP: the frames become counts and housekeeping messages
+  (:class:`~mntes_stream.g3.translate.FrameTranslator`, as the live bridge
+  publishes them), and the recording is converted by the live converter's own
+  pipeline (``service.offline.convert_recording``) with the parameters mapped
+  to detector ids and the gain of the first housekeeping.
+- MCAP -> G3: the recorded (or, with parameters or tables, re-converted)
+  power as Scan frames with ``MntesOpticalPower``/``MntesFlags``, keyed by
+  bolometer name when a wiring map is given (a G3 file holding one).
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from mntes_stream.errors import ConfigError
+from mntes_stream.g3 import spt3g
+from mntes_stream.g3.mapping import G3InputConfig, Wiring
+
+__all__ = ["is_g3", "expand_inputs", "read_frames", "preload", "g3_to_g3", "g3_to_mcap", "mcap_to_g3",
+           "g3_messages"]
+
+log = logging.getLogger("mntes_stream.g3")
+
+
+def is_g3(path) -> bool:
+    """A G3 file by its name (``.g3``, ``.g3.gz``, ``.g3.zst``, ``.g3.bz2``)."""
+    name = str(path).lower()
+    return any(name.endswith(s) for s in (".g3", ".g3.gz", ".g3.zst", ".g3.bz2"))
+
+
+def expand_inputs(paths) -> list[str]:
+    """Files named by paths or glob patterns, in order (ConfigError if a pattern matches nothing)."""
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    out: list[str] = []
+    for p in paths:
+        p = str(p)
+        if any(ch in p for ch in "*?["):
+            hits = sorted(glob.glob(p))
+            if not hits:
+                raise ConfigError(f"no G3 file matches {p!r}")
+            out += hits
+        elif not Path(p).is_file():
+            raise ConfigError(f"G3 file not found: {p}")
+        else:
+            out.append(p)
+    return out
+
+
+def read_frames(paths):
+    """Every frame of the files, in order (spt3g's G3File)."""
+    core, _ = spt3g()
+    for path in expand_inputs(paths):
+        try:
+            yield from core.G3File(path)
+        except RuntimeError as exc:
+            raise ConfigError(f"{path}: not a readable G3 file ({exc})") from None
+
+
+def preload(paths) -> tuple[list, dict]:
+    """Wiring, Housekeeping and GcpSlow frames of a run, and how many frames of each type it has."""
+    core, _ = spt3g()
+    keep = (core.G3FrameType.Wiring, core.G3FrameType.Housekeeping, core.G3FrameType.GcpSlow)
+    frames, counts = [], {}
+    for f in read_frames(paths):
+        counts[str(f.type)] = counts.get(str(f.type), 0) + 1
+        if f.type in keep:
+            frames.append(f)
+        elif f.type == core.G3FrameType.Scan and "RawTimestreams_I" in f:
+            counts["ScanData"] = counts.get("ScanData", 0) + 1
+    if not counts.get("Wiring"):
+        raise ConfigError("the G3 input has no Wiring frame (WiringMap): cannot tell which bolometer is which")
+    if not counts.get("ScanData") and not counts.get("Timepoint"):
+        raise ConfigError("the G3 input has neither Timepoint frames nor Scan frames with RawTimestreams_I/Q")
+    return frames, counts
+
+
+def g3_to_g3(inputs, output, *, params=None, kind: str = "table", config: G3InputConfig | None = None,
+             scan_samples: int = 1000, **converter_options) -> dict:
+    """MNTES power appended to every Scan frame of a G3 run, written to ``output`` (G3)."""
+    from mntes_stream.g3.power import OpticalPower
+
+    core, dfmux = spt3g()
+    if Path(output).exists():
+        raise ConfigError(f"{output} exists: not overwritten")
+    files = expand_inputs(inputs)
+    metadata, counts = preload(files)
+    module = OpticalPower(params=params, kind=kind, config=config, preload=metadata, **converter_options)
+    module.bath.require()
+    pipe = core.G3Pipeline()
+    pipe.Add(core.G3Reader, filename=files)
+    if counts.get("Timepoint"):
+        if not counts.get("Scan"):
+            pipe.Add(dfmux.FixedLengthScans, N=int(scan_samples))
+        pipe.Add(dfmux.DfMuxCollator, flac_compress=True)
+    pipe.Add(module)
+    pipe.Add(core.G3Writer, filename=str(output))
+    pipe.Run()
+    return {"output": str(output), "layout": "timepoints" if counts.get("Timepoint") else "scans",
+            "scans": module.scans, "detector_samples": module.samples, "skipped_bolometers": len(module.skipped),
+            "housekeeping_changes": module.gain_changes, "kind": kind}
+
+
+def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_samples: int = 16):
+    """``(t_ns, key, payload)`` of every message a G3 run gives (the bridge's translation).
+
+    ``t_ns`` is the data time the message stands for (last sample of a
+    chunk, time of a reading); bath readings of a configured default come
+    with every counts batch when the run has no thermometer.
+    """
+    from mntes_stream.g3.translate import FrameTranslator
+    from mntes_stream.io import keys
+
+    tr = FrameTranslator(setup, config, chunk_samples)
+    has_bath = None
+    for frame in read_frames(inputs):
+        out = tr.handle(frame)
+        if out and has_bath is None and any(keys.kind_of(k) == "counts" for k, _ in out):
+            has_bath = len(tr.bath) > 0
+        for key, payload in out:
+            if keys.kind_of(key) == "counts" and not has_bath:
+                from mntes_stream.io.messages import CountsChunk
+
+                t_last = int(CountsChunk.from_bytes(payload).times_ns()[-1])
+                for k2, p2 in tr.default_bath(t_last):
+                    yield t_last, k2, p2
+            yield _message_time(key, payload), key, payload
+    for key, payload in tr.flush():
+        yield _message_time(key, payload), key, payload
+
+
+def _message_time(key: str, payload: bytes) -> int:
+    from mntes_stream.io.messages import decode
+
+    msg = decode(payload)
+    t = msg.times_ns() if hasattr(msg, "times_ns") else msg.t_ns
+    return int(np.asarray(t)[-1])
+
+
+def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, setup: str = "lab",
+               chunk_samples: int = 16, tables=None, pipeline_config=None, progress: bool = False):
+    """Convert a G3 run to an MCAP recording through the live converter's pipeline."""
+    from mntes_stream.g3.mapping import hk_snapshot, params_for_wiring
+    from mntes_stream.g3.power import load_g3_params
+    from mntes_stream.io.mcap import McapFileWriter, writer_description
+    from mntes_stream.io.paramfile import dump_params
+    from mntes_stream.service.offline import convert_recording
+
+    if params is None and tables is None:
+        raise ConfigError("G3 -> MCAP needs detector parameters (--params, keyed by bolometer name or detector id)")
+    if Path(output).exists():
+        raise ConfigError(f"{output} exists: not overwritten")
+    config = config or G3InputConfig()
+    files = expand_inputs(inputs)
+    metadata, _ = preload(files)
+    core, _ = spt3g()
+    wiring = Wiring.from_frame(next(f for f in metadata if f.type == core.G3FrameType.Wiring), config)
+    hks = [f for f in metadata if f.type == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in f]
+    if not hks:
+        raise ConfigError("the G3 input has no DfMux housekeeping: amps per count and bias are unknown")
+    with tempfile.TemporaryDirectory(prefix="mntes-g3-") as tmp:
+        pfile = None
+        if params is not None:
+            snap = hk_snapshot(hks[0]["DfMuxHousekeeping"], wiring)
+            pdict, missing = params_for_wiring(load_g3_params(params), wiring, snap)
+            if missing:
+                log.warning("%d wired bolometer(s) without parameters, skipped: %s", len(missing),
+                            ", ".join(missing[:8]))
+            if not pdict:
+                raise ConfigError("no wired bolometer has parameters: keyed by bolometer name or detector id?")
+            pfile = Path(tmp) / "params.toml"
+            dump_params(list(pdict.values()), pfile, metadata={"source": f"G3 run {files[0]}: gain from housekeeping"})
+        rec = Path(tmp) / "g3.mcap"
+        with McapFileWriter(rec, metadata={"mntes.recording": writer_description(
+                mode="G3 translation", input=[str(f) for f in files])}) as w:
+            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples):
+                w.write(key, payload, t_ns)
+        return convert_recording(rec, output, params=pfile, tables=tables, pipeline_config=pipeline_config,
+                                 progress=progress)
+
+
+def mcap_to_g3(inputs, output, *, params=None, tables=None, wiring=None, pipeline_config=None) -> dict:
+    """Recorded power (re-converted when ``params``/``tables`` are given) as G3 Scan frames."""
+    from mntes_stream.io.mcap import Session
+    from mntes_stream.io.messages import PowerChunk
+    from mntes_stream.service.offline import convert_recording
+
+    core, _ = spt3g()
+    if Path(output).exists():
+        raise ConfigError(f"{output} exists: not overwritten")
+    wiring_frame = None
+    names = {}
+    if wiring is not None:
+        wiring_frame = next((f for f in read_frames(wiring) if f.type == core.G3FrameType.Wiring), None)
+        if wiring_frame is None:
+            raise ConfigError(f"{wiring}: no Wiring frame")
+        w = Wiring.from_frame(wiring_frame)
+        names = dict(zip(w.detector_ids, w.names))
+    with tempfile.TemporaryDirectory(prefix="mntes-g3-") as tmp:
+        source = inputs
+        if params is not None or tables is not None:
+            source = Path(tmp) / "converted.mcap"
+            convert_recording(inputs, source, params=params, tables=tables, pipeline_config=pipeline_config,
+                              progress=False)
+        groups: dict = {}
+        for msg in Session(source).iter_messages():
+            if not msg.topic.split("/")[2:3] == ["power"]:
+                continue
+            chunk = PowerChunk.from_bytes(msg.payload)
+            t = chunk.times_ns()
+            groups.setdefault((int(t[0]), t.size), []).append(chunk)
+    writer = core.G3Writer(filename=str(output))
+    if wiring_frame is not None:
+        writer(wiring_frame)
+    n_scans = n_samples = 0
+    for (_, _), chunks in sorted(groups.items()):
+        t = chunks[0].times_ns()
+        ids = [d for c in chunks for d in c.detector_ids]
+        p = np.concatenate([c.p_opt_w for c in chunks])
+        f = np.concatenate([c.flags for c in chunks]).astype(np.int32)
+        keys_ = [names.get(d, d) for d in ids]
+        start, stop = core.G3Time(int(t[0]) // 10), core.G3Time(int(t[-1]) // 10)
+        frame = core.G3Frame(core.G3FrameType.Scan)
+        frame["MntesOpticalPower"] = core.G3TimestreamMap(keys_, p, start, stop, core.G3TimestreamUnits.Power)
+        frame["MntesFlags"] = core.G3TimestreamMap(keys_, f, start, stop)
+        frame["DetectorSampleTimes"] = core.G3VectorTime([core.G3Time(int(x) // 10) for x in t])
+        writer(frame)
+        n_scans += 1
+        n_samples += p.size
+    writer(core.G3Frame(core.G3FrameType.EndProcessing))
+    return {"output": str(output), "scans": n_scans, "detector_samples": n_samples,
+            "named_by": "bolometer name" if names else "detector id"}

@@ -1,0 +1,423 @@
+"""G3 frames -> the project's quantities: wiring both ways, housekeeping, bath temperature, counts.
+
+Conventions (spt3g 1.0.2, read from its ``dfmux`` package):
+
+- G3 time counts ticks of 10 ns since the Unix epoch: ``t_ns = ticks * 10``.
+- The wiring map's ``module`` (0-7 on a board, across both mezzanines) and
+  ``channel`` are 0-indexed; the housekeeping tree's mezzanine, module and
+  channel are 1-indexed. spt3g's ``HousekeepingForBolo`` bridges them, and
+  every housekeeping lookup here goes through it.
+- A detector's id is ``core.ids.detector_id(board_serial, module, channel)``
+  with the wiring map's numbers; parameter files may name a detector by id or
+  by bolometer name.
+- Amps per count (RMS) and bias voltage (RMS) are spt3g's own
+  ``counts_to_rms_amps`` and ``bolo_bias_voltage_rms`` of the housekeeping in
+  force: they change when an operator changes a gain, a carrier amplitude or
+  frequency. The project's gain is a *peak* current per count:
+  ``|gain_a_per_count| = sqrt(2) * amps_rms_per_count``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mntes_stream.core.ids import detector_id
+from mntes_stream.core.settings import Settings, setting
+from mntes_stream.core.timing import G3_TICK_NS
+from mntes_stream.errors import ConfigError, SchemaError
+
+__all__ = ["COUNTS_24BIT", "G3InputConfig", "Wiring", "HkSnapshot", "HkHistory", "BathHistory", "ScanBlock",
+           "TimepointBuffer", "scan_block", "hk_snapshot", "bath_reading", "g3_time_ns", "invalid_counts",
+           "params_for_wiring", "SQRT2"]
+
+log = logging.getLogger("mntes_stream.g3")
+
+SQRT2 = float(np.sqrt(2.0))
+# FLAC packs counts in 24 bits and wraps beyond +-2**23 silently: a value at or beyond it is not a reading.
+COUNTS_24BIT = 2**23
+
+
+@dataclass(frozen=True)
+class G3InputConfig(Settings):
+    """How G3 input is read (the ``[g3]`` settings of the bridge and of ``convert``)."""
+
+    t_bath_key: str = setting("CryoStatus.UC_Head", "GcpSlow frame key, then map entry, of the bath thermometer")
+    t_bath_unit: str = setting("G3Units", "unit of that value (G3Units: spt3g's base, K = 1000)",
+                               choices=("G3Units", "K", "mK"))
+    t_bath_time_key: str = setting("Time", "GcpSlow frame key of the reading's G3Time (absent: time of the data "
+                                   "seen last)")
+    t_bath_default_k: float | None = setting(None, "bath temperature when the run has no reading (None: an error)",
+                                             unit="K", gt=0)
+    b_field_t: float = setting(0.0, "spt3g has no magnetic-field source: this constant field", unit="T")
+    transfer_function: str = setting("spt3g_filtering_2017_full", "spt3g transfer function when the wiring frame "
+                                     "names none (DfMuxTransferFunction)")
+    readout_system: str = setting("ICE", "when the wiring frame has no ReadoutSystem", choices=("ICE", "DfMux"))
+
+
+def g3_time_ns(t) -> int:
+    """ns since the Unix epoch of a G3Time (ticks of 10 ns)."""
+    return int(t.time) * G3_TICK_NS
+
+
+def invalid_counts(x: np.ndarray) -> np.ndarray:
+    """True where a counts value is not a reading: NaN, or at/beyond the 24-bit range FLAC keeps."""
+    with np.errstate(invalid="ignore"):
+        return ~(np.abs(x) < COUNTS_24BIT)
+
+
+@dataclass(frozen=True, eq=False)
+class Wiring:
+    """A DfMux wiring map, both ways.
+
+    Attributes
+    ----------
+    names : tuple of str, length n_bolo
+        Bolometer names, sorted by (board, module, channel).
+    board, module, channel : ndarray of int64, shape (n_bolo,)
+        Board serial, 0-indexed module on the board, 0-indexed channel.
+    detector_ids : tuple of str, length n_bolo
+    system, transfer_function : str
+        spt3g's ReadoutSystem and transfer-function name.
+    wiring_map : spt3g.dfmux.DfMuxWiringMap
+    """
+
+    names: tuple
+    board: np.ndarray
+    module: np.ndarray
+    channel: np.ndarray
+    detector_ids: tuple
+    system: str
+    transfer_function: str
+    wiring_map: object = field(repr=False)
+    _by_name: dict = field(default_factory=dict, repr=False)
+    _by_id: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_frame(cls, frame, config: G3InputConfig | None = None) -> Wiring:
+        """From a Wiring frame (``WiringMap``, ``ReadoutSystem``, ``DfMuxTransferFunction``)."""
+        config = config or G3InputConfig()
+        if "WiringMap" not in frame:
+            raise SchemaError("G3 Wiring frame without a WiringMap")
+        wm = frame["WiringMap"]
+        rows = sorted((int(m.board_serial), int(m.module), int(m.channel), str(name)) for name, m in wm.items())
+        if not rows:
+            raise SchemaError("G3 wiring map is empty")
+        b, m, c, names = (list(x) for x in zip(*rows))
+        ids = tuple(detector_id(*t) for t in zip(b, m, c))
+        if len(set(ids)) != len(ids):
+            raise SchemaError("G3 wiring map maps two bolometers to one readout channel")
+        system = str(frame["ReadoutSystem"]) if "ReadoutSystem" in frame else config.readout_system
+        tf = str(frame["DfMuxTransferFunction"]) if "DfMuxTransferFunction" in frame else config.transfer_function
+        return cls(tuple(names), np.array(b), np.array(m), np.array(c), ids, system, tf, wm,
+                   {n: k for k, n in enumerate(names)}, {d: k for k, d in enumerate(ids)})
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def id_of(self, name: str) -> str:
+        """Detector id of a bolometer name (KeyError if not wired)."""
+        return self.detector_ids[self._by_name[name]]
+
+    def name_of(self, det_id: str) -> str:
+        """Bolometer name of a detector id (KeyError if not wired)."""
+        return self.names[self._by_id[det_id]]
+
+    def index_of_names(self, names) -> np.ndarray:
+        """Row of each name, shape (n,), -1 for names not wired."""
+        return np.array([self._by_name.get(str(n), -1) for n in names], dtype=np.int64)
+
+    def modules(self) -> dict:
+        """``(board, module) -> rows`` (int64 indices into :attr:`names`, by channel)."""
+        out: dict = {}
+        for k, key in enumerate(zip(self.board.tolist(), self.module.tolist())):
+            out.setdefault(key, []).append(k)
+        return {key: np.array(v, dtype=np.int64) for key, v in out.items()}
+
+
+@dataclass(frozen=True)
+class HkSnapshot:
+    """Per-bolometer readout calibration from one DfMux housekeeping frame.
+
+    Attributes
+    ----------
+    t_ns : int
+        Board timestamp of the housekeeping (the first board's, as spt3g uses).
+    amps_rms_per_count : ndarray, shape (n_bolo,)
+        spt3g ``counts_to_rms_amps``; NaN where the housekeeping lacks the channel.
+    v_bias_rms_v : ndarray, shape (n_bolo,)
+        spt3g ``bolo_bias_voltage_rms``; NaN likewise.
+    """
+
+    t_ns: int
+    amps_rms_per_count: np.ndarray
+    v_bias_rms_v: np.ndarray
+
+
+def hk_snapshot(hkmap, wiring: Wiring, t_fallback_ns: int = 0) -> HkSnapshot:
+    """Amps per count and bias of every wired bolometer, from spt3g's own conversion functions."""
+    from mntes_stream.g3 import spt3g
+
+    core, dfmux = spt3g()
+    from spt3g.dfmux.unittransforms import bolo_bias_voltage_rms, counts_to_rms_amps
+
+    boards = list(hkmap.values())
+    t_ns = g3_time_ns(boards[0].timestamp) if boards else 0
+    if t_ns <= 0:
+        t_ns = int(t_fallback_ns)
+    n = len(wiring)
+    amps, volts = np.full(n, np.nan), np.full(n, np.nan)
+    tf = wiring.transfer_function
+    for k, name in enumerate(wiring.names):
+        try:
+            amps[k] = counts_to_rms_amps(wiring.wiring_map, hkmap, name, wiring.system, tf) / core.G3Units.amp
+            volts[k] = bolo_bias_voltage_rms(wiring.wiring_map, hkmap, name, wiring.system, tf) / core.G3Units.V
+        except (KeyError, IndexError, ValueError):  # board/module/channel absent from this housekeeping
+            continue
+    return HkSnapshot(t_ns, amps, volts)
+
+
+def _same(a: HkSnapshot, b: HkSnapshot) -> bool:
+    return (np.array_equal(a.amps_rms_per_count, b.amps_rms_per_count, equal_nan=True)
+            and np.array_equal(a.v_bias_rms_v, b.v_bias_rms_v, equal_nan=True))
+
+
+class HkHistory:
+    """Housekeeping snapshots by time; the one in force at a sample is the last at or before it.
+
+    Housekeeping frames are not in time order with the data (the DAQ inserts
+    them when it can), so snapshots are kept sorted and looked up by sample
+    time. A sample before the first snapshot uses the first (as spt3g's
+    ``ConvertTimestreamUnits`` does with the first housekeeping it sees).
+    """
+
+    def __init__(self):
+        self._t: list[int] = []
+        self._snaps: list[HkSnapshot] = []
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, snap: HkSnapshot) -> bool:
+        """Insert (same time: replaced); True when the calibration differs from the one before it."""
+        k = bisect.bisect_left(self._t, snap.t_ns)
+        if k < len(self._t) and self._t[k] == snap.t_ns:
+            if _same(self._snaps[k], snap):  # read again (a file read ahead, then streamed)
+                return False
+            self._snaps[k] = snap
+        else:
+            self._t.insert(k, snap.t_ns)
+            self._snaps.insert(k, snap)
+        if k == 0:
+            return False
+        return not _same(self._snaps[k - 1], snap)
+
+    def first(self) -> HkSnapshot:
+        if not self._snaps:
+            raise ConfigError("no DfMux housekeeping (Housekeeping frame with DfMuxHousekeeping) before the data")
+        return self._snaps[0]
+
+    def at(self, t_ns: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Amps per count and bias (RMS) in force at each sample.
+
+        Parameters
+        ----------
+        t_ns : ndarray of int64, shape (n_samp,)
+        rows : ndarray of int64, shape (n_det,), optional
+            Wiring rows (default: all).
+
+        Returns
+        -------
+        amps_rms_per_count, v_bias_rms_v : ndarray, shape (n_det, n_samp)
+        """
+        self.first()
+        idx = np.clip(np.searchsorted(np.asarray(self._t, dtype=np.int64), t_ns, side="right") - 1, 0, None)
+        sel = slice(None) if rows is None else rows
+        amps = np.stack([s.amps_rms_per_count[sel] for s in self._snaps])  # (n_snap, n_det)
+        volts = np.stack([s.v_bias_rms_v[sel] for s in self._snaps])
+        return amps[idx].T, volts[idx].T
+
+
+def bath_reading(frame, config: G3InputConfig, t_fallback_ns: int) -> tuple[int, float] | None:
+    """``(t_ns, K)`` of the bath thermometer in a GcpSlow frame, or None if it has none."""
+    from mntes_stream.g3 import spt3g
+
+    core, _ = spt3g()
+    head, _, entry = config.t_bath_key.partition(".")
+    if head not in frame:
+        return None
+    value = frame[head]
+    try:
+        value = value[entry] if entry else value
+        value = float(value.value if hasattr(value, "value") else value)
+    except (KeyError, TypeError, ValueError):
+        return None
+    scale = {"G3Units": 1.0 / core.G3Units.K, "K": 1.0, "mK": 1e-3}[config.t_bath_unit]
+    t_ns = g3_time_ns(frame[config.t_bath_time_key]) if config.t_bath_time_key in frame else int(t_fallback_ns)
+    return t_ns, value * scale
+
+
+class BathHistory:
+    """Bath-temperature readings (linear between readings, held beyond the ends) or a configured default."""
+
+    def __init__(self, config: G3InputConfig):
+        self.config = config
+        self._t: list[int] = []
+        self._v: list[float] = []
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, t_ns: int, t_bath_k: float) -> None:
+        k = bisect.bisect_left(self._t, t_ns)
+        if k < len(self._t) and self._t[k] == t_ns:
+            self._v[k] = t_bath_k
+        else:
+            self._t.insert(k, t_ns)
+            self._v.insert(k, t_bath_k)
+
+    def require(self) -> None:
+        """ConfigError unless a reading or a default exists."""
+        if not self._t and self.config.t_bath_default_k is None:
+            raise ConfigError(
+                f"no bath temperature: no GcpSlow frame carries {self.config.t_bath_key!r}; name the thermometer "
+                "(t_bath_key, e.g. --t-bath-key CryoStatus.UC_Head) or configure a default (t_bath_default_k)")
+
+    def at(self, t_ns: np.ndarray) -> np.ndarray:
+        """Bath temperature (K) at each sample time, shape (n_samp,)."""
+        self.require()
+        if not self._t:
+            return np.full(np.shape(t_ns), float(self.config.t_bath_default_k))
+        t0 = self._t[0]
+        return np.interp(np.asarray(t_ns, dtype=np.int64) - t0, np.asarray(self._t, dtype=np.int64) - t0, self._v)
+
+
+@dataclass(frozen=True)
+class ScanBlock:
+    """Counts of wired bolometers over a span of samples.
+
+    Attributes
+    ----------
+    t_ns : ndarray of int64, shape (n_samp,)
+    rows : ndarray of int64, shape (n_det,)
+        Wiring rows of the bolometers present.
+    counts_i, counts_q : ndarray of float64, shape (n_det, n_samp)
+        NaN where a sample is missing.
+    """
+
+    t_ns: np.ndarray
+    rows: np.ndarray
+    counts_i: np.ndarray
+    counts_q: np.ndarray
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.t_ns.size)
+
+
+def _times_of(frame, tsmap) -> np.ndarray:
+    if "DetectorSampleTimes" in frame:
+        return np.array([t.time for t in frame["DetectorSampleTimes"]], dtype=np.int64) * G3_TICK_NS
+    n = int(tsmap.n_samples)
+    start, stop = int(tsmap.start.time), int(tsmap.stop.time)
+    if n <= 1:
+        return np.array([start] * n, dtype=np.int64) * G3_TICK_NS
+    # G3 spans are inclusive of the last sample: stop = start + (n - 1) / rate.
+    return (start + np.rint(np.arange(n) * ((stop - start) / (n - 1))).astype(np.int64)) * G3_TICK_NS
+
+
+def scan_block(frame, wiring: Wiring, input_i: str = "RawTimestreams_I", input_q: str = "RawTimestreams_Q"):
+    """Counts of a collated Scan frame, or None if it has no ``input_i``/``input_q`` maps."""
+    if input_i not in frame or input_q not in frame:
+        return None
+    mi, mq = frame[input_i], frame[input_q]
+    names = [n for n in mi.keys() if n in mq]
+    rows = wiring.index_of_names(names)
+    keep = np.flatnonzero(rows >= 0)
+    order = keep[np.argsort(rows[keep], kind="stable")]
+    t_ns = _times_of(frame, mi)
+    n = t_ns.size
+    ci = np.empty((order.size, n))
+    cq = np.empty((order.size, n))
+    for k, j in enumerate(order):
+        ci[k] = np.asarray(mi[names[j]], dtype=np.float64)
+        cq[k] = np.asarray(mq[names[j]], dtype=np.float64)
+    return ScanBlock(t_ns, rows[order], ci, cq)
+
+
+class TimepointBuffer:
+    """Raw Timepoint frames (``EventHeader``, ``DfMux``) collected into :class:`ScanBlock` s.
+
+    A wired channel whose board or module is absent from a Timepoint is NaN
+    there, as ``DfMuxCollator`` leaves it.
+    """
+
+    def __init__(self, wiring: Wiring):
+        self.wiring = wiring
+        self._groups = [(b, m, rows, wiring.channel[rows]) for (b, m), rows in wiring.modules().items()]
+        self._t: list[int] = []
+        self._i: list[np.ndarray] = []
+        self._q: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    @property
+    def last_t_ns(self) -> int | None:
+        return self._t[-1] if self._t else None
+
+    def add(self, frame) -> None:
+        n = len(self.wiring)
+        ci, cq = np.full(n, np.nan), np.full(n, np.nan)
+        meta = frame["DfMux"]
+        for b, m, rows, ch in self._groups:
+            board = meta.get(b) if b in meta else None
+            if board is None or m not in board:
+                continue
+            s = np.asarray(board[m])
+            ok = 2 * ch + 1 < s.size
+            ci[rows[ok]] = s[2 * ch[ok]]
+            cq[rows[ok]] = s[2 * ch[ok] + 1]
+        self._t.append(g3_time_ns(frame["EventHeader"]))
+        self._i.append(ci)
+        self._q.append(cq)
+
+    def take(self) -> ScanBlock | None:
+        """Everything collected so far (None if nothing), and start over."""
+        if not self._t:
+            return None
+        blk = ScanBlock(np.array(self._t, dtype=np.int64), np.arange(len(self.wiring), dtype=np.int64),
+                        np.stack(self._i, axis=1), np.stack(self._q, axis=1))
+        self._t, self._i, self._q = [], [], []
+        return blk
+
+
+def params_for_wiring(params: dict, wiring: Wiring, snap: HkSnapshot) -> tuple[dict, list[str]]:
+    """Detector parameters by detector id, with the readout gain from the housekeeping.
+
+    Parameters
+    ----------
+    params : dict
+        ``DetectorParams`` keyed by detector id or by bolometer name.
+    wiring : Wiring
+    snap : HkSnapshot
+        Housekeeping whose amps per count set ``|gain_a_per_count|`` (the
+        phase, i.e. the demodulation phase, stays the file's).
+
+    Returns
+    -------
+    (dict detector id -> DetectorParams, list of bolometer names without usable parameters)
+    """
+    out, missing = {}, []
+    for k, (name, det_id) in enumerate(zip(wiring.names, wiring.detector_ids)):
+        p = params.get(name, params.get(det_id))
+        a = snap.amps_rms_per_count[k]
+        if p is None or not (np.isfinite(a) and a > 0):
+            missing.append(name)
+            continue
+        phase = p.gain_a_per_count / abs(p.gain_a_per_count)
+        out[det_id] = p.replace(detector_id=det_id, gain_a_per_count=complex(SQRT2 * a * phase))
+    return out, missing

@@ -1,0 +1,222 @@
+"""``OpticalPower``: a spt3g pipeline module that appends MNTES optical power to Scan frames.
+
+Use it after the collator in any ``core.G3Pipeline``::
+
+    pipe.Add(core.G3Reader, filename="run.g3")
+    pipe.Add(dfmux.DfMuxCollator)            # if the file holds raw Timepoints
+    pipe.Add(mntes_stream.g3.OpticalPower, params="params.toml")
+    pipe.Add(core.G3Writer, filename="out.g3")
+
+Each Scan frame with ``RawTimestreams_I``/``_Q`` gains ``MntesOpticalPower``
+(G3TimestreamMap, units Power, float64 W, keys = bolometer names) and
+``MntesFlags`` (G3TimestreamMap of int32, the ``core.flags`` bits); every
+frame passes on. The readout gain and bias of each sample are the DfMux
+housekeeping in force at that sample (spt3g's own conversion functions), so
+a gain change mid-run applies from the sample at or after its timestamp.
+
+Conversion: the current of a sample is ``i = sqrt(2) a(t) e^{j phi} (I + jQ)``
+with ``a(t)`` spt3g's RMS amps per count and ``phi`` the demodulation phase of
+the detector's parameters (``arg(gain_a_per_count)``); the bias is spt3g's
+RMS bias voltage. Kind ``electrical`` without parameters is
+``P = -I * a(t) * V(t)``: minus spt3g's ``ConvertTimestreamUnits(..., Power)``
+(optical power = constant - electrical power; the constant is unknown without
+parameters and taken as 0).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+from mntes_stream.core.convert import CONVERTER_KINDS, EnvironmentBlock, make_converter
+from mntes_stream.errors import ConfigError
+from mntes_stream.g3 import spt3g
+from mntes_stream.g3.mapping import (
+    SQRT2,
+    BathHistory,
+    G3InputConfig,
+    HkHistory,
+    Wiring,
+    bath_reading,
+    hk_snapshot,
+    invalid_counts,
+    params_for_wiring,
+    scan_block,
+)
+
+__all__ = ["OpticalPower", "POWER_KEY", "FLAGS_KEY", "load_g3_params"]
+
+log = logging.getLogger("mntes_stream.g3")
+
+POWER_KEY = "MntesOpticalPower"
+FLAGS_KEY = "MntesFlags"
+
+
+def load_g3_params(params) -> dict | None:
+    """Parameters as a dict (keyed by detector id or bolometer name) from a path, a dict, or None."""
+    if params is None:
+        return None
+    if isinstance(params, (str, Path)):
+        from mntes_stream.io.paramfile import load_params
+
+        return load_params(params)
+    if isinstance(params, Mapping):
+        return dict(params)
+    raise ConfigError(f"params must be a parameter file or a mapping, got {type(params).__name__}")
+
+
+class OpticalPower:
+    """Append ``MntesOpticalPower`` and ``MntesFlags`` to each Scan frame.
+
+    Parameters
+    ----------
+    params : path, mapping or None
+        Detector parameters keyed by detector id or bolometer name. None is
+        allowed for ``kind="electrical"`` only.
+    kind : str
+        A converter kind (``core.convert.CONVERTER_KINDS``); default ``table``.
+    config : G3InputConfig, optional
+        Bath-temperature source, field, transfer-function defaults.
+    preload : iterable of frames, optional
+        Wiring, Housekeeping and GcpSlow frames of the whole run, read ahead
+        (housekeeping is not in time order with the scans: a reading taken
+        during a scan may be written after it).
+    """
+
+    def __init__(self, params=None, kind: str = "table", config: G3InputConfig | None = None, preload=(),
+                 input_i: str = "RawTimestreams_I", input_q: str = "RawTimestreams_Q", output: str = POWER_KEY,
+                 flags_output: str = FLAGS_KEY, **converter_options):
+        if kind not in CONVERTER_KINDS:
+            raise ConfigError(f"unknown kind {kind!r} (known: {', '.join(CONVERTER_KINDS)})")
+        self.params = load_g3_params(params)
+        if self.params is None and kind != "electrical":
+            raise ConfigError(f"kind {kind!r} needs detector parameters (only 'electrical' works without)")
+        self.kind = kind
+        self.config = config or G3InputConfig()
+        self.input_i, self.input_q, self.output, self.flags_output = input_i, input_q, output, flags_output
+        self.converter_options = converter_options
+        self.wiring: Wiring | None = None
+        self.hk = HkHistory()
+        self.bath = BathHistory(self.config)
+        self._pending_hk: list = []
+        self._converter = None
+        self._gain_ref = None
+        self._rows = None
+        self._t_last_ns = 0
+        self.skipped: tuple = ()
+        self.scans = 0
+        self.samples = 0
+        self.gain_changes = 0
+        for frame in preload:
+            self._metadata(frame)
+
+    # -- frames -------------------------------------------------------------------------------
+    def _metadata(self, frame) -> bool:
+        core, _ = spt3g()
+        ft = frame.type
+        if ft == core.G3FrameType.Wiring:
+            wiring = Wiring.from_frame(frame, self.config)
+            if self.wiring is None or wiring.names != self.wiring.names or \
+                    not np.array_equal(wiring.detector_ids, self.wiring.detector_ids):
+                self.wiring = wiring
+                self.hk = HkHistory()
+                self._converter, self._rows = None, None
+                for hkmap, t in self._pending_hk:
+                    self._add_hk(hkmap, t)
+                self._pending_hk = []
+            return True
+        if ft == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in frame:
+            if self.wiring is None:  # the wiring may follow: keep it until then
+                self._pending_hk.append((frame["DfMuxHousekeeping"], self._t_last_ns))
+            else:
+                self._add_hk(frame["DfMuxHousekeeping"], self._t_last_ns)
+            return True
+        if ft == core.G3FrameType.GcpSlow:
+            r = bath_reading(frame, self.config, self._t_last_ns)
+            if r is not None:
+                self.bath.add(*r)
+            return True
+        return False
+
+    def _add_hk(self, hkmap, t_fallback_ns: int) -> None:
+        if self.hk.add(hk_snapshot(hkmap, self.wiring, t_fallback_ns)):
+            self.gain_changes += 1
+
+    def __call__(self, frame):
+        core, _ = spt3g()
+        if self._metadata(frame) or frame.type != core.G3FrameType.Scan:
+            return
+        if self.wiring is None:
+            raise ConfigError("G3 Scan frame before any Wiring frame: cannot tell which bolometer is which")
+        blk = scan_block(frame, self.wiring, self.input_i, self.input_q)
+        if blk is None:
+            return
+        self._t_last_ns = int(blk.t_ns[-1]) if blk.n_samples else self._t_last_ns
+        names, p, f = self.convert_block(blk)
+        start = core.G3Time(int(blk.t_ns[0]) // 10) if blk.n_samples else core.G3Time()
+        stop = core.G3Time(int(blk.t_ns[-1]) // 10) if blk.n_samples else core.G3Time()
+        mi = frame[self.input_i]
+        if blk.n_samples and names:
+            start, stop = mi.start, mi.stop
+        frame[self.output] = core.G3TimestreamMap(list(names), p, start, stop, core.G3TimestreamUnits.Power)
+        frame[self.flags_output] = core.G3TimestreamMap(list(names), f.astype(np.int32), start, stop)
+        self.scans += 1
+        self.samples += p.size
+
+    # -- conversion ---------------------------------------------------------------------------
+    def _prepare(self):
+        """Converter for the wired bolometers that have parameters (built at the first scan)."""
+        snap = self.hk.first()
+        if self.params is None:
+            self._rows = np.arange(len(self.wiring))
+            return
+        pdict, missing = params_for_wiring(self.params, self.wiring, snap)
+        if missing:
+            log.warning("%d wired bolometer(s) without parameters or housekeeping, skipped: %s%s", len(missing),
+                        ", ".join(missing[:8]), " ..." if len(missing) > 8 else "")
+        self.skipped = tuple(missing)
+        if not pdict:
+            raise ConfigError("no wired bolometer has parameters: are they keyed by bolometer name or detector id?")
+        self._rows = np.array([self.wiring._by_id[d] for d in pdict], dtype=np.int64)
+        self._gain_ref = np.array([abs(q.gain_a_per_count) for q in pdict.values()])
+        self._converter = make_converter(self.kind, pdict, **self.converter_options)
+
+    def convert_block(self, blk):
+        """Power and flags of a :class:`~mntes_stream.g3.mapping.ScanBlock`.
+
+        Returns
+        -------
+        names : list of str, length n_det
+        p_opt_w : ndarray of float64, shape (n_det, n_samp)
+        flags : ndarray of uint16, shape (n_det, n_samp)
+        """
+        if self._rows is None:
+            self._prepare()
+        have = np.full(len(self.wiring), -1, dtype=np.int64)
+        have[blk.rows] = np.arange(blk.rows.size)
+        rows = self._rows[have[self._rows] >= 0]
+        src = have[rows]
+        ci, cq = blk.counts_i[src], blk.counts_q[src]
+        bad = invalid_counts(ci) | invalid_counts(cq)
+        amps, volts = self.hk.at(blk.t_ns, rows)
+        names = [self.wiring.names[r] for r in rows]
+        if self._converter is None:  # electrical without parameters: minus spt3g's electrical power
+            with np.errstate(invalid="ignore"):
+                p = -(ci * amps * volts)
+            f = np.where(bad | ~np.isfinite(p), fl.INVALID_INPUT, 0).astype(np.uint16)
+            p[f != 0] = np.nan
+            return names, p, f
+        sel = np.searchsorted(self._rows, rows)  # both in wiring order
+        scale = SQRT2 * amps / self._gain_ref[sel][:, None]
+        with np.errstate(invalid="ignore"):
+            ci_eff = np.where(bad, np.nan, ci * scale)
+            cq_eff = np.where(bad, np.nan, cq * scale)
+        env = EnvironmentBlock(t_bath_k=self.bath.at(blk.t_ns), b_field_t=np.full(blk.n_samples, self.config.b_field_t),
+                               v_thev_v=volts)
+        det_ids = [self.wiring.detector_ids[r] for r in rows]
+        out = self._converter.convert(det_ids, ci_eff, cq_eff, env)
+        return names, out.p_opt_w, out.flags

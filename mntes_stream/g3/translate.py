@@ -1,0 +1,228 @@
+"""G3 frames -> the project's counts and housekeeping messages (one translator for file and live).
+
+:class:`FrameTranslator` takes frames one at a time, in the order a G3Reader
+gives them, and returns ``(key, payload)`` messages:
+
+- Wiring: the bolometer <-> detector-id map (``mapping.Wiring``);
+- Housekeeping: one ``bias`` reading per module (spt3g's RMS bias voltage of
+  each wired channel, ``mntes/<setup>/hk/bias/<board>/<module>``);
+- GcpSlow: ``t_bath`` (and the configured constant ``b_field``: spt3g has no
+  field source);
+- Timepoint: collected, one counts chunk per module every ``chunk_samples``;
+- Scan with ``RawTimestreams_I``/``_Q``: one counts chunk per module.
+
+Counts chunks carry the G3 sample times (ticks x 10 ns) explicitly. A counts
+value that is not a reading (NaN, or at/beyond the 24-bit range FLAC keeps)
+travels as the int32 rail ``2**31 - 1`` (sign kept), which every converter
+flags ``INVALID_INPUT``: never a silent number. Gaps in the Timepoint clock
+(more than 1.5 sample periods) are counted in missing samples.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS
+from mntes_stream.errors import ConfigError
+from mntes_stream.g3 import spt3g
+from mntes_stream.g3.mapping import (
+    BathHistory,
+    G3InputConfig,
+    HkHistory,
+    TimepointBuffer,
+    Wiring,
+    bath_reading,
+    hk_snapshot,
+    invalid_counts,
+    scan_block,
+)
+from mntes_stream.io import keys
+from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
+
+__all__ = ["FrameTranslator", "TranslatorCounters", "RAIL", "to_int32_counts"]
+
+log = logging.getLogger("mntes_stream.g3")
+
+RAIL = int(np.iinfo(np.int32).max)
+_SAMPLE_NS = DFMUX_TICKS_PER_SAMPLE * G3_TICK_NS
+
+
+def to_int32_counts(x: np.ndarray) -> np.ndarray:
+    """int32 counts; NaN or beyond 24 bits -> the rail (+-(2**31 - 1)), which converters flag."""
+    bad = invalid_counts(x)
+    out = np.where(bad, np.where(np.signbit(np.nan_to_num(x, nan=1.0)), -RAIL, RAIL), np.nan_to_num(x))
+    return np.rint(out).astype(np.int32)
+
+
+@dataclass
+class TranslatorCounters:
+    """What a translator has seen (cumulative)."""
+
+    frames: int = 0
+    timepoints: int = 0
+    scans: int = 0
+    samples: int = 0            # detector samples put into counts chunks
+    invalid_samples: int = 0    # of which NaN or beyond 24 bits
+    gap_samples: int = 0        # missing from the Timepoint clock
+    housekeeping: int = 0
+    gain_changes: int = 0       # housekeeping that changed amps per count or bias
+    bath_readings: int = 0
+    by_type: dict = field(default_factory=dict)
+
+
+class FrameTranslator:
+    """Frames in, messages out.
+
+    Parameters
+    ----------
+    setup : str
+    config : G3InputConfig, optional
+    chunk_samples : int
+        Timepoints per counts chunk (raw layout).
+    """
+
+    def __init__(self, setup: str = keys.DEFAULT_SETUP, config: G3InputConfig | None = None, chunk_samples: int = 16):
+        keys.counts_key(setup)
+        if chunk_samples < 1:
+            raise ConfigError("chunk_samples must be >= 1")
+        self.setup = setup
+        self.config = config or G3InputConfig()
+        self.chunk_samples = int(chunk_samples)
+        self.wiring: Wiring | None = None
+        self.hk = HkHistory()
+        self.bath = BathHistory(self.config)
+        self.counters = TranslatorCounters()
+        self._buffer: TimepointBuffer | None = None
+        self._pending: list = []
+        self._seq: dict[str, int] = {}
+        self._t_last_ns = 0
+        self._t_prev_tp: int | None = None
+        self._groups: list = []
+
+    # -- helpers ------------------------------------------------------------------------------
+    def _next_seq(self, name: str) -> int:
+        seq = self._seq.get(name, 0)
+        self._seq[name] = seq + 1
+        return seq
+
+    def _hk_msg(self, sensor: str, t_ns: int, value, **where) -> tuple[str, bytes]:
+        sk = keys.hk_sensor(sensor, where.get("board"), where.get("module"))
+        msg = HousekeepingChunk(setup=self.setup, sensor=sensor, seq=self._next_seq(sk),
+                                t_ns=np.array([t_ns], dtype=np.int64), value=np.asarray(value, dtype=float),
+                                unit={"t_bath": "K", "b_field": "T", "bias": "V"}[sensor], **where)
+        return keys.hk_key(self.setup, sk), msg.to_bytes()
+
+    def _set_wiring(self, wiring: Wiring) -> list:
+        out = self.flush()
+        self.wiring = wiring
+        self.hk = HkHistory()
+        self._buffer = TimepointBuffer(wiring)
+        self._groups = [(b, m, rows) for (b, m), rows in wiring.modules().items()]
+        for hkmap in self._pending:
+            out += self._housekeeping(hkmap)
+        self._pending = []
+        return out
+
+    def _housekeeping(self, hkmap) -> list:
+        snap = hk_snapshot(hkmap, self.wiring, self._t_last_ns)
+        self.counters.housekeeping += 1
+        if self.hk.add(snap):
+            self.counters.gain_changes += 1
+            log.info("DfMux housekeeping at %d ns changes amps per count or bias", snap.t_ns)
+        out = []
+        for b, m, rows in self._groups:
+            out.append(self._hk_msg("bias", snap.t_ns, snap.v_bias_rms_v[rows][None, :], board=int(b), module=int(m),
+                                    channels=self.wiring.channel[rows].astype(np.int32)))
+        return out
+
+    def _bath(self, t_ns: int, t_bath_k: float) -> list:
+        self.bath.add(t_ns, t_bath_k)
+        self.counters.bath_readings += 1
+        out = [self._hk_msg("t_bath", t_ns, [t_bath_k])]
+        out.append(self._hk_msg("b_field", t_ns, [self.config.b_field_t]))
+        return out
+
+    def _counts(self, blk, t_pub_ns: int) -> list:
+        out = []
+        if blk is None or not blk.n_samples:
+            return out
+        have = np.full(len(self.wiring), -1, dtype=np.int64)
+        have[blk.rows] = np.arange(blk.rows.size)
+        for b, m, rows in self._groups:
+            rows = rows[have[rows] >= 0]
+            if not rows.size:
+                continue
+            src = have[rows]
+            ci, cq = blk.counts_i[src], blk.counts_q[src]
+            self.counters.invalid_samples += int(np.count_nonzero(invalid_counts(ci) | invalid_counts(cq)))
+            self.counters.samples += ci.size
+            stream = f"{b}/{m}"
+            chunk = CountsChunk(setup=self.setup, board=int(b), module=int(m),
+                                channels=self.wiring.channel[rows].astype(np.int32), seq=self._next_seq(stream),
+                                t0_ns=None, sample_rate_hz=None, counts_i=to_int32_counts(ci),
+                                counts_q=to_int32_counts(cq), t_pub_ns=int(t_pub_ns), t_ns=blk.t_ns)
+            out.append((keys.counts_key(self.setup, int(b), int(m)), chunk.to_bytes()))
+        self._t_last_ns = int(blk.t_ns[-1])
+        return out
+
+    # -- the interface ------------------------------------------------------------------------
+    def flush(self, t_pub_ns: int | None = None) -> list:
+        """Counts chunks of the Timepoints collected so far."""
+        if self._buffer is None or not len(self._buffer):
+            return []
+        blk = self._buffer.take()
+        return self._counts(blk, int(blk.t_ns[-1]) if t_pub_ns is None else t_pub_ns)
+
+    def handle(self, frame, t_pub_ns: int | None = None) -> list:
+        """Messages for one frame (``t_pub_ns``: publication time of counts; default their last sample time)."""
+        core, _ = spt3g()
+        ft = frame.type
+        c = self.counters
+        c.frames += 1
+        c.by_type[str(ft)] = c.by_type.get(str(ft), 0) + 1
+        if ft == core.G3FrameType.Wiring:
+            wiring = Wiring.from_frame(frame, self.config)
+            if self.wiring is not None and wiring.names == self.wiring.names and \
+                    wiring.detector_ids == self.wiring.detector_ids:
+                return []
+            return self._set_wiring(wiring)
+        if ft == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in frame:
+            if self.wiring is None:
+                self._pending.append(frame["DfMuxHousekeeping"])
+                return []
+            return self._housekeeping(frame["DfMuxHousekeeping"])
+        if ft == core.G3FrameType.GcpSlow:
+            r = bath_reading(frame, self.config, self._t_last_ns)
+            return self._bath(*r) if r is not None else []
+        if ft == core.G3FrameType.Timepoint and "DfMux" in frame:
+            if self.wiring is None:
+                raise ConfigError("G3 Timepoint frame before any Wiring frame: cannot tell which bolometer is which")
+            c.timepoints += 1
+            t = int(frame["EventHeader"].time) * G3_TICK_NS
+            if self._t_prev_tp is not None and t - self._t_prev_tp > 1.5 * _SAMPLE_NS:
+                c.gap_samples += int(round((t - self._t_prev_tp) / _SAMPLE_NS)) - 1
+            self._t_prev_tp = t
+            self._buffer.add(frame)
+            if len(self._buffer) >= self.chunk_samples:
+                return self.flush(t_pub_ns)
+            return []
+        if ft == core.G3FrameType.Scan:
+            if self.wiring is None:
+                raise ConfigError("G3 Scan frame before any Wiring frame: cannot tell which bolometer is which")
+            blk = scan_block(frame, self.wiring)
+            if blk is None:  # an empty Scan frame: a scan boundary in a raw stream
+                return self.flush(t_pub_ns)
+            c.scans += 1
+            return self.flush(t_pub_ns) + self._counts(blk, int(blk.t_ns[-1]) if t_pub_ns is None else t_pub_ns)
+        if ft == core.G3FrameType.EndProcessing:
+            return self.flush(t_pub_ns)
+        return []
+
+    def default_bath(self, t_ns: int) -> list:
+        """A reading of the configured default bath temperature (a run without a thermometer)."""
+        if self.config.t_bath_default_k is None:
+            self.bath.require()
+        return self._bath(int(t_ns), float(self.config.t_bath_default_k))

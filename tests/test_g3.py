@@ -1,0 +1,239 @@
+"""G3 ingest and egress (issue 13): fixtures built at test time with spt3g's own classes.
+
+A run of 2 modules x 4 channels is written as raw DAQ frames (Wiring,
+Housekeeping, GcpSlow, Timepoints with DfMux samples) and, through spt3g's
+own FixedLengthScans + DfMuxCollator + G3Writer, as collated Scan frames.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+spt3g_core = pytest.importorskip("spt3g.core")
+
+from mntes_stream.core import flags as fl  # noqa: E402
+from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS  # noqa: E402
+from mntes_stream.g3 import frames as F  # noqa: E402
+from mntes_stream.g3 import spt3g  # noqa: E402
+from mntes_stream.g3.mapping import G3InputConfig, Wiring  # noqa: E402
+
+T0_NS = 1_700_000_000 * 10**9
+SAMPLE_NS = DFMUX_TICKS_PER_SAMPLE * G3_TICK_NS
+BOARD = 1234
+MODULES = (2, 5)   # wiring-map module numbers (0-7): one on each mezzanine
+N_CH = 4
+N_SAMP = 60
+LAYOUT = {f"W{m}.{c}": (BOARD, m, c) for m in MODULES for c in range(N_CH)}
+
+
+def module_hk(nuller_gain=2):
+    return {m: F.ModuleHk(nuller_gain, 3, 0.05 + 0.01 * np.arange(N_CH), 1.6e6 + 1e5 * np.arange(N_CH) + 1e4 * m)
+            for m in MODULES}
+
+
+def true_counts(k):
+    """Counts of sample k, per (module, channel): I, Q (int)."""
+    rng = np.random.default_rng(k)
+    return {m: (rng.integers(-500_000, 500_000, N_CH), rng.integers(-500_000, 500_000, N_CH)) for m in MODULES}
+
+
+def raw_frames(n=N_SAMP, hk_change_at=None, scale_after=1.0, nan_at=None, bath=True):
+    """Raw DAQ frames; optionally the nuller gain changes at sample ``hk_change_at`` (housekeeping
+    frame written at the END of the file: not in time order with the data) with counts scaled by
+    ``scale_after`` from that sample on."""
+    out = [F.wiring_frame(LAYOUT), F.housekeeping_frame(T0_NS - SAMPLE_NS, {BOARD: module_hk(2)})]
+    if bath:
+        out.append(F.gcpslow_frame(T0_NS, 0.1))
+    for k in range(n):
+        c = true_counts(k)
+        if hk_change_at is not None and k >= hk_change_at:
+            c = {m: (np.rint(i * scale_after[m]), np.rint(q * scale_after[m])) for m, (i, q) in c.items()}
+        out.append(F.timepoint_frame(T0_NS + k * SAMPLE_NS, {(BOARD, m): c[m] for m in MODULES}, N_CH))
+        if bath and k % 20 == 19:
+            out.append(F.gcpslow_frame(T0_NS + k * SAMPLE_NS, 0.1 + 1e-4 * k / N_SAMP))
+    if hk_change_at is not None:
+        out.append(F.housekeeping_frame(T0_NS + hk_change_at * SAMPLE_NS, {BOARD: module_hk(7)}))
+    return out
+
+
+def write(frames, path, collate=False, scan_len=25):
+    core, dfmux = spt3g()
+    it = iter(frames)
+    pipe = core.G3Pipeline()
+    state = {"done": False}
+
+    def source(frame):
+        if state["done"]:
+            return []
+        try:
+            return [next(it)]
+        except StopIteration:
+            state["done"] = True
+            return []
+
+    pipe.Add(source)
+    if collate:
+        pipe.Add(dfmux.FixedLengthScans, N=scan_len)
+        pipe.Add(dfmux.DfMuxCollator, flac_compress=True)
+    pipe.Add(core.G3Writer, filename=str(path))
+    pipe.Run()
+    return path
+
+
+@pytest.fixture(scope="module")
+def run_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("g3run")
+    raw = write(raw_frames(), d / "raw.g3")
+    scans = write(raw_frames(), d / "scans.g3", collate=True)
+    return raw, scans
+
+
+def messages_by_detector(path, chunk_samples=16):
+    from mntes_stream.g3.files import g3_messages
+    from mntes_stream.io.messages import decode
+
+    counts, bias = {}, {}
+    for _, key, payload in g3_messages(path, "lab", chunk_samples=chunk_samples):
+        msg = decode(payload)
+        if "/counts/" in key:
+            for row, ch in enumerate(msg.channels):
+                d = f"b{msg.board}m{msg.module}c{ch:03d}"
+                for t, i, q in zip(msg.times_ns(), msg.counts_i[row], msg.counts_q[row]):
+                    counts[(d, int(t))] = (int(i), int(q))
+        elif "/bias/" in key:
+            for row, ch in enumerate(msg.channels):
+                bias[(msg.board, msg.module, int(ch), int(msg.t_ns[0]))] = float(msg.value[0, row])
+    return counts, bias
+
+
+def test_wiring_both_ways(run_files):
+    raw, _ = run_files
+    core, _ = spt3g()
+    w = Wiring.from_frame(next(iter(core.G3File(str(raw)))))
+    assert w.id_of("W5.3") == "b1234m5c003"
+    assert w.name_of("b1234m2c000") == "W2.0"
+    assert all(w.name_of(w.id_of(n)) == n for n in LAYOUT)
+
+
+def test_both_layouts_give_the_same_counts_and_times(run_files):
+    raw, scans = run_files
+    c_raw, bias_raw = messages_by_detector(raw)
+    c_scan, bias_scan = messages_by_detector(scans)
+    assert len(c_raw) == len(LAYOUT) * N_SAMP
+    assert c_raw == c_scan
+    # Times are the G3 ticks x 10 ns, the exact DfMux rate.
+    times = sorted({t for (_, t) in c_raw})
+    assert times == [T0_NS + k * SAMPLE_NS for k in range(N_SAMP)]
+    # Sample 7 of W5.1 is what the Timepoint frame said (I, Q interleaved, wiring channel 0-indexed).
+    i7, q7 = true_counts(7)[5]
+    assert c_raw[("b1234m5c001", T0_NS + 7 * SAMPLE_NS)] == (int(i7[1]), int(q7[1]))
+    # Bias: spt3g's own bolo_bias_voltage_rms of the housekeeping (1-indexed tree, 0-indexed wiring).
+    from spt3g.dfmux.unittransforms import bolo_bias_voltage_rms
+
+    hk = F.housekeeping_frame(T0_NS - SAMPLE_NS, {BOARD: module_hk(2)})["DfMuxHousekeeping"]
+    w = Wiring.from_frame(F.wiring_frame(LAYOUT))
+    v = bolo_bias_voltage_rms(w.wiring_map, hk, "W5.2", "ICE", "spt3g_filtering_2017_full")
+    assert bias_raw[(BOARD, 5, 2, T0_NS - SAMPLE_NS)] == v
+    assert bias_raw == bias_scan
+
+
+def _convert_spt3g_power(path):
+    """spt3g's own ConvertTimestreamUnits(Power) of RawTimestreams_I, per bolometer (concatenated scans)."""
+    core, dfmux = spt3g()
+    out: dict = {}
+    pipe = core.G3Pipeline()
+    pipe.Add(core.G3Reader, filename=str(path))
+    pipe.Add(dfmux.ConvertTimestreamUnits, Input="RawTimestreams_I", Output="PowerTS",
+             Units=core.G3TimestreamUnits.Power)
+
+    def grab(frame):
+        if frame.type == core.G3FrameType.Scan and "PowerTS" in frame:
+            for k, ts in frame["PowerTS"].items():
+                out.setdefault(k, []).append(np.asarray(ts, dtype=float))
+
+    pipe.Add(grab)
+    pipe.Run()
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def _optical(path, **kw):
+    core, _ = spt3g()
+    out, flags = {}, {}
+    for frame in core.G3File(str(path)):
+        if frame.type == core.G3FrameType.Scan and "MntesOpticalPower" in frame:
+            for k, ts in frame["MntesOpticalPower"].items():
+                out.setdefault(k, []).append(np.asarray(ts))
+                flags.setdefault(k, []).append(np.asarray(frame["MntesFlags"][k]))
+    return {k: np.concatenate(v) for k, v in out.items()}, {k: np.concatenate(v) for k, v in flags.items()}
+
+
+def test_electrical_matches_spt3g_convert_timestream_units(run_files, tmp_path):
+    from mntes_stream.g3.files import g3_to_g3
+
+    _, scans = run_files
+    ref = _convert_spt3g_power(scans)
+    res = g3_to_g3(scans, tmp_path / "el.g3", kind="electrical")
+    assert res["scans"] == 3
+    p, f = _optical(tmp_path / "el.g3")
+    assert set(p) == set(LAYOUT) == set(ref)
+    for name in LAYOUT:
+        assert p[name].dtype == np.float64
+        assert not f[name].any()
+        # Optical = constant - electrical; without parameters the constant is 0.
+        np.testing.assert_allclose(-p[name], ref[name], rtol=2**-23, atol=0)
+
+
+def test_gain_change_mid_run_applies_at_its_sample(tmp_path):
+    """The nuller gain changes at sample 37 (its housekeeping frame written last, out of time order);
+    the counts scale by the inverse ratio of amps per count, so the true current, hence power, is unchanged."""
+    from mntes_stream.g3.files import g3_to_g3
+    from mntes_stream.g3.mapping import hk_snapshot
+
+    w = Wiring.from_frame(F.wiring_frame(LAYOUT))
+    a2 = hk_snapshot(F.housekeeping_frame(T0_NS, {BOARD: module_hk(2)})["DfMuxHousekeeping"], w).amps_rms_per_count
+    a7 = hk_snapshot(F.housekeeping_frame(T0_NS, {BOARD: module_hk(7)})["DfMuxHousekeeping"], w).amps_rms_per_count
+    scale = {m: np.array([a2[w.index_of_names([f"W{m}.{c}"])[0]] / a7[w.index_of_names([f"W{m}.{c}"])[0]]
+                          for c in range(N_CH)]) for m in MODULES}
+    change = 37
+    base = write(raw_frames(), tmp_path / "base.g3", collate=True)
+    changed = write(raw_frames(hk_change_at=change, scale_after=scale), tmp_path / "chg.g3", collate=True)
+    g3_to_g3(base, tmp_path / "base_p.g3", kind="electrical")
+    res = g3_to_g3(changed, tmp_path / "chg_p.g3", kind="electrical")
+    assert res["housekeeping_changes"] == 1
+    p0, _ = _optical(tmp_path / "base_p.g3")
+    p1, _ = _optical(tmp_path / "chg_p.g3")
+    for k, name in enumerate(w.names):
+        ratio = p1[name] / p0[name]
+        np.testing.assert_array_equal(ratio[:change], 1.0)
+        # From sample 37 on the new gain: equal up to rounding the scaled counts to integers
+        # (half a count); one sample early or late would be off by the gain ratio (> 20 %).
+        np.testing.assert_allclose(ratio[change:], 1.0, rtol=1e-2)
+        assert abs(a7[k] / a2[k] - 1) > 0.2
+
+
+def test_nan_and_beyond_24_bits_are_flagged(tmp_path):
+    from mntes_stream.g3.files import g3_to_g3
+
+    frames = raw_frames()
+    core, dfmux = spt3g()
+    # Sample 3 of W2.1 beyond 24 bits (a raw DfMux word can hold it; FLAC cannot).
+    tp = [f for f in frames if f.type == core.G3FrameType.Timepoint][3]
+    np.asarray(tp["DfMux"][BOARD][2])[2] = 2**23 + 5
+    path = write(frames, tmp_path / "edge.g3")
+    g3_to_g3(path, tmp_path / "edge_p.g3", kind="electrical")
+    p, f = _optical(tmp_path / "edge_p.g3")
+    assert f["W2.1"][3] & fl.INVALID_INPUT and np.isnan(p["W2.1"][3])
+    assert np.count_nonzero(np.concatenate(list(f.values()))) == 1
+
+
+def test_missing_bath_source_is_a_clear_error(tmp_path):
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3.files import g3_to_g3
+
+    path = write(raw_frames(bath=False), tmp_path / "nobath.g3", collate=True)
+    params = {n: table1_params(n) for n in LAYOUT}
+    with pytest.raises(ConfigError, match="no bath temperature"):
+        g3_to_g3(path, tmp_path / "x.g3", params=params, kind="exact")
+    assert G3InputConfig(t_bath_default_k=0.1).t_bath_default_k == 0.1
