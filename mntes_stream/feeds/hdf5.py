@@ -3,7 +3,8 @@
 Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 2``)::
 
     /                           attrs: format, format_version, software_version, created_utc,
-                                       source_files, observations, selection, recording (JSON), max_gap_s
+                                       source_files, observations, selection, recording (JSON), max_gap_s,
+                                       units, flags_schema (JSON: schemas/flags.v1.json)
     /provenance/<k>             one group per distinct mntes.provenance record (k = 0, 1, ...):
                                 attrs setup, params_toml, table_identity, converter_kind,
                                 software_version, t_ns, recorded_log_time_ns, source_file
@@ -16,6 +17,7 @@ Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 2``)::
                 overlap_samples, absent_samples, ...)
         tod        float64 (n_det, n_samp)  W; NaN where no usable power      [chunked, compressed]
         flags      uint16  (n_det, n_samp)  core.flags bits (GAP, UNKNOWN_CHANNEL, ...)  [chunked, compressed]
+                                            attrs flag_bit<n> = "<name>: <meaning>", flag_bits_json
         time       float64 (n_samp,)        s since the Unix epoch (what TOAST/sotodlib/litebird_sim use)
         time_ns    int64   (n_samp,)        ns since the Unix epoch (exact)
         detectors  str     (n_det,)         detector ids b<board>m<module>c<channel>
@@ -40,6 +42,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError, TransportError
 from mntes_stream.feeds.blocks import DEFAULT_BLOCK_SAMPLES, TodBlock
 from mntes_stream.feeds.recorded import RecordedPower
+from mntes_stream.io.describe import flag_attrs, flags_schema
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "COMPRESSIONS", "ExportSummary", "export_hdf5", "read_hdf5", "observation_names"]
 
@@ -104,7 +107,8 @@ def _create_observation(f, rec: RecordedPower, sid, block_samples: int, filters:
     fg = g.create_dataset("flags", (n_det, 0), maxshape=(n_det, None), dtype="<u2", chunks=(rows, cols),
                           fillvalue=fl.GAP, **filters)
     fg.attrs.update({"units": "bitmask", "description": "per-sample mntes_stream.core.flags bits",
-                     "bits": _json({n: b for b, n in fl.NAMES.items()})})
+                     "bits": _json({n: b for b, n in fl.NAMES.items()}),
+                     **flag_attrs()})  # flag_bit3 = "env_out_of_range: ...": meanings without project code
     t = g.create_dataset("time", (0,), maxshape=(None,), dtype="<f8", chunks=(cols,), **filters)
     t.attrs.update({"units": "s", "description": "sample time, seconds since 1970-01-01T00:00:00Z (float64)"})
     tn = g.create_dataset("time_ns", (0,), maxshape=(None,), dtype="<i8", chunks=(cols,), **filters)
@@ -180,6 +184,7 @@ def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = 
                 "max_gap_s": rec.max_gap_s,
                 "recording": _json(rec.recording_metadata()),
                 "units": _json({"tod": "W", "time": "s", "time_ns": "ns"}),
+                "flags_schema": _json(flags_schema()),  # schemas/flags.v1.json: bit names, meanings, units
             })
             pg = f.create_group("provenance")
             pg.attrs["description"] = "distinct mntes.provenance records of the session (detector parameters, table identity)"

@@ -242,7 +242,7 @@ def set_publish_observer(fn) -> None:
 class Publishers:
     """One BLOCK publisher per key, declared on first use.
 
-    Each publisher sets the sample encoding ``application/msgpack;<schema>.v<version>``
+    Each publisher sets the sample encoding ``application/msgpack;schema=<name>.v<version>``
     (``io/describe.py``): a subscriber knows what a payload is before decoding it.
 
     Parameters
