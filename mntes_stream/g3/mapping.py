@@ -201,19 +201,21 @@ class HkHistory:
     def __len__(self) -> int:
         return len(self._t)
 
-    def add(self, snap: HkSnapshot) -> bool:
-        """Insert (same time: replaced); True when the calibration differs from the one before it."""
+    def add(self, snap: HkSnapshot) -> tuple[bool, bool]:
+        """Insert (same time: replaced); whether amps per count, and bias, differ from the snapshot before it."""
         k = bisect.bisect_left(self._t, snap.t_ns)
         if k < len(self._t) and self._t[k] == snap.t_ns:
             if _same(self._snaps[k], snap):  # read again (a file read ahead, then streamed)
-                return False
+                return False, False
             self._snaps[k] = snap
         else:
             self._t.insert(k, snap.t_ns)
             self._snaps.insert(k, snap)
         if k == 0:
-            return False
-        return not _same(self._snaps[k - 1], snap)
+            return False, False
+        prev = self._snaps[k - 1]
+        return (not np.array_equal(prev.amps_rms_per_count, snap.amps_rms_per_count, equal_nan=True),
+                not np.array_equal(prev.v_bias_rms_v, snap.v_bias_rms_v, equal_nan=True))
 
     def first(self) -> HkSnapshot:
         if not self._snaps:

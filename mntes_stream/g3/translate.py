@@ -68,7 +68,8 @@ class TranslatorCounters:
     invalid_samples: int = 0    # of which NaN or beyond 24 bits
     gap_samples: int = 0        # missing from the Timepoint clock
     housekeeping: int = 0
-    gain_changes: int = 0       # housekeeping that changed amps per count or bias
+    gain_changes: int = 0       # housekeeping that changed amps per count
+    bias_changes: int = 0       # housekeeping that changed a bias
     bath_readings: int = 0
     by_type: dict = field(default_factory=dict)
 
@@ -99,8 +100,8 @@ class FrameTranslator:
         self._pending: list = []
         self._seq: dict[str, int] = {}
         self._t_last_ns = 0
-        self._t_prev_tp: int | None = None
         self._groups: list = []
+        self.gain_changed_at: list[int] = []
 
     # -- helpers ------------------------------------------------------------------------------
     def _next_seq(self, name: str) -> int:
@@ -129,9 +130,15 @@ class FrameTranslator:
     def _housekeeping(self, hkmap) -> list:
         snap = hk_snapshot(hkmap, self.wiring, self._t_last_ns)
         self.counters.housekeeping += 1
-        if self.hk.add(snap):
+        gain, bias = self.hk.add(snap)
+        self.counters.bias_changes += bias
+        if gain:
+            # The messages carry counts and bias, not the gain: a converter keeps the gain of its parameters.
             self.counters.gain_changes += 1
-            log.info("DfMux housekeeping at %d ns changes amps per count or bias", snap.t_ns)
+            self.gain_changed_at.append(snap.t_ns)
+            log.warning("DfMux housekeeping at %d ns changes amps per count: live conversion keeps the gain of "
+                        "the converter's parameters (convert the G3 run offline, or restart the converter with "
+                        "parameters of the new gain)", snap.t_ns)
         out = []
         for b, m, rows in self._groups:
             out.append(self._hk_msg("bias", snap.t_ns, snap.v_bias_rms_v[rows][None, :], board=int(b), module=int(m),
@@ -149,6 +156,11 @@ class FrameTranslator:
         out = []
         if blk is None or not blk.n_samples:
             return out
+        t = blk.t_ns if not self._t_last_ns else np.concatenate([[self._t_last_ns], blk.t_ns])
+        step = np.diff(t)
+        late = step > 1.5 * _SAMPLE_NS
+        if late.any():  # samples the DfMux clock says were taken but never reached us
+            self.counters.gap_samples += int(np.sum(np.rint(step[late] / _SAMPLE_NS) - 1))
         have = np.full(len(self.wiring), -1, dtype=np.int64)
         have[blk.rows] = np.arange(blk.rows.size)
         for b, m, rows in self._groups:
@@ -201,10 +213,6 @@ class FrameTranslator:
             if self.wiring is None:
                 raise ConfigError("G3 Timepoint frame before any Wiring frame: cannot tell which bolometer is which")
             c.timepoints += 1
-            t = int(frame["EventHeader"].time) * G3_TICK_NS
-            if self._t_prev_tp is not None and t - self._t_prev_tp > 1.5 * _SAMPLE_NS:
-                c.gap_samples += int(round((t - self._t_prev_tp) / _SAMPLE_NS)) - 1
-            self._t_prev_tp = t
             self._buffer.add(frame)
             if len(self._buffer) >= self.chunk_samples:
                 return self.flush(t_pub_ns)

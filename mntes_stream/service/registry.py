@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.foxglove.service import FoxgloveService
+from mntes_stream.g3.bridge import G3BridgeService
 from mntes_stream.monitor.service import MonitorService
 from mntes_stream.service.base import Service
 from mntes_stream.service.converter import ConverterService
@@ -29,6 +30,7 @@ SERVICES: dict[str, type[Service]] = {cls.name: cls for cls in (
     MonitorService,
     FoxgloveService,
     RouterService,
+    G3BridgeService,
 )}
 
 
