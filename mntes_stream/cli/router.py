@@ -77,11 +77,33 @@ def run_ps(args) -> int:
         lag = f"{b['latency_p99_ms']:.0f} ms" if isinstance(b.get("latency_p99_ms"), (int, float)) else "-"
         lost = b.get("chunks_lost", "-")
         up = f"{b['uptime_s']:.0f} s" if isinstance(b.get("uptime_s"), (int, float)) else "-"
-        owns = " ".join(f"{k}={v}" for k, v in (b.get("owns") or {}).items())
-        extra = "; ".join([owns] * bool(owns) + list(b.get("warnings") or []))
+        extra = "; ".join([x for x in (_owns_text(b.get("owns") or {}), _coverage_text(b)) if x]
+                          + list(b.get("warnings") or []))
         print(f"{b['service']:<11} {b['name']:<16} {b.get('state', '?'):<9} {up:>7} {rate:>14} {lag:>8} {lost!s:>6}  "
               f"{b.get('host', '?')}:{b.get('pid', '?')}  {extra}")
     return 0
+
+
+def _owns_text(owns: dict) -> str:
+    """A converter's part of the focal plane on one line: shard, streams, and what it holds back or shares."""
+    short = {k: v for k, v in owns.items() if k in ("shard", "boards", "modules", "streams", "publishing")}
+    text = " ".join(f"{k}={v}" for k, v in short.items() if v not in ("*", "0/1"))
+    if owns.get("held"):
+        text += f" held={len(owns['held'])} ({owns.get('role', '?')})"
+    if owns.get("conflict"):
+        text += " CONFLICT with " + ",".join(sorted({n for s in owns.get("claimed_also_by", ()) for n in
+                                                       s.partition(":")[2].split(",") if n}))
+    return text
+
+
+def _coverage_text(b: dict) -> str:
+    """What a recorder says of the streams it sees: counts without power, power gaps."""
+    out = []
+    if b.get("unconverted"):
+        out.append("unconverted=" + ",".join(b["unconverted"]))
+    if b.get("power_gaps"):
+        out.append("power_gaps=" + ",".join(f"{s}:{n}" for s, n in sorted(b["power_gaps"].items())))
+    return " ".join(out)
 
 
 def register(sub) -> None:
