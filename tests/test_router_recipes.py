@@ -84,7 +84,8 @@ def test_router_recipe_every_service_a_client(tmp_path):
         doc = _ps(tmp_path, "-c", "services/zenoh-client.json5")
         by = {s["service"]: s for s in doc["services"]}
         assert set(by) == {"router", "converter", "recorder", "source", "monitor"}, by
-        assert by["converter"]["state"] == "running" and by["converter"]["owns"] == {"boards": "*", "modules": "*"}
+        assert by["converter"]["state"] == "running" and by["converter"]["owns"]["boards"] == "*"
+        assert by["converter"]["owns"]["shard"] == "0/1" and by["converter"]["owns"]["publishing"] == 2
         assert by["converter"]["rate_per_s"] > 0 and by["converter"]["pid"] == conv.p.pid
 
         # A killed service is gone from ps within 5 s (zenoh drops its token with the process).

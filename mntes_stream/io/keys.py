@@ -6,6 +6,8 @@
     mntes/<setup>/status/<service>          service status (schema mntes.status)
     mntes/<setup>/provenance                parameters + table identity (schema mntes.provenance)
     mntes/<setup>/alive/<service>/<name>    liveliness token + heartbeat queryable (io/presence.py)
+    mntes/<setup>/claim/<board>/<module>/<t_claim_ns>/<instance>/<role>/<name>
+                                            liveliness token: a converter claims a stream (io/claims.py)
 """
 
 from __future__ import annotations
@@ -59,6 +61,15 @@ def provenance_key(setup: str) -> str:
 def alive_key(setup: str, service: str = "*", name: str = "*") -> str:
     """A running service's liveliness token and heartbeat queryable."""
     return f"{PREFIX}/{_check(setup, 'setup')}/alive/{service}/{name}"
+
+
+def claim_key(setup: str, board: int | str = "*", module: int | str = "*", t_claim_ns: int | str = "*",
+              instance: str = "*", role: str = "*", name: str = "*") -> str:
+    """A converter's claim on stream ``(board, module)``; ``role`` is ``primary`` or ``standby``
+    (``"**"`` as board: every claim of the setup)."""
+    if board == "**":
+        return f"{PREFIX}/{_check(setup, 'setup')}/claim/**"
+    return f"{PREFIX}/{_check(setup, 'setup')}/claim/{board}/{module}/{t_claim_ns}/{instance}/{role}/{name}"
 
 
 def all_key(setup: str) -> str:

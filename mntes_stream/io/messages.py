@@ -372,6 +372,7 @@ class StatusMessage(_Message):
     latency_p99_ms: float | None = None
     latency_max_ms: float | None = None
     last_error: str = ""
+    owns: dict = field(default_factory=dict)
 
     _RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
     _LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms")
@@ -401,14 +402,15 @@ class StatusMessage(_Message):
         object.__setattr__(
             self, "hk_age_s", {fc.as_str(k, "hk_age_s key"): float(fc.as_float(v, f"hk_age_s[{k}]")) for k, v in self.hk_age_s.items()}
         )
+        object.__setattr__(self, "owns", _owns_map(self.owns))
 
     def _body(self) -> dict:
-        # Optional latencies travel as nil (the schema allows null), not absent.
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        # Optional latencies travel as nil (the schema allows null), not absent; an unsharded converter says no owns.
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "owns" or self.owns}
 
     @classmethod
     def _from_map(cls, msg: dict):
-        missing = {f.name for f in fields(cls)} - set(msg)
+        missing = {f.name for f in fields(cls)} - set(msg) - {"owns"}
         if missing:
             raise SchemaError(f"{cls.SCHEMA}: missing field(s) {sorted(missing)}")
         return super()._from_map(msg)
@@ -435,12 +437,33 @@ class Provenance(_Message):
     converter_kind: str
     software_version: str
     t_ns: int
+    owns: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         fc.as_str(self.setup, "setup", NAME_PATTERN)
         for name in ("params_toml", "table_identity", "converter_kind", "software_version"):
             fc.as_str(getattr(self, name), name)
         object.__setattr__(self, "t_ns", fc.as_int(self.t_ns, "t_ns"))
+        object.__setattr__(self, "owns", _owns_map(self.owns))
+
+    def _body(self) -> dict:
+        body = super()._body()
+        if not self.owns:  # a converter of the whole focal plane: the bytes of before
+            body.pop("owns", None)
+        return body
+
+
+def _owns_map(value) -> dict:
+    """What part of the focal plane a converter owns (status, provenance): str keys, scalar or list values."""
+    if not isinstance(value, dict):
+        raise SchemaError("owns must be a map")
+    out = {}
+    for k, v in value.items():
+        items = v if isinstance(v, (list, tuple)) else [v]
+        if not all(isinstance(x, (str, int, float, bool)) for x in items):
+            raise SchemaError(f"owns[{k}] must be a string, number, or list of them")
+        out[fc.as_str(k, "owns key")] = list(v) if isinstance(v, (list, tuple)) else v
+    return out
 
 
 MESSAGE_TYPES: dict[str, type] = {

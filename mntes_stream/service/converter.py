@@ -18,13 +18,14 @@ from dataclasses import dataclass, fields
 from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
+from mntes_stream.core.shards import Shard, owned_streams
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, answer, open_session
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.metrics import MetricsSettings
-from mntes_stream.service.pipeline_config import AlignmentConfig, PipelineConfig
+from mntes_stream.service.pipeline_config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 
 __all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
 
@@ -52,8 +53,14 @@ class ConverterConfig(Settings):
     table_cache: str = setting(
         "~/.cache/mntes-stream/tables", "banks built from params are kept here, keyed by parameters, kind and "
         "software version, so a restart loads instead of rebuilding ('' = no cache)", path=True)
-    boards: tuple[int, ...] = setting((), "subscribe to these boards only ([] = every board)", ge=0)
+    boards: tuple[int, ...] = setting((), "own these boards only ([] = every board)", ge=0)
     modules: tuple[int, ...] = setting((), "... and these modules ([] = every module)", ge=0)
+    shard: str = setting("", "i/N: own the streams (board, module) whose CRC-32 falls in bucket i of N "
+                         "('' = all); only their parameters are loaded, only their keys subscribed")
+    standby: bool = setting(False, "hot standby: convert streams another converter claimed first without "
+                            "publishing them, and take over when it goes (else: a conflict, reported)")
+    holdback_s: float = setting(2.0, "power held back on a claimed stream is kept this long, published at a "
+                                "takeover if its publisher never did", unit="s", ge=0)
     duration_s: float = setting(0.0, "stop by itself after this long (0 = run until stopped)", unit="s", ge=0)
     provenance_interval_s: float = setting(
         10.0, "re-publish parameters + table identity this often, for recorders started later (0 = at start only)",
@@ -68,6 +75,14 @@ class ConverterConfig(Settings):
         super().__post_init__()
         if not self.params and not self.tables:
             raise ConfigError("give params (a parameter file) or tables (a table bank file)")
+        shard = Shard.parse(self.shard)  # checks 0 <= i < N
+        if not shard.whole and self.name == "converter":  # shards of one setup need names of their own
+            object.__setattr__(self, "name", f"converter-{shard.index}of{shard.count}")
+
+    @property
+    def partial(self) -> bool:
+        """True when this converter owns part of the focal plane (boards, modules or a shard)."""
+        return bool(self.boards or self.modules or not Shard.parse(self.shard).whole)
 
     @classmethod
     def for_pipeline(cls, pipeline: PipelineConfig, **kw) -> ConverterConfig:
@@ -83,12 +98,60 @@ class ConverterConfig(Settings):
                                          status_interval_s=self.status.interval_s)
 
 
-def build_converter(cfg: ConverterConfig):
-    """The ``core.convert`` converter the config asks for (tables loaded, taken from the cache, or built)."""
-    from mntes_stream.core.convert import make_converter
+def owned_params(cfg: ConverterConfig):
+    """The parameters this converter loads, and the ``(board, module)`` streams it owns.
+
+    Returns
+    -------
+    params : dict of str to DetectorParams, or None (a table bank file alone)
+    streams : sorted list of (board, module), or None when the detector ids do not name
+        their board and module (then the converter takes every stream, unsharded)
+    """
+    from mntes_stream.service.housekeeping import known_modules
 
     params = None
     if cfg.params:
+        from mntes_stream.io.paramfile import load_params
+
+        params = load_params(cfg.params)
+    ids = params.keys() if params is not None else _bank_ids(cfg)
+    modules = known_modules(ids)
+    if modules is None:
+        if cfg.partial:
+            raise ConfigError("boards, modules and shard need detector ids of the form b<board>m<module>c<channel>")
+        return params, None
+    streams = owned_streams(modules, Shard.parse(cfg.shard), cfg.boards, cfg.modules)
+    if cfg.partial and not streams:
+        raise ConfigError(f"boards {list(cfg.boards) or '*'}, modules {list(cfg.modules) or '*'}, shard "
+                          f"{cfg.shard or '0/1'}: no stream of the parameters is in that part of the focal plane")
+    if params is not None and cfg.partial:
+        wanted = set(streams)
+        params = {d: p for d, p in params.items() if _stream(d) in wanted}
+    return params, streams
+
+
+def _stream(detector_id: str) -> tuple[int, int]:
+    from mntes_stream.core.ids import parse_detector_id
+
+    b, m, _ = parse_detector_id(detector_id)
+    return b, m
+
+
+def _bank_ids(cfg: ConverterConfig) -> list[str]:
+    from mntes_stream.io.tablefile import load_bank
+
+    return list(load_bank(cfg.tables).params_by_id())
+
+
+def build_converter(cfg: ConverterConfig, params=None):
+    """The ``core.convert`` converter the config asks for (tables loaded, taken from the cache, or built).
+
+    ``params``: the detector parameters to convert (default: all of ``cfg.params``; a shard passes its own).
+    With a table bank file, the whole bank is loaded (give each shard a bank of its own to load less).
+    """
+    from mntes_stream.core.convert import make_converter
+
+    if params is None and cfg.params:
         from mntes_stream.io.paramfile import load_params
 
         params = load_params(cfg.params)
@@ -148,16 +211,25 @@ def _warm_up(conv) -> None:
         log.warning("converter warm-up failed: %s", exc)
 
 
-def subscriptions(cfg: ConverterConfig) -> list[str]:
-    """Key expressions the converter subscribes to."""
+def subscriptions(cfg: ConverterConfig, streams=None) -> list[str]:
+    """Key expressions the converter subscribes to: housekeeping first, then counts.
+
+    ``streams``: the ``(board, module)`` streams it owns; a converter of part of the
+    focal plane subscribes to exactly their counts and bias, and the scalar sensors.
+    """
     setup = cfg.setup
+    if streams is not None and cfg.partial:
+        hk = [keys.hk_key(setup, s) for s in SCALAR_SENSORS]
+        hk += [keys.hk_key(setup, keys.bias_sensor(b, m)) for b, m in streams]
+        return hk + [keys.counts_key(setup, b, m) for b, m in streams]
     boards = [str(b) for b in cfg.boards] or ["*"]
     modules = [str(m) for m in cfg.modules] or ["*"]
     exprs = [keys.counts_key(setup, b, m) for b in boards for m in modules]
     return [keys.hk_key(setup, "**")] + exprs
 
 
-def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, heartbeat=None) -> dict:
+def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, heartbeat=None,
+                  on_ownership=None) -> dict:
     """Run until stopped; returns the final status as a dict.
 
     Parameters
@@ -166,33 +238,55 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
     stop : Event-like, optional
         Set it to stop (SIGINT/SIGTERM also stop when run in the main thread).
     ready : Event-like, optional
-        Set once subscribed and the provenance is out.
+        Set once subscribed, the streams claimed and the provenance out.
     converter : optional
         Use this converter instead of building one from ``cfg`` (tests, benchmarks).
     heartbeat : Heartbeat, optional
         Gets the pipeline's counters once per status.
+    on_ownership : callable, optional
+        Given the :class:`~mntes_stream.service.ownership.Ownership` once the streams are claimed.
     """
+    from mntes_stream.io.claims import StreamClaims
+    from mntes_stream.service.ownership import Ownership, owns_summary
     from mntes_stream.service.pipeline import ConverterPipeline
 
-    conv = converter if converter is not None else build_converter(cfg)
+    params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
+    conv = converter if converter is not None else build_converter(cfg, params)
+    if streams is None and converter is not None:
+        from mntes_stream.service.housekeeping import known_modules
+
+        modules = known_modules(conv.detector_ids)
+        streams = sorted(modules) if modules is not None else None
     _warm_up(conv)
-    pipe = ConverterPipeline(conv, cfg.pipeline)
+    summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
+    pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None)
     beat = heartbeat.beat if heartbeat is not None else (lambda **_: None)
     t_start = time.monotonic()
     prov_key = keys.provenance_key(cfg.setup)
     status_key = keys.status_key(cfg.setup, cfg.name)
+    topics = subscriptions(cfg, streams)
+    claims = owner = watch = None
     with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
         pubs = Publishers(session)
         # Channel mode: samples are read on this thread, no callback thread competing for the GIL.
         # Housekeeping first (subscriptions() lists it first): a batch's readings before its counts.
-        sub = QueueSubscriber(session, subscriptions(cfg), maxsize=cfg.queue_size, stop=stopping, mode="channel")
+        sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=stopping, mode="channel")
         # Provenance on request too: a recorder started later asks instead of waiting for the next one.
         answer(session, prov_key, pipe.provenance_bytes())
         try:
+            if streams:
+                claims = StreamClaims(session, cfg.setup, cfg.name, streams, standby=cfg.standby)
+                owner = Ownership(claims, summary, cfg.standby, cfg.holdback_s,
+                                  warn=heartbeat.warn if heartbeat is not None else None)
+                pipe.owns_status = owner.status
+                watch = _PowerWatch(session, owner, cfg.setup)
+                if on_ownership is not None:
+                    on_ownership(owner)
             pubs.put(prov_key, pipe.provenance_bytes())
             next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
-            log.info("converter %s: %d detectors, kind %s, tables %s; subscribed to %s",
-                     cfg.name, len(conv.detector_ids), conv.kind, str(conv.identity)[:12], subscriptions(cfg))
+            log.info("converter %s: %d detectors, kind %s, tables %s; %s; subscribed to %s", cfg.name,
+                     len(conv.detector_ids), conv.kind, str(conv.identity)[:12],
+                     _owning(cfg, streams, owner), topics if len(topics) <= 8 else f"{len(topics)} key expressions")
             if ready is not None:
                 ready.set()
             while not stopping.is_set():
@@ -200,7 +294,10 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                     break
                 item = sub.get(timeout_s=0.05)
                 # Each output goes out as soon as it exists: a burst of chunks must not wait for its last one.
-                outs = pipe.tick(time.time_ns()) if item is None else pipe.handle(*item)
+                now = time.time_ns()
+                outs = pipe.tick(now) if item is None else pipe.handle(*item)
+                if owner is not None:
+                    outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
                 for key, payload in outs:
                     pubs.put(key, payload)
                     if key == status_key:  # what the status says, in the heartbeat too (ps)
@@ -212,18 +309,50 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                     next_prov = time.monotonic() + cfg.provenance_interval_s
             # Stop receiving, convert what is already here, say so, then close.
             sub.close()
-            for item in sub.drain():
-                for key, payload in pipe.handle(*item):
+            outs = [o for item in sub.drain() for o in pipe.handle(*item)] + pipe.flush()
+            for key, payload in outs:
+                if owner is None or owner.allow(key, payload, time.time_ns()):
                     pubs.put(key, payload)
-            for key, payload in pipe.flush():
-                pubs.put(key, payload)
         finally:
             sub.close()
+            if watch is not None:
+                watch.close()
+            if claims is not None:
+                claims.close()  # a standby takes over at once, not after the session's lease
             pubs.close()
     final = pipe.status()
     log.info("converter stopped: %d chunks converted, %d lost, %d bad messages",
              final.chunks_converted, final.chunks_lost, sum(final.bad_messages.values()))
     return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close}
+
+
+def _owning(cfg: ConverterConfig, streams, owner) -> str:
+    if streams is None:
+        return "every stream"
+    held = f", {len(owner.held)} held back (claimed first by another converter)" if owner and owner.held else ""
+    what = f"shard {cfg.shard}" if cfg.shard else "boards/modules" if cfg.partial else "the focal plane"
+    return f"{what}: {len(streams)} stream(s){held}"
+
+
+class _PowerWatch:
+    """The power other converters publish on this one's streams (remote origin only), for takeovers."""
+
+    def __init__(self, session, owner, setup: str):
+        import zenoh
+
+        self._subs = []
+        for key in owner.watch_keys(setup):
+            self._subs.append(session.declare_subscriber(
+                key, lambda s: owner.seen(str(s.key_expr), s.payload.to_bytes()),
+                allowed_origin=zenoh.Locality.REMOTE))
+
+    def close(self) -> None:
+        for s in self._subs:
+            try:
+                s.undeclare()
+            except Exception:  # the session is closing
+                pass
+        self._subs.clear()
 
 
 class ConverterService(Service):
@@ -233,8 +362,14 @@ class ConverterService(Service):
     Config = ConverterConfig
     summary = "counts + housekeeping in, power + status + provenance out"
 
+    _ownership = None
+
     def owns(self) -> dict:
-        return {"boards": list(self.config.boards) or "*", "modules": list(self.config.modules) or "*"}
+        if self._ownership is not None:
+            return self._ownership.status()
+        return {"boards": list(self.config.boards) or "*", "modules": list(self.config.modules) or "*",
+                "shard": self.config.shard or "0/1"}
 
     def run(self, stop=None, ready=None) -> dict:
-        return run_converter(self.config, stop, ready, heartbeat=self.heartbeat)
+        return run_converter(self.config, stop, ready, heartbeat=self.heartbeat,
+                             on_ownership=lambda o: setattr(self, "_ownership", o))

@@ -107,10 +107,19 @@ class ConverterPipeline:
         Publication time stamp of outputs (ns); default ``time.time_ns``.
         None stamps outputs with the receive time of the message being handled,
         which makes offline re-conversion reproducible.
+    owns : dict, optional
+        The part of the focal plane a converter shard owns, for its provenance
+        (``service.ownership.owns_summary``); None: the whole of it.
+
+    Attribute ``owns_status`` (a callable returning a dict, or None) gives the
+    status its ``owns``: what is owned, published and held back now.
     """
 
-    def __init__(self, converter, config: PipelineConfig | None = None, params=None, clock: Callable[[], int] | None = time.time_ns):
+    def __init__(self, converter, config: PipelineConfig | None = None, params=None,
+                 clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None):
         self.converter = converter
+        self._owns = dict(owns or {})
+        self.owns_status: Callable[[], dict] | None = None
         self.config = config or PipelineConfig()
         self._clock = clock
         if params is None:
@@ -217,6 +226,7 @@ class ConverterPipeline:
             latency_p99_ms=float(np.percentile(lat, 99)) if lat.size else None,
             latency_max_ms=float(lat.max()) if lat.size else None,
             last_error=self.last_error,
+            owns=self.owns_status() if self.owns_status is not None else self._owns,
         )
 
     def provenance(self) -> Provenance:
@@ -230,6 +240,7 @@ class ConverterPipeline:
             converter_kind=str(self.converter.kind),
             software_version=__version__,
             t_ns=self._t_created_ns,
+            owns=self._owns,
         )
 
     def provenance_bytes(self) -> bytes:

@@ -19,10 +19,12 @@ from dataclasses import asdict, dataclass
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.core.settings import Settings, setting
+from mntes_stream.core.shards import Shard
 from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.coverage import Coverage
 from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "run_recorder"]
@@ -57,14 +59,29 @@ class RecorderConfig(Settings):
                                         "(BLOCK), never dropped", ge=1)
     queue_mb: float = setting(256.0, "... and at most this much payload: big messages cannot fill memory", unit="MB",
                               gt=0)
+    shard: str = setting("", "i/N: record the counts, power and bias of the streams (board, module) in bucket i "
+                         "of N (as converter shards split them); shard 0 also records everything else, every shard "
+                         "the provenance. '' = everything. Files: <prefix>-shard<i>of<N>-<seq>.mcap")
+    unconverted_after_s: float = setting(2.0, "a stream whose counts come with no power for this long is "
+                                         "reported unconverted (heartbeat, log)", unit="s", gt=0)
     foxglove_channels: bool = setting(False, "also write json channels the Foxglove app reads (power of the first "
                                              "detectors per module, flag rates, housekeeping, status; foxglove/)")
     metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
+    def __post_init__(self):
+        super().__post_init__()
+        Shard.parse(self.shard)  # checks i/N
+
     @property
     def subscription(self) -> str:
         return self.key_expr or keys.all_key(self.setup)
+
+    @property
+    def file_prefix(self) -> str:
+        """``prefix``, or ``<prefix>-shard<i>of<N>`` for a recorder shard: one file set per shard."""
+        shard = Shard.parse(self.shard)
+        return self.prefix if shard.whole else f"{self.prefix}-shard{shard.index}of{shard.count}"
 
     def to_metadata(self) -> dict[str, str]:
         """Flat string form stored in every file's ``mntes.recording`` metadata."""
@@ -87,7 +104,10 @@ class RecorderStats:
     ``seq_repeats`` the messages whose ``seq`` did not increase (duplicates,
     reordering, a restarted publisher; ``core.sequence``); ``invalid`` the payloads that were not a valid
     envelope (recorded anyway); ``dropped_on_close`` the samples a full
-    queue could not take while the subscriber was being closed.
+    queue could not take while the subscriber was being closed;
+    ``unconverted`` the streams with counts but no power at the end,
+    ``power_gaps`` the power chunks each stream missed while its counts came
+    (``service/coverage.py``).
     """
 
     messages: int
@@ -102,6 +122,8 @@ class RecorderStats:
     queue_high_water_mb: float
     dropped_on_close: int
     duration_s: float
+    unconverted: tuple[str, ...] = ()
+    power_gaps: dict | None = None
 
 
 def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=None) -> RecorderStats:
@@ -128,7 +150,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
 
     writer = RotatingMcapWriter(
         config.directory,
-        config.prefix,
+        config.file_prefix,
         flush_interval_s=config.flush_interval_s,
         rotate_bytes=int(config.rotate_mb * (1 << 20)),
         rotate_s=config.rotate_s,
@@ -147,9 +169,16 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
     t_start = time.monotonic()
     next_log = t_start + config.log_interval_s
 
+    mine = _shard_filter(Shard.parse(config.shard))
+    coverage = Coverage(config.unconverted_after_s)
+    next_cover = 0.0
+
     def write(item) -> None:
         topic, payload, t_ns = item
+        if mine is not None and not mine(topic):
+            return
         env = writer.write(topic, payload, t_ns)
+        coverage.add(topic, env.seq, time.monotonic())
         if json_channels is not None and not env.problem:
             json_channels.add(env.schema, payload)
         kind = keys.kind_of(topic) or "other"
@@ -187,6 +216,12 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
                 if heartbeat is not None:
                     heartbeat.beat(messages=writer.messages, payload_bytes=writer.payload_bytes, invalid=writer.invalid,
                                    files=len(writer.files), queue_depth=sub.qsize())
+                if time.monotonic() >= next_cover:  # counts without power: said in the heartbeat (ps) and the log
+                    now = time.monotonic()
+                    next_cover = now + 0.25
+                    cover = coverage.summary(now)
+                    if heartbeat is not None:
+                        heartbeat.beat(**cover)
                 if time.monotonic() >= next_log:
                     next_log += config.log_interval_s
                     log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)
@@ -223,9 +258,33 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         queue_high_water_mb=sub.high_water_bytes / 1e6,
         dropped_on_close=sub.dropped_on_close,
         duration_s=time.monotonic() - t_start,
+        unconverted=tuple(coverage.unconverted(time.monotonic())),
+        power_gaps=dict(coverage.gaps),
     )
     log.info("recorder stopped: %s", stats)
     return stats
+
+
+def _shard_filter(shard: Shard):
+    """Whether a recorder shard keeps a topic (None: it keeps everything); cached per topic."""
+    if shard.whole:
+        return None
+    cache: dict[str, bool] = {}
+
+    def mine(topic: str) -> bool:
+        keep = cache.get(topic)
+        if keep is None:
+            parts = topic.split("/")
+            if len(parts) == 5 and parts[2] in ("counts", "power") or parts[2:4] == ["hk", "bias"] and len(parts) == 6:
+                b, m = parts[-2:]
+                keep = shard.owns(int(b), int(m)) if b.isdigit() and m.isdigit() else shard.index == 0
+            else:
+                keep = shard.index == 0 or keys.kind_of(topic) == "provenance"
+            if len(cache) < 100_000:
+                cache[topic] = keep
+        return keep
+
+    return mine
 
 
 class RecorderService(Service):
