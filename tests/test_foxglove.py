@@ -214,3 +214,83 @@ def test_recorder_foxglove_channels_and_transcode_validate_with_an_independent_r
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "transcode", str(plain), str(out), "--foxglove"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode != 0 and "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_up_plus_foxglove_commands_reach_a_websocket_client(tmp_path):
+    """The acceptance run, as a person types it: `mntes-stream up`, then `mntes-stream foxglove` joining its
+    converter; a plain WebSocket client gets the advertised channels and power equal to what the converter
+    published (read with zenoh's own API)."""
+    import re
+    import subprocess
+    import sys
+
+    import zenoh
+
+    up = subprocess.Popen([sys.executable, "-m", "mntes_stream", "up", "--duration", "90", "--out", str(tmp_path),
+                           "--modules", "2", "--channels", "8"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          text=True)
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(up.stdout), daemon=True).start()
+    fox = ws = None
+    try:
+        deadline = time.monotonic() + 120
+        while "power chunks" not in "".join(lines):  # every service ready, data flowing
+            assert up.poll() is None and time.monotonic() < deadline, "".join(lines)
+            time.sleep(0.1)
+        conv = int(re.search(r"converter :(\d+)", "".join(lines))[1])
+        ws_port = free_tcp_port()
+        fox = subprocess.Popen([sys.executable, "-m", "mntes_stream", "foxglove", "--port", str(ws_port),
+                                "--per-module", "3", "--max-rate-hz", "0", "-e", f"tcp/127.0.0.1:{conv}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert "serving ws://127.0.0.1:" in fox.stdout.readline()
+        conf = zenoh.Config.from_json5(json.dumps({
+            "mode": "peer", "connect": {"endpoints": [f"tcp/127.0.0.1:{conv}"]},
+            "listen": {"endpoints": [f"tcp/127.0.0.1:{free_tcp_port()}"]},
+            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
+        published: dict[int, bytes] = {}
+        with zenoh.open(conf) as z:
+            sub = z.declare_subscriber("mntes/lab/power/0/1",
+                                       lambda s: published.__setitem__(len(published), s.payload.to_bytes()))
+            ws = websocket.create_connection(f"ws://127.0.0.1:{ws_port}", timeout=20,
+                                             subprotocols=["foxglove.websocket.v1", "foxglove.sdk.v1"])
+            channels: dict[str, dict] = {}
+
+            def advertised(seen):
+                for msg in seen:
+                    if msg.get("op") == "advertise":
+                        channels.update({c["topic"]: c for c in msg["channels"]})
+                return {"/mntes/lab/power/0/0", "/mntes/lab/power/0/1", "/mntes/lab/status/converter",
+                        "/mntes/lab/flag_rates/converter"} <= set(channels)
+
+            _recv_text_until(ws, advertised, timeout_s=60)
+            ch = channels["/mntes/lab/power/0/1"]
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": ch["id"]}]}))
+            got = []
+            deadline = time.monotonic() + 30
+            while len(got) < 40 and time.monotonic() < deadline:
+                op, data = ws.recv_data()
+                if op == websocket.ABNF.OPCODE_BINARY and data[0] == 0x01:
+                    got.append(json.loads(data[13:]))
+            time.sleep(0.5)
+            sub.undeclare()
+    finally:
+        if ws is not None:
+            ws.close()
+        for proc in (fox, up):
+            if proc is not None:
+                proc.terminate()
+                proc.wait(60)
+    chunks = {c.seq: c for c in (decode(p) for p in published.values())}
+    matched = 0
+    for msg in got:
+        chunk = chunks.get(msg["seq"])
+        if chunk is None:
+            continue
+        k = int(np.flatnonzero(chunk.times_ns() == msg["t_ns"])[0])
+        assert list(msg["p_opt_pw"]) == list(chunk.detector_ids[:3])
+        for row, det in enumerate(chunk.detector_ids[:3]):
+            want = chunk.p_opt_w[row, k] * 1e12
+            assert (msg["p_opt_pw"][det] is None) if np.isnan(want) else msg["p_opt_pw"][det] == pytest.approx(want, rel=1e-12)
+            assert msg["flags"][det] == int(chunk.flags[row, k])
+        matched += 1
+    assert matched >= 30, (len(got), len(chunks))

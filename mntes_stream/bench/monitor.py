@@ -10,7 +10,10 @@ at ``--rate-hz`` in ``--chunk-s`` chunks:
 - ``--browser``: the real thing on loopback: a publisher process puts the
   power stream on zenoh in real time, ``mntes-stream monitor`` serves it and
   headless Chromium draws it; reported are the page's update rate, the
-  publication-to-drawn latency it measures, and the monitor's CPU use.
+  publication-to-drawn latency it measures, and the monitor's CPU use;
+- ``integrations``: the cost of the Foxglove bridge and of the Prometheus
+  metrics on the same stream (``bench/_integrations.py``; ``--foxglove-live``
+  runs the bridge as a process with a WebSocket client).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import time
 
 import numpy as np
 
+from mntes_stream.bench import _integrations
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 HELP = "quick-look monitor: aggregation cost and page latency for a full focal plane"
@@ -35,6 +39,7 @@ def add_arguments(p) -> None:
     p.add_argument("--seconds", type=float, default=20.0, help="stream time")
     p.add_argument("--selected", type=int, default=4, help="channels plotted by the page")
     p.add_argument("--browser", action="store_true", help="also run publisher + monitor + headless Chromium live")
+    _integrations.add_arguments(p)  # the Foxglove bridge and the metrics: what they cost (issue 16)
 
 
 def _chunks(modules: int, n_samp: int, rate_hz: float, n_chunks: int, t0_ns: int, setup: str = "bench"):
@@ -204,4 +209,5 @@ def run(args) -> dict:
     }
     if args.browser:
         out["browser"] = _browser(args)
+    out["integrations"] = _integrations.run(args, _chunks)
     return out
