@@ -195,7 +195,7 @@ class ModuleBuffer:
         self.newest_t_ns: int | None = None
         self.newest_t_pub_ns = 0
         self.last_recv_ns: int | None = None
-        self._recv_gaps: collections.deque = collections.deque(maxlen=9)
+        self._recv_times: collections.deque = collections.deque(maxlen=17)
         self._chunk_s = 0.1
         self.replay = False
         self.sequence = StreamSequence()
@@ -229,15 +229,16 @@ class ModuleBuffer:
         return np.array_equal(channels, self.channels) and abs(sample_rate_hz - self.sample_rate_hz) <= 1e-6 * self.sample_rate_hz
 
     def chunk_interval_s(self) -> float:
-        """Time between this stream's chunks: the median receive gap, else one chunk's span."""
-        if len(self._recv_gaps) >= 2:
-            return float(np.median(self._recv_gaps))
+        """Time between this stream's chunks: the mean receive gap of the last 16 (bursts average out),
+        else one chunk's span."""
+        if len(self._recv_times) >= 3:
+            return max((self._recv_times[-1] - self._recv_times[0]) / (len(self._recv_times) - 1) / 1e9, 1e-4)
         return self._chunk_s
 
     def add(self, t_ns: np.ndarray, p_opt_w: np.ndarray, flags: np.ndarray, seq: int, t_pub_ns: int, t_recv_ns: int) -> None:
         """Append one chunk: times (n,), power and flags (n_ch, n)."""
-        if self.last_recv_ns is not None and t_recv_ns > self.last_recv_ns:
-            self._recv_gaps.append((t_recv_ns - self.last_recv_ns) / 1e9)
+        if self.last_recv_ns is None or t_recv_ns >= self.last_recv_ns:
+            self._recv_times.append(int(t_recv_ns))
         self.last_recv_ns = int(t_recv_ns)
         self._chunk_s = min(max(t_ns.size / self.sample_rate_hz, 1e-3), 60.0)
         self.replay = t_recv_ns - t_pub_ns > self.config.replay_after_s * 1e9
@@ -375,7 +376,7 @@ class Aggregator:
     def __init__(self, config: MonitorConfig | None = None, positions: dict | None = None):
         self.config = config or MonitorConfig()
         self.positions: dict[str, tuple[float, float]] = dict(positions or {})
-        self.modules: dict[tuple[int, int], ModuleBuffer] = {}
+        self.modules: collections.OrderedDict[tuple[int, int], ModuleBuffer] = collections.OrderedDict()  # by receipt
         self.reserved_bytes = 0
         self.budget_bytes = int(self.config.memory_mb * 1e6) - self.config.full_rate_bytes()
         self.over_budget = 0
@@ -414,6 +415,7 @@ class Aggregator:
             if buf is None:
                 return
         buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns)
+        self.modules.move_to_end(key)
         self.power_chunks += 1
         self.power_samples += int(chunk.p_opt_w.size)
         self._interval_chunks += 1
@@ -426,27 +428,27 @@ class Aggregator:
 
     def _admit(self, key: tuple[int, int], channels: np.ndarray, rate_hz: float, t_recv_ns: int) -> ModuleBuffer | None:
         """A new buffer for ``key`` if its reservation fits the budget (evicting idle modules), else None (counted)."""
-        old = self.modules.pop(key, None)
+        old = self.modules.get(key)
         if old is not None:
-            self.reserved_bytes -= old.reserved_bytes
+            self._drop(key)
         need = self.config.module_bytes(int(np.asarray(channels).size))
-        if self.reserved_bytes + need > self.budget_bytes:
-            idle_ns = t_recv_ns - int(self.config.silent_s * 1e9)
-            idle = sorted((b.last_recv_ns or 0, k) for k, b in self.modules.items() if (b.last_recv_ns or 0) < idle_ns)
-            for _, k in idle:
-                if self.reserved_bytes + need <= self.budget_bytes:
-                    break
-                self.reserved_bytes -= self.modules.pop(k).reserved_bytes
-                self.evicted += 1
+        idle_ns = t_recv_ns - int(self.config.silent_s * 1e9)
+        # self.modules is in order of last receipt: the idle ones are at the front.
+        while self.reserved_bytes + need > self.budget_bytes and self.modules:
+            k, b = next(iter(self.modules.items()))
+            if (b.last_recv_ns or 0) >= idle_ns:
+                break
+            self._drop(k)
+            self.evicted += 1
         if self.reserved_bytes + need > self.budget_bytes:
             self.over_budget += 1
-            if old is not None:
-                self._reindex()
             return None
         buf = ModuleBuffer(key[0], key[1], channels, rate_hz, self.config)
         self.modules[key] = buf
         self.reserved_bytes += need
-        self._reindex()
+        for row, det in enumerate(buf.ids):
+            self._index[det] = (key, row)
+        self.layout_version += 1
         for det in self._watched:  # a replaced module keeps its plotted channels at full rate
             where = self._index.get(det)
             if where is not None and where[0] == key:
@@ -513,11 +515,11 @@ class Aggregator:
 
     # ------------------------------------------------------------------ layout
 
-    def _reindex(self) -> None:
-        self._index = {}
-        for key in sorted(self.modules):
-            for row, det in enumerate(self.modules[key].ids):
-                self._index[det] = (key, row)
+    def _drop(self, key: tuple[int, int]) -> None:
+        buf = self.modules.pop(key)
+        self.reserved_bytes -= buf.reserved_bytes
+        for det in buf.ids:
+            self._index.pop(det, None)
         self.layout_version += 1
 
     def layout(self) -> list[dict]:
@@ -545,7 +547,7 @@ class Aggregator:
         return STATE_NAMES[int(self.modules[where[0]].state[where[1]])]
 
     def detector_ids(self) -> list[str]:
-        return list(self._index)
+        return sorted(self._index)
 
     def channels_not_in_transition(self, limit: int) -> tuple[list[tuple[str, str]], int]:
         """Up to ``limit`` ``(detector id, state)`` not in transition, in layout order, and their total."""

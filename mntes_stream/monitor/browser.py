@@ -62,12 +62,26 @@ const grid = data('grid')[0];
 const gridCells = {};
 if (grid) {
   grid.text.forEach((row, i) => row.forEach((t, j) => {
-    if (t) { const [id, state] = t.split(': '); gridCells[id] = {state: state, z: grid.z[i][j]}; }
+    if (t) { const [id, rest] = t.split(': '); gridCells[id] = {state: rest.split(' · ')[0], z: grid.z[i][j]}; }
   }));
 }
+const axisText = (id) => { const el = document.getElementById(id);
+  return el && el.layout && el.layout.annotations ? el.layout.annotations.map(a => a.text) : []; };
+const xaxis = (id) => { const el = document.getElementById(id);
+  return el && el._fullLayout && el._fullLayout.xaxis ? {visible: el._fullLayout.xaxis.visible,
+    range: el._fullLayout.xaxis.range} : null; };
 const spec = document.getElementById('spectrum');
 return {
   updates: M.updates || 0,
+  fresh: M.fresh || null,
+  badge: {text: document.getElementById('fresh').textContent, cls: document.getElementById('fresh').className},
+  conn: document.getElementById('conn').textContent,
+  clicks: M.clicks || 0,
+  annotations: {timestreams: axisText('timestreams'), spectrum: axisText('spectrum'), hk: axisText('hk')},
+  xaxes: {timestreams: xaxis('timestreams'), hk: xaxis('hk')},
+  focal_metric: M.last && M.last.focal ? M.last.focal.metric : null,
+  window_s: M.last ? M.last.window_s : null,
+  freshness: M.last ? M.last.freshness : null,
   renders: M.renders || [],
   errors: M.errors || [],
   selection: M.selection || [],

@@ -288,9 +288,11 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
                 # Wait for the next tick or a change of this page's selection, whichever first.
                 wake = asyncio.create_task(client["wake"].wait())
                 tick = asyncio.create_task(hub.wait(seen))
-                await asyncio.wait({wake, tick}, return_when=asyncio.FIRST_COMPLETED)
-                for task in (wake, tick):
-                    task.cancel()
+                try:
+                    await asyncio.wait({wake, tick}, return_when=asyncio.FIRST_COMPLETED)
+                finally:  # also when this loop is cancelled: no waiter left pending
+                    for task in (wake, tick):
+                        task.cancel()
                 client["wake"].clear()
                 if hub.snapshot is None:
                     continue
@@ -314,14 +316,17 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
             tick, layout = hub.snapshot
             with subscriber.lock:
                 agg = subscriber.aggregator
-                if client["selection"] is None and agg.modules:
-                    client["selection"] = agg.default_selection()
-                agg.watch(client["selection"] or [])
-                view = agg.view(client["selection"] or [], client["f_hwp"], client["window_s"])
+                selection = client["selection"]
+                if selection is None:
+                    selection = agg.default_selection()
+                    if tick["state_counts"]["transition"]:  # kept once channels are classified as usable
+                        client["selection"] = selection
+                agg.watch(selection)
+                view = agg.view(selection, client["f_hwp"], client["window_s"])
                 focal = client["focal"]
                 shared = {k: v for k, v in tick.items() if k != "focal"}
                 msg = {"type": "update", "seq": hub.seq, "t_server_ns": time.time_ns(), **shared, **view,
-                       "window_s": client["window_s"] or agg.config.history_s,
+                       "window_s": client["window_s"] or agg.config.history_s, "update_s": update_s,
                        "focal": {"metric": focal, "values": tick["focal"].get(focal)}}
             if client["layout_version"] != tick["layout_version"]:  # the grid rows of this tick's codes
                 msg["layout"] = layout

@@ -16,6 +16,11 @@ const M = (window.mntesMonitor = {
   selection: [],
   errors: [],
   ws: null,
+  fresh: { state: "waiting", text: "waiting for data" },  // what the badge says
+  lastUpdateMs: null,  // performance.now() when the last update arrived
+  focalMetric: "state",
+  focalLayout: "bmc",
+  clicks: 0,           // focal-plane cells clicked
 });
 let lastPubNs = 0;
 let gridGeom = null;   // {rows, cols, ids, offsets}
@@ -34,7 +39,10 @@ function connect() {
   ws.onclose = () => { setConn("disconnected", "bad"); setTimeout(connect, 1000); };
   ws.onmessage = (ev) => {
     const msg = JSON.parse(ev.data);
-    if (msg.type === "update") draw(msg).catch((e) => { M.errors.push(String(e)); console.error(e); });
+    if (msg.type === "update") {
+      M.lastUpdateMs = performance.now();
+      draw(msg).catch((e) => { M.errors.push(String(e)); console.error(e); });
+    }
     else if (msg.type === "error") { M.errors.push(msg.message); setConn(msg.message, "warn"); }
   };
 }
@@ -86,6 +94,50 @@ $("clear").onclick = () => select([]);
 $("selected").onclick = (ev) => { const id = ev.target.dataset.id; if (id) select(M.selection.filter((s) => s !== id)); };
 $("f-hwp").onchange = () => { $("f-hwp-auto").checked = false; send({ type: "f_hwp", value: $("f-hwp").value }); };
 $("f-hwp-auto").onchange = () => send({ type: "f_hwp", value: $("f-hwp-auto").checked ? "auto" : ($("f-hwp").value || "config") });
+$("window").onchange = () => send({ type: "window", seconds: Number($("window").value) });
+$("focal-metric").onchange = () => { M.focalMetric = $("focal-metric").value; send({ type: "focal", metric: M.focalMetric }); };
+$("focal-layout").onchange = () => { M.focalLayout = $("focal-layout").value; if (M.last) grid(M.last); };
+
+// ---------------------------------------------------------------- freshness badge
+// The server says how old the newest power is against 3 chunk intervals; the page adds its own check:
+// a page that stops getting updates (server gone, stuck, network) must not keep showing the last green.
+
+const ageText = (s) => (s < 60 ? `${s.toFixed(1)} s` : s < 7200 ? `${(s / 60).toFixed(1)} min` : `${(s / 3600).toFixed(1)} h`);
+const utc = (ns) => new Date(ns / 1e6).toISOString().replace("T", " ").slice(0, 19) + " UTC";
+
+function setFresh(state, text) {
+  M.fresh = { state, text };
+  const b = $("fresh");
+  if (b.textContent !== text) b.textContent = text;
+  const cls = "pill " + ({ live: "ok", replay: "replay", stale: "bad", waiting: "bad", silent: "bad" }[state] || "bad");
+  if (b.className !== cls) b.className = cls;
+}
+
+function refreshBadge() {
+  const msg = M.last;
+  if (!msg || M.lastUpdateMs === null) return;
+  const since = (performance.now() - M.lastUpdateMs) / 1000;
+  const period = msg.update_s || 0.5;
+  if (since > Math.max(3 * period, 2)) {
+    setFresh("silent", `NO UPDATE from the monitor for ${ageText(since)}`);
+    return;
+  }
+  const fr = msg.freshness;
+  if (fr.state === "waiting") setFresh("waiting", "waiting for data");
+  else if (fr.state === "stale") setFresh("stale", `STALE: no data for ${ageText(fr.age_s + since)} (> ${fr.stale_chunks} chunk intervals, ${fmt(fr.threshold_s, 2)} s)`);
+  else if (fr.state === "replay") setFresh("replay", `REPLAY · recorded ${utc(fr.newest_t_ns)}`);
+  else setFresh("live", `LIVE · ${fmt(fr.age_s, 1)} s`);
+}
+setInterval(refreshBadge, 200);
+
+// An empty chart says why instead of drawing an axis around 1 January 2000.
+function emptyLayout(layout, text) {
+  return Object.assign({}, layout, {
+    xaxis: { visible: false }, yaxis: { visible: false }, yaxis2: { visible: false }, shapes: [],
+    annotations: [{ text, xref: "paper", yref: "paper", x: 0.5, y: 0.5, showarrow: false, font: { size: 15, color: "#777" } }],
+  });
+}
+const hasPoints = (traces) => traces.some((t) => t.x.length > 0);
 
 // ---------------------------------------------------------------- drawing
 
@@ -94,10 +146,17 @@ function timeStreams(msg) {
     type: "scatter", mode: "lines", name: `${s.id} (${s.state})`, x: s.t_ms, y: s.p_pw,
     line: { width: 1 }, connectgaps: false,
   }));
+  const replay = msg.freshness.state === "replay" || msg.freshness.replay;
+  const slow = msg.streams.filter((s) => s.resolution !== "full rate").map((s) => s.id);
   const layout = {
     uirevision: "ts", margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.12 },
-    xaxis: { type: "date", title: { text: "time (UTC)" } }, yaxis: { title: { text: "P_opt [pW]" }, exponentformat: "none" },
+    xaxis: { type: "date", title: { text: `${replay ? "recording time" : "time"} (UTC), last ${ageText(msg.window_s)}${slow.length ? `; ${slow.join(", ")}: ${msg.streams.find((s) => s.resolution !== "full rate").resolution}` : ""}` } },
+    yaxis: { title: { text: "P_opt [pW]" }, exponentformat: "none" },
   };
+  if (!hasPoints(traces)) {
+    const why = msg.selection.length ? "no data yet for the selected channels" : (M.layout && M.layout.length ? "no channel selected: pick one or click the focal plane" : "waiting for power");
+    return Plotly.react("timestreams", [], emptyLayout(layout, why), CONFIG);
+  }
   return Plotly.react("timestreams", traces, layout, CONFIG);
 }
 
@@ -120,6 +179,7 @@ function spectrum(msg) {
   };
   $("f-hwp-info").textContent = sp.f_hwp_hz === null ? `(${sp.f_hwp_source})` : `(${fmt(sp.f_hwp_hz, 3)} Hz, ${sp.f_hwp_source})`;
   if (!$("f-hwp").value && sp.f_hwp_hz !== null && sp.f_hwp_source === "configured") $("f-hwp").value = sp.f_hwp_hz;
+  if (!hasPoints(traces)) return Plotly.react("spectrum", [], emptyLayout(layout, "no spectrum yet"), CONFIG);
   return Plotly.react("spectrum", traces, layout, CONFIG);
 }
 
@@ -137,30 +197,80 @@ function buildGridGeometry() {
   gridGeom = { rows: M.layout.length, cols, ids, offsets, labels: M.layout.map((r) => `b${r.board}m${r.module}`) };
 }
 
+const FOCAL_UNITS = { power_pw: "pW", flag_pct: "% flagged", noise_aw_rthz: "aW/√Hz" };
+let gridClickBound = false;
+
+function focalValue(msg, k) {
+  // The server sends the figure this page colours by (msg.focal.metric), per channel in layout order.
+  const f = msg.focal;
+  return f && f.values && f.metric === M.focalMetric ? f.values[k] : null;
+}
+
 function grid(msg) {
   const names = msg.state_names, codes = msg.codes, g = gridGeom;
-  const z = [], text = [];
-  M.layout.forEach((r, i) => {
-    const zr = new Array(g.cols).fill(null), tr = new Array(g.cols).fill("");
-    for (let j = 0; j < r.channels.length; j++) {
-      const k = codes.charCodeAt(g.offsets[i] + j) - 48;
-      zr[j] = k;
-      tr[j] = `${g.ids[i][j]}: ${names[k]}`;
-    }
-    z.push(zr); text.push(tr);
-  });
+  const metric = M.focalMetric === "state" || !msg.focal || msg.focal.metric !== M.focalMetric ? "state" : M.focalMetric;
+  const hasSky = M.layout.some((r) => r.positions && r.positions.some((p) => p));
+  const skyOpt = $("focal-layout").querySelector('option[value="sky"]');
+  skyOpt.disabled = !hasSky;
+  const sky = hasSky && M.focalLayout === "sky";
+  const stateOf = (k) => names[codes.charCodeAt(k) - 48];
+  const label = (k, id) => {
+    const v = focalValue(msg, k);
+    return metric === "state" ? `${id}: ${stateOf(k)}` : `${id}: ${stateOf(k)} · ${v === null ? "–" : v} ${FOCAL_UNITS[metric]}`;
+  };
   const n = names.length, colorscale = [];
   names.forEach((name, k) => { colorscale.push([k / n, STATE_COLORS[name]], [(k + 1) / n, STATE_COLORS[name]]); });
-  const trace = {
-    type: "heatmap", z, text, hoverinfo: "text", zmin: -0.5, zmax: n - 0.5, colorscale, showscale: false,
-    y: g.labels, xgap: g.cols > 64 ? 0 : 1, ygap: g.rows > 16 ? 0 : 1,  // gaps would hide a dense grid
-  };
-  const layout = {
-    uirevision: "grid", margin: { l: 60, r: 10, t: 10, b: 45 },
-    xaxis: { title: { text: "channel slot" }, showgrid: false }, yaxis: { autorange: "reversed", showgrid: false, type: "category" },
-  };
+  let trace, layout;
+  if (sky) {
+    const x = [], y = [], c = [], text = [], ids = [];
+    M.layout.forEach((r, i) => r.channels.forEach((ch, j) => {
+      const p = r.positions && r.positions[j];
+      if (!p) return;
+      const k = g.offsets[i] + j, id = g.ids[i][j];
+      x.push(p[0]); y.push(p[1]); ids.push(id); text.push(label(k, id));
+      c.push(metric === "state" ? codes.charCodeAt(k) - 48 : focalValue(msg, k));
+    }));
+    const marker = metric === "state"
+      ? { color: c, colorscale, cmin: -0.5, cmax: n - 0.5, size: 9 }
+      : { color: c, colorscale: "Viridis", size: 9, showscale: true, colorbar: { title: { text: FOCAL_UNITS[metric] } } };
+    trace = { type: "scattergl", mode: "markers", x, y, text, customdata: ids, hoverinfo: "text", marker };
+    layout = {
+      uirevision: "sky", margin: { l: 60, r: 10, t: 10, b: 45 },
+      xaxis: { title: { text: "x [deg]" } }, yaxis: { title: { text: "y [deg]" }, scaleanchor: "x" },
+    };
+  } else {
+    const z = [], text = [];
+    M.layout.forEach((r, i) => {
+      const zr = new Array(g.cols).fill(null), tr = new Array(g.cols).fill("");
+      for (let j = 0; j < r.channels.length; j++) {
+        const k = g.offsets[i] + j;
+        zr[j] = metric === "state" ? codes.charCodeAt(k) - 48 : focalValue(msg, k);
+        tr[j] = label(k, g.ids[i][j]);
+      }
+      z.push(zr); text.push(tr);
+    });
+    trace = {
+      type: "heatmap", z, text, customdata: g.ids, hoverinfo: "text", showscale: metric !== "state",
+      y: g.labels, xgap: g.cols > 64 ? 0 : 1, ygap: g.rows > 16 ? 0 : 1,  // gaps would hide a dense grid
+    };
+    if (metric === "state") Object.assign(trace, { zmin: -0.5, zmax: n - 0.5, colorscale });
+    else Object.assign(trace, { colorscale: "Viridis", colorbar: { title: { text: FOCAL_UNITS[metric] } } });
+    layout = {
+      uirevision: "grid", margin: { l: 60, r: 10, t: 10, b: 45 },
+      xaxis: { title: { text: "channel slot" }, showgrid: false }, yaxis: { autorange: "reversed", showgrid: false, type: "category" },
+    };
+  }
   $("legend").innerHTML = names.map((name) => `<span><i style="background:${STATE_COLORS[name]}"></i>${name} <b>${msg.state_counts[name]}</b></span>`).join("");
-  return Plotly.react("grid", [trace], layout, CONFIG);
+  if (!M.layout.length) return Plotly.react("grid", [], emptyLayout(layout, "no channels yet"), CONFIG);
+  return Plotly.react("grid", [trace], layout, CONFIG).then((gd) => {
+    if (!gridClickBound) {
+      gridClickBound = true;
+      gd.on("plotly_click", (ev) => {
+        const id = ev.points && ev.points[0] && ev.points[0].customdata;
+        if (id) { M.clicks += 1; select(M.selection.filter((s) => s !== id).concat([id])); }
+      });
+    }
+  });
 }
 
 function housekeeping(msg) {
@@ -174,6 +284,7 @@ function housekeeping(msg) {
     grid: { rows: 2, columns: 1, subplots: [["xy"], ["xy2"]], roworder: "top to bottom" },
     xaxis: { type: "date" }, yaxis: { title: { text: "T_bath [mK]" }, exponentformat: "none" }, yaxis2: { title: { text: "B [µT]" } },
   };
+  if (!hasPoints(traces)) return Plotly.react("hk", [], emptyLayout(layout, "no housekeeping received"), CONFIG);
   return Plotly.react("hk", traces, layout, CONFIG);
 }
 
@@ -188,7 +299,7 @@ function health(msg) {
       `${cell(s.bad_messages, s.bad_messages > 0)}${cell(fmt(s.age_s, 1), s.stale)}</tr>`;
   }
   const bad = Object.values(mon.bad_messages).reduce((a, b) => a + b, 0);
-  rows += `<tr><td>monitor (received)</td>${cell(fmt(mon.chunks_per_s, 1))}${cell("")}${cell(fmt(mon.msamples_per_s, 3))}` +
+  rows += `<tr><td>monitor (received${msg.freshness.replay ? "; replay: latency on the recording's clock" : ""})</td>${cell(fmt(mon.chunks_per_s, 1))}${cell("")}${cell(fmt(mon.msamples_per_s, 3))}` +
     `${cell(`${fmt(mon.latency_p50_ms, 1)} / – / ${fmt(mon.latency_max_ms, 1)}`)}${cell(mon.lost_chunks, mon.lost_chunks > 0)}` +
     `${cell(`dropped ${mon.dropped}`, mon.dropped > 0)}${cell("")}${cell(bad, bad > 0)}${cell("")}</tr>`;
   rows += `<tr><td>page (publication → drawn)</td>${cell("")}${cell("")}${cell("")}${cell(`${fmt(pl.p50, 0)} / – / ${fmt(pl.max, 0)}`)}${cell("")}${cell("")}${cell("")}${cell("")}${cell("")}</tr>`;
@@ -207,15 +318,18 @@ async function draw(msg) {
     M.selection = msg.selection;
     renderSelected();
   }
+  M.last = msg;
+  refreshBadge();
   health(msg);
   await Promise.all([timeStreams(msg), spectrum(msg), grid(msg), housekeeping(msg)]);
   // The next frame is when the browser has painted what was just drawn.
   await new Promise((resolve) => requestAnimationFrame(() => setTimeout(resolve, 0)));
   const tRenderMs = performance.timeOrigin + performance.now();
   M.updates += 1;
-  M.last = msg;
   $("updated").textContent = `updated ${new Date(tRenderMs).toISOString().slice(11, 19)} UTC`;
-  if (msg.newest_t_pub_ns > lastPubNs) {
+  if (msg.freshness.replay) {
+    $("latency").textContent = `replay: latency ${fmt(msg.health.monitor.latency_p50_ms, 0)} ms on the recording's clock (samples → publication)`;
+  } else if (msg.newest_t_pub_ns > lastPubNs) {
     lastPubNs = msg.newest_t_pub_ns;
     const latency = tRenderMs - msg.newest_t_pub_ns / 1e6;
     M.renders.push({ t_pub_ns: msg.newest_t_pub_ns, t_render_ms: tRenderMs, latency_ms: latency });
