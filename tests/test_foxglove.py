@@ -294,3 +294,19 @@ def test_up_plus_foxglove_commands_reach_a_websocket_client(tmp_path):
             assert msg["flags"][det] == int(chunk.flags[row, k])
         matched += 1
     assert matched >= 30, (len(got), len(chunks))
+
+
+@pytest.mark.parametrize("argv", [["foxglove", "--duration", "1"],
+                                  ["serve", "--config", "services/foxglove.toml", "--duration", "1"]])
+def test_missing_foxglove_sdk_is_one_line_naming_the_extra(argv):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import sys; sys.modules['foxglove'] = None\n"
+            f"from mntes_stream.cli import main\nsys.exit(main({argv!r}))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 2, res.stderr
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "pip install 'mntes-stream[foxglove]'" in err[0], res.stderr
