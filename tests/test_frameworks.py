@@ -16,7 +16,7 @@ import sys
 import h5py
 import numpy as np
 import pytest
-from test_feeds import STEP, T0, bits, chunk, write
+from test_feeds import STEP, T0, N, bits, chunk, write
 
 from mntes_stream.cli import main as cli_main
 from mntes_stream.core import flags as fl
@@ -209,3 +209,28 @@ def test_a_missing_framework_is_one_line_naming_its_extra(session, tmp_path, mon
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and f"pip install 'mntes-stream[{extra}]'" in err
     assert not (tmp_path / "x").exists()
+
+
+def test_live_feed_hands_out_framework_objects_equal_to_what_was_published(tmp_path):
+    from test_feeds_live import _Publisher
+
+    from mntes_stream.feeds import LivePowerFeed
+    from mntes_stream.io import keys
+    from mntes_stream.io.transport import free_tcp_port, loopback
+
+    port = free_tcp_port()
+    sent = [chunk(s, 0) for s in (0, 1, 3, 4)]  # seq 2 lost: NaN + GAP in the object
+    feed = LivePowerFeed(loopback(listen_port=port), "t", idle_timeout_s=1.5, duration_s=60)
+    pub = _Publisher(port, [(keys.power_key("t", 0, 0), c.to_bytes()) for c in sent], [keys.power_key("t", 0, 0)])
+    with feed:
+        pub.start()
+        try:
+            (am,) = feed.to_framework("sotodlib")
+        finally:
+            pub.done.set()
+            pub.join(30)
+    assert pub.error is None, pub.error
+    ref = RecordedPower(write(tmp_path / "same.mcap", sent)).read()["t_b0m0"]  # the same chunks, recorded
+    check_axismanager(am, ref, "t_b0m0")
+    assert np.all(am.flags.gap.mask()[:, 2 * N:3 * N])
+

@@ -8,7 +8,13 @@ a temporary directory, rotated into several files. Then it is timed:
 - ``read``: :class:`~mntes_stream.feeds.recorded.RecordedPower` index pass +
   block iteration (everything but HDF5);
 - ``export``: :func:`~mntes_stream.feeds.hdf5.export_hdf5` end to end, once
-  per ``--compression``.
+  per ``--compression``;
+- ``--format toast|sotodlib|litebird_sim``: the framework exports of
+  :mod:`mntes_stream.feeds.frameworks` end to end (read, build each
+  framework's objects, write with its own writer: ``toast.io.save_hdf5``
+  uncompressed, ``AxisManager.save`` and ``write_list_of_observations`` with
+  gzip), the framework imported before the clock starts. A framework that is
+  not installed is reported as such, not timed.
 
 Throughput is detector-samples (n_det x n_samp) per wall-clock second; the
 real-time factor is stream seconds exported per wall-clock second.
@@ -33,6 +39,8 @@ def add_arguments(p) -> None:
     p.add_argument("--seconds", type=float, default=60.0, help="stream time in the session")
     p.add_argument("--compression", action="append", choices=("gzip", "lzf", "none"),
                    help="HDF5 compression(s) to time (repeatable; default gzip and lzf)")
+    p.add_argument("--format", action="append", choices=("hdf5", "toast", "sotodlib", "litebird_sim"),
+                   help="export format(s) to time (repeatable; default all four)")
     p.add_argument("--block-samples", type=int, default=8192)
     p.add_argument("--dir", help="where to write (default: a temporary directory, removed afterwards)")
 
@@ -101,7 +109,8 @@ def run(args) -> dict:
             "read_index_s": round(t_index, 2),
             "read_msamples_per_s": round(samples / t_read / 1e6, 2),
         }
-        for comp in compressions:
+        formats = args.format or ["hdf5", "toast", "sotodlib", "litebird_sim"]
+        for comp in compressions if "hdf5" in formats else []:
             out = directory / f"export-{comp}.h5"
             s = export_hdf5(session, out, compression=comp, block_samples=args.block_samples, overwrite=True)
             if s.samples != samples:
@@ -109,7 +118,34 @@ def run(args) -> dict:
             result[f"export_{comp}_msamples_per_s"] = round(s.samples_per_s / 1e6, 2)
             result[f"export_{comp}_realtime_factor"] = round(args.seconds / s.seconds, 1)
             result[f"export_{comp}_file_mb"] = round(s.file_bytes / 1e6, 1)
+        for fmt in (f for f in formats if f != "hdf5"):
+            result.update(_framework(fmt, session, directory, samples, args.seconds))
         return result
     finally:
         if not args.dir:
             shutil.rmtree(directory, ignore_errors=True)
+
+
+_IMPORTS = {"toast": "toast", "sotodlib": "sotodlib.core", "litebird_sim": "litebird_sim"}
+
+
+def _framework(fmt: str, session: Path, directory: Path, samples: int, seconds: float) -> dict:
+    """Time one framework export of ``session``; ``{fmt}_...`` figures, or a note if it is not installed."""
+    import importlib
+
+    from mntes_stream.errors import ConfigError
+
+    try:
+        importlib.import_module(_IMPORTS[fmt])  # import time is not export time
+    except ImportError as exc:
+        return {f"{fmt}_not_installed": str(exc)}
+    from mntes_stream.feeds import frameworks
+
+    export = frameworks.FRAMEWORKS[fmt][1]
+    out = directory / f"export-{fmt}"
+    s = export(session, out, overwrite=True)
+    if s.samples != samples:
+        raise ConfigError(f"{fmt}: exported {s.samples} detector-samples, wrote {samples}")
+    return {f"{fmt}_msamples_per_s": round(s.samples_per_s / 1e6, 2),
+            f"{fmt}_realtime_factor": round(seconds / s.seconds, 1),
+            f"{fmt}_file_mb": round(s.file_bytes / 1e6, 1)}
