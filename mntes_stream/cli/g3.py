@@ -92,3 +92,53 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true")
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)
+
+
+def add_simulate_g3_args(p) -> None:
+    g = p.add_argument_group("G3 output (--format g3)")
+    g.add_argument("--out", metavar="RUN.g3", help="the G3 file (truth and bolometer-keyed parameters next to it)")
+    g.add_argument("--layout", choices=("scans", "timepoints"), default="scans",
+                   help="collated Scan frames (spt3g's DfMuxCollator) or raw DAQ Timepoint frames")
+    g.add_argument("--exact-counts", action="store_true",
+                   help="scans: unrounded float64 counts (checks against the truth below DfMux count resolution)")
+    g.add_argument("--nuller-gain", type=int, default=2, help="DfMux nuller gain setting (0-15)")
+    g.add_argument("--gain-step", action="append", default=[], metavar="S:GAIN",
+                   help="the operator sets the nuller gain to GAIN at S seconds (repeatable)")
+
+
+def run_simulate_g3(args, svc) -> int:
+    from pathlib import Path
+
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3.sim import write_g3
+    from mntes_stream.service.simulator import TruthRecorder
+
+    if not args.out:
+        raise ConfigError("simulate --format g3 needs --out RUN.g3")
+    if not svc.duration_s:
+        raise ConfigError("simulate --format g3 needs --duration > 0")
+    steps = []
+    for item in args.gain_step:
+        t, _, g = item.partition(":")
+        try:
+            steps.append((float(t), int(g)))
+        except ValueError:
+            raise ConfigError(f"--gain-step expects S:GAIN, e.g. 60:5, got {item!r}") from None
+    stem = Path(args.out)
+    stem = stem.with_name(stem.name[:-3] if stem.name.endswith(".g3") else stem.name)
+    params_out = args.params_out or f"{stem}.params.toml"
+    truth_out = None if args.no_truth else (args.truth or f"{stem}.truth.npz")
+    truth = TruthRecorder([], svc.sim) if truth_out else None  # ids set below: bolometer names
+    result = write_g3(svc.sim, args.out, svc.duration_s, layout=args.layout, truth=truth,
+                      exact_counts=args.exact_counts, nuller_gain=args.nuller_gain, gain_steps=steps,
+                      params_out=params_out)
+    if truth is not None:
+        from mntes_stream.core.ids import parse_detector_id
+        from mntes_stream.core.sim import ArraySimulator
+        from mntes_stream.g3.sim import bolometer_name
+
+        truth.detector_ids = tuple(bolometer_name(*parse_detector_id(d)) for d in ArraySimulator(svc.sim).detector_ids)
+        truth.save(truth_out)
+    result.update({"params": params_out, "truth": truth_out})
+    print_mapping(result, args.json)
+    return 0

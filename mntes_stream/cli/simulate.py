@@ -62,6 +62,10 @@ def run(args) -> int:
     )
 
     svc = _config(args)
+    if args.format == "g3":  # SPT-3G G3 file instead of MCAP/zenoh (mntes_stream.g3.sim)
+        from mntes_stream.cli.g3 import run_simulate_g3
+
+        return run_simulate_g3(args, svc)
     config, settings = svc.sim, svc.zenoh
     duration = svc.duration_s
     live = bool(settings.connect or settings.listen or settings.file)
@@ -111,6 +115,11 @@ def register(sub) -> None:
                     "per-sample truth (.npz, never read by a converter) next to the output.")
     p.add_argument("--config", metavar="TOML", help="service config with [simulator] and [zenoh] tables")
     p.add_argument("--mcap", metavar="FILE", help="write an MCAP file instead of publishing")
+    p.add_argument("--format", choices=("mcap", "g3"), default="mcap",
+                   help="g3: write what a DfMux DAQ would (SPT-3G G3 file --out, see --layout)")
+    from mntes_stream.cli.g3 import add_simulate_g3_args
+
+    add_simulate_g3_args(p)
     p.add_argument("--setup", help="setup name in the keys (default lab, as every service)")
     p.add_argument("--boards", type=int)
     p.add_argument("--modules", type=int, help="modules per board")

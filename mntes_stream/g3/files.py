@@ -27,7 +27,7 @@ from mntes_stream.g3 import spt3g
 from mntes_stream.g3.mapping import G3InputConfig, Wiring
 
 __all__ = ["is_g3", "expand_inputs", "read_frames", "preload", "g3_to_g3", "g3_to_mcap", "mcap_to_g3",
-           "g3_messages"]
+           "g3_messages", "converter_params"]
 
 log = logging.getLogger("mntes_stream.g3")
 
@@ -147,11 +147,40 @@ def _message_time(key: str, payload: bytes) -> int:
     return int(np.asarray(t)[-1])
 
 
+def converter_params(inputs, params, config: G3InputConfig | None = None) -> dict:
+    """The converter's parameters for a G3 run: keyed by detector id, gain of the first housekeeping.
+
+    Parameters
+    ----------
+    inputs : path(s) of the run (its Wiring and first Housekeeping frame are used)
+    params : path or mapping, keyed by bolometer name or detector id
+    """
+    from mntes_stream.g3.mapping import hk_snapshot, params_for_wiring
+    from mntes_stream.g3.power import load_g3_params
+
+    core, _ = spt3g()
+    wiring, hk = None, None
+    for f in read_frames(inputs):
+        if f.type == core.G3FrameType.Wiring and wiring is None:
+            wiring = Wiring.from_frame(f, config)
+        elif f.type == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in f and hk is None:
+            hk = f["DfMuxHousekeeping"]
+        if wiring is not None and hk is not None:
+            break
+    if wiring is None or hk is None:
+        raise ConfigError("the G3 input needs a Wiring frame and DfMux housekeeping (amps per count, bias)")
+    pdict, missing = params_for_wiring(load_g3_params(params), wiring, hk_snapshot(hk, wiring))
+    if missing:
+        log.warning("%d wired bolometer(s) without parameters, skipped: %s%s", len(missing), ", ".join(missing[:8]),
+                    " ..." if len(missing) > 8 else "")
+    if not pdict:
+        raise ConfigError("no wired bolometer has parameters: keyed by bolometer name or detector id?")
+    return pdict
+
+
 def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, setup: str = "lab",
                chunk_samples: int = 16, tables=None, pipeline_config=None, progress: bool = False):
     """Convert a G3 run to an MCAP recording through the live converter's pipeline."""
-    from mntes_stream.g3.mapping import hk_snapshot, params_for_wiring
-    from mntes_stream.g3.power import load_g3_params
     from mntes_stream.io.mcap import McapFileWriter, writer_description
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.service.offline import convert_recording
@@ -162,24 +191,12 @@ def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, s
         raise ConfigError(f"{output} exists: not overwritten")
     config = config or G3InputConfig()
     files = expand_inputs(inputs)
-    metadata, _ = preload(files)
-    core, _ = spt3g()
-    wiring = Wiring.from_frame(next(f for f in metadata if f.type == core.G3FrameType.Wiring), config)
-    hks = [f for f in metadata if f.type == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in f]
-    if not hks:
-        raise ConfigError("the G3 input has no DfMux housekeeping: amps per count and bias are unknown")
     with tempfile.TemporaryDirectory(prefix="mntes-g3-") as tmp:
         pfile = None
         if params is not None:
-            snap = hk_snapshot(hks[0]["DfMuxHousekeeping"], wiring)
-            pdict, missing = params_for_wiring(load_g3_params(params), wiring, snap)
-            if missing:
-                log.warning("%d wired bolometer(s) without parameters, skipped: %s", len(missing),
-                            ", ".join(missing[:8]))
-            if not pdict:
-                raise ConfigError("no wired bolometer has parameters: keyed by bolometer name or detector id?")
             pfile = Path(tmp) / "params.toml"
-            dump_params(list(pdict.values()), pfile, metadata={"source": f"G3 run {files[0]}: gain from housekeeping"})
+            dump_params(list(converter_params(files, params, config).values()), pfile,
+                        metadata={"source": f"G3 run {files[0]}: gain from housekeeping"})
         rec = Path(tmp) / "g3.mcap"
         with McapFileWriter(rec, metadata={"mntes.recording": writer_description(
                 mode="G3 translation", input=[str(f) for f in files])}) as w:

@@ -397,7 +397,7 @@ class TimepointBuffer:
         return blk
 
 
-def params_for_wiring(params: dict, wiring: Wiring, snap: HkSnapshot) -> tuple[dict, list[str]]:
+def params_for_wiring(params: dict, wiring: Wiring, snap: HkSnapshot, gain_from_hk: bool = True) -> tuple[dict, list[str]]:
     """Detector parameters by detector id, with the readout gain from the housekeeping.
 
     Parameters
@@ -408,6 +408,9 @@ def params_for_wiring(params: dict, wiring: Wiring, snap: HkSnapshot) -> tuple[d
     snap : HkSnapshot
         Housekeeping whose amps per count set ``|gain_a_per_count|`` (the
         phase, i.e. the demodulation phase, stays the file's).
+    gain_from_hk : bool
+        False: keep the file's gain (a caller scaling the counts per sample
+        instead); the housekeeping must still know the channel.
 
     Returns
     -------
@@ -420,6 +423,8 @@ def params_for_wiring(params: dict, wiring: Wiring, snap: HkSnapshot) -> tuple[d
         if p is None or not (np.isfinite(a) and a > 0):
             missing.append(name)
             continue
-        phase = p.gain_a_per_count / abs(p.gain_a_per_count)
-        out[det_id] = p.replace(detector_id=det_id, gain_a_per_count=complex(SQRT2 * a * phase))
+        gain = p.gain_a_per_count
+        if gain_from_hk:
+            gain = complex(SQRT2 * a * gain / abs(gain))
+        out[det_id] = p.replace(detector_id=det_id, gain_a_per_count=gain)
     return out, missing

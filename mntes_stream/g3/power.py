@@ -174,7 +174,8 @@ class OpticalPower:
         if self.params is None:
             self._rows = np.arange(len(self.wiring))
             return
-        pdict, missing = params_for_wiring(self.params, self.wiring, snap)
+        # The converter keeps the file's gain; the housekeeping's enters per sample as a scale of the counts.
+        pdict, missing = params_for_wiring(self.params, self.wiring, snap, gain_from_hk=False)
         if missing:
             log.warning("%d wired bolometer(s) without parameters or housekeeping, skipped: %s%s", len(missing),
                         ", ".join(missing[:8]), " ..." if len(missing) > 8 else "")
