@@ -7,7 +7,11 @@
 - :class:`LivePowerFeed`: the same blocks from zenoh as they are published.
 - :func:`export_hdf5` / :func:`read_hdf5`: one HDF5 group per observation
   (module) with ``tod``, ``time``, ``time_ns``, ``flags``, ``detectors`` and
-  provenance attributes.
+  provenance attributes (this package's layout, read with h5py).
+- :mod:`mntes_stream.feeds.frameworks`: ``toast.Observation``, sotodlib
+  ``AxisManager`` and ``litebird_sim.Observation`` objects, and files written
+  by those frameworks' own writers (``RecordedPower.to_framework``,
+  ``LivePowerFeed.to_framework``, ``export --format``).
 
 Missing chunks are NaN + ``flags.GAP`` and absent detectors NaN +
 ``flags.UNKNOWN_CHANNEL``: never silent zeros. A step in time beyond

@@ -1,4 +1,7 @@
-"""HDF5 export of recorded power, laid out the way mapmakers read observations.
+"""HDF5 export of recorded power in this package's own layout, read with h5py.
+
+The mapmaking frameworks' loaders do not read this layout; their own files
+come from :mod:`mntes_stream.feeds.frameworks` (``export --format``).
 
 Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 2``)::
 
@@ -18,7 +21,7 @@ Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 2``)::
         tod        float64 (n_det, n_samp)  W; NaN where no usable power      [chunked, compressed]
         flags      uint16  (n_det, n_samp)  core.flags bits (GAP, UNKNOWN_CHANNEL, ...)  [chunked, compressed]
                                             attrs flag_bit<n> = "<name>: <meaning>", flag_bits_json
-        time       float64 (n_samp,)        s since the Unix epoch (what TOAST/sotodlib/litebird_sim use)
+        time       float64 (n_samp,)        s since the Unix epoch (float64 s, as TOAST and sotodlib keep times)
         time_ns    int64   (n_samp,)        ns since the Unix epoch (exact)
         detectors  str     (n_det,)         detector ids b<board>m<module>c<channel>
         channels   int32   (n_det,)
