@@ -191,6 +191,30 @@ def test_positions_reach_each_focal_plane(session):
         fw.to_toast(b, positions={b.detectors[0]: (0, 0, 0)})
 
 
+def test_export_focal_plane_csv_reaches_the_files(session, tmp_path):
+    from toast.instrument_coords import xieta_to_quat
+    from toast.io import load_hdf5
+
+    path, expected = session
+    dets = sorted({d for b in expected.values() for d in b.detectors})
+    pos = {d: (0.001 * i, 0.002 * i, 0.1 * i) for i, d in enumerate(dets)}
+    csv = tmp_path / "fp.csv"
+    csv.write_text("detector,xi_rad,eta_rad,gamma_rad\n" + "".join(f"{d},{x!r},{e!r},{g!r}\n"
+                                                                   for d, (x, e, g) in pos.items()))
+    _export(path, "toast", tmp_path / "toast", "--focal-plane", str(csv))
+    _export(path, "sotodlib", tmp_path / "so.h5", "--focal-plane", str(csv))
+    b = expected["t_b0m1"]
+    xi, eta, gamma = (np.array([pos[d][k] for d in b.detectors]) for k in range(3))
+    fp = load_hdf5(str(tmp_path / "toast" / "t_b0m1.h5"), toast.Comm(world=None)).telescope.focalplane
+    np.testing.assert_allclose(np.array(fp.detector_data["quat"]), xieta_to_quat(xi, eta, gamma), atol=1e-15)
+    am = sotodlib_core.AxisManager.load(str(tmp_path / "so.h5"), "t_b0m1")
+    np.testing.assert_array_equal(am.focal_plane.xi, xi)
+    assert not am.mntes_stream.focal_plane_placeholder
+    csv.write_text("detector,xi_rad,eta_rad,gamma_rad\nb0m0c000,0,0,nan\n")
+    assert cli_main(["export", str(path), "--format", "toast", "--out", str(tmp_path / "t2"), "--focal-plane",
+                     str(csv)]) == 2
+
+
 def test_a_block_across_a_segment_break_is_refused_and_segments_split_it(session):
     path, expected = session
     whole = RecordedPower(path, module=0).read()["t_b0m0"]

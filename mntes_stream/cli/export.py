@@ -51,6 +51,8 @@ def _framework_export(fmt: str, args, selection: dict):
     import mntes_stream.feeds.frameworks as fw
 
     kwargs = {} if fmt == "toast" else {"compression": None if args.compression == "none" else args.compression}
+    if args.focal_plane:
+        kwargs["positions"] = fw.read_positions(args.focal_plane)
     return getattr(fw, func)(args.session, args.out, overwrite=args.overwrite, **kwargs, **selection)
 
 
@@ -58,6 +60,8 @@ def run_export(args) -> int:
     from mntes_stream.feeds.hdf5 import export_hdf5
 
     fmt = getattr(args, "format", "hdf5")
+    if fmt == "hdf5" and getattr(args, "focal_plane", None):
+        raise ConfigError("--focal-plane is for --format toast, sotodlib or litebird_sim (hdf5 carries no focal plane)")
     selection = {
         "setup": args.setup,
         "detectors": _detectors(args.detectors),
@@ -101,6 +105,9 @@ def register(sub) -> None:
                    "observation; sotodlib: AxisManager.save, one group per observation; litebird_sim: "
                    "write_list_of_observations (float64), one file per observation. A module's power is split into "
                    "observations at segment breaks")
+    p.add_argument("--focal-plane", metavar="CSV",
+                   help="detector positions for the framework formats: CSV with header detector,xi_rad,eta_rad,"
+                   "gamma_rad covering every exported detector (default: a documented boresight placeholder)")
     p.add_argument("--start", help="first sample time: integer ns since the epoch or ISO 8601 (UTC)")
     p.add_argument("--end", help="end (exclusive) sample time, same forms as --start")
     p.add_argument("--detectors", action="append", metavar="IDS", help="comma-separated detector ids (repeatable)")

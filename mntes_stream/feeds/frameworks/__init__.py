@@ -21,14 +21,14 @@ and flag by flag, is in its module's docstring.
 from __future__ import annotations
 
 from mntes_stream.errors import ConfigError
-from mntes_stream.feeds.frameworks._common import FocalPlane, focal_plane, segments
+from mntes_stream.feeds.frameworks._common import FocalPlane, focal_plane, read_positions, segments
 from mntes_stream.feeds.frameworks.litebird_io import export_litebird, read_litebird, to_litebird
 from mntes_stream.feeds.frameworks.sotodlib_io import export_sotodlib, to_axismanager
 from mntes_stream.feeds.frameworks.toast_io import export_toast, to_toast
 
 __all__ = ["FRAMEWORKS", "to_framework", "to_toast", "to_axismanager", "to_litebird", "export_toast",
            "export_sotodlib", "export_litebird", "read_litebird", "segments", "focal_plane", "FocalPlane",
-           "from_blocks"]
+           "from_blocks", "read_positions"]
 
 # name -> (in-memory converter, file export, extra)
 FRAMEWORKS = {

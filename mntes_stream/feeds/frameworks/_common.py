@@ -16,8 +16,8 @@ from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError
 from mntes_stream.feeds.blocks import GAP_FACTOR, TodBlock, concat_blocks
 
-__all__ = ["FocalPlane", "as_block", "segments", "sample_rate_hz", "focal_plane", "metadata", "observation_blocks",
-           "PLACEHOLDER_NOTE", "output_dir"]
+__all__ = ["FocalPlane", "as_block", "segments", "sample_rate_hz", "focal_plane", "read_positions", "metadata",
+           "observation_blocks", "PLACEHOLDER_NOTE", "output_dir"]
 
 PLACEHOLDER_NOTE = ("placeholder: no detector positions or polarisation angles are known to mntes-stream for these "
                     "detectors; every detector is put at the boresight (xi = eta = 0) with polarisation angle 0")
@@ -45,7 +45,7 @@ class FocalPlane:
 
     @property
     def note(self) -> str:
-        return PLACEHOLDER_NOTE if self.placeholder else "given by the caller (positions= / focal plane table)"
+        return PLACEHOLDER_NOTE if self.placeholder else "given by the caller (positions= / export --focal-plane CSV)"
 
 
 def as_block(data) -> TodBlock:
@@ -132,6 +132,42 @@ def focal_plane(detectors: tuple, positions: Mapping | None = None) -> FocalPlan
     if not np.isfinite(a).all():
         raise ConfigError("positions: xi, eta, gamma must be finite (radians)")
     return FocalPlane(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy(), False)
+
+
+def read_positions(path) -> dict:
+    """Detector positions from a CSV file: a header ``detector,xi_rad,eta_rad,gamma_rad``, one row per detector.
+
+    Returns
+    -------
+    dict of str to (xi_rad, eta_rad, gamma_rad)
+
+    Raises
+    ------
+    ConfigError
+        A missing column, a value that is not a finite number, or a detector given twice.
+    """
+    import csv
+
+    want = ["detector", "xi_rad", "eta_rad", "gamma_rad"]
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames is None or [c.strip() for c in reader.fieldnames] != want:
+            raise ConfigError(f"{path}: the header must be {','.join(want)}, got {reader.fieldnames}")
+        out = {}
+        for line, row in enumerate(reader, start=2):
+            det = (row["detector"] or "").strip()
+            try:
+                vals = tuple(float(row[k]) for k in want[1:])
+            except (TypeError, ValueError):
+                raise ConfigError(f"{path}:{line}: xi_rad, eta_rad, gamma_rad must be numbers") from None
+            if not det or not np.isfinite(vals).all():
+                raise ConfigError(f"{path}:{line}: a detector id and finite angles (radians) are needed")
+            if det in out:
+                raise ConfigError(f"{path}:{line}: detector {det} given twice")
+            out[det] = vals
+    if not out:
+        raise ConfigError(f"{path}: no detectors")
+    return out
 
 
 def metadata(block: TodBlock, name: str, rate_hz: float, fp: FocalPlane, segment: int = 0, **extra) -> dict:

@@ -143,7 +143,8 @@ def to_litebird(data, *, name: str | None = None, sample_rate_hz: float | None =
     return obs
 
 
-def export_litebird(source, out, *, overwrite: bool = False, compression: str | None = "gzip", **selection):
+def export_litebird(source, out, *, overwrite: bool = False, compression: str | None = "gzip",
+                    positions: Mapping | None = None, **selection):
     """Every module-segment of a recording as ``<out>/<observation>.h5``, by ``write_list_of_observations``.
 
     Written in float64 (litebird_sim's default is float32); each file also
@@ -166,7 +167,7 @@ def export_litebird(source, out, *, overwrite: bool = False, compression: str | 
     names, n = [], 0
     with c.output_dir(out, overwrite) as tmp:
         for name, k, block, rate in c.observation_blocks(rec):
-            obs = to_litebird(block, name=name, sample_rate_hz=rate, segment=k)
+            obs = to_litebird(block, name=name, sample_rate_hz=rate, segment=k, positions=positions)
             (path,) = lbs.write_list_of_observations(
                 obs, tmp, tod_dtype=np.float64, file_name_mask=f"{name}.h5", start_index=len(names),
                 collective_mpi_call=False, tod_fields=["tod"], gzip_compression=compression == "gzip")

@@ -88,7 +88,8 @@ def to_axismanager(data, *, name: str | None = None, sample_rate_hz: float | Non
     return aman
 
 
-def export_sotodlib(source, out, *, overwrite: bool = False, compression: str | None = "gzip", **selection):
+def export_sotodlib(source, out, *, overwrite: bool = False, compression: str | None = "gzip",
+                    positions: Mapping | None = None, **selection):
     """Every module-segment of a recording as a group ``/<observation>`` of one HDF5 file, by ``AxisManager.save``.
 
     Read back with ``sotodlib.core.AxisManager.load(out, "<observation>")``;
@@ -112,7 +113,8 @@ def export_sotodlib(source, out, *, overwrite: bool = False, compression: str | 
     try:
         with h5py.File(tmp, "w") as f:
             for name, k, block, rate in c.observation_blocks(rec):
-                to_axismanager(block, name=name, sample_rate_hz=rate, segment=k).save(f, name, compression=compression)
+                am = to_axismanager(block, name=name, sample_rate_hz=rate, segment=k, positions=positions)
+                am.save(f, name, compression=compression)
                 names.append(name)
                 n += block.p_opt_w.size
             f.attrs["observations"] = json.dumps(names)

@@ -119,7 +119,7 @@ def to_toast(data, *, name: str | None = None, sample_rate_hz: float | None = No
     return obs
 
 
-def export_toast(source, out, *, overwrite: bool = False, **selection):
+def export_toast(source, out, *, overwrite: bool = False, positions: Mapping | None = None, **selection):
     """Every module-segment of a recording as ``<out>/<observation>.h5``, written by ``toast.io.save_hdf5``.
 
     Read back with ``toast.io.load_hdf5(path, toast.Comm(world=None))``.
@@ -139,7 +139,7 @@ def export_toast(source, out, *, overwrite: bool = False, **selection):
     names, n = [], 0
     with c.output_dir(out, overwrite) as tmp:
         for name, k, block, rate in c.observation_blocks(rec):
-            obs = to_toast(block, name=name, sample_rate_hz=rate, segment=k)
+            obs = to_toast(block, name=name, sample_rate_hz=rate, segment=k, positions=positions)
             save_hdf5(obs, str(tmp))
             names.append(name)
             n += block.p_opt_w.size
