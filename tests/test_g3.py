@@ -237,3 +237,39 @@ def test_missing_bath_source_is_a_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="no bath temperature"):
         g3_to_g3(path, tmp_path / "x.g3", params=params, kind="exact")
     assert G3InputConfig(t_bath_default_k=0.1).t_bath_default_k == 0.1
+
+
+SPT3G_1_0_2 = r"""
+import sys
+sys.modules["so3g"] = None   # no so3g/toast in this process: spt3g is the installed spt3g 1.0.2 itself
+sys.modules["toast"] = None  # (so3g replaces sys.modules['spt3g'] with its bundled copy when imported)
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import spt3g, spt3g.core
+assert "so3g" not in spt3g.core.__file__, spt3g.core.__file__
+from spt3g import version
+import test_g3 as t
+from mntes_stream.g3.files import g3_to_g3
+from pathlib import Path
+d = Path(sys.argv[2])
+scans = t.write(t.raw_frames(), d / "scans.g3", collate=True)
+ref = t._convert_spt3g_power(scans)
+g3_to_g3(scans, d / "el.g3", kind="electrical")
+p, f = t._optical(d / "el.g3")
+for name in t.LAYOUT:
+    np.testing.assert_allclose(-p[name], ref[name], rtol=2**-23, atol=0)
+print(version.version)
+"""
+
+
+def test_electrical_matches_convert_timestream_units_of_spt3g_1_0_2_itself(tmp_path):
+    """The same check with the spt3g package (1.0.2), not so3g's bundled copy that this test process
+    loads (so3g and toast go first here, and so3g installs its own spt3g as ``spt3g``)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    p = subprocess.run([sys.executable, "-c", SPT3G_1_0_2, str(Path(__file__).parent), str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.stdout.split()[-1] == "1.0.2"

@@ -35,6 +35,11 @@ def spt3g():
     so3g and toast are loaded first when installed: their shared libraries
     must precede spt3g's (spt3g 1.0.2 first, then so3g or toast, segfaults),
     and a process that converts G3 may export to TOAST/sotodlib later.
+    Note what that means: so3g (which toast imports) installs its *bundled*
+    spt3g as ``sys.modules["spt3g"]``, so in a process with so3g the G3 code
+    runs on so3g's copy (0.3.dev289 with so3g 0.2.9), and on the spt3g
+    package (1.0.2) only where so3g is not installed. Both are tested
+    (``tests/test_g3.py`` runs the spt3g comparison in a process without so3g).
     """
     global _LOADED
     if _LOADED is None:
