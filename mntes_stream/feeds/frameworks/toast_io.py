@@ -32,7 +32,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from mntes_stream.core import flags as fl
-from mntes_stream.errors import import_extra
+from mntes_stream.errors import ConfigError, import_extra
 from mntes_stream.feeds.frameworks import _common as c
 
 __all__ = ["to_toast", "export_toast", "EXTRA"]
@@ -62,7 +62,7 @@ def to_toast(data, *, name: str | None = None, sample_rate_hz: float | None = No
     site : toast.instrument.Site, optional
         Default: a ``GroundSite`` placeholder ``unknown-site``.
     comm : toast.Comm, optional
-        Default: a serial ``toast.Comm(world=None)``.
+        Default: a serial ``toast.Comm(world=None)``; a group of one process only.
     invalid_mask : int
         ``core.flags`` bits that make a sample TOAST-invalid (default ``UNUSABLE``: the samples whose power is NaN).
 
@@ -91,7 +91,11 @@ def to_toast(data, *, name: str | None = None, sample_rate_hz: float | None = No
     if site is None:
         site = GroundSite("unknown-site", 0.0 * u.deg, 0.0 * u.deg, 0.0 * u.m)
     telescope = Telescope(telescope_name, focalplane=focalplane, site=site)
-    obs = toast.Observation(comm if comm is not None else toast.Comm(world=None), telescope, n, name=name)
+    comm = comm if comm is not None else toast.Comm(world=None)
+    if comm.group_size != 1:
+        raise ConfigError(f"to_toast builds a serial observation (one process); this comm's group has "
+                          f"{comm.group_size} processes (use toast's own distribution after loading the export)")
+    obs = toast.Observation(comm, telescope, n, name=name)
     obs.shared.create_column("times", shape=(n,), dtype=np.float64)
     obs.shared["times"].set(b.t_s, offset=(0,), fromrank=0)
     defaults = toast.observation.default_values
