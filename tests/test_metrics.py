@@ -59,10 +59,15 @@ def test_up_serves_every_dashboard_metric_with_nonzero_rates(tmp_path):
     url = f"http://127.0.0.1:{port}/metrics"
     try:
         deadline = time.monotonic() + 120
-        while not any("power chunks" in line for line in lines):  # data flows
+        while True:  # until power flows (a loaded machine can take seconds to build tables)
             assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
-            time.sleep(0.2)
-        first = _scrape(url)
+            try:
+                first = _scrape(url)
+                if _total(first, "mntes_power_samples_total") > 0 and _total(first, "mntes_recorder_bytes_total") > 0:
+                    break
+            except OSError:  # not serving yet
+                pass
+            time.sleep(0.5)
         time.sleep(3.0)
         second = _scrape(url)
     finally:
@@ -80,10 +85,11 @@ def test_up_serves_every_dashboard_metric_with_nonzero_rates(tmp_path):
     for name, labels in [("mntes_power_samples_total", {}), ("mntes_published_messages_total", {"kind": "counts"}),
                          ("mntes_published_messages_total", {"kind": "power"}), ("mntes_published_bytes_total", {}),
                          ("mntes_latency_seconds_count", {}), ("mntes_latency_seconds_sum", {}),
+                         ("mntes_sample_age_seconds_count", {}),
                          ("mntes_chunks_total", {"outcome": "converted"}), ("mntes_samples_converted_total", {}),
                          ("mntes_flagged_samples_total", {"flag": "saturated"}), ("mntes_recorder_bytes_total", {}),
                          ("mntes_recorder_messages_total", {})]:
-        assert _total(second, name, **labels) > _total(first, name, **labels) > 0, (name, labels)
+        assert _total(second, name, **labels) > _total(first, name, **labels), (name, labels)  # a non-zero rate
     # Latency buckets are cumulative; the samples-per-second rate is the array's own rate.
     rate = (_total(second, "mntes_power_samples_total") - _total(first, "mntes_power_samples_total")) / 3.0
     assert 0.3 * 32 * 152.6 < rate < 3 * 32 * 152.6
@@ -146,3 +152,33 @@ def test_missing_prometheus_client_is_one_line_naming_the_extra(argv, tmp_path):
     assert res.returncode == 2, res.stderr
     err = res.stderr.strip().splitlines()
     assert len(err) == 1 and "pip install 'mntes-stream[metrics]'" in err[0], res.stderr
+
+
+def test_observed_power_chunk_gives_samples_latency_and_sample_age():
+    """One power chunk with known times through ``ServiceMetrics.observe``; the histograms' sums are exact."""
+    import numpy as np
+    from prometheus_client import generate_latest
+
+    from mntes_stream.io.messages import PowerChunk, detector_ids_for
+    from mntes_stream.service.metrics import ServiceMetrics
+    from mntes_stream.service.router import RouterConfig, RouterService
+
+    metrics = ServiceMetrics(RouterService(RouterConfig()))  # never run: only its heartbeat is read
+    ch = np.arange(3, dtype=np.int32)
+    t0, src_pub, pub = 1_700_000_000_000_000_000, 1_700_000_000_150_000_000, 1_700_000_000_162_000_000
+    p = np.full((3, 20), 1e-12)
+    f = np.zeros((3, 20), np.uint16)
+    for kw in ({"t0_ns": t0, "sample_rate_hz": 200.0}, {"t0_ns": None, "sample_rate_hz": None,
+                                                         "t_ns": t0 + 5_000_000 * np.arange(20, dtype=np.int64)}):
+        chunk = PowerChunk("lab", 0, 1, ch, detector_ids_for(0, 1, ch), 7, kw.pop("t0_ns"), kw.pop("sample_rate_hz"),
+                           p, f, "tables", "table", src_pub, pub, **kw)
+        metrics.observe("mntes/lab/power/0/1", chunk.to_bytes())
+    got = {(s.name, s.labels.get("le")): s.value
+           for fam in parser.text_string_to_metric_families(generate_latest(metrics.registry).decode())
+           for s in fam.samples}
+    assert got[("mntes_power_samples_total", None)] == 2 * 60
+    assert got[("mntes_latency_seconds_sum", None)] == pytest.approx(2 * 0.012, abs=1e-12)
+    # last sample at t0 + 19 x 5 ms = t0 + 95 ms; published at t0 + 162 ms: 67 ms old, both ways of giving times
+    assert got[("mntes_sample_age_seconds_sum", None)] == pytest.approx(2 * 0.067, abs=1e-12)
+    assert got[("mntes_sample_age_seconds_bucket", "0.05")] == 0 and got[("mntes_sample_age_seconds_bucket", "0.1")] == 2
+    assert got[("mntes_published_messages_total", None)] == 2

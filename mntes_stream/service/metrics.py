@@ -6,8 +6,8 @@ service needs nothing of its own. What is measured comes from three places:
 
 - every message the service publishes (``Publishers.put`` calls
   :meth:`ServiceMetrics.observe`): messages and bytes by kind, power samples,
-  and the latency of each power chunk (source publication to power
-  publication) as a histogram;
+  and two histograms per power chunk: latency (source publication to power
+  publication) and sample age (its last sample's time to power publication);
 - the latest status message it published (converter): lost, duplicated,
   out-of-order chunks, bad messages by reason, flagged samples by flag name,
   housekeeping age by sensor, chunks pending;
@@ -76,6 +76,9 @@ class ServiceMetrics:
                                         registry=self.registry).labels(**labels)
         self.latency = pc.Histogram("mntes_latency_seconds", "source publication to power publication, per chunk",
                                     ln, buckets=LATENCY_BUCKETS_S, registry=self.registry).labels(**labels)
+        self.sample_age = pc.Histogram("mntes_sample_age_seconds", "last sample of a power chunk to its publication "
+                                       "(chunk length, network, waiting for housekeeping, conversion)", ln,
+                                       buckets=LATENCY_BUCKETS_S, registry=self.registry).labels(**labels)
         self.registry.register(self)
         self._status = None
         self._lock = threading.Lock()
@@ -107,8 +110,17 @@ class ServiceMetrics:
 
         msg = msgpack.unpackb(payload, raw=False)
         shape = msg["p_opt_w"]["shape"]
-        self.power_samples.inc(int(shape[0]) * int(shape[1]))
-        self.latency.observe((int(msg["t_pub_ns"]) - int(msg["source_t_pub_ns"])) / 1e9)
+        n_samples = int(shape[1])
+        self.power_samples.inc(int(shape[0]) * n_samples)
+        t_pub = int(msg["t_pub_ns"])
+        self.latency.observe((t_pub - int(msg["source_t_pub_ns"])) / 1e9)
+        if not n_samples:
+            return
+        if msg.get("t_ns") is not None:  # explicit times: the last int64 of the array
+            last = int.from_bytes(msg["t_ns"]["data"][-8:], "little", signed=True)
+        else:
+            last = int(msg["t0_ns"]) + round((n_samples - 1) * 1e9 / float(msg["sample_rate_hz"]))
+        self.sample_age.observe((t_pub - last) / 1e9)
 
     # ------------------------------------------------------------------ collecting (at scrape)
 
