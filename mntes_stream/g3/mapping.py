@@ -359,7 +359,11 @@ class TimepointBuffer:
 
     def __init__(self, wiring: Wiring):
         self.wiring = wiring
-        self._groups = [(b, m, rows, wiring.channel[rows]) for (b, m), rows in wiring.modules().items()]
+        boards: dict = {}
+        for (b, m), rows in wiring.modules().items():
+            ch = wiring.channel[rows]
+            boards.setdefault(int(b), []).append((int(m), rows, 2 * ch, 2 * ch + 1, int(2 * ch.max() + 2)))
+        self._boards = list(boards.items())
         self._t: list[int] = []
         self._i: list[np.ndarray] = []
         self._q: list[np.ndarray] = []
@@ -375,14 +379,23 @@ class TimepointBuffer:
         n = len(self.wiring)
         ci, cq = np.full(n, np.nan), np.full(n, np.nan)
         meta = frame["DfMux"]
-        for b, m, rows, ch in self._groups:
-            board = meta.get(b) if b in meta else None
-            if board is None or m not in board:
+        for b, modules in self._boards:
+            try:
+                board = meta[b]
+            except KeyError:
                 continue
-            s = np.asarray(board[m])
-            ok = 2 * ch + 1 < s.size
-            ci[rows[ok]] = s[2 * ch[ok]]
-            cq[rows[ok]] = s[2 * ch[ok] + 1]
+            for m, rows, ii, iq, need in modules:
+                try:
+                    s = np.asarray(board[m])
+                except KeyError:
+                    continue
+                if s.size >= need:
+                    ci[rows] = s[ii]
+                    cq[rows] = s[iq]
+                else:  # a module sending fewer channels than wired: those stay NaN
+                    ok = iq < s.size
+                    ci[rows[ok]] = s[ii[ok]]
+                    cq[rows[ok]] = s[iq[ok]]
         self._t.append(g3_time_ns(frame["EventHeader"]))
         self._i.append(ci)
         self._q.append(cq)

@@ -53,6 +53,8 @@ _SAMPLE_NS = DFMUX_TICKS_PER_SAMPLE * G3_TICK_NS
 def to_int32_counts(x: np.ndarray) -> np.ndarray:
     """int32 counts; NaN or beyond 24 bits -> the rail (+-(2**31 - 1)), which converters flag."""
     bad = invalid_counts(x)
+    if not bad.any():
+        return np.rint(x).astype(np.int32)
     out = np.where(bad, np.where(np.signbit(np.nan_to_num(x, nan=1.0)), -RAIL, RAIL), np.nan_to_num(x))
     return np.rint(out).astype(np.int32)
 
