@@ -74,3 +74,48 @@ def test_a_binary_or_missing_file_is_a_config_error(tmp_path):
         load_params(f)
     with pytest.raises(ConfigError, match="not found"):
         load_params(tmp_path / "none.toml")
+
+
+def _pipeline_run(params, caplog):
+    import numpy as np
+
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.io.messages import decode
+    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.source import MinimalSource, SourceConfig
+
+    src = MinimalSource(SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))
+    pipe = ConverterPipeline(make_converter("exact", {p.detector_id: p for p in params}), PipelineConfig(), clock=None)
+    start_error = pipe.last_error
+    outs = []
+    with caplog.at_level("WARNING", logger="mntes_stream.converter"):
+        for t_pub, batch in src.batches(1_700_000_000_000_000_000, duration_s=1.0):
+            for key, payload in batch:
+                outs += pipe.handle(key, payload, t_pub)
+        outs += pipe.flush()
+    power = [decode(p) for k, p in outs if "/power/" in k]
+    assert power and all(np.isnan(pw.p_opt_w).all() for pw in power)
+    return pipe, start_error
+
+
+def test_parameters_matching_no_channel_of_the_stream_say_so_once(caplog):
+    from mntes_stream.core.params import table1_params
+
+    # Module b0m0 and b0m1 are known, but the parameters are for channels 100-103: every row would be NaN.
+    params = [table1_params(f"b0m{m}c{c:03d}") for m in (0, 1) for c in range(100, 104)]
+    pipe, _ = _pipeline_run(params, caplog)
+    st = pipe.status()
+    assert st.last_error.startswith("no_detector on mntes/lab/counts/0/") and "UNKNOWN_CHANNEL" in st.last_error
+    assert st.unknown_channel_samples > 0 and st.chunks_converted == 20
+    said = [r.getMessage() for r in caplog.records if "no_detector" in r.getMessage()]
+    assert len(said) == 2  # once per stream (channel list), not once per chunk
+
+
+def test_detector_ids_no_stream_can_match_are_said_at_start(caplog):
+    from mntes_stream.core.params import table1_params
+
+    with caplog.at_level("WARNING", logger="mntes_stream.converter"):
+        pipe, start_error = _pipeline_run([table1_params("det-a"), table1_params("det-b")], caplog)
+    assert "2 of 2 detector ids (e.g. 'det-a') are not of the form b<board>m<module>c<channel>" in start_error
+    assert pipe.status().last_error  # then the streams' own no_detector line
+    assert sum("can match no stream row" in r.getMessage() for r in caplog.records) == 1

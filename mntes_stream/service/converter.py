@@ -51,8 +51,9 @@ class ConverterConfig(Settings):
     tables: str = setting("", "table bank file (mntes-stream tables build); '' = build from params at start",
                           path=True)
     table_cache: str = setting(
-        "~/.cache/mntes-stream/tables", "banks built from params are kept here, keyed by parameters, kind and "
-        "software version, so a restart loads instead of rebuilding ('' = no cache)", path=True)
+        "~/.cache/mntes-stream/tables", "banks built from params, and the converter as built (service/snapshot.py), "
+        "are kept here keyed by parameters, kind and software version, so a restart loads instead of rebuilding "
+        "('' = no cache)", path=True)
     boards: tuple[int, ...] = setting((), "own these boards only ([] = every board)", ge=0)
     modules: tuple[int, ...] = setting((), "... and these modules ([] = every module)", ge=0)
     shard: str = setting("", "i/N: own the streams (board, module) whose CRC-32 falls in bucket i of N "
@@ -249,9 +250,17 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
     from mntes_stream.io.claims import StreamClaims
     from mntes_stream.service.ownership import Ownership, owns_summary
     from mntes_stream.service.pipeline import ConverterPipeline
+    from mntes_stream.service.snapshot import load_snapshot, save_snapshot
 
-    params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
-    conv = converter if converter is not None else build_converter(cfg, params)
+    # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
+    snap_key, snap = load_snapshot(cfg) if converter is None else (None, None)
+    if snap is not None:
+        params, streams, conv = snap
+    else:
+        params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
+        conv = converter if converter is not None else build_converter(cfg, params)
+        if converter is None:
+            save_snapshot(cfg, snap_key, params, streams, conv)
     if streams is None and converter is not None:
         from mntes_stream.service.housekeeping import known_modules
 

@@ -151,6 +151,13 @@ class ConverterPipeline:
         self.bad_messages = collections.Counter()
         self.flag_counts = collections.Counter()
         self.last_error = ""
+        self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
+        if self._modules is None and self._known:
+            # Stream rows are always b<B>m<M>c<C>: an id of another form can never match one. Said now, once.
+            odd = sorted(d for d in self._known if known_modules([d]) is None)
+            self.last_error = (f"parameters: {len(odd)} of {len(self._known)} detector ids (e.g. {odd[0]!r}) are not "
+                               "of the form b<board>m<module>c<channel> and can match no stream row")[:500]
+            log.warning("%s", self.last_error)
 
     # ------------------------------------------------------------------ public API
 
@@ -374,6 +381,13 @@ class ConverterPipeline:
             if len(self._rows) > 4096:
                 self._rows.clear()
             rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
+            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
+                self._unmatched += 1
+                self.last_error = (f"no_detector on {keys.counts_key(self.config.setup, chunk.board, chunk.module)}: "
+                                   f"none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
+                                   "flagged UNKNOWN_CHANNEL")[:500]
+                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
+                    log.warning("%s", self.last_error)
         return rows
 
     def _convert(self, p: _Pending) -> tuple[str, bytes]:

@@ -1,0 +1,127 @@
+"""The converter as built at its last start, kept on disk: a restart loads it instead of building it again.
+
+Building a converter for 5,120 detectors reads and checks every detector's
+parameters, loads (or builds) their table bank and solves two operating
+points per detector for its flag thresholds: tens of seconds on a busy
+2-core machine. All of it depends only on the parameter and table files,
+the converter's kind and part of the focal plane, and the software; a
+snapshot keyed by exactly those (the files by the SHA-256 of their bytes)
+gives the same converter back in a fraction of a second.
+
+A snapshot is a pickle, and loading a pickle runs what it says: it is only
+loaded from a file owned by this user that no one else may write, in a
+directory no one else may write (the table cache, ``~/.cache/mntes-stream/tables``
+by default). Anything wrong with it (other owner, damaged, another software
+version) and it is ignored with a warning: the converter is built as before.
+"""
+
+from __future__ import annotations
+
+import copyreg
+import hashlib
+import logging
+import os
+import pickle
+import platform
+import stat
+import tempfile
+import types
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["snapshot_key", "load_snapshot", "save_snapshot"]
+
+log = logging.getLogger("mntes_stream.converter")
+
+
+def _mappingproxy(d: dict) -> types.MappingProxyType:
+    return types.MappingProxyType(d)
+
+
+# The converter's read-only views (bank arrays) pickle as the dict they show.
+copyreg.pickle(types.MappingProxyType, lambda m: (_mappingproxy, (dict(m),)))
+
+
+def _digest(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def snapshot_key(cfg) -> str:
+    """What the converter built from ``cfg`` depends on: file contents, kind, part of the focal plane, software."""
+    from mntes_stream import __version__
+    from mntes_stream.core.tables import TABLE_FORMAT
+
+    parts = [
+        f"params={_digest(cfg.params) if cfg.params else ''}",
+        f"tables={_digest(cfg.tables) if cfg.tables else ''}",
+        f"kind={cfg.kind}", f"boards={list(cfg.boards)}", f"modules={list(cfg.modules)}", f"shard={cfg.shard}",
+        f"software={__version__}", f"format={TABLE_FORMAT}", f"numpy={np.__version__}",
+        f"python={platform.python_version()}", f"pickle={pickle.HIGHEST_PROTOCOL}",
+    ]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _path(cfg, key: str) -> Path:
+    return Path(os.path.expanduser(cfg.table_cache)) / f"converter-{cfg.kind}-{key[:32]}.pickle"
+
+
+def _private(path: Path) -> str | None:
+    """Why ``path`` must not be trusted (None: owned by this user, writable by no one else)."""
+    st = path.stat()
+    if st.st_uid != os.getuid():
+        return f"{path} is owned by uid {st.st_uid}, not by this user"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"{path} is writable by others"
+    return None
+
+
+def load_snapshot(cfg):
+    """``(key, (params, streams, converter))`` saved by an earlier start with the same key, else ``(key, None)``."""
+    if not cfg.table_cache:
+        return None, None
+    try:
+        key = snapshot_key(cfg)
+    except OSError:  # a missing file: the normal path says so, once
+        return None, None
+    path = _path(cfg, key)
+    if not path.exists():
+        return key, None
+    try:
+        why = _private(path.parent) or _private(path)
+        if why:
+            log.warning("converter snapshot not loaded: %s", why)
+            return key, None
+        with open(path, "rb") as f:
+            value = pickle.load(f)
+        params, streams, conv = value
+        if not hasattr(conv, "convert") or not hasattr(conv, "detector_ids"):
+            raise TypeError(f"not a converter: {type(conv).__name__}")
+    except Exception as exc:  # damaged, truncated, or from code that moved: build instead
+        log.warning("converter snapshot %s unusable (%s: %s): building", path, type(exc).__name__, exc)
+        return key, None
+    log.info("converter %s loaded from the snapshot %s", str(conv.identity)[:12], path)
+    return key, (params, streams, conv)
+
+
+def save_snapshot(cfg, key: str | None, params, streams, conv) -> None:
+    """Keep what :func:`load_snapshot` gives back (best effort: a read-only cache only logs)."""
+    if not cfg.table_cache or key is None:
+        return
+    path = _path(cfg, key)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        fd, tmp = tempfile.mkstemp(prefix=".snapshot-", dir=path.parent)  # mode 0600
+        try:
+            with os.fdopen(fd, "wb") as f:
+                pickle.dump((params, streams, conv), f, protocol=pickle.HIGHEST_PROTOCOL)
+            os.replace(tmp, path)
+        except BaseException:
+            os.unlink(tmp)
+            raise
+    except (OSError, pickle.PicklingError, TypeError, AttributeError) as exc:
+        log.warning("cannot write the converter snapshot %s: %s", path, exc)

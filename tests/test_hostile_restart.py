@@ -1,0 +1,116 @@
+"""Restarts: a converter started again takes what its last start built from the cache, never a file others can write.
+
+Measured before issue 18: a restart took 4.2-4.4 s before power flowed again (the table bank built at
+every start). The figure for 5,120 detectors is ``mntes-stream bench restart`` (benchmarks/restart.json);
+here, the mechanism: the snapshot is used, gives the same power, and is refused when it cannot be trusted.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from mntes_stream.io import keys
+from mntes_stream.io.messages import PowerChunk, Provenance, decode
+from mntes_stream.io.paramfile import dump_params
+from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
+from mntes_stream.service.source import MinimalSource, SourceConfig, publish
+
+pytestmark = pytest.mark.slow
+SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1)
+T0 = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope="module")
+def source():
+    return MinimalSource(SRC)
+
+
+def _serve(tmp_path, port: int, source) -> tuple[dict, str]:
+    """Start ``serve`` once, feed it one second of data, return its power by (module, seq) and its log."""
+    log = tmp_path / "serve.log"
+    with open(log, "ab") as f, open_session(loopback(None, [port])) as z:
+        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml"],
+                                stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+        try:
+            sub = QueueSubscriber(z, ["mntes/lab/power/**", "mntes/lab/provenance"])
+            power: dict = {}
+            deadline = time.monotonic() + 120
+            while not any(isinstance(x, Provenance) for x in power.values()) and time.monotonic() < deadline:
+                item = sub.get(timeout_s=0.1)
+                if item is not None:
+                    power["prov"] = decode(item[1])
+            publish(z, list(source.batches(T0, duration_s=1.0)), speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
+            while len(power) < 21 and time.monotonic() < deadline:
+                item = sub.get(timeout_s=0.1)
+                if item is not None and "/power/" in item[0]:
+                    pw = decode(item[1])
+                    power[(pw.module, pw.seq)] = pw
+            sub.close()
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    power.pop("prov", None)
+    return power, log.read_text()
+
+
+def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source):
+    dump_params(source.params, tmp_path / "params.toml")
+    port = free_tcp_port()
+    (tmp_path / "converter.toml").write_text(
+        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
+        '[alignment]\nmax_lag_s = 1e6\n'
+        f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+    first, log1 = _serve(tmp_path, port, source)
+    assert "loaded from the snapshot" not in log1 and len(first) == 20
+    (snap,) = (tmp_path / "cache").glob("converter-table-*.pickle")
+    assert os.stat(snap).st_mode & 0o077 == 0  # private to this user
+
+    second, log2 = _serve(tmp_path, port, source)
+    assert log2.count("loaded from the snapshot") == 1 and "Traceback" not in log2
+    assert second.keys() == first.keys()
+    for k, pw in second.items():  # (the values themselves: the in-process test below, bit for bit)
+        assert isinstance(pw, PowerChunk) and np.isfinite(pw.p_opt_w).all()
+        assert pw.table_identity == first[k].table_identity
+
+    # A snapshot others may write is never loaded (a pickle runs what it says); nor a damaged one.
+    os.chmod(snap, 0o666)
+    third, log3 = _serve(tmp_path, port, source)
+    assert "snapshot not loaded" in log3.split("loaded from the snapshot")[-1] and len(third) == 20
+    snap.write_bytes(b"\x80\x05garbage")
+    os.chmod(snap, 0o600)
+    fourth, log4 = _serve(tmp_path, port, source)
+    assert "unusable (" in log4.rsplit("snapshot not loaded", 1)[-1] and len(fourth) == 20
+    # ... and a changed parameter file is another key: built again, not the old converter.
+    (tmp_path / "params.toml").write_text((tmp_path / "params.toml").read_text() + "\n")
+    _, log5 = _serve(tmp_path, port, source)
+    assert log5.count("loaded from the snapshot") == log4.count("loaded from the snapshot")
+
+
+def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, source):
+    from mntes_stream.core.convert import EnvironmentBlock
+    from mntes_stream.service.converter import ConverterConfig, build_converter, owned_params
+    from mntes_stream.service.snapshot import load_snapshot, save_snapshot
+
+    dump_params(source.params, tmp_path / "params.toml")
+    cfg = ConverterConfig(params=str(tmp_path / "params.toml"), table_cache=str(tmp_path / "cache"))
+    key, snap = load_snapshot(cfg)
+    assert snap is None
+    params, streams = owned_params(cfg)
+    built = build_converter(cfg, params)
+    save_snapshot(cfg, key, params, streams, built)
+    key2, (params2, streams2, loaded) = load_snapshot(cfg)
+    assert key2 == key and streams2 == streams and params2 == params and loaded.identity == built.identity
+    rng = np.random.default_rng(1)
+    ids = built.detector_ids
+    ci = rng.integers(-2**31, 2**31 - 1, (len(ids), 500), dtype=np.int64).astype(np.int32)
+    cq = rng.integers(-2**20, 2**20, (len(ids), 500)).astype(np.int32)
+    env = EnvironmentBlock(rng.uniform(0.05, 0.15, 500), rng.uniform(-1e-4, 1e-4, 500))
+    a, b = built.convert(ids, ci, cq, env), loaded.convert(ids, ci, cq, env)
+    np.testing.assert_array_equal(a.p_opt_w, b.p_opt_w)
+    np.testing.assert_array_equal(a.flags, b.flags)
