@@ -273,3 +273,49 @@ def test_electrical_matches_convert_timestream_units_of_spt3g_1_0_2_itself(tmp_p
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr[-3000:]
     assert p.stdout.split()[-1] == "1.0.2"
+
+
+def test_bolometer_without_parameters_is_reported_once_and_skipped(run_files, tmp_path, caplog):
+    import logging
+
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.g3.files import g3_to_g3
+
+    _, scans = run_files
+    params = {n: table1_params(n) for n in LAYOUT if n != "W5.2"}  # keyed by bolometer name, one missing
+    with caplog.at_level(logging.WARNING, logger="mntes_stream.g3"):
+        res = g3_to_g3(scans, tmp_path / "p.g3", params=params, kind="exact", config=G3InputConfig())
+    assert res["scans"] == 3 and res["skipped_bolometers"] == 1
+    said = [r.getMessage() for r in caplog.records if "W5.2" in r.getMessage()]
+    assert len(said) == 1 and "without parameters" in said[0]
+    p, _ = _optical(tmp_path / "p.g3")
+    assert set(p) == set(LAYOUT) - {"W5.2"}
+
+
+def test_cli_convert_and_export_take_g3_runs(run_files, tmp_path, capsys):
+    import json
+
+    import h5py
+
+    from mntes_stream.cli import main
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.io.mcap import Session
+    from mntes_stream.io.paramfile import dump_params
+
+    raw, scans = run_files
+    dump_params([table1_params(n) for n in LAYOUT], tmp_path / "names.toml")  # keyed by bolometer name
+    assert main(["convert", str(raw), str(tmp_path / "el.g3"), "--kind", "electrical", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["detector_samples"] == len(LAYOUT) * N_SAMP
+    assert main(["convert", str(raw), str(tmp_path / "out.mcap"), "--params", str(tmp_path / "names.toml"),
+                 "--kind", "exact", "-q", "--json"]) == 0
+    capsys.readouterr()
+    topics = Session(tmp_path / "out.mcap").message_counts()
+    assert {f"mntes/lab/power/{BOARD}/{m}" for m in MODULES} <= set(topics)
+    assert topics[f"mntes/lab/counts/{BOARD}/2"] == topics[f"mntes/lab/power/{BOARD}/2"] == 4  # 60 samples / 16
+    assert main(["export", str(scans), "--out", str(tmp_path / "x.h5"), "--g3-params", str(tmp_path / "names.toml"),
+                 "--json"]) == 0
+    with h5py.File(tmp_path / "x.h5") as h:
+        assert {f"lab_b{BOARD}m{m}" for m in MODULES} <= set(h)
+        assert h[f"lab_b{BOARD}m5"]["tod"].shape == (N_CH, N_SAMP)
+    assert main(["convert", str(raw), str(tmp_path / "y.g3")]) == 2  # table kind needs parameters: one line
+    assert "needs detector parameters" in capsys.readouterr().err

@@ -57,6 +57,13 @@ def _framework_export(fmt: str, args, selection: dict):
 
 
 def run_export(args) -> int:
+    from mntes_stream.cli.g3 import g3_sessions_as_mcap
+
+    with g3_sessions_as_mcap(args):  # a G3 run (SPT-3G) is converted to a temporary recording first
+        return _run_export(args)
+
+
+def _run_export(args) -> int:
     from mntes_stream.feeds.hdf5 import export_hdf5
 
     fmt = getattr(args, "format", "hdf5")
@@ -97,7 +104,10 @@ def run_export(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("export", help="export recorded power to HDF5 (one group per module: tod, time, flags, detectors) "
                        "or to TOAST / sotodlib / litebird_sim files")
-    p.add_argument("session", nargs="+", help="MCAP file(s) or a directory of rotated files")
+    p.add_argument("session", nargs="+", help="MCAP file(s) or a directory of rotated files, or a G3 run "
+                                              "(RUN.g3, either layout; needs --g3-params)")
+    p.add_argument("--g3-params", metavar="FILE", help="G3 input: detector parameters (keyed by bolometer name "
+                                                       "or detector id) to convert it with")
     p.add_argument("--out", required=True,
                    help="HDF5 file to write (hdf5, sotodlib); a directory of one .h5 per observation (toast, litebird_sim)")
     p.add_argument("--format", default="hdf5", choices=("hdf5", *_FRAMEWORKS),

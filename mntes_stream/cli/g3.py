@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import tempfile
+from pathlib import Path
 
 from mntes_stream.cli._common import add_zenoh_args, print_mapping
 
@@ -142,3 +145,27 @@ def run_simulate_g3(args, svc) -> int:
     result.update({"params": params_out, "truth": truth_out})
     print_mapping(result, args.json)
     return 0
+
+
+@contextlib.contextmanager
+def g3_sessions_as_mcap(args):
+    """``export``: G3 inputs in ``args.session`` replaced by one temporary MCAP recording converted from them."""
+    from mntes_stream.g3.files import is_g3
+
+    g3 = [s for s in args.session if is_g3(s)]
+    if not g3:
+        yield args
+        return
+    from mntes_stream.errors import ConfigError
+
+    if len(g3) != len(args.session):
+        raise ConfigError("export: give either G3 files or MCAP recordings, not both")
+    if not args.g3_params:
+        raise ConfigError("export of a G3 run: give --g3-params FILE (detector parameters to convert it with)")
+    from mntes_stream.g3.files import g3_to_mcap
+
+    with tempfile.TemporaryDirectory(prefix="mntes-export-g3-") as tmp:
+        out = Path(tmp) / "converted.mcap"
+        g3_to_mcap(g3, out, params=args.g3_params, setup=args.setup or "lab")
+        args.session = [str(out)]
+        yield args
