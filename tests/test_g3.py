@@ -319,3 +319,16 @@ def test_cli_convert_and_export_take_g3_runs(run_files, tmp_path, capsys):
         assert h[f"lab_b{BOARD}m5"]["tod"].shape == (N_CH, N_SAMP)
     assert main(["convert", str(raw), str(tmp_path / "y.g3")]) == 2  # table kind needs parameters: one line
     assert "needs detector parameters" in capsys.readouterr().err
+
+
+def test_run_without_thermometer_needs_a_default(tmp_path):
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3.files import g3_messages
+
+    path = write(raw_frames(bath=False), tmp_path / "nobath.g3")
+    with pytest.raises(ConfigError, match="t_bath_default_k"):
+        list(g3_messages(path, "lab"))
+    msgs = list(g3_messages(path, "lab", G3InputConfig(t_bath_default_k=0.08)))
+    baths = [p for _, k, p in msgs if k == "mntes/lab/hk/t_bath"]
+    chunk_times = {t for t, k, _ in msgs if "/counts/" in k}
+    assert len(baths) == len(chunk_times) == 4  # a default reading with every chunk time (60 samples / 16)

@@ -118,33 +118,32 @@ def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_s
     chunk, time of a reading); bath readings of a configured default come
     with every counts batch when the run has no thermometer.
     """
+    from mntes_stream.g3.mapping import bath_reading
     from mntes_stream.g3.translate import FrameTranslator
     from mntes_stream.io import keys
 
+    core, _ = spt3g()
+    config = config or G3InputConfig()
+    metadata, _ = preload(inputs)
+    has_bath = any(bath_reading(f, config, 0) is not None for f in metadata if f.type == core.G3FrameType.GcpSlow)
+    if not has_bath and config.t_bath_default_k is None:
+        from mntes_stream.g3.mapping import BathHistory
+
+        BathHistory(config).require()  # the one-line error naming the setting
     tr = FrameTranslator(setup, config, chunk_samples)
-    has_bath = None
+    t_default = None
+
+    def with_default(items):
+        nonlocal t_default
+        for t_ns, key, payload in items:
+            if not has_bath and keys.kind_of(key) == "counts" and t_ns != t_default:
+                t_default = t_ns  # one default reading per chunk time, before the chunks it covers
+                yield from tr.timed(tr.default_bath, t_ns)
+            yield t_ns, key, payload
+
     for frame in read_frames(inputs):
-        out = tr.handle(frame)
-        if out and has_bath is None and any(keys.kind_of(k) == "counts" for k, _ in out):
-            has_bath = len(tr.bath) > 0
-        for key, payload in out:
-            if keys.kind_of(key) == "counts" and not has_bath:
-                from mntes_stream.io.messages import CountsChunk
-
-                t_last = int(CountsChunk.from_bytes(payload).times_ns()[-1])
-                for k2, p2 in tr.default_bath(t_last):
-                    yield t_last, k2, p2
-            yield _message_time(key, payload), key, payload
-    for key, payload in tr.flush():
-        yield _message_time(key, payload), key, payload
-
-
-def _message_time(key: str, payload: bytes) -> int:
-    from mntes_stream.io.messages import decode
-
-    msg = decode(payload)
-    t = msg.times_ns() if hasattr(msg, "times_ns") else msg.t_ns
-    return int(np.asarray(t)[-1])
+        yield from with_default(tr.timed(tr.handle, frame))
+    yield from with_default(tr.timed(tr.flush))
 
 
 def converter_params(inputs, params, config: G3InputConfig | None = None) -> dict:

@@ -104,6 +104,7 @@ class FrameTranslator:
         self._t_last_ns = 0
         self._groups: list = []
         self.gain_changed_at: list[int] = []
+        self._times: list[int] = []  # data time of each message made, in order (see timed)
 
     # -- helpers ------------------------------------------------------------------------------
     def _next_seq(self, name: str) -> int:
@@ -116,6 +117,7 @@ class FrameTranslator:
         msg = HousekeepingChunk(setup=self.setup, sensor=sensor, seq=self._next_seq(sk),
                                 t_ns=np.array([t_ns], dtype=np.int64), value=np.asarray(value, dtype=float),
                                 unit={"t_bath": "K", "b_field": "T", "bias": "V"}[sensor], **where)
+        self._times.append(int(t_ns))
         return keys.hk_key(self.setup, sk), msg.to_bytes()
 
     def _set_wiring(self, wiring: Wiring) -> list:
@@ -179,6 +181,7 @@ class FrameTranslator:
                                 t0_ns=None, sample_rate_hz=None, counts_i=to_int32_counts(ci),
                                 counts_q=to_int32_counts(cq), t_pub_ns=int(t_pub_ns), t_ns=blk.t_ns)
             out.append((keys.counts_key(self.setup, int(b), int(m)), chunk.to_bytes()))
+            self._times.append(int(blk.t_ns[-1]))
         self._t_last_ns = int(blk.t_ns[-1])
         return out
 
@@ -230,6 +233,13 @@ class FrameTranslator:
         if ft == core.G3FrameType.EndProcessing:
             return self.flush(t_pub_ns)
         return []
+
+    def timed(self, method, *args) -> list:
+        """``(t_ns, key, payload)`` of what ``method(*args)`` (handle, flush, default_bath) gives: ``t_ns`` is
+        the data time a message stands for (last sample of a chunk, time of a reading)."""
+        self._times = []
+        out = method(*args)
+        return [(t, k, p) for t, (k, p) in zip(self._times, out, strict=True)]
 
     def default_bath(self, t_ns: int) -> list:
         """A reading of the configured default bath temperature (a run without a thermometer)."""
