@@ -7,9 +7,9 @@ What an observation holds (built with litebird_sim's own classes):
   K_CMB, K_RJ, Jy/sr, ADU, dimensionless, ...): the TOD's units are the
   plain string ``"W"``, stored as the dataset's ``units`` attribute, and its
   description says so. ``read_list_of_observations`` does not know ``"W"``:
-  it logs a warning and keeps the units of the ``tod_fields`` it is given
-  (its default, K_CMB, for a bare ``"tod"``). :func:`read_litebird` passes
-  ``TodDescription("tod", "W", float64, ...)`` so the units stay W.
+  it logs a warning and labels the TOD with its default, K_CMB (it turns any
+  ``TodDescription`` it is given into a bare name first).
+  :func:`read_litebird` sets ``"W"`` back from the file's attribute.
 - ``local_flags``: uint16 (n_det, n_samp), the ``core.flags`` bits copied
   (litebird_sim has no flag convention of its own; its mapmakers do not read
   flags: select usable samples yourself, ``local_flags & UNUSABLE == 0``).
@@ -130,8 +130,8 @@ def to_litebird(data, *, name: str | None = None, sample_rate_hz: float | None =
     obs.mntes_t_ns = np.array(b.t_ns)
     obs.mntes_stream = c.metadata(
         b, name, rate, fp, segment, max_time_error_ns=err_ns,
-        litebird_units="litebird_sim.Units has no watt: tod units are the string 'W' (read_litebird keeps them; "
-                       "read_list_of_observations without tod_fields falls back to K_CMB with a warning)",
+        litebird_units="litebird_sim.Units has no watt: tod units are the string 'W'; read_list_of_observations "
+                       "does not know it and labels the tod K_CMB with a warning (read_litebird sets 'W' back)",
         litebird_flags="local_flags: core.flags bits as they are (litebird_sim has no flag convention)",
         litebird_times="start_time (float s since the epoch) + k / sampling_rate_hz; exact ns in mntes_t_ns",
         litebird_focal_plane="quat is the identity (boresight); gamma in pol_angle_rad, (xi, eta) rad in pointing_u_v",
@@ -200,11 +200,10 @@ def read_litebird(paths) -> list:
     files = sorted(f for x in p for f in (sorted(x.glob("*.h5")) if x.is_dir() else [x]))
     if not files:
         raise ConfigError(f"no .h5 files in {paths}")
-    obs_list = lbs.read_list_of_observations(files, tod_dtype=np.float64, limit_mpi_rank=False,
-                                             tod_fields=[_tod_description(lbs)])
+    obs_list = lbs.read_list_of_observations(files, tod_dtype=np.float64, limit_mpi_rank=False, tod_fields=["tod"])
     for obs, f in zip(obs_list, files):
         with h5py.File(f, "r") as h:
-            # The loader turns tod_fields into bare names and so falls back to K_CMB for units it does not know.
+            # The loader falls back to K_CMB for units it does not know ("W").
             for tod in obs.tod_list:
                 if h[tod.name].attrs.get("units") == UNITS:
                     tod.units = UNITS
