@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import struct
 import threading
 import time
@@ -23,6 +24,7 @@ from mntes_stream.io.messages import PowerChunk, decode
 from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
 from mntes_stream.service.converter import ConverterConfig, ConverterService
+from mntes_stream.service.metrics import MetricsSettings
 from mntes_stream.service.source import MinimalSource, SourceConfig, SourceService, SourceServiceConfig
 
 pytest.importorskip("foxglove")
@@ -90,7 +92,9 @@ def test_live_bridge_serves_advertised_channels_and_the_converters_power(tmp_pat
     ws_port = free_tcp_port()
     with live_setup(tmp_path) as zport, open_session(loopback(None, [zport])) as session:
         published = QueueSubscriber(session, ["mntes/lab/power/0/0"])
-        fox = FoxgloveService(FoxgloveConfig(port=ws_port, per_module=2, max_rate_hz=0.0, zenoh=loopback(None, [zport])))
+        metrics_port = free_tcp_port()
+        fox = FoxgloveService(FoxgloveConfig(port=ws_port, per_module=2, max_rate_hz=0.0, zenoh=loopback(None, [zport]),
+                                             metrics=MetricsSettings(port=metrics_port)))
         with running(fox):
             # foxglove-sdk 0.30 accepts only the protocol's current name, foxglove.sdk.v1 (the same
             # ops and frames as foxglove.websocket.v1); a client offers both, as the Foxglove app does.
@@ -127,6 +131,15 @@ def test_live_bridge_serves_advertised_channels_and_the_converters_power(tmp_pat
                     jsonschema.validate(msg, schema)
                     got.append(msg)
                 assert len(got) >= 30
+                # Its Prometheus endpoint (a real GET): what it received, dropped and logged.
+                import urllib.request
+
+                with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as r:
+                    text = r.read().decode()
+                counters = dict(re.findall(r'^mntes_service_counter\{counter="(\w+)",name="foxglove",'
+                                           r'service="foxglove"\} (\S+)$', text, re.M))
+                assert float(counters["received"]) > 0 and float(counters["logged"]) >= 30
+                assert "dropped" in counters and "queue_depth" in counters
             finally:
                 ws.close()
         # Every json sample is a value the converter published (same chunk seq, same sample time).
@@ -220,7 +233,6 @@ def test_up_plus_foxglove_commands_reach_a_websocket_client(tmp_path):
     """The acceptance run, as a person types it: `mntes-stream up`, then `mntes-stream foxglove` joining its
     converter; a plain WebSocket client gets the advertised channels and power equal to what the converter
     published (read with zenoh's own API)."""
-    import re
     import subprocess
     import sys
 
