@@ -311,3 +311,130 @@ def test_failed_housekeeping_reading_stays_valid_json():
     assert tick["health"]["hk"]["b_field"]["value"] is None  # the newest reading failed
     assert tick["hk"]["b_field"]["value"] == [1e-6, None]
     json.dumps(tick, allow_nan=False)
+
+
+# ------------------------------------------------------------------ bounded memory, history, freshness, focal plane
+
+
+def test_a_claimed_rate_costs_what_was_sent_not_what_was_claimed():
+    agg = Aggregator()
+    ch = np.arange(2, dtype=np.int32)
+    chunk = PowerChunk("lab", 9, 0, ch, detector_ids_for(9, 0, ch), 0, T0, 1e6, np.full((2, 20), 1e-12),
+                       np.zeros((2, 20), np.uint16), "tables-x", "table", T0, T0)
+    agg.add_power(chunk, T0)
+    buf = agg.modules[(9, 0)]
+    assert buf.capacity == 30 * 200  # history_s x max_rate_hz, not 30 s x 1 MHz
+    assert agg.memory()["held_bytes"] < 20_000
+    np.testing.assert_array_equal(buf.read(np.arange(2))[0], chunk.times_ns())
+
+
+def test_memory_budget_evicts_idle_modules_then_refuses():
+    cfg = MonitorConfig(memory_mb=1.0, full_rate_channels=0, silent_s=3.0)
+    assert 2 * cfg.module_bytes(8) < 1e6 < 3 * cfg.module_bytes(8)
+    agg = Aggregator(cfg)
+    agg.add_power(power_chunk(0, 0), T0)
+    agg.add_power(power_chunk(1, 0), T0)
+    agg.add_power(power_chunk(2, 0), T0)  # no room, nobody idle: refused and counted, no state kept
+    assert sorted(agg.modules) == [(0, 0), (0, 1)] and agg.memory()["over_budget"] == 1
+    assert agg.state_of("b0m2c000") is None
+    agg.add_power(power_chunk(1, 1), T0 + int(3.5e9))
+    agg.add_power(power_chunk(2, 1), T0 + int(4e9))  # module 0 has been idle 4 s > silent_s: evicted for it
+    assert sorted(agg.modules) == [(0, 1), (0, 2)] and agg.memory()["evicted"] == 1
+    assert agg.state_of("b0m0c000") is None and agg.memory()["reserved_bytes"] <= 1e6
+    with pytest.raises(ConfigError, match="memory_mb"):
+        MonitorConfig(memory_mb=10.0)  # cannot hold 16 full-rate channels for an hour
+
+
+def test_services_are_capped_the_stalest_evicted():
+    agg = Aggregator(MonitorConfig(max_services=3))
+    for i in range(5):
+        agg.add_status(StatusMessage("lab", f"s{i}", T0, 1.0, 0.2), T0 + i)
+    assert sorted(agg.statuses) == ["s2", "s3", "s4"] and agg.memory()["services_evicted"] == 2
+
+
+def test_downsampled_history_is_the_mean_of_each_bin():
+    agg = Aggregator(MonitorConfig(history_s=2.0, long_history_s=60.0, slow_bin_s=1.0))
+    chunks = [power_chunk(0, s, n=30) for s in range(40)]  # 12 s at 100 Hz, chunks straddle bins
+    for c in chunks:
+        agg.add_power(c, T0)
+    t_all = np.concatenate([c.times_ns() for c in chunks])
+    p_all = np.concatenate([c.p_opt_w for c in chunks], axis=1)
+    t_bins, means = agg.modules[(0, 0)].slow.read()
+    edges = t_all // 10**9
+    closed = np.unique(edges)[:-1]  # the last bin is still open
+    want = np.stack([p_all[:, edges == b].mean(axis=1) for b in closed], axis=1)
+    np.testing.assert_array_equal(t_bins, closed * 10**9 + 5 * 10**8)
+    np.testing.assert_allclose(means, want, rtol=1e-6)
+
+
+def test_plotted_channels_keep_full_rate_over_the_long_window():
+    agg = Aggregator(MonitorConfig(history_s=2.0, long_history_s=20.0, full_rate_channels=1, max_points=5000))
+    agg.add_power(power_chunk(0, 0), T0)
+    agg.watch(["b0m0c002"])
+    chunks = [power_chunk(0, s) for s in range(1, 21)]  # 10 s more
+    for c in chunks:
+        agg.add_power(c, T0)
+    agg.tick(T0)
+    view = agg.view(["b0m0c002", "b0m0c005"], window_s=20.0)
+    full, slow = view["streams"]
+    assert full["resolution"] == "full rate" and slow["resolution"] == "1 s means"
+    assert len(full["t_ms"]) == 21 * 50  # every sample since before it was plotted (the short ring held them)
+    assert len(slow["t_ms"]) == 10  # closed 1 s bins
+    assert len(agg.view(["b0m0c002"])["streams"][0]["t_ms"]) == 200  # the default window: history_s
+    agg.watch(["b0m0c005"])  # one full-rate channel at most: the older one falls back to the means
+    assert agg.memory()["full_rate_channels"] == ["b0m0c005"] and not agg.modules[(0, 0)].watched.get(2)
+
+
+def test_freshness_goes_stale_after_three_chunk_intervals_and_says_replay():
+    agg = Aggregator(MonitorConfig(stale_min_s=0.2))
+    assert agg.tick(T0)["freshness"]["state"] == "waiting"
+    for s in range(4):  # one 0.5 s chunk every 0.5 s
+        agg.add_power(power_chunk(0, s, t_pub_ns=T0 + s * 500_000_000), T0 + s * 500_000_000 + 1_000_000)
+    t_last = T0 + 1_501_000_000
+    fr = agg.tick(t_last + 1_400_000_000)["freshness"]
+    assert fr["state"] == "live" and fr["chunk_interval_s"] == pytest.approx(0.5)
+    assert fr["threshold_s"] == pytest.approx(1.5)
+    tick = agg.tick(t_last + 1_600_000_000)
+    assert tick["freshness"]["state"] == "stale" and tick["freshness"]["age_s"] == pytest.approx(1.6)
+    assert "STALE: no data for 1.6 s (> 1.50 s = 3 chunk intervals of 0.500 s)" in render_text(agg, tick)
+    # A replay: published two days before it arrives. Latency is the recording's: last sample -> publication.
+    day = 86_400 * 10**9
+    rec = power_chunk(1, 0, t_pub_ns=T0 + 500_000_000 + 7_000_000)  # samples end at T0 + 0.49 s
+    agg.add_power(rec, T0 + 2 * day)
+    tick = agg.tick(T0 + 2 * day + 100_000_000)
+    assert tick["freshness"]["state"] == "replay" and tick["freshness"]["newest_t_ns"] == int(rec.times_ns()[-1])
+    assert tick["health"]["monitor"]["latency_p50_ms"] == pytest.approx(17.0)
+    assert "REPLAY: recorded 2023-11-14 22:13:20 UTC" in render_text(agg, tick)
+
+
+def test_focal_plane_figures_against_direct_computation():
+    rng = np.random.default_rng(5)
+    sigma = 2e-15
+    p = 0.5e-12 + sigma * rng.standard_normal((8, 2000))
+    f = np.zeros((8, 2000), np.uint16)
+    f[3, :500] = fl.HK_STALE  # a quarter flagged
+    agg = Aggregator()
+    agg.add_power(power_chunk(0, 0, n=2000, p=p, flags=f), T0)
+    focal = agg.tick(T0)["focal"]
+    assert focal["power_pw"][0] == pytest.approx(p[0].mean() * 1e12, rel=1e-3)
+    assert focal["power_pw"][3] == pytest.approx(p[3, 500:].mean() * 1e12, rel=1e-3)  # flagged samples are NaN
+    assert focal["flag_pct"][3] == pytest.approx(25.0) and focal["flag_pct"][0] == 0
+    # White noise: ASD = sigma sqrt(2 / fs), in aW/sqrt(Hz).
+    assert focal["noise_aw_rthz"][0] == pytest.approx(sigma * np.sqrt(2 / FS) * 1e18, rel=0.06)
+    assert len(focal["power_pw"]) == 8
+
+
+def test_sky_positions_from_the_parameter_file(tmp_path):
+    from mntes_stream.monitor.service import load_positions
+
+    path = tmp_path / "p.toml"
+    path.write_text('schema = "mntes-params"\nversion = 1\n[metadata.focal_plane]\nb0m0c000 = [1.5, -2]\n'
+                    'b0m0c001 = [0.0, 3.25]\n')
+    pos = load_positions(path)
+    assert pos == {"b0m0c000": (1.5, -2.0), "b0m0c001": (0.0, 3.25)}
+    agg = Aggregator(positions=pos)
+    agg.add_power(power_chunk(0, 0, channels=3), T0)
+    assert agg.layout()[0]["positions"] == [[1.5, -2.0], [0.0, 3.25], None]
+    path.write_text('[metadata.focal_plane]\nb0m0c000 = [1.5, "x"]\n')
+    with pytest.raises(ConfigError, match=r"metadata.focal_plane.b0m0c000 must be \[x_deg, y_deg\]"):
+        load_positions(path)

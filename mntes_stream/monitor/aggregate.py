@@ -530,7 +530,7 @@ class Aggregator:
                 buf = self.modules[(b, m)]
                 row = {"board": b, "module": m, "channels": buf.channels.tolist()}
                 if self.positions:  # sky position [x, y] in degrees where the parameter file gives one
-                    row["positions"] = [self.positions.get(d) for d in buf.ids]
+                    row["positions"] = [list(self.positions[d]) if d in self.positions else None for d in buf.ids]
                 rows.append(row)
             self._layout_cache = (self.layout_version, rows)
         return self._layout_cache[1]

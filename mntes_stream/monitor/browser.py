@@ -74,6 +74,7 @@ const spec = document.getElementById('spectrum');
 return {
   updates: M.updates || 0,
   fresh: M.fresh || null,
+  fresh_changes: M.freshChanges || [],
   badge: {text: document.getElementById('fresh').textContent, cls: document.getElementById('fresh').className},
   conn: document.getElementById('conn').textContent,
   clicks: M.clicks || 0,
@@ -82,6 +83,7 @@ return {
   focal_metric: M.last && M.last.focal ? M.last.focal.metric : null,
   window_s: M.last ? M.last.window_s : null,
   freshness: M.last ? M.last.freshness : null,
+  last_t_server_ns: M.last ? M.last.t_ns : null,
   renders: M.renders || [],
   errors: M.errors || [],
   selection: M.selection || [],

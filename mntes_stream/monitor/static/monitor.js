@@ -17,6 +17,7 @@ const M = (window.mntesMonitor = {
   errors: [],
   ws: null,
   fresh: { state: "waiting", text: "waiting for data" },  // what the badge says
+  freshChanges: [],    // {state, t_ms}: when the badge changed state
   lastUpdateMs: null,  // performance.now() when the last update arrived
   focalMetric: "state",
   focalLayout: "bmc",
@@ -106,6 +107,10 @@ const ageText = (s) => (s < 60 ? `${s.toFixed(1)} s` : s < 7200 ? `${(s / 60).to
 const utc = (ns) => new Date(ns / 1e6).toISOString().replace("T", " ").slice(0, 19) + " UTC";
 
 function setFresh(state, text) {
+  if (state !== M.fresh.state) {  // when the badge changed, on this machine's clock (for tests and the curious)
+    M.freshChanges.push({ state, t_ms: performance.timeOrigin + performance.now() });
+    if (M.freshChanges.length > 100) M.freshChanges.shift();
+  }
   M.fresh = { state, text };
   const b = $("fresh");
   if (b.textContent !== text) b.textContent = text;
