@@ -215,6 +215,41 @@ def test_export_focal_plane_csv_reaches_the_files(session, tmp_path):
                      str(csv)]) == 2
 
 
+def test_focal_plane_from_g3_bolometer_properties(session, tmp_path):
+    pytest.importorskip("spt3g")
+    from mntes_stream.g3 import spt3g
+    from mntes_stream.g3.frames import wiring_frame
+
+    core, _ = spt3g()
+    from spt3g import calibration
+
+    path, expected = session
+    dets = sorted({d for b in expected.values() for d in b.detectors})
+    layout = {f"bolo_{d}": (int(d[1]), int(d[3]), int(d[5:])) for d in dets}  # b<board>m<module>c<channel>
+    cal = core.G3Frame(core.G3FrameType.Calibration)
+    props = calibration.BolometerPropertiesMap()
+    for i, name in enumerate(layout):
+        p = calibration.BolometerProperties()
+        p.x_offset, p.y_offset = 0.1 * i * core.G3Units.deg, -0.05 * i * core.G3Units.arcmin
+        p.pol_angle = 7.5 * i * core.G3Units.deg
+        props[name] = p
+    cal["BolometerProperties"] = props
+    run = tmp_path / "cal.g3"
+    w = core.G3Writer(str(run))
+    w(wiring_frame(layout))
+    w(cal)
+    w(core.G3Frame(core.G3FrameType.EndProcessing))
+    del w
+    _export(path, "sotodlib", tmp_path / "so.h5", "--focal-plane", str(run))
+    b = expected["t_b0m1"]
+    am = sotodlib_core.AxisManager.load(str(tmp_path / "so.h5"), "t_b0m1")
+    i = np.array([dets.index(d) for d in b.detectors])
+    np.testing.assert_allclose(am.focal_plane.xi, np.deg2rad(0.1 * i), rtol=1e-12)
+    np.testing.assert_allclose(am.focal_plane.eta, -np.deg2rad(0.05 * i / 60), rtol=1e-12)
+    np.testing.assert_allclose(am.focal_plane.gamma, np.deg2rad(7.5 * i), rtol=1e-12)
+    assert "BolometerProperties" in am.mntes_stream.focal_plane and not am.mntes_stream.focal_plane_placeholder
+
+
 def test_a_block_across_a_segment_break_is_refused_and_segments_split_it(session):
     path, expected = session
     whole = RecordedPower(path, module=0).read()["t_b0m0"]

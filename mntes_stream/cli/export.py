@@ -115,9 +115,10 @@ def register(sub) -> None:
                    "observation; sotodlib: AxisManager.save, one group per observation; litebird_sim: "
                    "write_list_of_observations (float64), one file per observation. A module's power is split into "
                    "observations at segment breaks")
-    p.add_argument("--focal-plane", metavar="CSV",
-                   help="detector positions for the framework formats: CSV with header detector,xi_rad,eta_rad,"
-                   "gamma_rad covering every exported detector (default: a documented boresight placeholder)")
+    p.add_argument("--focal-plane", metavar="FILE",
+                   help="detector positions for the framework formats, covering every exported detector: CSV with "
+                   "header detector,xi_rad,eta_rad,gamma_rad, or a G3 file with Wiring and BolometerProperties "
+                   "(xi = x_offset, eta = y_offset, gamma = pol_angle; default: a documented boresight placeholder)")
     p.add_argument("--start", help="first sample time: integer ns since the epoch or ISO 8601 (UTC)")
     p.add_argument("--end", help="end (exclusive) sample time, same forms as --start")
     p.add_argument("--detectors", action="append", metavar="IDS", help="comma-separated detector ids (repeatable)")

@@ -16,7 +16,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError
 from mntes_stream.feeds.blocks import GAP_FACTOR, TodBlock, concat_blocks
 
-__all__ = ["FocalPlane", "as_block", "segments", "sample_rate_hz", "focal_plane", "read_positions", "metadata",
+__all__ = ["FocalPlane", "Positions", "as_block", "segments", "sample_rate_hz", "focal_plane", "read_positions", "metadata",
            "observation_blocks", "PLACEHOLDER_NOTE", "output_dir"]
 
 PLACEHOLDER_NOTE = ("placeholder: no detector positions or polarisation angles are known to mntes-stream for these "
@@ -42,10 +42,19 @@ class FocalPlane:
     eta_rad: np.ndarray
     gamma_rad: np.ndarray
     placeholder: bool
+    source: str = "given by the caller (positions=)"
 
     @property
     def note(self) -> str:
-        return PLACEHOLDER_NOTE if self.placeholder else "given by the caller (positions= / export --focal-plane CSV)"
+        return PLACEHOLDER_NOTE if self.placeholder else self.source
+
+
+class Positions(dict):
+    """``detector id -> (xi_rad, eta_rad, gamma_rad)`` that says where it came from (``source``)."""
+
+    def __init__(self, data, source: str):
+        super().__init__(data)
+        self.source = source
 
 
 def as_block(data) -> TodBlock:
@@ -131,15 +140,22 @@ def focal_plane(detectors: tuple, positions: Mapping | None = None) -> FocalPlan
     a = np.array([tuple(positions[d]) for d in detectors], dtype=np.float64).reshape(n, 3)
     if not np.isfinite(a).all():
         raise ConfigError("positions: xi, eta, gamma must be finite (radians)")
-    return FocalPlane(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy(), False)
+    source = getattr(positions, "source", None) or "given by the caller (positions=)"
+    return FocalPlane(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy(), False, source)
 
 
-def read_positions(path) -> dict:
-    """Detector positions from a CSV file: a header ``detector,xi_rad,eta_rad,gamma_rad``, one row per detector.
+def read_positions(path) -> Positions:
+    """Detector positions from a CSV file or a G3 file.
+
+    CSV: a header ``detector,xi_rad,eta_rad,gamma_rad``, one row per detector.
+    G3 (``.g3``, ``.g3.gz``, ...): the Wiring frame and the Calibration
+    frame's ``BolometerProperties``
+    (:func:`~mntes_stream.feeds.frameworks.g3_focal_plane.positions_from_g3`).
 
     Returns
     -------
-    dict of str to (xi_rad, eta_rad, gamma_rad)
+    Positions
+        dict of str to (xi_rad, eta_rad, gamma_rad), with ``source`` saying where they came from.
 
     Raises
     ------
@@ -148,6 +164,12 @@ def read_positions(path) -> dict:
     """
     import csv
 
+    from mntes_stream.g3.files import is_g3
+
+    if is_g3(path):
+        from mntes_stream.feeds.frameworks.g3_focal_plane import G3_NOTE, positions_from_g3
+
+        return Positions(positions_from_g3(path), f"{G3_NOTE}; file {path}")
     want = ["detector", "xi_rad", "eta_rad", "gamma_rad"]
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
@@ -167,7 +189,7 @@ def read_positions(path) -> dict:
             out[det] = vals
     if not out:
         raise ConfigError(f"{path}: no detectors")
-    return out
+    return Positions(out, f"CSV file {path}")
 
 
 def metadata(block: TodBlock, name: str, rate_hz: float, fp: FocalPlane, segment: int = 0, **extra) -> dict:
