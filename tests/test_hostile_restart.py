@@ -114,3 +114,110 @@ def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, so
     a, b = built.convert(ids, ci, cq, env), loaded.convert(ids, ci, cq, env)
     np.testing.assert_array_equal(a.p_opt_w, b.p_opt_w)
     np.testing.assert_array_equal(a.flags, b.flags)
+
+
+def _feed(pipe, batches):
+    out = []
+    for t_pub, batch in batches:
+        for key, payload in batch:
+            out += pipe.handle(key, payload, t_pub)
+    return out
+
+
+def test_a_resumed_pipeline_counts_what_was_published_while_it_was_down(source, caplog):
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+
+    conv = make_converter("exact", {p.detector_id: p for p in source.params})
+    steps = list(source.batches(T0, duration_s=3.0))
+    first = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    _feed(first, steps[:10])
+    first.flush()
+    state = first.sequence_state()
+    assert state.keys() == {(0, 0), (0, 1)} and {seq for seq, _ in state.values()} == {9}
+
+    second = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    assert second.resume_sequences(state) == 2
+    with caplog.at_level("WARNING", logger="mntes_stream.converter"):
+        _feed(second, steps[20:])  # steps 10-19 went out while no converter ran
+    st = second.status()
+    assert second.counters.chunks_missed_while_down == 20 and st.chunks_lost == 20
+    assert st.last_error.startswith("restart: mntes/lab/counts/0/") and "missed 10 chunks (seq 10..19)" in st.last_error
+    assert sum("while no converter ran" in r.getMessage() for r in caplog.records) == 2  # once per stream
+    assert "seq_reset" not in st.bad_messages
+
+    # A source that restarted meanwhile (numbers from 0, newer samples) is a reset, not thousands missed.
+    third = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    third.resume_sequences({k: (5000, t - 10**12) for k, (_, t) in state.items()})
+    _feed(third, steps[:10])
+    assert third.counters.chunks_missed_while_down == 0 and third.status().chunks_lost == 0
+    assert third.status().bad_messages["seq_reset"] == 2
+
+
+def test_checkpoint_files_are_checked_before_use(tmp_path, caplog):
+    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
+
+    f = tmp_path / "ck" / "state.json"
+    save_checkpoint(str(f), "lab", "converter", {(0, 1): (41, T0)})
+    state, t_ns = load_checkpoint(str(f), "lab", "converter")
+    assert state == {(0, 1): (41, T0)} and abs(t_ns - time.time_ns()) < 60 * 10**9
+    assert load_checkpoint(str(tmp_path / "none.json"), "lab", "converter") is None
+    with caplog.at_level("WARNING", logger="mntes_stream.converter"):
+        assert load_checkpoint(str(f), "lab", "other") is None  # another converter's
+        for text in ('{"schema": "mntes-converter-checkpoint", "version": 1, "setup": "lab", "name": "converter", '
+                     '"t_ns": 1, "streams": [[0, 1, "41", 5]]}', "not json", '[1, 2]',
+                     '{"schema": "mntes-converter-checkpoint", "version": 1, "setup": "lab", "name": "converter", '
+                     f'"t_ns": 1, "streams": [[0, 1, {1 << 70}, 5]]}}'):
+            f.write_text(text)
+            assert load_checkpoint(str(f), "lab", "converter") is None
+    assert len([r for r in caplog.records if "checkpoint" in r.getMessage()]) == 5
+    f.parent.chmod(0o500)  # an unwritable place is logged, never raised
+    try:
+        save_checkpoint(str(f), "lab", "converter", {})
+    finally:
+        f.parent.chmod(0o700)
+
+
+def test_a_killed_converter_restarted_reports_what_it_missed(tmp_path, source):
+    """SIGKILL, a second of data no converter took, restart: the status says 10 chunks per module were missed."""
+    import signal
+
+    dump_params(source.params, tmp_path / "params.toml")
+    port = free_tcp_port()
+    (tmp_path / "converter.toml").write_text(
+        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
+        'checkpoint = "state/converter.json"\n[alignment]\nmax_lag_s = 1e6\n'
+        f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+    steps = list(source.batches(T0, duration_s=3.0))
+    assert len(steps) == 30
+    log = tmp_path / "serve.log"
+
+    def run(batches):
+        with open(log, "ab") as f, open_session(loopback(None, [port])) as z:
+            proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml"],
+                                    stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+            try:
+                sub = QueueSubscriber(z, ["mntes/lab/status/**", "mntes/lab/provenance"])
+                deadline = time.monotonic() + 120
+                while (item := sub.get(timeout_s=0.1)) is None or "/provenance" not in item[0]:
+                    assert time.monotonic() < deadline and proc.poll() is None, "converter not ready"
+                publish(z, batches, speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
+                st = None
+                while st is None or st.chunks_converted < 20 or st.chunks_pending:
+                    assert time.monotonic() < deadline, st
+                    item = sub.get(timeout_s=0.1)
+                    st = decode(item[1]) if item is not None and "/status/" in item[0] else st
+                sub.close()
+            finally:
+                proc.send_signal(signal.SIGKILL)  # a crash: only the checkpoint of the last status remains
+                proc.wait(30)
+        return st
+
+    st = run(steps[:10])
+    assert st.chunks_lost == 0 and "missed" not in st.last_error
+    # Steps 10-19 are published while no converter runs; the restarted one gets 20-29.
+    st = run(steps[20:])
+    assert st.chunks_lost == 20 and "missed 10 chunks (seq 10..19) while no converter ran" in st.last_error
+    text = log.read_text()
+    assert "2 streams continue from the checkpoint" in text and text.count("while no converter ran") == 2
+    assert "Traceback" not in text

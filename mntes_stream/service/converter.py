@@ -67,6 +67,8 @@ class ConverterConfig(Settings):
         10.0, "re-publish parameters + table identity this often, for recorders started later (0 = at start only)",
         unit="s", ge=0)
     queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
+    checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
+                              "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
     alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
     status: StatusConfig = setting(default_factory=StatusConfig, doc="status cadence ([status])")
     metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
@@ -248,6 +250,7 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
         Given the :class:`~mntes_stream.service.ownership.Ownership` once the streams are claimed.
     """
     from mntes_stream.io.claims import StreamClaims
+    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
     from mntes_stream.service.ownership import Ownership, owns_summary
     from mntes_stream.service.pipeline import ConverterPipeline
     from mntes_stream.service.snapshot import load_snapshot, save_snapshot
@@ -269,6 +272,10 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
     _warm_up(conv)
     summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
     pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None)
+    if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
+        n = pipe.resume_sequences(ckpt[0])
+        log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
+                 "since counts as missed", cfg.name, n, (time.time_ns() - ckpt[1]) / 1e9, cfg.checkpoint)
     beat = heartbeat.beat if heartbeat is not None else (lambda **_: None)
     t_start = time.monotonic()
     prov_key = keys.provenance_key(cfg.setup)
@@ -310,6 +317,8 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                 for key, payload in outs:
                     pubs.put(key, payload)
                     if key == status_key:  # what the status says, in the heartbeat too (ps)
+                        if cfg.checkpoint:
+                            save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
                         st = decode(payload)
                         beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost, latency_p99_ms=st.latency_p99_ms,
                              bad_messages=sum(st.bad_messages.values()), samples_per_s=st.rate_msamples_per_s * 1e6)
@@ -322,6 +331,8 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
             for key, payload in outs:
                 if owner is None or owner.allow(key, payload, time.time_ns()):
                     pubs.put(key, payload)
+            if cfg.checkpoint:
+                save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
         finally:
             sub.close()
             if watch is not None:

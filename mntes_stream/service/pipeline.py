@@ -77,6 +77,7 @@ class PipelineCounters:
     hk_stale_samples: int = 0
     hk_missing_samples: int = 0
     unknown_channel_samples: int = 0
+    chunks_missed_while_down: int = 0  # published between a checkpoint and this start (resume_sequences)
 
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
@@ -138,6 +139,8 @@ class ConverterPipeline:
         self._pace: dict[tuple[int, int], DelayFloor] = {}
         self._pending: collections.deque[_Pending] = collections.deque()
         self._rows: dict[tuple, tuple] = {}
+        # Streams continued from a checkpoint, until their first chunk: (next number, checkpoint sample time).
+        self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
         self._provenance: bytes | None = None
         self._t_created_ns = time.time_ns()
         self._t_first_ns: int | None = None
@@ -256,6 +259,27 @@ class ConverterPipeline:
             self._provenance = self.provenance().to_bytes()
         return self._provenance
 
+    def sequence_state(self) -> dict[tuple[int, int], tuple[int, int]]:
+        """A checkpoint: ``(board, module) -> (newest sequence number, newest first-sample time ns)`` per stream."""
+        return {k: (s.next - 1, s._last_t) for k, s in self._streams.items()
+                if s.next is not None and s._last_t is not None}
+
+    def resume_sequences(self, state: dict) -> int:
+        """Continue streams from a previous converter's :meth:`sequence_state` (before any chunk arrives).
+
+        A stream's first chunk then tells what was published while no converter ran: counted in
+        ``chunks_lost`` and ``chunks_missed_while_down``, and said once per stream (log, ``last_error``).
+        A stream that restarted meanwhile is a ``seq_reset`` as usual. Returns the streams resumed.
+        """
+        for stream, (seq, t_ns) in state.items():
+            stream = (int(stream[0]), int(stream[1]))
+            if stream in self._streams or (self._modules is not None and stream not in self._modules):
+                continue
+            s = self._streams[stream] = StreamSequence()
+            s.observe(int(seq), int(t_ns))
+            self._resumed[stream] = (s.next, int(t_ns))
+        return len(self._resumed)
+
     # ------------------------------------------------------------------ internals
 
     def _advance(self, t_ns: int) -> None:
@@ -330,7 +354,13 @@ class ConverterPipeline:
         if s is None:
             s = self._streams[stream_id] = StreamSequence()
         expected = s.next
+        resumed = self._resumed.pop(stream_id, None) if self._resumed else None
         verdict = s.observe(seq, t_first_ns)
+        if resumed is not None and seq > resumed[0] and t_first_ns > resumed[1]:  # newer data, later numbers
+            missed = seq - resumed[0]  # (a gap too long for the tracker is a reset there, but missed all the same)
+            self.counters.chunks_missed_while_down += missed
+            self.last_error = f"restart: {key} missed {missed} chunks (seq {expected}..{seq - 1}) while no converter ran"
+            log.warning("%s", self.last_error)
         if verdict == "reset":
             # Counted as a reset, not as a jump of lost chunks or a run of late ones.
             self._bad("seq_reset", f"sequence number {seq}, expected {expected}: stream restarted", key)
