@@ -1,7 +1,7 @@
 """The framework examples run as a user runs them: record with ``up``, export, load natively, spectrum or map.
 
 The TOAST example records its own session with ``mntes-stream up`` (2 modules
-x 8 channels, 3 s); the sotodlib and litebird_sim examples take that
+x 8 channels, 4 s); the sotodlib and litebird_sim examples take that
 recording with ``--session`` (one ``up`` run for the three, to keep CI short).
 The simulator puts one saturated and one latched channel in each module: at
 least 4 of 16 detectors have no usable power and must be left out (the
@@ -35,7 +35,7 @@ def _run(script: str, *args: str) -> dict:
 @pytest.fixture(scope="module")
 def toast_run(tmp_path_factory):
     work = tmp_path_factory.mktemp("examples")
-    return work, _run("toast_noise_psd.py", "--work", str(work), "--duration", "3")
+    return work, _run("toast_noise_psd.py", "--work", str(work), "--duration", "4")
 
 
 @pytest.fixture(scope="module")
