@@ -6,7 +6,10 @@ per sample with random int32 counts for ``--boards`` x ``--modules`` x
 into a temporary directory (not timed). Then:
 
 - ``translate``: G3 file read + :class:`~mntes_stream.g3.translate.FrameTranslator`
-  (frames -> encoded counts/housekeeping messages), no zenoh;
+  (frames -> encoded counts/housekeeping messages), no zenoh, from the first
+  counts message on; ``housekeeping_frame_s``: one DfMux housekeeping frame
+  through spt3g's conversion functions for every bolometer (once per
+  housekeeping frame, ~100 s apart at a DAQ);
 - ``file``: the ``g3-bridge`` service on the file, publishing on zenoh
   (loopback) to a subscriber that drains every message;
 - ``live``: a real spt3g ``G3NetworkSender`` in another process streams the
@@ -190,6 +193,14 @@ def run(args) -> dict:
             "message_mb": round(n_bytes / 1e6, 1), "spt3g": core.__file__,
             "translate_msamples_per_s": round((samples - first) / t_translate / 1e6, 3),
         }
+        # One DfMux housekeeping frame: spt3g's conversion functions for every bolometer (per frame, not per sample).
+        from mntes_stream.g3.mapping import Wiring, hk_snapshot
+
+        meta = [fr for fr, _ in zip(read_frames(path), range(3))]
+        wiring = Wiring.from_frame(meta[0])
+        t0 = time.perf_counter()
+        hk_snapshot(meta[1]["DfMuxHousekeeping"], wiring)
+        result["housekeeping_frame_s"] = round(time.perf_counter() - t0, 3)
         f = _bridge(str(path), samples, args.chunk_samples)
         result["file_msamples_per_s"] = round(f["msamples_per_s"], 3)
         if not args.no_live:
