@@ -279,3 +279,36 @@ def test_monitor_shows_a_replayed_recording(tmp_path):
     assert tick["hk"]["t_bath"]["value"] and tick["hk"]["b_field"]["value"]
     assert [s["service"] for s in tick["health"]["services"]] == ["converter"]
     assert view["streams"][0]["t_ms"][0] == pytest.approx(recorded[0].t0_ns / 1e6, abs=1)
+
+
+def test_replayed_power_is_labelled_replay_with_the_recordings_latency():
+    """Payloads as `mntes-stream replay` re-publishes them: published in 2023, arriving now, over real zenoh."""
+    from mntes_stream.monitor.text import render_text
+
+    t_rec = 1_700_000_000_000_000_000  # 2023-11-14 22:13:20 UTC
+    zport = free_tcp_port()
+    with MonitorSubscriber("lab", loopback(zport), MonitorConfig(stale_min_s=0.5)) as sub:
+        with open_session(loopback(None, [zport])) as z:
+            pubs = Publishers(z)
+            assert pubs.wait_matching([keys.power_key("lab", 0, 0)], 10)
+            for seq in range(20):
+                t0 = t_rec + int(seq * N / FS * 1e9)
+                ch = np.arange(4, dtype=np.int32)
+                chunk = PowerChunk("lab", 0, 0, ch, detector_ids_for(0, 0, ch), seq, t0, FS, np.full((4, N), 5e-13),
+                                   np.zeros((4, N), np.uint16), "tables-x", "table", t0, t0 + int(N / FS * 1e9) + 25_000_000)
+                pubs.put(keys.power_key("lab", 0, 0), chunk.to_bytes())
+                time.sleep(0.05)
+        deadline = time.monotonic() + 10
+        while sub.aggregator.power_chunks < 20 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        with sub.lock:
+            tick = sub.aggregator.tick(time.time_ns())
+            text = render_text(sub.aggregator, tick)
+        fr = tick["freshness"]
+        assert fr["state"] == "replay" and fr["newest_t_ns"] == t_rec + int(20 * N / FS * 1e9) - int(1e9 / FS)
+        # Latency on the recording's clock: last sample (t0 + 0.19 s) to publication (t0 + 0.2 s + 25 ms).
+        assert tick["health"]["monitor"]["latency_p50_ms"] == pytest.approx(35.0, abs=0.01)
+        assert "REPLAY: recorded 2023-11-14 22:13:" in text
+        time.sleep(fr["threshold_s"] + 0.3)
+        with sub.lock:
+            assert sub.aggregator.tick(time.time_ns())["freshness"]["state"] == "stale"  # a replay that ended
