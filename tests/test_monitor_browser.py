@@ -115,7 +115,7 @@ def _read_line(proc, timeout_s: float, log_path: Path) -> str:
         pytest.fail(f"no output from {proc.args} within {timeout_s} s; its log: {log_path.read_text()[-2000:]}")
 
 
-def _wait(driver, predicate, timeout_s: float, what: str):
+def _wait(driver, predicate, timeout_s: float, what: str, detail=None):
     from mntes_stream.monitor.browser import page_state
 
     deadline = time.monotonic() + timeout_s
@@ -126,7 +126,8 @@ def _wait(driver, predicate, timeout_s: float, what: str):
             return state
         time.sleep(0.5)
     short = {k: v for k, v in (state or {}).items() if k not in ("grid", "renders")}
-    pytest.fail(f"page never showed {what} within {timeout_s} s; last page state: {json.dumps(short)[:1500]}")
+    more = f"; {detail(state)}" if detail is not None and state is not None else ""
+    pytest.fail(f"page never showed {what} within {timeout_s} s{more}; last page state: {json.dumps(short)[:1500]}")
 
 
 @pytest.mark.slow
@@ -174,7 +175,13 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
                     and saturated_by_sim
                     and all(g.get(d, {}).get("state") == "saturated" for d in saturated_by_sim))
 
-        s = _wait(driver, grid_complete, 90, "every simulated channel in its state")
+        def grid_wrong(s):
+            want = {**{d: w for d, w in expected.items() if w}, NORMAL_ID: "saturated",
+                    **{d: "saturated" for d in saturated_by_sim}}
+            return "cells not as expected: " + json.dumps({d: [s["grid"].get(d, {}).get("state"), w]
+                                                           for d, w in want.items() if s["grid"].get(d, {}).get("state") != w})
+
+        s = _wait(driver, grid_complete, 90, "every simulated channel in its state", grid_wrong)
         # Charts hold live points: time streams and spectra of the default selection, housekeeping.
         s = _wait(driver, lambda s: len(s["timestreams"]) >= 3 and min(t["finite"] for t in s["timestreams"]) > 300
                   and s["spectrum"] and min(t["finite"] for t in s["spectrum"]) > 20
@@ -231,3 +238,86 @@ def test_missing_chromium_is_a_config_error(monkeypatch):
     monkeypatch.setattr(browser, "find_chromium", lambda: None)  # as on a machine without the packages
     with pytest.raises(MntesError, match="apt-get install -y chromium chromium-driver"):
         browser.headless_chromium()
+
+
+_CELL_JS = """
+const gd = document.getElementById('grid'), id = arguments[0];
+const t = gd.data[0], xa = gd._fullLayout.xaxis, ya = gd._fullLayout.yaxis, r = gd.getBoundingClientRect();
+for (let i = 0; i < t.customdata.length; i++) {
+  const j = t.customdata[i].indexOf(id);
+  if (j >= 0) return {dx: xa._offset + xa.l2p(j) - r.width / 2, dy: ya._offset + ya.l2p(i) - r.height / 2};
+}
+return null;
+"""
+
+
+@pytest.mark.slow
+def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path):
+    """Issue 16 item 4 in real Chromium: an empty page draws no year-2000 axis; a focal-plane click plots a
+    channel; killing the source turns the badge red within 1 s of the staleness threshold; restarting it
+    turns it green again."""
+    _browser_or_skip()
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.support.ui import Select
+
+    from mntes_stream.monitor.browser import headless_chromium
+
+    sim = ArraySimulator(SimConfig(modules=1, channels=8))
+    dump_params(list(sim.truth_params), tmp_path / "params.toml")
+    p_sim, p_conv = free_tcp_port(), free_tcp_port()
+    (tmp_path / "converter.toml").write_text(
+        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\n[status]\ninterval_s = 1.0\n'
+        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{p_conv}"]\nconnect = ["tcp/127.0.0.1:{p_sim}"]\n')
+    sim_args = ["simulate", "--listen", f"tcp/127.0.0.1:{p_sim}", "--setup", "lab", "--modules", "1", "--channels",
+                "8", "--duration", "300", "--no-truth"]
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration", "300"],
+                                     tmp_path / "converter.log"))
+        monitor = stack.enter_context(_process(
+            ["monitor", "--port", "0", "--setup", "lab", "--duration", "300", "--update-s", "0.25",
+             "--connect", f"tcp/127.0.0.1:{p_conv}"], tmp_path / "monitor.log"))
+        line = _read_line(monitor, 60, tmp_path / "monitor.log")
+        assert "serving http://127.0.0.1:" in line, line
+        url = line.split("serving ", 1)[1].split()[0]
+        driver = headless_chromium(profile_dir=str(tmp_path / "chromium-profile"))
+        stack.callback(driver.quit)
+        driver.get(url)
+        # No data yet: the badge says so, the charts say why, and no axis around 1 January 2000 is drawn.
+        s = _wait(driver, lambda s: s["updates"] >= 2, 30, "the first updates")
+        assert s["fresh"]["state"] == "waiting" and "bad" in s["badge"]["cls"]
+        assert s["annotations"]["timestreams"] == ["waiting for power"] and s["xaxes"]["timestreams"]["visible"] is False
+        assert s["annotations"]["hk"] == ["no housekeeping received"] and s["xaxes"]["hk"]["visible"] is False
+
+        source = stack.enter_context(_process(sim_args, tmp_path / "simulate-1.log"))
+        s = _wait(driver, lambda s: s["fresh"]["state"] == "live" and s["timestreams"]
+                  and min(t["finite"] for t in s["timestreams"]) > 50, 90, "live data")
+        assert "ok" in s["badge"]["cls"] and s["badge"]["text"].startswith("LIVE")
+        assert int(s["xaxes"]["timestreams"]["range"][0][:4]) >= 2024  # the data's own time, not 2000
+        # Focal plane: colour by power, then click a cell to plot it.
+        Select(driver.find_element("id", "focal-metric")).select_by_value("power_pw")
+        s = _wait(driver, lambda s: s["focal_metric"] == "power_pw", 10, "the focal plane coloured by power")
+        target = next(d for d in sorted(s["grid"]) if d not in s["selection"])
+        cell = driver.execute_script(_CELL_JS, target)
+        ActionChains(driver).move_to_element_with_offset(driver.find_element("id", "grid"), int(cell["dx"]),
+                                                         int(cell["dy"])).click().perform()
+        s = _wait(driver, lambda s: any(t["name"].startswith(target) for t in s["timestreams"]), 15,
+                  f"{target} plotted after a click on its cell")
+        assert s["clicks"] == 1 and target in s["selection"]
+        # Kill the source: no power for more than 3 chunk intervals turns the badge red, with the age.
+        n_changes = len(s["fresh_changes"])
+        source.kill()
+        source.wait(10)
+        s = _wait(driver, lambda s: s["fresh"]["state"] == "stale", 30, "a red badge after the source died")
+        assert "bad" in s["badge"]["cls"] and s["badge"]["text"].startswith("STALE: no data for")
+        changes = s["fresh_changes"][n_changes:]
+        t_red_ms = changes[-1]["t_ms"]  # the last change: the converter may still flush a chunk after the kill
+        fr = s["freshness"]
+        t_last_data_ms = s["last_t_server_ns"] / 1e6 - fr["age_s"] * 1e3  # the monitor's last receipt of power
+        late_s = (t_red_ms - t_last_data_ms) / 1e3 - fr["threshold_s"]
+        print(f"\nbadge red {late_s:+.3f} s after the staleness threshold ({fr['threshold_s']:.2f} s, "
+              f"chunk interval {fr['chunk_interval_s']:.3f} s); badge changes after the kill: {changes}")
+        assert -0.05 < late_s < 1.0
+        # Restart it: green again.
+        stack.enter_context(_process(sim_args, tmp_path / "simulate-2.log"))
+        s = _wait(driver, lambda s: s["fresh"]["state"] == "live", 90, "a green badge after the source restarted")
+        assert "ok" in s["badge"]["cls"] and s["errors"] == []
