@@ -260,10 +260,14 @@ def run(args) -> dict:
         "power_duplicates_recorded": power_msgs - unique_power,
         "lost": src["chunks_sent"] - unique_power,
         "converter_lost": conv.get("chunks_lost") if isinstance(conv, dict) else None,
+        # Overload policy (shed, counted): chunks the converter dropped for being too far behind their stream.
+        "converter_shed": conv.get("bad_messages", {}).get("overload", 0) if isinstance(conv, dict) else None,
         "source_behind_max_ms": round(src.get("behind_max_ms", 0.0), 2),
         "stream_wall_s": round(stream_wall, 2),
         "passthrough_msamples_per_s": round(sink.get("msamples_per_s", 0.0), 3) if isinstance(sink, dict) else None,
         "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "recorder": cpu(rec), "sink": cpu(sink)},
+        "max_rss_mb": {k: round(r["process_max_rss_mb"]) if isinstance(r, dict) and "process_max_rss_mb" in r else None
+                       for k, r in (("converter", conv), ("recorder", rec), ("source", src))},
         "recording_mb": round(sum(f.stat().st_size for f in rec_dir.glob("*.mcap")) / 1e6, 1),
         "kind": args.kind,
         # Other work on the machine shows in the latency tail: say how busy it was.

@@ -115,7 +115,12 @@ def _watch(session, p: Presence, connect: tuple[str, ...], _held) -> None:
     wanted = {_normalised(e) for e in connect if e.startswith(("tcp/", "udp/", "tls/", "quic/"))}
     last_linked = dict.fromkeys(wanted, time.monotonic())
     down: set[str] = set()
-    while not session.is_closed():
+    while True:
+        try:
+            if session.is_closed():
+                return
+        except RuntimeError:  # the session is being closed on another thread right now ("already borrowed")
+            return
         time.sleep(_POLL_S)
         if not wanted:
             continue

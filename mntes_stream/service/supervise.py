@@ -58,7 +58,10 @@ def child_main(label: str, service, config, stop, ready, results) -> None:
     try:
         svc = (service if isinstance(service, type) else service_class(service))(config)
         result = svc.start(_ParentWatch(stop, multiprocessing.parent_process()), ready)
-        result = {**result, "process_cpu_s": time.process_time() - cpu0, "process_wall_s": time.monotonic() - wall0}
+        import resource
+
+        result = {**result, "process_cpu_s": time.process_time() - cpu0, "process_wall_s": time.monotonic() - wall0,
+                  "process_max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}  # Linux: kB
         results.put((label, "ok", result))
     except KeyboardInterrupt:
         results.put((label, "error", "interrupted"))
