@@ -332,3 +332,20 @@ def test_run_without_thermometer_needs_a_default(tmp_path):
     baths = [p for _, k, p in msgs if k == "mntes/lab/hk/t_bath"]
     chunk_times = {t for t, k, _ in msgs if "/counts/" in k}
     assert len(baths) == len(chunk_times) == 4  # a default reading with every chunk time (60 samples / 16)
+
+
+def test_bridges_split_by_board_cover_the_array_once(tmp_path):
+    from mntes_stream.bench.g3 import write_run
+    from mntes_stream.g3.files import read_frames
+    from mntes_stream.g3.translate import FrameTranslator
+
+    path = tmp_path / "two_boards.g3"
+    total = write_run(path, boards=2, modules=2, channels=4, n_samples=20)
+    seen = {}
+    for boards in ((), (0,), (1,)):
+        tr = FrameTranslator("lab", chunk_samples=8, boards=boards)
+        keys_ = {k for f in read_frames(path) for k, _ in tr.handle(f)} | {k for k, _ in tr.flush()}
+        seen[boards] = (tr.counters.samples, {k for k in keys_ if "/counts/" in k})
+    assert seen[()][0] == total == seen[(0,)][0] + seen[(1,)][0]
+    assert seen[(0,)][1] == {"mntes/lab/counts/0/0", "mntes/lab/counts/0/1"}
+    assert seen[(0,)][1] | seen[(1,)][1] == seen[()][1] and not seen[(0,)][1] & seen[(1,)][1]

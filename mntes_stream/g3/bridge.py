@@ -42,6 +42,7 @@ class BridgeSettings(Settings):
     source: str = setting("", "tcp://HOST:PORT of the DAQ's G3NetworkSender, or a G3 file")
     setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/...", pattern=NAME_PATTERN)
     chunk_samples: int = setting(16, "raw Timepoints per counts chunk (16 = 0.105 s at the DfMux rate)", ge=1)
+    boards: tuple[int, ...] = setting((), "only these board serials (one bridge per group of boards); empty: all")
     duration_s: float = setting(0.0, "stop after this long (0: until stopped or, for a file, its end)", unit="s", ge=0)
     reconnect_s: float = setting(1.0, "wait between connection attempts", unit="s", gt=0)
     timeout_s: float = setting(10.0, "a connection silent this long is dead: reconnect", unit="s", gt=0)
@@ -150,9 +151,9 @@ def bridge_config(args) -> G3BridgeConfig:
         raise ConfigError("--set needs --config")
     else:
         cfg = G3BridgeConfig()
-    flags = {k: getattr(args, a) for k, a in (("source", "source"), ("setup", "setup"),
+    flags = {k: getattr(args, a) for k, a in (("source", "source"), ("setup", "setup"), ("boards", "boards"),
                                               ("chunk_samples", "chunk_samples"), ("duration_s", "duration_s"))
-             if getattr(args, a) is not None}
+             if getattr(args, a, None) is not None}
     g3 = {k: getattr(args, k) for k in ("t_bath_key", "t_bath_default_k") if getattr(args, k) is not None}
     try:
         cfg = dataclasses.replace(cfg, bridge=dataclasses.replace(cfg.bridge, **flags),
@@ -172,7 +173,7 @@ class G3BridgeService(Service):
     summary = "SPT-3G DfMux readout (G3 over TCP or a file) published as counts + housekeeping"
 
     def owns(self) -> dict:
-        return {"source": self.config.bridge.source}
+        return {"source": self.config.bridge.source, "boards": list(self.config.bridge.boards) or "all"}
 
     def run(self, stop=None, ready=None) -> dict:
         from mntes_stream.g3.translate import FrameTranslator
@@ -180,7 +181,7 @@ class G3BridgeService(Service):
         from mntes_stream.service.base import stop_on_signals
 
         b = self.config.bridge
-        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples)
+        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards)
         src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects)
         t_start = time.monotonic()
         first_data_ns = None

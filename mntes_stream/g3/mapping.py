@@ -97,15 +97,18 @@ class Wiring:
     _by_id: dict = field(default_factory=dict, repr=False)
 
     @classmethod
-    def from_frame(cls, frame, config: G3InputConfig | None = None) -> Wiring:
-        """From a Wiring frame (``WiringMap``, ``ReadoutSystem``, ``DfMuxTransferFunction``)."""
+    def from_frame(cls, frame, config: G3InputConfig | None = None, boards=()) -> Wiring:
+        """From a Wiring frame (``WiringMap``, ``ReadoutSystem``, ``DfMuxTransferFunction``); only the
+        bolometers on ``boards`` (board serials) when given."""
         config = config or G3InputConfig()
         if "WiringMap" not in frame:
             raise SchemaError("G3 Wiring frame without a WiringMap")
         wm = frame["WiringMap"]
         rows = sorted((int(m.board_serial), int(m.module), int(m.channel), str(name)) for name, m in wm.items())
+        if boards:
+            rows = [r for r in rows if r[0] in set(boards)]
         if not rows:
-            raise SchemaError("G3 wiring map is empty")
+            raise SchemaError("G3 wiring map is empty" + (f" on boards {sorted(boards)}" if boards else ""))
         b, m, c, names = (list(x) for x in zip(*rows))
         ids = tuple(detector_id(*t) for t in zip(b, m, c))
         if len(set(ids)) != len(ids):
@@ -380,7 +383,7 @@ class TimepointBuffer:
     def _fast(self, meta):
         """I, Q of every wired channel when every wired module is there as before (one gather), else None."""
         try:
-            arrays = [np.asarray(meta[b][m]) for b, modules in self._boards for m, *_ in modules]
+            arrays = [np.asarray(board[m]) for b, modules in self._boards for board in (meta[b],) for m, *_ in modules]
         except KeyError:
             return None
         sizes = [a.size for a in arrays]

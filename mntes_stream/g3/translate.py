@@ -85,15 +85,19 @@ class FrameTranslator:
     config : G3InputConfig, optional
     chunk_samples : int
         Timepoints per counts chunk (raw layout).
+    boards : sequence of int
+        Only these board serials (several bridges share an array); empty: all.
     """
 
-    def __init__(self, setup: str = keys.DEFAULT_SETUP, config: G3InputConfig | None = None, chunk_samples: int = 16):
+    def __init__(self, setup: str = keys.DEFAULT_SETUP, config: G3InputConfig | None = None, chunk_samples: int = 16,
+                 boards=()):
         keys.counts_key(setup)
         if chunk_samples < 1:
             raise ConfigError("chunk_samples must be >= 1")
         self.setup = setup
         self.config = config or G3InputConfig()
         self.chunk_samples = int(chunk_samples)
+        self.boards = tuple(int(b) for b in boards)
         self.wiring: Wiring | None = None
         self.hk = HkHistory()
         self.bath = BathHistory(self.config)
@@ -167,19 +171,25 @@ class FrameTranslator:
             self.counters.gap_samples += int(np.sum(np.rint(step[late] / _SAMPLE_NS) - 1))
         have = np.full(len(self.wiring), -1, dtype=np.int64)
         have[blk.rows] = np.arange(blk.rows.size)
+        # The whole block at once: validity and int32 (the rail where not a reading).
+        n_bad = int(np.count_nonzero(invalid_counts(blk.counts_i) | invalid_counts(blk.counts_q)))
+        self.counters.invalid_samples += n_bad
+        self.counters.samples += blk.counts_i.size
+        ci_all, cq_all = to_int32_counts(blk.counts_i), to_int32_counts(blk.counts_q)
         for b, m, rows in self._groups:
             rows = rows[have[rows] >= 0]
             if not rows.size:
                 continue
             src = have[rows]
-            ci, cq = blk.counts_i[src], blk.counts_q[src]
-            self.counters.invalid_samples += int(np.count_nonzero(invalid_counts(ci) | invalid_counts(cq)))
-            self.counters.samples += ci.size
+            if src[-1] - src[0] == src.size - 1:  # contiguous (the usual case): a view, no copy
+                ci, cq = ci_all[src[0]:src[-1] + 1], cq_all[src[0]:src[-1] + 1]
+            else:
+                ci, cq = ci_all[src], cq_all[src]
             stream = f"{b}/{m}"
             chunk = CountsChunk(setup=self.setup, board=int(b), module=int(m),
                                 channels=self.wiring.channel[rows].astype(np.int32), seq=self._next_seq(stream),
-                                t0_ns=None, sample_rate_hz=None, counts_i=to_int32_counts(ci),
-                                counts_q=to_int32_counts(cq), t_pub_ns=int(t_pub_ns), t_ns=blk.t_ns)
+                                t0_ns=None, sample_rate_hz=None, counts_i=ci, counts_q=cq,
+                                t_pub_ns=int(t_pub_ns), t_ns=blk.t_ns)
             out.append((keys.counts_key(self.setup, int(b), int(m)), chunk.to_bytes()))
             self._times.append(int(blk.t_ns[-1]))
         self._t_last_ns = int(blk.t_ns[-1])
@@ -201,7 +211,7 @@ class FrameTranslator:
         c.frames += 1
         c.by_type[str(ft)] = c.by_type.get(str(ft), 0) + 1
         if ft == core.G3FrameType.Wiring:
-            wiring = Wiring.from_frame(frame, self.config)
+            wiring = Wiring.from_frame(frame, self.config, self.boards)
             if self.wiring is not None and wiring.names == self.wiring.names and \
                     wiring.detector_ids == self.wiring.detector_ids:
                 return []
