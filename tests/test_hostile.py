@@ -142,3 +142,18 @@ def test_chunks_far_behind_their_stream_are_shed_and_counted(source, converter):
     assert all(seq < 10 for _, _, seq in got)  # what was on time was converted, the rest shed
     keep, got_keep = _run(converter, late, overload="keep")
     assert "overload" not in keep.status().bad_messages and len(got_keep) == len([m for m in late if "/counts/" in m[0]])
+
+
+def test_a_bias_reading_goes_stale_after_bias_staleness_s(source, converter):
+    """Every environment input has a finite staleness: a bias read once is flagged HK_STALE after bias_staleness_s."""
+    msgs = _messages(source, 10)
+    k, p = _bias(0, source.params[0].v_thev_v, T0)
+    pipe, got = _run(converter, [(k, p, T0)] + msgs, bias_staleness_s=0.3)
+    assert got
+    for (_, module, _), pw in got.items():
+        t = pw.times_ns()
+        stale = (pw.flags & fl.HK_STALE) != 0
+        if module == 0:  # the reading at T0 holds for 0.3 s, then every sample of the module says it is old
+            assert (stale[:, t > T0 + 3 * 10**8]).all() and not stale[:, t <= T0 + 3 * 10**8].any()
+        else:  # no reading at all: the nominal bias, not stale
+            assert not stale.any()
