@@ -69,9 +69,12 @@ class Ring:
         if alloc < self.capacity and self.count + n > alloc:
             self._grow(self.count + n)
             alloc = self._t.size
-        idx = (self._head + np.arange(n)) % alloc
-        self._t[idx] = t_ns
-        self._v[:, idx] = values
+        first = min(n, alloc - self._head)  # slices, not fancy indexing: this runs for every chunk
+        self._t[self._head:self._head + first] = t_ns[:first]
+        self._v[:, self._head:self._head + first] = values[:, :first]
+        if first < n:
+            self._t[: n - first] = t_ns[first:]
+            self._v[:, : n - first] = values[:, first:]
         self._head = (self._head + n) % alloc
         self.count = min(self.count + n, alloc)
 
@@ -145,7 +148,7 @@ class SlowRing:
         if t_ns.size == 0:
             return
         bins = t_ns // self.bin_ns
-        starts = np.flatnonzero(np.r_[True, bins[1:] != bins[:-1]])
+        starts = np.concatenate(([0], np.flatnonzero(bins[1:] != bins[:-1]) + 1))
         finite = np.isfinite(values)
         v = np.where(finite, values, 0.0)
         sums = np.add.reduceat(v, starts, axis=1)
