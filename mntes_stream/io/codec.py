@@ -59,6 +59,12 @@ def _schemas() -> dict[tuple[str, int], dict]:
 
 def schema_versions() -> dict[str, int]:
     """Current (highest) version of each message schema, from ``schemas/``."""
+    return dict(_versions())
+
+
+@functools.cache
+def _versions() -> dict[str, int]:
+    # Read on every message: computed once (callers of schema_versions() get a copy).
     versions: dict[str, int] = {}
     for name, version in _schemas():
         versions[name] = max(version, versions.get(name, 0))
@@ -117,7 +123,7 @@ def decode_array(d: Any, field: str = "array", dtype: str | None = None, ndim: i
 
 def pack(schema: str, body: dict) -> bytes:
     """Serialise a message: ``body`` plus ``schema`` and its current ``version``."""
-    versions = schema_versions()
+    versions = _versions()
     if schema not in versions:
         raise SchemaError(f"unknown message schema {schema!r}")
     msg = {"schema": schema, "version": versions[schema]}
@@ -147,7 +153,7 @@ def unpack(payload: bytes, expected: str | tuple[str, ...] | None = None) -> dic
         names = (expected,) if isinstance(expected, str) else expected
         if name not in names:
             raise SchemaError(f"expected schema {'/'.join(names)}, got {name!r}", "wrong_schema")
-    current = schema_versions().get(name)
+    current = _versions().get(name)
     if current is None:
         raise SchemaError(f"unknown message schema {name!r}", "unknown_schema")
     if version != current:

@@ -71,12 +71,21 @@ def as_array(value: Any, name: str, dtype: str, ndim: int | tuple[int, ...]) -> 
     return np.ascontiguousarray(a, dtype=target)
 
 
+_CHANNELS_OK: set[bytes] = set()  # channel lists already found valid: a stream repeats its list every chunk
+
+
 def as_channels(value: Any) -> np.ndarray:
     ch = as_array(value, "channels", "<i4", 1)
+    raw = ch.tobytes()
+    if raw in _CHANNELS_OK:
+        return ch
     if ch.size and int(ch.min()) < 0:
         raise SchemaError("channels must be >= 0")
     if np.unique(ch).size != ch.size:
         raise SchemaError("channels must be distinct")
+    if len(_CHANNELS_OK) >= 4096:
+        _CHANNELS_OK.clear()
+    _CHANNELS_OK.add(raw)
     return ch
 
 

@@ -55,6 +55,11 @@ def _unpack(payload: Any, expected=None) -> dict:
     return msg
 
 
+@functools.cache
+def _field_names(cls) -> frozenset[str]:
+    return frozenset(f.name for f in fields(cls))
+
+
 @functools.lru_cache(maxsize=4096)
 def _ids(board: int, module: int, channels: bytes) -> tuple[str, ...]:
     return tuple(detector_id(board, module, c) for c in np.frombuffer(channels, dtype="<i4").tolist())
@@ -103,7 +108,7 @@ class _Message:
 
     @classmethod
     def _from_map(cls, msg: dict):
-        names = {f.name for f in fields(cls)}
+        names = _field_names(cls)
         extra = set(msg) - names - {"schema", "version"}
         if extra:
             raise SchemaError(f"{cls.SCHEMA}: unknown field(s) {sorted(map(str, extra))}")

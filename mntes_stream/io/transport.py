@@ -432,12 +432,31 @@ class QueueSubscriber:
         return item
 
     def drain(self, limit: int = 1 << 30) -> Iterator[tuple[str, bytes, int]]:
-        """What is queued now, without waiting (at most ``limit`` items)."""
-        for _ in range(limit):
-            item = self._poll() if self.mode == "channel" else self.get()
-            if item is None:
-                return
-            yield item
+        """What is queued now, without waiting (at most ``limit`` items).
+
+        In channel mode each key expression's channel is emptied in the order
+        given (one pass over them, however many: a converter shard may hold
+        hundreds), so housekeeping listed first still comes before counts.
+        """
+        if self.mode != "channel":
+            for _ in range(limit):
+                item = self.get()
+                if item is None:
+                    return
+                yield item
+            return
+        n = 0
+        while self._leftover and n < limit:
+            n += 1
+            yield self._leftover.popleft()
+        for sub in self._subs:
+            while n < limit:
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                n += 1
+                self.received += 1
+                yield str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
 
     def qsize(self) -> int:
         return self._queue.qsize()

@@ -67,6 +67,8 @@ class ConverterConfig(Settings):
         10.0, "re-publish parameters + table identity this often, for recorders started later (0 = at start only)",
         unit="s", ge=0)
     queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
+    batch_max: int = setting(512, "received messages handled as one batch at most (chunks of one batch that share "
+                             "sample times are converted in one call)", ge=1)
     checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
                               "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
     alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
@@ -309,9 +311,10 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                 if cfg.duration_s and time.monotonic() - t_start >= cfg.duration_s:
                     break
                 item = sub.get(timeout_s=0.05)
-                # Each output goes out as soon as it exists: a burst of chunks must not wait for its last one.
+                # What has arrived is handled as one batch (converted together: less work per chunk); nothing
+                # waits for more to come, so a batch is what piled up while the previous one was converted.
                 now = time.time_ns()
-                outs = pipe.tick(now) if item is None else pipe.handle(*item)
+                outs = pipe.tick(now) if item is None else pipe.handle_many([item, *sub.drain(cfg.batch_max - 1)])
                 if owner is not None:
                     outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
                 for key, payload in outs:
@@ -327,7 +330,7 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                     next_prov = time.monotonic() + cfg.provenance_interval_s
             # Stop receiving, convert what is already here, say so, then close.
             sub.close()
-            outs = [o for item in sub.drain() for o in pipe.handle(*item)] + pipe.flush()
+            outs = pipe.handle_many(list(sub.drain())) + pipe.flush()
             for key, payload in outs:
                 if owner is None or owner.allow(key, payload, time.time_ns()):
                     pubs.put(key, payload)

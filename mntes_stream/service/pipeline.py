@@ -45,20 +45,18 @@ import numpy as np
 
 from mntes_stream import __version__
 from mntes_stream.core import flags as fl
-from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import (
     CountsChunk,
     HousekeepingChunk,
-    PowerChunk,
     Provenance,
     StatusMessage,
-    detector_ids_for,
 )
 from mntes_stream.service.housekeeping import DelayFloor, Housekeeping, known_modules, ns
 from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
+from mntes_stream.service.pipeline_convert import Conversion, _Ready
 
 __all__ = ["PipelineConfig", "ConverterPipeline", "PipelineCounters", "SCALAR_SENSORS"]
 
@@ -91,7 +89,7 @@ class _Pending:
     t_last_ns: int | None
 
 
-class ConverterPipeline:
+class ConverterPipeline(Conversion):
     """Counts + housekeeping in, power chunks + status out (no I/O).
 
     Parameters
@@ -138,6 +136,8 @@ class ConverterPipeline:
         self._streams: dict[tuple[int, int], StreamSequence] = {}
         self._pace: dict[tuple[int, int], DelayFloor] = {}
         self._pending: collections.deque[_Pending] = collections.deque()
+        self._ready: list[_Ready] = []
+        self._table_identity, self._kind = str(converter.identity), str(converter.kind)
         self._rows: dict[tuple, tuple] = {}
         # Streams continued from a checkpoint, until their first chunk: (next number, checkpoint sample time).
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
@@ -171,11 +171,23 @@ class ConverterPipeline:
 
     def handle(self, key: str, payload: bytes, t_recv_ns: int) -> list[tuple[str, bytes]]:
         """Process one received message; returns ``(key, payload)`` messages to publish."""
+        return self.handle_many(((key, payload, t_recv_ns),))
+
+    def handle_many(self, items) -> list[tuple[str, bytes]]:
+        """Process received ``(key, payload, t_recv_ns)`` messages in order; returns the messages to publish.
+
+        Each message is dispatched and the chunks it releases are aligned as
+        :meth:`handle` would, message by message; the released chunks are then
+        converted together (:meth:`_convert_ready`), so the power is the same
+        as from :meth:`handle` called per message, for less work per chunk.
+        """
         out: list[tuple[str, bytes]] = []
-        self._advance(t_recv_ns)
-        self._guarded(self._dispatch, key, str(key), payload, int(t_recv_ns))
-        self._guarded(self._release, key, out)
-        self._guarded(self._maybe_status, key, out)
+        for key, payload, t_recv_ns in items:
+            self._advance(t_recv_ns)
+            self._guarded(self._dispatch, key, str(key), payload, int(t_recv_ns))
+            self._guarded(self._release, key, out)
+        self._guarded(self._convert_ready, "convert", out)
+        self._guarded(self._maybe_status, "status", out)
         return out
 
     def tick(self, t_now_ns: int) -> list[tuple[str, bytes]]:
@@ -183,6 +195,7 @@ class ConverterPipeline:
         out: list[tuple[str, bytes]] = []
         self._advance(t_now_ns)
         self._guarded(self._release, "tick", out)
+        self._guarded(self._convert_ready, "tick", out)
         self._guarded(self._maybe_status, "tick", out)
         return out
 
@@ -197,6 +210,7 @@ class ConverterPipeline:
         """Convert everything still held (with what housekeeping there is) and emit a final status."""
         out: list[tuple[str, bytes]] = []
         self._guarded(self._release, "flush", out, True)
+        self._guarded(self._convert_ready, "flush", out)
         if self._now_ns is not None:
             self._guarded(lambda: out.append(self._emit_status()), "flush")
         return out
@@ -377,6 +391,8 @@ class ConverterPipeline:
             self._bad(reason, detail, key)
 
     def _release(self, out: list, force: bool = False) -> None:
+        """Chunks whose housekeeping is there (or that waited long enough) leave the queue, with their
+        environment aligned now; they are converted together by :meth:`_convert_ready`."""
         if not self._pending:
             return
         now = self._now_ns
@@ -389,93 +405,20 @@ class ConverterPipeline:
                 p = self._pending.popleft()
                 try:
                     if force or i < overflow or self.hk.bracketed(p.t_last_ns) or now - p.t_recv_ns >= self._wait_ns:
-                        out.append(self._convert(p))
+                        self._ready.append(self._environment(p))
                     else:
                         keep.append(p)
                 except Exception as exc:
-                    key = keys.counts_key(self.config.setup, p.chunk.board, p.chunk.module)
-                    self.counters.chunks_failed += 1
-                    self._bad("internal_error", f"chunk seq {p.chunk.seq} dropped: {type(exc).__name__}: {exc}", key)
-                    log.exception("internal error converting %s seq %d; chunk dropped", key, p.chunk.seq)
+                    self._dropped(p.chunk, exc)
         finally:
             keep.extend(self._pending)
             self._pending = keep
 
-    def _rows_for(self, chunk: CountsChunk) -> tuple:
-        """Detector ids of the rows and which the converter knows (cached per channel list)."""
-        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes())
-        rows = self._rows.get(cache_key)
-        if rows is None:
-            ids = detector_ids_for(chunk.board, chunk.module, chunk.channels)
-            known = np.array([d in self._known for d in ids], dtype=bool)
-            if len(self._rows) > 4096:
-                self._rows.clear()
-            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
-            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
-                self._unmatched += 1
-                self.last_error = (f"no_detector on {keys.counts_key(self.config.setup, chunk.board, chunk.module)}: "
-                                   f"none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
-                                   "flagged UNKNOWN_CHANNEL")[:500]
-                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
-                    log.warning("%s", self.last_error)
-        return rows
-
-    def _convert(self, p: _Pending) -> tuple[str, bytes]:
-        chunk, t = p.chunk, p.t_ns
-        cfg = self.config
-        n_ch, n = chunk.channels.size, t.size
-        t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
-        b_field, f_b = self.hk.scalar("b_field", chunk, t)
-        env_flags_t = f_tb | f_b
-        ids, known, n_unknown = self._rows_for(chunk)
-        v_bias, f_bias = self.hk.bias(chunk, t, ids)
-        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
-        try:
-            # The converter flags rows it has no parameters for (UNKNOWN_CHANNEL) itself.
-            env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
-            block = self.converter.convert(ids, chunk.counts_i, chunk.counts_q, env)
-            p_opt, flags = np.asarray(block.p_opt_w, dtype=float), np.asarray(block.flags, dtype=fl.FLAG_DTYPE)
-            if p_opt.shape != (n_ch, n) or flags.shape != (n_ch, n):
-                raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {(n_ch, n)}")
-        except Exception as exc:  # one bad block must not stop the stream
-            p_opt = np.full((n_ch, n), np.nan)
-            flags = np.full((n_ch, n), fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
-            self._bad("convert_failed", f"{type(exc).__name__}: {exc}", keys.counts_key(cfg.setup, chunk.board, chunk.module))
-        # Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
-        flags = flags | env_flags
-        if n_unknown:
-            flags[~known] |= fl.UNKNOWN_CHANNEL
-            self.counters.unknown_channel_samples += n_unknown * n
-        p_opt = np.where((flags & fl.UNUSABLE) != 0, np.nan, p_opt)
-        t_pub = self._stamp()
-        power = PowerChunk(
-            setup=cfg.setup,
-            board=chunk.board,
-            module=chunk.module,
-            channels=chunk.channels,
-            detector_ids=ids,
-            seq=chunk.seq,
-            t0_ns=chunk.t0_ns,
-            sample_rate_hz=chunk.sample_rate_hz,
-            p_opt_w=p_opt,
-            flags=flags,
-            table_identity=str(self.converter.identity),
-            converter_kind=str(self.converter.kind),
-            source_t_pub_ns=chunk.t_pub_ns,
-            t_pub_ns=t_pub,
-            t_ns=chunk.t_ns,
-        )
-        c = self.counters
-        c.chunks_converted += 1
-        c.samples_converted += n_ch * n
-        c.hk_stale_samples += int(np.count_nonzero(env_flags_t & fl.HK_STALE))
-        c.hk_missing_samples += int(np.count_nonzero(env_flags_t & fl.HK_MISSING))
-        if flags.any():
-            self.flag_counts.update(fl.counts_by_flag(flags))
-        self._interval_chunks += 1
-        self._interval_samples += n_ch * n
-        self._interval_latency_ms.append((t_pub - chunk.t_pub_ns) / 1e6)
-        return keys.power_key(cfg.setup, chunk.board, chunk.module), power.to_bytes()
+    def _dropped(self, chunk: CountsChunk, exc: Exception) -> None:
+        key = keys.counts_key(self.config.setup, chunk.board, chunk.module)
+        self.counters.chunks_failed += 1
+        self._bad("internal_error", f"chunk seq {chunk.seq} dropped: {type(exc).__name__}: {exc}", key)
+        log.error("internal error converting %s seq %d; chunk dropped", key, chunk.seq, exc_info=exc)
 
     def _maybe_status(self, out: list) -> None:
         if self._now_ns is not None and self._now_ns >= self._next_status_ns:

@@ -1,0 +1,179 @@
+"""The converter pipeline's conversion step: released chunks to power messages, in as few converter calls as may be.
+
+A mixin of :class:`~mntes_stream.service.pipeline.ConverterPipeline` (its
+state: ``converter``, ``hk``, ``counters``, ``config``; its ``_bad`` and
+``_stamp``), kept apart so each module stays one concern.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+from mntes_stream.core.convert import EnvironmentBlock
+from mntes_stream.io import keys
+from mntes_stream.io.messages import CountsChunk, PowerChunk, detector_ids_for
+
+__all__ = ["Conversion"]
+
+log = logging.getLogger("mntes_stream.converter")
+
+
+@dataclass
+class _Ready:
+    """A released chunk with its rows and aligned housekeeping, waiting to be converted."""
+
+    chunk: CountsChunk
+    ids: tuple
+    known: np.ndarray
+    n_unknown: int
+    t_bath: np.ndarray
+    b_field: np.ndarray
+    v_bias: np.ndarray | None
+    env_flags: np.ndarray
+    env_flags_t: np.ndarray
+
+
+class Conversion:
+    """Rows, environment, grouped conversion and power messages of released chunks (see the module docstring)."""
+
+    def _rows_for(self, chunk: CountsChunk) -> tuple:
+        """Detector ids of the rows and which the converter knows (cached per channel list)."""
+        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes())
+        rows = self._rows.get(cache_key)
+        if rows is None:
+            ids = detector_ids_for(chunk.board, chunk.module, chunk.channels)
+            known = np.array([d in self._known for d in ids], dtype=bool)
+            if len(self._rows) > 4096:
+                self._rows.clear()
+            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
+            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
+                self._unmatched += 1
+                self.last_error = (f"no_detector on {keys.counts_key(self.config.setup, chunk.board, chunk.module)}: "
+                                   f"none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
+                                   "flagged UNKNOWN_CHANNEL")[:500]
+                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
+                    log.warning("%s", self.last_error)
+        return rows
+
+    def _environment(self, p) -> _Ready:
+        """A pending chunk's rows and its housekeeping at every sample, as of now (the release)."""
+        chunk, t = p.chunk, p.t_ns
+        t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
+        b_field, f_b = self.hk.scalar("b_field", chunk, t)
+        env_flags_t = f_tb | f_b
+        ids, known, n_unknown = self._rows_for(chunk)
+        v_bias, f_bias = self.hk.bias(chunk, t, ids)
+        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
+        return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t)
+
+    def _convert_ready(self, out: list) -> None:
+        """Convert the released chunks, those that share sample times and housekeeping in one converter call.
+
+        The modules of one readout step share their sample times, hence their
+        aligned bath temperature and field (the same cached arrays): one call
+        for all of them costs the converter's per-call work once, not once per
+        module. Rows are independent, so the power is the same as chunk by chunk.
+        """
+        ready, self._ready = self._ready, []
+        groups: dict[tuple, list[_Ready]] = {}
+        for r in ready:
+            groups.setdefault((id(r.t_bath), id(r.b_field), r.v_bias is None), []).append(r)
+        for group in groups.values():
+            blocks = self._convert_group(group) if len(group) > 1 else None
+            for k, r in enumerate(group):
+                try:
+                    out.append(self._power(r, blocks[k] if blocks is not None else self._convert_one(r)))
+                except Exception as exc:
+                    self._dropped(r.chunk, exc)
+
+    def _convert_group(self, group: list[_Ready]) -> list[tuple] | None:
+        """One converter call for the group; each chunk's (p_opt, flags) rows. None: convert them one by one."""
+        try:
+            ids = [d for r in group for d in r.ids]
+            ci = np.concatenate([r.chunk.counts_i for r in group])
+            cq = np.concatenate([r.chunk.counts_q for r in group])
+            first = group[0]
+            if first.v_bias is None:
+                v_bias, env_flags = None, first.env_flags
+            else:
+                v_bias = np.concatenate([r.v_bias for r in group])
+                env_flags = np.concatenate([np.broadcast_to(r.env_flags, r.chunk.counts_i.shape) for r in group])
+            env = EnvironmentBlock(t_bath_k=first.t_bath, b_field_t=first.b_field, v_thev_v=v_bias, flags=env_flags)
+            block = self.converter.convert(ids, ci, cq, env)
+            p_opt, flags = np.asarray(block.p_opt_w, dtype=float), np.asarray(block.flags, dtype=fl.FLAG_DTYPE)
+            if p_opt.shape != ci.shape or flags.shape != ci.shape:
+                return None
+        except Exception:  # find out which chunk it was: one by one, each failure counted
+            return None
+        out, r0 = [], 0
+        for r in group:
+            r1 = r0 + r.chunk.channels.size
+            out.append((p_opt[r0:r1], flags[r0:r1]))
+            r0 = r1
+        return out
+
+    def _convert_one(self, r: _Ready) -> tuple:
+        chunk = r.chunk
+        shape = chunk.counts_i.shape
+        try:
+            # The converter flags rows it has no parameters for (UNKNOWN_CHANNEL) itself.
+            env = EnvironmentBlock(t_bath_k=r.t_bath, b_field_t=r.b_field, v_thev_v=r.v_bias, flags=r.env_flags)
+            block = self.converter.convert(r.ids, chunk.counts_i, chunk.counts_q, env)
+            p_opt, flags = np.asarray(block.p_opt_w, dtype=float), np.asarray(block.flags, dtype=fl.FLAG_DTYPE)
+            if p_opt.shape != shape or flags.shape != shape:
+                raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {shape}")
+        except Exception as exc:  # one bad block must not stop the stream
+            p_opt = np.full(shape, np.nan)
+            flags = np.full(shape, fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
+            self._bad("convert_failed", f"{type(exc).__name__}: {exc}",
+                      keys.counts_key(self.config.setup, chunk.board, chunk.module))
+        return p_opt, flags
+
+    def _power(self, r: _Ready, converted: tuple) -> tuple[str, bytes]:
+        """The power message of a converted chunk (flags completed, flagged power NaN), counters booked."""
+        chunk, cfg = r.chunk, self.config
+        p_opt, flags = converted
+        n_ch, n = chunk.counts_i.shape
+        # Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
+        flags = flags | r.env_flags
+        if r.n_unknown:
+            flags[~r.known] |= fl.UNKNOWN_CHANNEL
+            self.counters.unknown_channel_samples += r.n_unknown * n
+        unusable = (flags & fl.UNUSABLE) != 0
+        if unusable.any():
+            p_opt = np.where(unusable, np.nan, p_opt)
+        t_pub = self._stamp()
+        power = PowerChunk(
+            setup=cfg.setup,
+            board=chunk.board,
+            module=chunk.module,
+            channels=chunk.channels,
+            detector_ids=r.ids,
+            seq=chunk.seq,
+            t0_ns=chunk.t0_ns,
+            sample_rate_hz=chunk.sample_rate_hz,
+            p_opt_w=p_opt,
+            flags=flags,
+            table_identity=self._table_identity,
+            converter_kind=self._kind,
+            source_t_pub_ns=chunk.t_pub_ns,
+            t_pub_ns=t_pub,
+            t_ns=chunk.t_ns,
+        )
+        c = self.counters
+        c.chunks_converted += 1
+        c.samples_converted += n_ch * n
+        if r.env_flags_t.any():
+            c.hk_stale_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_STALE))
+            c.hk_missing_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_MISSING))
+        if flags.any():
+            self.flag_counts.update(fl.counts_by_flag(flags))
+        self._interval_chunks += 1
+        self._interval_samples += n_ch * n
+        self._interval_latency_ms.append((t_pub - chunk.t_pub_ns) / 1e6)
+        return keys.power_key(cfg.setup, chunk.board, chunk.module), power.to_bytes()
+
