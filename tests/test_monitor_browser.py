@@ -243,6 +243,10 @@ def test_missing_chromium_is_a_config_error(monkeypatch):
 _CELL_JS = """
 const gd = document.getElementById('grid'), id = arguments[0];
 const t = gd.data[0], xa = gd._fullLayout.xaxis, ya = gd._fullLayout.yaxis, r = gd.getBoundingClientRect();
+if (t.type === 'scatter') {
+  const k = t.customdata.indexOf(id);
+  return k < 0 ? null : {dx: xa._offset + xa.l2p(t.x[k]) - r.width / 2, dy: ya._offset + ya.l2p(t.y[k]) - r.height / 2};
+}
 for (let i = 0; i < t.customdata.length; i++) {
   const j = t.customdata[i].indexOf(id);
   if (j >= 0) return {dx: xa._offset + xa.l2p(j) - r.width / 2, dy: ya._offset + ya.l2p(i) - r.height / 2};
@@ -263,7 +267,8 @@ def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path
     from mntes_stream.monitor.browser import headless_chromium
 
     sim = ArraySimulator(SimConfig(modules=1, channels=8))
-    dump_params(list(sim.truth_params), tmp_path / "params.toml")
+    sky = {f"b0m0c{c:03d}": [round(0.5 * (c % 3), 2), round(0.4 * (c // 3), 2)] for c in range(8)}  # degrees
+    dump_params(list(sim.truth_params), tmp_path / "params.toml", metadata={"focal_plane": sky})
     p_sim, p_conv = free_tcp_port(), free_tcp_port()
     (tmp_path / "converter.toml").write_text(
         '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\n[status]\ninterval_s = 1.0\n'
@@ -275,6 +280,7 @@ def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path
                                      tmp_path / "converter.log"))
         monitor = stack.enter_context(_process(
             ["monitor", "--port", "0", "--setup", "lab", "--duration", "300", "--update-s", "0.25",
+             "--params", str(tmp_path / "params.toml"),
              "--connect", f"tcp/127.0.0.1:{p_conv}"], tmp_path / "monitor.log"))
         line = _read_line(monitor, 60, tmp_path / "monitor.log")
         assert "serving http://127.0.0.1:" in line, line
@@ -303,6 +309,16 @@ def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path
         s = _wait(driver, lambda s: any(t["name"].startswith(target) for t in s["timestreams"]), 15,
                   f"{target} plotted after a click on its cell")
         assert s["clicks"] == 1 and target in s["selection"]
+        # The same by sky position (the parameter file's [metadata.focal_plane]).
+        Select(driver.find_element("id", "focal-layout")).select_by_value("sky")
+        s = _wait(driver, lambda s: s["grid_type"] == "scatter" and len(s["grid"]) == 8, 10, "the sky layout")
+        target = next(d for d in sorted(s["grid"]) if d not in s["selection"])
+        cell = driver.execute_script(_CELL_JS, target)
+        ActionChains(driver).move_to_element_with_offset(driver.find_element("id", "grid"), int(cell["dx"]),
+                                                         int(cell["dy"])).click().perform()
+        s = _wait(driver, lambda s: any(t["name"].startswith(target) for t in s["timestreams"]), 15,
+                  f"{target} plotted after a click on its sky position")
+        assert s["clicks"] == 2
         # Kill the source: no power for more than 3 chunk intervals turns the badge red, with the age.
         n_changes = len(s["fresh_changes"])
         source.kill()

@@ -61,9 +61,9 @@ const data = (id) => { const el = document.getElementById(id); return el && el.d
 const grid = data('grid')[0];
 const gridCells = {};
 if (grid) {
-  grid.text.forEach((row, i) => row.forEach((t, j) => {
-    if (t) { const [id, rest] = t.split(': '); gridCells[id] = {state: rest.split(' · ')[0], z: grid.z[i][j]}; }
-  }));
+  const cell = (t, z) => { if (t) { const [id, rest] = t.split(': '); gridCells[id] = {state: rest.split(' · ')[0], z: z}; } };
+  if (grid.type === 'heatmap') grid.text.forEach((row, i) => row.forEach((t, j) => cell(t, grid.z[i][j])));
+  else grid.text.forEach((t, i) => cell(t, grid.marker.color[i]));  // the sky layout: one marker per detector
 }
 const axisText = (id) => { const el = document.getElementById(id);
   return el && el.layout && el.layout.annotations ? el.layout.annotations.map(a => a.text) : []; };
@@ -93,6 +93,7 @@ return {
       finite: t.y.filter(v => v !== null && Number.isFinite(v)).length})),
   harmonics: spec && spec.layout && spec.layout.shapes ? spec.layout.shapes.map(s => s.x0) : [],
   grid: gridCells,
+  grid_type: grid ? grid.type : null,
   legend: document.getElementById('legend') ? document.getElementById('legend').innerText : '',
   hk: data('hk').map(t => ({name: t.name, n: t.x.length})),
   health: document.getElementById('health') ? document.getElementById('health').innerText : '',

@@ -238,7 +238,7 @@ function grid(msg) {
     const marker = metric === "state"
       ? { color: c, colorscale, cmin: -0.5, cmax: n - 0.5, size: 9 }
       : { color: c, colorscale: "Viridis", size: 9, showscale: true, colorbar: { title: { text: FOCAL_UNITS[metric] } } };
-    trace = { type: "scattergl", mode: "markers", x, y, text, customdata: ids, hoverinfo: "text", marker };
+    trace = { type: "scatter", mode: "markers", x, y, text, customdata: ids, hoverinfo: "text", marker };
     layout = {
       uirevision: "sky", margin: { l: 60, r: 10, t: 10, b: 45 },
       xaxis: { title: { text: "x [deg]" } }, yaxis: { title: { text: "y [deg]" }, scaleanchor: "x" },
