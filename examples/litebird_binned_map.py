@@ -14,8 +14,9 @@ What litebird_sim cannot know from a readout, the example states:
 
 - the TOD is power in W; litebird_sim has no watt unit, so its loader reports
   K_CMB (with a warning): the map is in W whatever the label says;
-- its binner reads no flags: detectors with any unusable sample
-  (``local_flags & UNUSABLE``, NaN power) are left out of the observations;
+- its binner reads no flags: detectors with no usable sample are left out,
+  and each observation is cut to the longest span where the others are all
+  usable (``local_flags & UNUSABLE == 0``; NaN power elsewhere);
 - it weights detectors by ``net_ukrts`` (a temperature NET, 0 in the export):
   equal weights here;
 - the readout carries no pointing: a made-up scan (10 degree sweeps every
@@ -34,6 +35,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _record import arguments, record_and_export, report  # noqa: E402
 
 NSIDE = 64
+
+
+def longest_run(ok: np.ndarray) -> tuple[int, int]:
+    """``(start, stop)`` of the longest run of True in ``ok`` ((0, 0) if none)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    if edges.size == 0:
+        return 0, 0
+    starts, stops = edges[0::2], edges[1::2]
+    k = int(np.argmax(stops - starts))
+    return int(starts[k]), int(stops[k])
 
 
 def scan(obs) -> np.ndarray:
@@ -59,14 +70,20 @@ def main() -> None:
         units_in_file = str(f["tod"].attrs["units"])
     usable_obs, cut = [], 0
     for obs in loaded:
-        keep = np.flatnonzero(~np.any(obs.local_flags & UNUSABLE, axis=1))
+        bad = (obs.local_flags & UNUSABLE) != 0  # (det, samp): no usable power (NaN)
+        keep = np.flatnonzero(~bad.all(axis=1))
         cut += obs.n_detectors - keep.size
-        sub = lbs.Observation(detectors=[obs.detectors_global[i] for i in keep], n_samples_global=obs.n_samples,
-                              start_time_global=obs.start_time, sampling_rate_hz=obs.sampling_rate_hz,
-                              tods=obs.tod_list)
-        sub.tod[:] = obs.tod[keep]
+        a, z = longest_run(~bad[keep].any(axis=0))  # the binner reads no flags: only all-usable samples
+        if z - a < 2:
+            continue
+        sub = lbs.Observation(detectors=[obs.detectors_global[i] for i in keep], n_samples_global=z - a,
+                              start_time_global=obs.start_time + a / obs.sampling_rate_hz,
+                              sampling_rate_hz=obs.sampling_rate_hz, tods=obs.tod_list)
+        sub.tod[:] = obs.tod[keep, a:z]
         sub.net_ukrts = np.ones(sub.n_detectors)
         usable_obs.append(sub)
+    if not usable_obs:
+        sys.exit("no usable power in the recording: nothing to map")
     result = lbs.make_binned_map(nside=NSIDE, observations=usable_obs, pointings=[scan(o) for o in usable_obs],
                                  output_coordinate_system=lbs.CoordinateSystem.Ecliptic)
     i_map_w = result.binned_map[0]
@@ -74,6 +91,7 @@ def main() -> None:
     report(args, {
         "observations": len(loaded),
         "detectors_kept": sum(o.n_detectors for o in usable_obs),
+        "samples_used": int(sum(o.n_samples for o in usable_obs)),
         "detectors_cut": cut,
         "units_in_file": units_in_file,
         "units_litebird_reports": str(loaded[0].tod_list[0].units.value),

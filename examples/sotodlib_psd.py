@@ -7,8 +7,9 @@ Records a few seconds with ``mntes-stream up`` (or takes ``--session``),
 exports them with ``mntes-stream export --format sotodlib`` (one
 ``AxisManager.save`` group per module; the root attribute ``observations``
 names them), loads each with ``AxisManager.load``, drops the detectors whose
-``flags.unusable`` range matrix cuts any sample (``AxisManager.restrict``:
-their power is NaN there) and computes Welch spectra of ``signal`` (W) with
+``flags.unusable`` range matrix cuts every sample, restricts the samples to
+the longest span the others have all usable (``AxisManager.restrict``: the
+power is NaN where cut) and computes Welch spectra of ``signal`` (W) with
 ``sotodlib.tod_ops.fft_ops.calc_psd``: W^2/Hz.
 """
 
@@ -24,6 +25,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _record import arguments, record_and_export, report  # noqa: E402
 
 
+def longest_run(ok: np.ndarray) -> tuple[int, int]:
+    """``(start, stop)`` of the longest run of True in ``ok`` ((0, 0) if none)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    if edges.size == 0:
+        return 0, 0
+    starts, stops = edges[0::2], edges[1::2]
+    k = int(np.argmax(stops - starts))
+    return int(starts[k]), int(stops[k])
+
+
 def main() -> None:
     args = arguments(__doc__.splitlines()[0])
     import h5py
@@ -36,9 +47,15 @@ def main() -> None:
     levels, kept, cut = [], 0, 0
     for name in names:
         aman = core.AxisManager.load(str(out), name)
-        usable = ~aman.flags.unusable.mask().any(axis=1)
-        cut += int((~usable).sum())
-        aman.restrict("dets", aman.dets.vals[usable])
+        cuts = aman.flags.unusable.mask()  # (dets, samps): samples with no usable power (NaN)
+        alive = ~cuts.all(axis=1)
+        cut += int((~alive).sum())
+        aman.restrict("dets", aman.dets.vals[alive])
+        # Welch needs gap-free data: the longest span where every kept detector is usable.
+        a, z = longest_run(~cuts[alive].any(axis=0))
+        if aman.dets.count == 0 or z - a < 128:
+            sys.exit(f"{name}: no span of 128 usable samples on the detectors with power")
+        aman.restrict("samps", (aman.samps.offset + a, aman.samps.offset + z))
         kept += aman.dets.count
         freqs_hz, pxx_w2_per_hz = fft_ops.calc_psd(aman, signal=aman.signal, nperseg=128)
         white = pxx_w2_per_hz[:, freqs_hz > 10.0]  # above the HWP and drift lines
@@ -48,6 +65,7 @@ def main() -> None:
         "observations": names,
         "detectors_kept": kept,
         "detectors_cut": cut,
+        "samples_used": int(aman.samps.count),
         "signal_units": str(aman.mntes_stream.signal_units),
         "sample_rate_hz": rate_hz,
         "white_noise_w_per_rthz_median": float(np.median(levels)),

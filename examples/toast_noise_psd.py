@@ -41,19 +41,24 @@ def main() -> None:
     toast.ops.NoiseEstim(det_data="signal", det_flags="flags", det_flag_mask=flagged, shared_flags="flags",
                          shared_flag_mask=1, lagmax=64, nbin_psd=None, out_model=None,
                          output_dir=str(psd_dir)).apply(data)
-    levels = {}
+    levels, files = {}, 0
     for path in sorted(psd_dir.glob("*.fits")):  # one per detector with valid samples
+        files += 1
         with fits.open(path) as h:
             freq_hz, psd_w2_per_hz = (np.asarray(r[0], dtype=np.float64) for r in h[2].data)
             det = h[2].header["DET1"]
         white = psd_w2_per_hz[freq_hz > 10.0]  # above the HWP and drift lines
-        levels[det] = float(np.sqrt(np.median(white)))
+        if np.isfinite(white).all():  # NoiseEstim gives NaN where too few samples were valid
+            levels[det] = float(np.sqrt(np.median(white)))
+    if not levels:
+        sys.exit("no detector with a finite spectrum: no usable power in the recording?")
     report(args, {
         "observations": [ob.name for ob in data.obs],
         "detectors": sum(len(ob.all_detectors) for ob in data.obs),
         "signal_units": str(data.obs[0].detdata["signal"].units),
         "sample_rate_hz": float(data.obs[0].telescope.focalplane.sample_rate.to_value("Hz")),
-        "psd_files": len(levels),
+        "psd_files": files,
+        "finite_spectra": len(levels),
         "white_noise_w_per_rthz_median": float(np.median(list(levels.values()))),
     })
 
