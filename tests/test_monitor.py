@@ -295,6 +295,10 @@ def test_cli_arguments():
     cfg = monitor_config(parser.parse_args(["monitor", "--f-hwp", "auto", "--port", "0"]))
     assert cfg.view.f_hwp_hz is None and cfg.port == 0 and cfg.bind == "127.0.0.1" and cfg.update_s == 0.5
     assert monitor_config(parser.parse_args(["monitor"])).view.f_hwp_hz == 0.77
+    cfg = monitor_config(parser.parse_args(["monitor", "--allowed-hosts", "lab-pc", "lab-pc.example.org",
+                                            "--long-history-s", "600", "--memory-mb", "400"]))
+    assert cfg.allowed_hosts == ("lab-pc", "lab-pc.example.org") and cfg.view.long_history_s == 600
+    assert cfg.view.memory_mb == 400
     for bad in (["--f-hwp", "-1"], ["--f-hwp", "x"]):
         with pytest.raises(SystemExit):
             parser.parse_args(["monitor", *bad])

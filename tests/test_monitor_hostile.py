@@ -325,3 +325,19 @@ def test_clients_beyond_max_clients_are_refused(web_server):
             await c.close()
 
     asyncio.run(scenario())
+
+
+def test_web_guard_rules():
+    from mntes_stream.monitor.server import WebGuard
+
+    g = WebGuard("192.168.1.5", ("lab-pc",))
+    ok = [{"Host": "192.168.1.5:8050"}, {"Host": "lab-pc"}, {"Host": "LOCALHOST:1"}, {"Host": "[::1]:8050"},
+          {"Host": "lab-pc:8050", "Origin": "http://lab-pc:8050"}, {"Host": "lab-pc", "Sec-Fetch-Site": "same-origin"}]
+    for h in ok:
+        assert g.refusal(h) is None, h
+    bad = [{}, {"Host": "0.0.0.0:8050"}, {"Host": "lab-pc.evil.example"}, {"Host": "192.168.1.6"},
+           {"Host": "lab-pc:8050", "Origin": "http://lab-pc:8051"}, {"Host": "lab-pc:8050", "Origin": "null"},
+           {"Host": "lab-pc", "Sec-Fetch-Site": "cross-site"}]
+    for h in bad:
+        assert g.refusal(h) is not None, h
+    assert "0.0.0.0" not in WebGuard("0.0.0.0").hosts and "::" not in WebGuard("::").hosts

@@ -218,7 +218,7 @@ def test_text_mode_prints_a_bounded_live_table():
     screens = [s for s in out.split("\n\n") if s.strip()]
     assert 3 <= len(screens) <= 6  # about one per second, and it stopped by itself
     last = screens[-1]
-    assert "channels 32 in 2 modules" in last
+    assert "channels 32 in 2 modules  LIVE (newest data" in last
     assert "saturated 2" in last and "b0m0c003 saturated, b0m1c003 saturated" in last
     assert "t_bath 100.0000 mK" in last and "b_field 2.000 uT" in last
     row = next(line for line in last.splitlines() if line.startswith("monitor"))
