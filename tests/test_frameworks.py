@@ -126,6 +126,19 @@ def test_sotodlib_loader_reads_the_export_and_the_in_memory_object_equals_it(ses
         check_axismanager(o, b, name)
 
 
+def test_a_selection_exports_only_what_it_selects(session, tmp_path):
+    path, _ = session
+    sel = ["--detectors", "b0m1c005,b0m1c000", "--start", str(T0 + 2 * STEP), "--end", str(T0 + 6 * STEP)]
+    _export(path, "sotodlib", tmp_path / "so.h5", *sel)
+    ref = RecordedPower(path, detectors=["b0m1c005", "b0m1c000"], start_ns=T0 + 2 * STEP,
+                        end_ns=T0 + 6 * STEP).read()["t_b0m1"]
+    am = sotodlib_core.AxisManager.load(str(tmp_path / "so.h5"), "t_b0m1")
+    with h5py.File(tmp_path / "so.h5", "r") as f:
+        assert json.loads(f.attrs["observations"]) == ["t_b0m1"]
+    check_axismanager(am, ref, "t_b0m1")
+    assert tuple(am.dets.vals) == ("b0m1c005", "b0m1c000") and am.samps.count == 4 * N
+
+
 # ---------------------------------------------------------------- litebird_sim
 
 
