@@ -304,6 +304,8 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
                     msg = _dumps({"type": "error", "message": f"server: {type(exc).__name__}: {exc}"})
                 try:
                     await asyncio.wait_for(ws.send_str(msg), send_timeout_s)
+                except ConnectionError:  # the page went away (aiohttp's ClientConnectionResetError is one)
+                    return
                 except TimeoutError:
                     refused["slow_client"] += 1
                     log.warning("monitor closed a client that took over %.0f s to take one update", send_timeout_s)
