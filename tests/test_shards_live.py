@@ -84,24 +84,30 @@ def test_three_shards_publish_every_detector_once(tmp_path):
         procs.append(router)
         router.wait_for(r"router router: zenoh id")
         shards = [_serve(tmp_path, "converter.toml", f"converter.shard={i}/3") for i in range(3)]
-        recorder = _serve(tmp_path, "recorder.toml")
-        procs += [*shards, recorder]
+        # The recorder sharded too: two processes, one file set each, in one directory.
+        recorders = [_serve(tmp_path, "recorder.toml", f"recorder.shard={i}/2") for i in range(2)]
+        procs += [*shards, *recorders]
         for i, p in enumerate(shards):
             n = len(owned_streams(STREAMS, Shard(i, 3)))
             p.wait_for(rf"converter converter-{i}of3: {n * CHANNELS} detectors.*shard {i}/3: {n} stream")
-        recorder.wait_for(r"recording mntes/lab/\*\* into")
+        for p in recorders:
+            p.wait_for(r"recording mntes/lab/\*\* into")
         source = _serve(tmp_path, "source.toml")
         procs.append(source)
         assert source.p.wait(60) == 0, "".join(source.seen)
-        time.sleep(1.5)  # the last power on its way to the recorder
-        for p in (*shards, recorder, router):
+        time.sleep(1.5)  # the last power on its way to the recorders
+        for p in (*shards, *recorders, router):
             assert p.interrupt(30) in (0, 130)
         _no_traceback(*procs)
     finally:
         _stop_all(procs)
 
-    session = Session(tmp_path / "recordings")
+    files = sorted(f.name for f in (tmp_path / "recordings").glob("*.mcap"))
+    assert [f[:16] for f in files] == ["mntes-shard0of2-", "mntes-shard1of2-"], files
+    session = Session(tmp_path / "recordings")  # the two file sets, one session
     assert session.complete  # the recording reads back whole
+    log_times = [m.log_time_ns for m in session.iter_messages()]
+    assert log_times == sorted(log_times)  # in time order across the shards' files
     counts, power, by_detector = set(), collections.Counter(), collections.Counter()
     statuses, provenances = {}, set()
     for m in session.iter_messages():
@@ -130,6 +136,39 @@ def test_three_shards_publish_every_detector_once(tmp_path):
     assert {st.owns["shard"] for st in statuses.values()} == {"0/3", "1/3", "2/3"}
     assert all(st.chunks_lost == 0 and not st.owns["held"] for st in statuses.values())
     assert len(provenances) == 3
+    # Each stream's counts and power in one shard's files; housekeeping once (shard 0); provenance in both.
+    by_file = collections.defaultdict(collections.Counter)
+    for f in sorted((tmp_path / "recordings").glob("*.mcap")):
+        for t, n in Session(f).message_counts().items():
+            by_file[t][f.name[:16]] += n
+    for t, where in by_file.items():
+        kind = keys.kind_of(t)
+        if kind in ("counts", "power"):
+            b, m = map(int, t.split("/")[3:5])
+            assert list(where) == [f"mntes-shard{0 if Shard(0, 2).owns(b, m) else 1}of2-"], (t, where)
+        elif kind == "provenance":
+            assert len(where) == 2
+        else:
+            assert list(where) == ["mntes-shard0of2-"], (t, where)
+
+    # Offline: the shard files convert as one session, with the shards' parameters joined, to the live power.
+    from mntes_stream.service.offline import convert_recording, recorded_calibrations
+
+    (calibration,) = [p for _, p in recorded_calibrations(session)]
+    assert calibration.owns == {"shards": 3} and calibration.params_toml.count("[detectors.") == MODULES * CHANNELS
+    stats = convert_recording(tmp_path / "recordings", tmp_path / "offline.mcap", progress=False)
+    assert stats.power_chunks == MODULES * n_steps and stats.chunks_lost == 0
+    live = {(pw.module, pw.seq): pw for pw in (PowerChunk.from_bytes(m.payload)
+                                               for m in session.iter_messages("mntes/lab/power/**"))}
+    offline = [PowerChunk.from_bytes(m.payload) for m in Session(tmp_path / "offline.mcap").iter_messages("mntes/lab/power/**")]
+    assert len(offline) == len(live)
+    for pw in offline:
+        ref = live[(pw.module, pw.seq)]
+        np.testing.assert_array_equal(pw.p_opt_w, ref.p_opt_w)
+        np.testing.assert_array_equal(pw.flags, ref.flags)
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "inspect", "recordings"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
 
 
 def _client(port: int) -> ZenohSettings:

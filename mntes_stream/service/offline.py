@@ -75,6 +75,40 @@ def _calibration(prov) -> tuple:
     return (prov.setup, prov.params_toml, prov.table_identity, prov.converter_kind)
 
 
+def _owner(prov) -> str:
+    """Which part of the focal plane a provenance speaks for ("" for the whole: an unsharded converter)."""
+    import json
+
+    return json.dumps(prov.owns, sort_keys=True) if prov.owns else ""
+
+
+def _merged(parts: dict) -> object:
+    """One provenance for the converter shards that together converted a setup: their parameters joined.
+
+    A single part is itself. The joined parameters' tables are rebuilt (no one recorded bank has them
+    all): ``table_identity`` is left empty, so :func:`build_converter` does not compare it.
+    """
+    import dataclasses
+
+    from mntes_stream.io.paramfile import params_to_toml, parse_params
+
+    if len(parts) == 1:
+        return next(iter(parts.values()))
+    provs = [parts[k] for k in sorted(parts)]
+    kinds = {p.converter_kind for p in provs}
+    if len(kinds) != 1:
+        raise ConfigError(f"the recording's converter shards used different kinds {sorted(kinds)}: convert each "
+                          "shard's streams with --params/--tables of its own")
+    params: dict = {}
+    for p in provs:
+        try:
+            params.update(parse_params(tomllib.loads(p.params_toml), "recorded provenance") if p.params_toml else {})
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"recorded provenance: parameter TOML unreadable: {exc}") from None
+    return dataclasses.replace(provs[-1], params_toml=params_to_toml(list(params.values())), table_identity="",
+                               owns={"shards": len(provs)})
+
+
 def recorded_calibrations(session) -> list:
     """The calibrations a recording holds, in receive-time order.
 
@@ -88,6 +122,9 @@ def recorded_calibrations(session) -> list:
         The recorded receive time (ns) of each provenance that changed the
         calibration of its setup, and that provenance. Rotated files repeat
         the latest provenance with its original receive time: counted once.
+        Converter shards (provenances that say what they own) together make
+        one calibration, their parameters joined: a shard first heard of joins
+        the current one; a shard whose own calibration changes starts a new one.
     """
     from mntes_stream.errors import SchemaError
     from mntes_stream.io.mcap import PROVENANCE_ATTACHMENT
@@ -97,17 +134,25 @@ def recorded_calibrations(session) -> list:
     for k, a in enumerate(session.attachments()):
         if a.name == PROVENANCE_ATTACHMENT:
             first.setdefault((a.log_time_ns, a.data), k)
-    out, current = [], {}
+    epochs: list[tuple[int, str, dict]] = []  # (first receive time, setup, {owner: provenance})
+    current: dict[str, int] = {}  # setup -> index in epochs
     for (t_ns, data), _ in sorted(first.items(), key=lambda kv: (kv[0][0], kv[1])):
         try:
             prov = Provenance.from_bytes(data)
         except SchemaError as exc:  # files of recorders that stored it unchecked
             log.warning("recorded provenance at log time %d unreadable, ignored: %s", t_ns, exc)
             continue
-        if current.get(prov.setup) != _calibration(prov):
-            current[prov.setup] = _calibration(prov)
-            out.append((t_ns, prov))
-    return out
+        owner = _owner(prov)
+        k = current.get(prov.setup)
+        parts = epochs[k][2] if k is not None else None
+        if parts is not None and owner not in parts and "" not in parts and owner:
+            parts[owner] = prov  # one more shard of the same calibration
+        elif parts is None or owner not in parts or _calibration(parts[owner]) != _calibration(prov):
+            new = {} if parts is None or not owner or "" in parts else {o: p for o, p in parts.items()}
+            new[owner] = prov
+            current[prov.setup] = len(epochs)
+            epochs.append((t_ns, prov.setup, new))
+    return [(t_ns, _merged(parts)) for t_ns, _, parts in epochs]
 
 
 def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None):
@@ -151,7 +196,8 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
     kind = provenance.converter_kind if provenance is not None else "table"
     conv = make_converter(kind, pdict)
     tsrc = f"rebuilt from the parameters ({kind})" if kind in ("table", "grid") else "none (analytic)"
-    if provenance is not None and params is None and kind in ("table", "grid") and str(conv.identity) != provenance.table_identity:
+    if (provenance is not None and params is None and kind in ("table", "grid") and provenance.table_identity
+            and str(conv.identity) != provenance.table_identity):
         raise ConfigError(
             f"tables rebuilt from the recorded parameters have identity {str(conv.identity)[:16]}, the recording used "
             f"{provenance.table_identity[:16]} (other build options?): give the table file with --tables"
