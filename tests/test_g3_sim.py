@@ -149,3 +149,41 @@ def test_round_trip_g3_bridge_converter_recorder_back_to_g3(tmp_path):
         assert np.isfinite(live).mean() > 0.9
         np.testing.assert_allclose(live, offline[name], rtol=0, atol=1e-21)
     assert sorted(times) == [T0_NS + round(k * 1e9 / cfg.sample_rate_hz) for k in range(305)]
+
+
+def test_gain_change_applies_through_the_live_converter_pipeline(tmp_path):
+    """convert RUN.g3 OUT.mcap (the messages the bridge publishes, the live converter's pipeline) on a run
+    whose nuller gain changes at 1.5 s: the counts follow the converter's reference gain, so the power
+    stays on the truth across the change (to DfMux count resolution, ~1e-17 W); with the old gain it
+    would be off by the gain ratio."""
+    from mntes_stream.core.ids import parse_detector_id
+    from mntes_stream.core.sim import ArraySimulator
+    from mntes_stream.g3.files import g3_to_mcap
+    from mntes_stream.g3.sim import bolometer_name, write_g3
+    from mntes_stream.io.mcap import Session
+    from mntes_stream.io.messages import PowerChunk
+    from mntes_stream.service.simulator import TruthRecorder
+
+    cfg = SimConfig.noise_free(modules=1, channels=4)
+    truth = TruthRecorder([], cfg)
+    t_step = 1.5
+    write_g3(cfg, tmp_path / "run.g3", 3.0, layout="timepoints", t0_ns=T0_NS, truth=truth, nuller_gain=2,
+             gain_steps=((t_step, 9),), params_out=tmp_path / "names.toml")
+    stats = g3_to_mcap(tmp_path / "run.g3", tmp_path / "out.mcap", params=tmp_path / "names.toml")
+    assert stats.samples_converted == 4 * 458
+    want_t = np.concatenate([b.t_ns for b in truth._blocks])
+    want = np.concatenate([b.truth_p_opt_w for b in truth._blocks], axis=1)
+    got: dict = {}
+    for msg in Session(tmp_path / "out.mcap").iter_messages():
+        if "/power/" in msg.topic:
+            c = PowerChunk.from_bytes(msg.payload)
+            for row, det in enumerate(c.detector_ids):
+                got.setdefault(det, {}).update(zip(c.times_ns().tolist(), c.p_opt_w[row]))
+    t_change = T0_NS + int(t_step * 1e9)
+    for k, det in enumerate(ArraySimulator(cfg).detector_ids):
+        assert bolometer_name(*parse_detector_id(det))  # the truth parameters were keyed by name
+        p = np.array([got[det][t] for t in want_t.tolist()])
+        after = want_t >= t_change
+        assert np.isfinite(p[after]).mean() > 0.9 and np.isfinite(p[~after]).mean() > 0.9
+        err = np.abs(p - want[k])
+        assert np.nanmax(err[after]) < 1e-16 and np.nanmax(err[~after]) < 1e-16

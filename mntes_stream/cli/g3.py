@@ -89,6 +89,8 @@ def register(sub) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     p.add_argument("--setup", help="setup name in the keys (default lab)")
     p.add_argument("--chunk-samples", type=int, help="Timepoints per counts chunk (default 16, ~0.1 s)")
+    p.add_argument("--params", metavar="FILE", help="the converter's parameter file: counts published in units of "
+                                                    "its gain, so DfMux gain changes apply (default: raw counts)")
     p.add_argument("--boards", type=lambda t: tuple(int(x) for x in t.split(",")), metavar="SERIAL,...",
                    help="only these board serials (one bridge per group of boards; default all)")
     p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="stop after this long (0: never)")

@@ -43,6 +43,9 @@ class BridgeSettings(Settings):
     setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/...", pattern=NAME_PATTERN)
     chunk_samples: int = setting(16, "raw Timepoints per counts chunk (16 = 0.105 s at the DfMux rate)", ge=1)
     boards: tuple[int, ...] = setting((), "only these board serials (one bridge per group of boards); empty: all")
+    params: str = setting("", "the converter's parameter file: counts are published in units of its gain, so a "
+                          "DfMux gain change applies from its sample on ('': the DfMux's own counts, a gain change "
+                          "is only reported)", path=True)
     duration_s: float = setting(0.0, "stop after this long (0: until stopped or, for a file, its end)", unit="s", ge=0)
     reconnect_s: float = setting(1.0, "wait between connection attempts", unit="s", gt=0)
     timeout_s: float = setting(10.0, "a connection silent this long is dead: reconnect", unit="s", gt=0)
@@ -152,6 +155,7 @@ def bridge_config(args) -> G3BridgeConfig:
     else:
         cfg = G3BridgeConfig()
     flags = {k: getattr(args, a) for k, a in (("source", "source"), ("setup", "setup"), ("boards", "boards"),
+                                              ("params", "params"),
                                               ("chunk_samples", "chunk_samples"), ("duration_s", "duration_s"))
              if getattr(args, a, None) is not None}
     g3 = {k: getattr(args, k) for k in ("t_bath_key", "t_bath_default_k") if getattr(args, k) is not None}
@@ -181,7 +185,12 @@ class G3BridgeService(Service):
         from mntes_stream.service.base import stop_on_signals
 
         b = self.config.bridge
-        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards)
+        gref = None
+        if b.params:
+            from mntes_stream.io.paramfile import load_params
+
+            gref = {d: abs(p.gain_a_per_count) for d, p in load_params(b.params).items()}
+        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards, gain_reference=gref)
         src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects)
         t_start = time.monotonic()
         first_data_ns = None

@@ -111,7 +111,8 @@ def g3_to_g3(inputs, output, *, params=None, kind: str = "table", config: G3Inpu
             "housekeeping_changes": module.gain_changes, "kind": kind}
 
 
-def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_samples: int = 16):
+def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_samples: int = 16,
+                gain_reference=None):
     """``(t_ns, key, payload)`` of every message a G3 run gives (the bridge's translation).
 
     ``t_ns`` is the data time the message stands for (last sample of a
@@ -130,7 +131,7 @@ def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_s
         from mntes_stream.g3.mapping import BathHistory
 
         BathHistory(config).require()  # the one-line error naming the setting
-    tr = FrameTranslator(setup, config, chunk_samples)
+    tr = FrameTranslator(setup, config, chunk_samples, gain_reference=gain_reference)
     t_default = None
 
     def with_default(items):
@@ -191,15 +192,16 @@ def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, s
     config = config or G3InputConfig()
     files = expand_inputs(inputs)
     with tempfile.TemporaryDirectory(prefix="mntes-g3-") as tmp:
-        pfile = None
+        pfile, gref = None, None
         if params is not None:
             pfile = Path(tmp) / "params.toml"
-            dump_params(list(converter_params(files, params, config).values()), pfile,
-                        metadata={"source": f"G3 run {files[0]}: gain from housekeeping"})
+            pdict = converter_params(files, params, config)
+            dump_params(list(pdict.values()), pfile, metadata={"source": f"G3 run {files[0]}: gain from housekeeping"})
+            gref = {d: abs(p.gain_a_per_count) for d, p in pdict.items()}  # later gain changes rescale the counts
         rec = Path(tmp) / "g3.mcap"
         with McapFileWriter(rec, metadata={"mntes.recording": writer_description(
                 mode="G3 translation", input=[str(f) for f in files])}) as w:
-            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples):
+            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples, gain_reference=gref):
                 w.write(key, payload, t_ns)
         return convert_recording(rec, output, params=pfile, tables=tables, pipeline_config=pipeline_config,
                                  progress=progress)

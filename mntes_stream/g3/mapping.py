@@ -220,6 +220,11 @@ class HkHistory:
         return (not np.array_equal(prev.amps_rms_per_count, snap.amps_rms_per_count, equal_nan=True),
                 not np.array_equal(prev.v_bias_rms_v, snap.v_bias_rms_v, equal_nan=True))
 
+    def before(self, t_ns: int) -> HkSnapshot | None:
+        """The snapshot in force just before ``t_ns`` (None if none)."""
+        k = bisect.bisect_left(self._t, t_ns)
+        return self._snaps[k - 1] if k > 0 else None
+
     def first(self) -> HkSnapshot:
         if not self._snaps:
             raise ConfigError("no DfMux housekeeping (Housekeeping frame with DfMuxHousekeeping) before the data")

@@ -29,6 +29,7 @@ from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS
 from mntes_stream.errors import ConfigError
 from mntes_stream.g3 import spt3g
 from mntes_stream.g3.mapping import (
+    SQRT2,
     BathHistory,
     G3InputConfig,
     HkHistory,
@@ -50,12 +51,14 @@ RAIL = int(np.iinfo(np.int32).max)
 _SAMPLE_NS = DFMUX_TICKS_PER_SAMPLE * G3_TICK_NS
 
 
-def to_int32_counts(x: np.ndarray) -> np.ndarray:
-    """int32 counts; NaN or beyond 24 bits -> the rail (+-(2**31 - 1)), which converters flag."""
+def to_int32_counts(x: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
+    """int32 counts (times ``scale`` if given); NaN or beyond 24 bits (before scaling) -> the rail
+    (+-(2**31 - 1)), which converters flag."""
     bad = invalid_counts(x)
+    y = x if scale is None else x * scale
     if not bad.any():
-        return np.rint(x).astype(np.int32)
-    out = np.where(bad, np.where(np.signbit(np.nan_to_num(x, nan=1.0)), -RAIL, RAIL), np.nan_to_num(x))
+        return np.rint(y).astype(np.int32)
+    out = np.where(bad, np.where(np.signbit(np.nan_to_num(x, nan=1.0)), -RAIL, RAIL), np.nan_to_num(y))
     return np.rint(out).astype(np.int32)
 
 
@@ -87,10 +90,16 @@ class FrameTranslator:
         Timepoints per counts chunk (raw layout).
     boards : sequence of int
         Only these board serials (several bridges share an array); empty: all.
+    gain_reference : mapping, optional
+        ``|gain_a_per_count|`` (peak A per count) of the converter's parameters, by detector id or bolometer
+        name. Given, the counts are published in units of that gain: ``round(counts * sqrt(2) a(t) / |g|)``
+        with ``a(t)`` the housekeeping's amps per count in force, so a converter with fixed parameters follows
+        a gain change from its sample on (rounding to whole reference counts aside). Without it the counts
+        are the DfMux's own and a gain change is only reported.
     """
 
     def __init__(self, setup: str = keys.DEFAULT_SETUP, config: G3InputConfig | None = None, chunk_samples: int = 16,
-                 boards=()):
+                 boards=(), gain_reference=None):
         keys.counts_key(setup)
         if chunk_samples < 1:
             raise ConfigError("chunk_samples must be >= 1")
@@ -98,6 +107,8 @@ class FrameTranslator:
         self.config = config or G3InputConfig()
         self.chunk_samples = int(chunk_samples)
         self.boards = tuple(int(b) for b in boards)
+        self.gain_reference = dict(gain_reference) if gain_reference else None
+        self._gref: np.ndarray | None = None
         self.wiring: Wiring | None = None
         self.hk = HkHistory()
         self.bath = BathHistory(self.config)
@@ -118,10 +129,11 @@ class FrameTranslator:
 
     def _hk_msg(self, sensor: str, t_ns: int, value, **where) -> tuple[str, bytes]:
         sk = keys.hk_sensor(sensor, where.get("board"), where.get("module"))
-        msg = HousekeepingChunk(setup=self.setup, sensor=sensor, seq=self._next_seq(sk),
-                                t_ns=np.array([t_ns], dtype=np.int64), value=np.asarray(value, dtype=float),
+        t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+        msg = HousekeepingChunk(setup=self.setup, sensor=sensor, seq=self._next_seq(sk), t_ns=t,
+                                value=np.asarray(value, dtype=float),
                                 unit={"t_bath": "K", "b_field": "T", "bias": "V"}[sensor], **where)
-        self._times.append(int(t_ns))
+        self._times.append(int(t[-1]))
         return keys.hk_key(self.setup, sk), msg.to_bytes()
 
     def _set_wiring(self, wiring: Wiring) -> list:
@@ -130,6 +142,9 @@ class FrameTranslator:
         self.hk = HkHistory()
         self._buffer = TimepointBuffer(wiring)
         self._groups = [(b, m, rows) for (b, m), rows in wiring.modules().items()]
+        if self.gain_reference is not None:
+            g = self.gain_reference
+            self._gref = np.array([float(g.get(n, g.get(d, np.nan))) for n, d in zip(wiring.names, wiring.detector_ids)])
         for hkmap in self._pending:
             out += self._housekeeping(hkmap)
         self._pending = []
@@ -138,9 +153,13 @@ class FrameTranslator:
     def _housekeeping(self, hkmap) -> list:
         snap = hk_snapshot(hkmap, self.wiring, self._t_last_ns)
         self.counters.housekeeping += 1
+        before = self.hk.before(snap.t_ns)
         gain, bias = self.hk.add(snap)
         self.counters.bias_changes += bias
-        if gain:
+        if gain and self._gref is not None:
+            self.counters.gain_changes += 1  # applied: the counts follow the reference gain
+            log.info("DfMux housekeeping at %d ns changes amps per count: counts rescaled from here on", snap.t_ns)
+        elif gain:
             # The messages carry counts and bias, not the gain: a converter keeps the gain of its parameters.
             self.counters.gain_changes += 1
             self.gain_changed_at.append(snap.t_ns)
@@ -149,7 +168,11 @@ class FrameTranslator:
                         "parameters of the new gain)", snap.t_ns)
         out = []
         for b, m, rows in self._groups:
-            out.append(self._hk_msg("bias", snap.t_ns, snap.v_bias_rms_v[rows][None, :], board=int(b), module=int(m),
+            t, v = [snap.t_ns], [snap.v_bias_rms_v[rows]]
+            if bias and before is not None and not np.array_equal(before.v_bias_rms_v[rows], v[0], equal_nan=True):
+                # A step: the old value 1 ns before it too, so interpolating readings reproduces the step.
+                t, v = [snap.t_ns - 1, snap.t_ns], [before.v_bias_rms_v[rows], v[0]]
+            out.append(self._hk_msg("bias", t, np.stack(v), board=int(b), module=int(m),
                                     channels=self.wiring.channel[rows].astype(np.int32)))
         return out
 
@@ -175,7 +198,13 @@ class FrameTranslator:
         n_bad = int(np.count_nonzero(invalid_counts(blk.counts_i) | invalid_counts(blk.counts_q)))
         self.counters.invalid_samples += n_bad
         self.counters.samples += blk.counts_i.size
-        ci_all, cq_all = to_int32_counts(blk.counts_i), to_int32_counts(blk.counts_q)
+        scale = None
+        if self._gref is not None and len(self.hk):
+            amps, _ = self.hk.at(blk.t_ns, blk.rows)
+            with np.errstate(invalid="ignore"):
+                scale = SQRT2 * amps / self._gref[blk.rows][:, None]
+            scale = np.where(np.isfinite(scale), scale, 1.0)  # no reference or housekeeping: the DfMux's counts
+        ci_all, cq_all = to_int32_counts(blk.counts_i, scale), to_int32_counts(blk.counts_q, scale)
         for b, m, rows in self._groups:
             rows = rows[have[rows] >= 0]
             if not rows.size:
