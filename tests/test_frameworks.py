@@ -183,6 +183,44 @@ def test_litebird_refuses_times_off_the_even_grid(session):
         fw.to_litebird(jittered, sample_rate_hz=RATE)
 
 
+def test_the_framework_quirks_the_readme_states(session, tmp_path):
+    """What the README says the frameworks do on their own (the workarounds depend on it; a new version may not)."""
+    from dataclasses import asdict
+
+    import astropy.units as u
+
+    b = session[1]["t_b0m1"]
+    # TOAST's noise model takes only K^2 s: NoiseEstim's out_model cannot hold spectra of power.
+    with pytest.raises(ValueError, match="K\\*\\*2"):
+        toast.noise.Noise(detectors=["d"], freqs={"d": np.arange(1.0, 4.0) * u.Hz},
+                          psds={"d": np.ones(3) * u.W**2 * u.s}, indices={"d": 0})
+    # litebird_sim: its loader labels units it does not know (W) K_CMB.
+    obs = fw.to_litebird(b, sample_rate_hz=RATE)
+    (f,) = lbs.write_list_of_observations(obs, tmp_path, tod_dtype=np.float64, tod_fields=["tod"])
+    assert lbs.read_list_of_observations([f], tod_dtype=np.float64, limit_mpi_rank=False)[0].tod_list[0].units \
+        == lbs.Units.K_CMB
+    # ... global_flags come back run-length encoded, not as written;
+    obs.global_flags = np.arange(b.n_samples, dtype=np.uint16) % 3
+    (tmp_path / "g").mkdir()
+    (f,) = lbs.write_list_of_observations(obs, tmp_path / "g", tod_dtype=np.float64, tod_fields=["tod"])
+    back = lbs.read_list_of_observations([f], tod_dtype=np.float64, limit_mpi_rank=False)[0].global_flags
+    assert back.shape != obs.global_flags.shape or not np.array_equal(back, obs.global_flags)
+    # ... a file without a pointing provider, or a detector without a band centre, does not load.
+    for bare in ("pointing", "band"):
+        o = fw.to_litebird(b, sample_rate_hz=RATE)
+        if bare == "pointing":
+            o.pointing_provider = None
+        else:
+            dets = [asdict(lbs.DetectorInfo(name=d, sampling_rate_hz=RATE)) for d in b.detectors]
+            o = lbs.Observation(detectors=dets, n_samples_global=b.n_samples, start_time_global=0.0,
+                                sampling_rate_hz=RATE)
+            o.pointing_provider = obs.pointing_provider
+        (tmp_path / bare).mkdir()
+        (f,) = lbs.write_list_of_observations(o, tmp_path / bare, tod_fields=["tod"])
+        with pytest.raises((KeyError, ValueError)):
+            lbs.read_list_of_observations([f], limit_mpi_rank=False)
+
+
 # ---------------------------------------------------------------- shared behaviour
 
 
