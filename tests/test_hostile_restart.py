@@ -114,6 +114,11 @@ def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, so
     a, b = built.convert(ids, ci, cq, env), loaded.convert(ids, ci, cq, env)
     np.testing.assert_array_equal(a.p_opt_w, b.p_opt_w)
     np.testing.assert_array_equal(a.flags, b.flags)
+    # The provenance's parameter text comes with the snapshot (not written again): the same text.
+    from mntes_stream.io.paramfile import params_to_toml
+
+    assert params_to_toml(list(loaded.params)) == params_to_toml(list(built.params)) != ""
+    assert params_to_toml(list(loaded.params)[::-1]) != params_to_toml(list(loaded.params))
 
 
 def _feed(pipe, batches):

@@ -98,12 +98,15 @@ def load_snapshot(cfg):
             return key, None
         with open(path, "rb") as f:
             value = pickle.load(f)
-        params, streams, conv = value
-        if not hasattr(conv, "convert") or not hasattr(conv, "detector_ids"):
+        params, streams, conv, text = value
+        if not hasattr(conv, "convert") or not hasattr(conv, "detector_ids") or not isinstance(text, str):
             raise TypeError(f"not a converter: {type(conv).__name__}")
     except Exception as exc:  # damaged, truncated, or from code that moved: build instead
         log.warning("converter snapshot %s unusable (%s: %s): building", path, type(exc).__name__, exc)
         return key, None
+    from mntes_stream.io.paramfile import remember_toml
+
+    remember_toml(conv.params, text)  # the provenance's parameter text, without writing it again
     log.info("converter %s loaded from the snapshot %s", str(conv.identity)[:12], path)
     return key, (params, streams, conv)
 
@@ -112,13 +115,16 @@ def save_snapshot(cfg, key: str | None, params, streams, conv) -> None:
     """Keep what :func:`load_snapshot` gives back (best effort: a read-only cache only logs)."""
     if not cfg.table_cache or key is None:
         return
+    from mntes_stream.io.paramfile import params_to_toml
+
     path = _path(cfg, key)
     try:
         path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         fd, tmp = tempfile.mkstemp(prefix=".snapshot-", dir=path.parent)  # mode 0600
         try:
             with os.fdopen(fd, "wb") as f:
-                pickle.dump((params, streams, conv), f, protocol=pickle.HIGHEST_PROTOCOL)
+                text = params_to_toml(list(conv.params)) if getattr(conv, "params", None) else ""
+                pickle.dump((params, streams, conv, text), f, protocol=pickle.HIGHEST_PROTOCOL)
             os.replace(tmp, path)
         except BaseException:
             os.unlink(tmp)
