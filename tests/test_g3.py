@@ -307,7 +307,7 @@ def test_cli_convert_and_export_take_g3_runs(run_files, tmp_path, capsys):
     assert main(["convert", str(raw), str(tmp_path / "el.g3"), "--kind", "electrical", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["detector_samples"] == len(LAYOUT) * N_SAMP
     assert main(["convert", str(raw), str(tmp_path / "out.mcap"), "--params", str(tmp_path / "names.toml"),
-                 "--kind", "exact", "-q", "--json"]) == 0
+                 "-q", "--json"]) == 0
     capsys.readouterr()
     topics = Session(tmp_path / "out.mcap").message_counts()
     assert {f"mntes/lab/power/{BOARD}/{m}" for m in MODULES} <= set(topics)

@@ -17,7 +17,8 @@ def add_g3_convert_args(p) -> None:
                                             "and MntesFlags to every Scan frame; RUN.g3 -> OUT.mcap converts through "
                                             "the live pipeline; REC.mcap -> OUT.g3 writes the power as Scan frames")
     g.add_argument("--kind", default="table", choices=("table", "grid", "exact", "linear", "electrical"),
-                   help="converter kind for G3 input (electrical needs no --params: minus spt3g's electrical power)")
+                   help="converter kind of RUN.g3 -> OUT.g3 (electrical needs no --params: minus spt3g's electrical "
+                        "power)")
     g.add_argument("--wiring", metavar="RUN.g3", help="REC.mcap -> OUT.g3: a G3 file whose wiring map names the "
                                                       "bolometers (default: detector ids as names)")
     g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
@@ -47,6 +48,9 @@ def run_g3_convert(args, pipeline) -> int:
         result = files.g3_to_g3(args.input, args.output, params=args.params, kind=args.kind,
                                 config=g3_input_config(args), scan_samples=args.scan_samples)
     elif g3_in:
+        if args.kind != "table":
+            raise ConfigError("RUN.g3 -> OUT.mcap converts like the live converter (table kind, or the kind of "
+                              "--tables); --kind is for G3 output")
         stats = files.g3_to_mcap(args.input, args.output, params=args.params, tables=args.tables,
                                  config=g3_input_config(args), setup=args.setup, pipeline_config=pipeline,
                                  progress=not (args.quiet or args.json))
