@@ -344,3 +344,23 @@ def test_live_feed_hands_out_framework_objects_equal_to_what_was_published(tmp_p
     check_axismanager(am, ref, "t_b0m0")
     assert np.all(am.flags.gap.mask()[:, 2 * N:3 * N])
 
+
+
+def test_a_g3_run_exports_to_a_framework_in_one_fresh_process(tmp_path):
+    """G3 input loads spt3g, the export then a framework: in a new process, in that order, without a crash."""
+    import subprocess
+
+    pytest.importorskip("spt3g")
+    run = tmp_path / "run.g3"
+    sim = subprocess.run([sys.executable, "-m", "mntes_stream", "simulate", "--format", "g3", "--out", str(run),
+                          "--duration", "1", "--modules", "1", "--channels", "4"], capture_output=True, text=True,
+                         timeout=300)
+    assert sim.returncode == 0, sim.stderr[-2000:]
+    out = tmp_path / "so.h5"
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "export", str(run), "--g3-params",
+                          str(tmp_path / "run.params.toml"), "--format", "sotodlib", "--out", str(out), "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    (name,) = json.loads(res.stdout)["observations"]
+    am = sotodlib_core.AxisManager.load(str(out), name)
+    assert am.dets.count == 4 and am.samps.count > 100 and np.isfinite(am.signal).any()
