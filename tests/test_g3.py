@@ -349,3 +349,16 @@ def test_bridges_split_by_board_cover_the_array_once(tmp_path):
     assert seen[()][0] == total == seen[(0,)][0] + seen[(1,)][0]
     assert seen[(0,)][1] == {"mntes/lab/counts/0/0", "mntes/lab/counts/0/1"}
     assert seen[(0,)][1] | seen[(1,)][1] == seen[()][1] and not seen[(0,)][1] & seen[(1,)][1]
+
+
+def test_bad_g3_input_is_one_line(run_files, tmp_path, capfd):
+    from mntes_stream.cli import main
+
+    raw, _ = run_files
+    (tmp_path / "bad.g3").write_bytes(b"not a G3 file")
+    (tmp_path / "cut.g3").write_bytes(raw.read_bytes()[:3000])
+    for name in ("bad.g3", "cut.g3", "absent.g3"):
+        assert main(["convert", str(tmp_path / name), str(tmp_path / "o.g3"), "--kind", "electrical"]) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and name in err[0], err
+    assert not (tmp_path / "o.g3").exists()

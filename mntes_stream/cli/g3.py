@@ -37,9 +37,19 @@ def g3_input_config(args):
     return G3InputConfig(**{k: v for k, v in given.items() if v is not None})
 
 
+def quiet_spt3g() -> None:
+    """The command says what went wrong in one line: spt3g's reader keeps its own error log to itself."""
+    from mntes_stream.g3 import spt3g
+
+    core, _ = spt3g()
+    core.set_log_level(core.G3LogLevel.LOG_FATAL, "G3Reader")
+
+
 def run_g3_convert(args, pipeline) -> int:
     from mntes_stream.errors import ConfigError
     from mntes_stream.g3 import files
+
+    quiet_spt3g()
 
     g3_in, g3_out = files.is_g3(args.input), files.is_g3(args.output)
     if g3_in and g3_out:
@@ -75,6 +85,7 @@ def run_bridge(args) -> int:
     from mntes_stream.service.config import with_zenoh
 
     cfg = with_zenoh(bridge_config(args), zenoh_layer(args))
+    quiet_spt3g()
     with stop_on_signals() as stop:
         result = G3BridgeService(cfg).start(stop=stop)
     print_mapping(result, args.json)
@@ -172,6 +183,7 @@ def g3_sessions_as_mcap(args):
         raise ConfigError("export of a G3 run: give --g3-params FILE (detector parameters to convert it with)")
     from mntes_stream.g3.files import g3_to_mcap
 
+    quiet_spt3g()
     with tempfile.TemporaryDirectory(prefix="mntes-export-g3-") as tmp:
         out = Path(tmp) / "converted.mcap"
         g3_to_mcap(g3, out, params=args.g3_params, setup=args.setup or "lab")
