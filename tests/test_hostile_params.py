@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mntes_stream.core.ids import check_detector_id
+from mntes_stream.core.params import table1_params
 from mntes_stream.errors import ConfigError
 from mntes_stream.io.paramfile import load_params, parse_params
 
@@ -99,8 +100,6 @@ def _pipeline_run(params, caplog):
 
 
 def test_parameters_matching_no_channel_of_the_stream_say_so_once(caplog):
-    from mntes_stream.core.params import table1_params
-
     # Module b0m0 and b0m1 are known, but the parameters are for channels 100-103: every row would be NaN.
     params = [table1_params(f"b0m{m}c{c:03d}") for m in (0, 1) for c in range(100, 104)]
     pipe, _ = _pipeline_run(params, caplog)
@@ -111,11 +110,23 @@ def test_parameters_matching_no_channel_of_the_stream_say_so_once(caplog):
     assert len(said) == 2  # once per stream (channel list), not once per chunk
 
 
-def test_detector_ids_no_stream_can_match_are_said_at_start(caplog):
-    from mntes_stream.core.params import table1_params
+def test_detector_ids_no_stream_can_match_are_said_at_start_and_give_no_stream_state(caplog):
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.source import MinimalSource, SourceConfig
 
+    params = [table1_params("det-a"), table1_params("det-b"), table1_params("b0m1c000")]
     with caplog.at_level("WARNING", logger="mntes_stream.converter"):
-        pipe, start_error = _pipeline_run([table1_params("det-a"), table1_params("det-b")], caplog)
-    assert "2 of 2 detector ids (e.g. 'det-a') are not of the form b<board>m<module>c<channel>" in start_error
-    assert pipe.status().last_error  # then the streams' own no_detector line
+        pipe = ConverterPipeline(make_converter("exact", {p.detector_id: p for p in params}), PipelineConfig(),
+                                 clock=None)
+    assert pipe.last_error.startswith("parameters: 2 of 3 detector ids (e.g. 'det-a') are not of the form")
     assert sum("can match no stream row" in r.getMessage() for r in caplog.records) == 1
+    # Only module b0m1 (named by a usable id) gets state; b0m0 is rejected at the door like any made-up one.
+    src = MinimalSource(SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))
+    outs = []
+    for t_pub, batch in src.batches(1_700_000_000_000_000_000, duration_s=1.0):
+        for key, payload in batch:
+            outs += pipe.handle(key, payload, t_pub)
+    st = pipe.status()
+    assert st.bad_messages["unknown_stream"] == 10 and set(pipe._streams) == {(0, 1)}
+    assert {k for k, _ in outs if "/power/" in k} == {"mntes/lab/power/0/1"}

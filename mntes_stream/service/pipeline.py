@@ -156,11 +156,15 @@ class ConverterPipeline(Conversion):
         self.last_error = ""
         self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
         if self._modules is None and self._known:
-            # Stream rows are always b<B>m<M>c<C>: an id of another form can never match one. Said now, once.
+            # Stream rows are always b<B>m<M>c<C>: an id of another form can never match one. Said now, once;
+            # and only the modules of the other ids get state (else any peer-chosen module would).
             odd = sorted(d for d in self._known if known_modules([d]) is None)
             self.last_error = (f"parameters: {len(odd)} of {len(self._known)} detector ids (e.g. {odd[0]!r}) are not "
                                "of the form b<board>m<module>c<channel> and can match no stream row")[:500]
             log.warning("%s", self.last_error)
+            self._modules = known_modules(self._known.difference(odd))
+            self.hk = Housekeeping(self.config, {p.detector_id: float(p.v_thev_v) for p in self._params},
+                                   self._modules)
 
     # ------------------------------------------------------------------ public API
 
