@@ -362,3 +362,21 @@ def test_bad_g3_input_is_one_line(run_files, tmp_path, capfd):
         err = capfd.readouterr().err.strip().splitlines()
         assert len(err) == 1 and name in err[0], err
     assert not (tmp_path / "o.g3").exists()
+
+
+def test_repeated_housekeeping_reuses_spt3g_values_and_a_change_recomputes():
+    from spt3g.dfmux.unittransforms import counts_to_rms_amps
+
+    from mntes_stream.g3.mapping import hk_snapshot
+
+    w = Wiring.from_frame(F.wiring_frame(LAYOUT))
+    first = hk_snapshot(F.housekeeping_frame(T0_NS, {BOARD: module_hk(2)})["DfMuxHousekeeping"], w)
+    again = hk_snapshot(F.housekeeping_frame(T0_NS + 10**9, {BOARD: module_hk(2)})["DfMuxHousekeeping"], w,
+                        previous=first)
+    assert again.amps_rms_per_count is first.amps_rms_per_count and again.t_ns == T0_NS + 10**9
+    hk7 = F.housekeeping_frame(T0_NS + 2 * 10**9, {BOARD: module_hk(7)})["DfMuxHousekeeping"]
+    changed = hk_snapshot(hk7, w, previous=first)
+    k = w.index_of_names(["W5.3"])[0]
+    assert changed.amps_rms_per_count[k] == counts_to_rms_amps(w.wiring_map, hk7, "W5.3", "ICE",
+                                                               "spt3g_filtering_2017_full")
+    assert changed.amps_rms_per_count[k] != first.amps_rms_per_count[k]

@@ -143,7 +143,7 @@ class OpticalPower:
         return False
 
     def _add_hk(self, hkmap, t_fallback_ns: int) -> None:
-        if any(self.hk.add(hk_snapshot(hkmap, self.wiring, t_fallback_ns))):
+        if any(self.hk.add(hk_snapshot(hkmap, self.wiring, t_fallback_ns, self.hk.latest()))):
             self.gain_changes += 1
 
     def __call__(self, frame):

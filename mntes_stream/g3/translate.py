@@ -151,7 +151,7 @@ class FrameTranslator:
         return out
 
     def _housekeeping(self, hkmap) -> list:
-        snap = hk_snapshot(hkmap, self.wiring, self._t_last_ns)
+        snap = hk_snapshot(hkmap, self.wiring, self._t_last_ns, self.hk.latest())
         self.counters.housekeeping += 1
         before = self.hk.before(snap.t_ns)
         gain, bias = self.hk.add(snap)
