@@ -187,3 +187,30 @@ def test_gain_change_applies_through_the_live_converter_pipeline(tmp_path):
         assert np.isfinite(p[after]).mean() > 0.9 and np.isfinite(p[~after]).mean() > 0.9
         err = np.abs(p - want[k])
         assert np.nanmax(err[after]) < 1e-16 and np.nanmax(err[~after]) < 1e-16
+
+
+def test_simulate_format_g3_cli_writes_run_truth_and_named_parameters(tmp_path, capsys):
+    import json
+
+    from mntes_stream.cli import main
+    from mntes_stream.g3.mapping import Wiring
+    from mntes_stream.io.paramfile import load_params
+    from mntes_stream.service.simulator import load_truth
+
+    core, _ = spt3g()
+    for layout in ("timepoints", "scans"):
+        out = tmp_path / f"{layout}.g3"
+        assert main(["simulate", "--format", "g3", "--out", str(out), "--layout", layout, "--duration", "1",
+                     "--modules", "2", "--channels", "4", "--gain-step", "0.5:5", "--json"]) == 0
+        res = json.loads(capsys.readouterr().out)
+        frames = read_back(out)
+        kinds = {str(f.type) for f in frames}
+        assert {"Wiring", "Housekeeping", "GcpSlow"} <= kinds
+        assert ("Timepoint" in kinds) == (layout == "timepoints")
+        names = set(Wiring.from_frame(frames[0]).names)
+        assert len(names) == 8 and set(load_params(res["params"])) == names
+        truth = load_truth(res["truth"])
+        assert set(truth["detector_ids"].tolist()) == names and truth["truth_p_opt_w"].shape == (8, 153)
+        assert sum(str(f.type) == "Housekeeping" for f in frames) >= 2  # start + the gain step
+    assert main(["simulate", "--format", "g3", "--out", str(tmp_path / "x.g3"), "--duration", "1",
+                 "--gain-step", "soon"]) == 2
