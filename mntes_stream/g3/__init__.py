@@ -9,7 +9,9 @@ extra.
 
 - :mod:`.mapping`: the wiring map both ways (bolometer name <-> detector id),
   housekeeping -> per-channel amps-per-count and bias (spt3g's own
-  functions), GcpSlow -> bath temperature, counts from both layouts.
+  functions), GcpSlow -> bath temperature.
+- :mod:`.counts`: counts from both layouts (Scan frames, raw Timepoints).
+- :mod:`.frames`: G3 frames built with spt3g's classes (simulator, tests).
 - :mod:`.translate`: frames -> counts/housekeeping messages, shared by the
   live bridge and the offline tools (so both give identical counts).
 - :mod:`.power`: :class:`OpticalPower`, a spt3g pipeline module that appends

@@ -35,6 +35,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import CONVERTER_KINDS, EnvironmentBlock, make_converter
 from mntes_stream.errors import ConfigError
 from mntes_stream.g3 import spt3g
+from mntes_stream.g3.counts import scan_block
 from mntes_stream.g3.mapping import (
     SQRT2,
     BathHistory,
@@ -45,7 +46,6 @@ from mntes_stream.g3.mapping import (
     hk_snapshot,
     invalid_counts,
     params_for_wiring,
-    scan_block,
 )
 
 __all__ = ["OpticalPower", "POWER_KEY", "FLAGS_KEY", "load_g3_params"]
@@ -187,7 +187,7 @@ class OpticalPower:
         self._converter = make_converter(self.kind, pdict, **self.converter_options)
 
     def convert_block(self, blk):
-        """Power and flags of a :class:`~mntes_stream.g3.mapping.ScanBlock`.
+        """Power and flags of a :class:`~mntes_stream.g3.counts.ScanBlock`.
 
         Returns
         -------

@@ -28,17 +28,16 @@ import numpy as np
 from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS
 from mntes_stream.errors import ConfigError
 from mntes_stream.g3 import spt3g
+from mntes_stream.g3.counts import TimepointBuffer, scan_block
 from mntes_stream.g3.mapping import (
     SQRT2,
     BathHistory,
     G3InputConfig,
     HkHistory,
-    TimepointBuffer,
     Wiring,
     bath_reading,
     hk_snapshot,
     invalid_counts,
-    scan_block,
 )
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
