@@ -380,3 +380,28 @@ def test_repeated_housekeeping_reuses_spt3g_values_and_a_change_recomputes():
     assert changed.amps_rms_per_count[k] == counts_to_rms_amps(w.wiring_map, hk7, "W5.3", "ICE",
                                                                "spt3g_filtering_2017_full")
     assert changed.amps_rms_per_count[k] != first.amps_rms_per_count[k]
+
+
+def test_optical_power_in_a_users_own_g3_pipeline(run_files, tmp_path):
+    """What an SPT-3G user writes: the module added after the collator in their own G3Pipeline."""
+    import mntes_stream.g3
+    from mntes_stream.g3.files import g3_to_g3
+
+    core, dfmux = spt3g()
+    raw, _ = run_files
+    pipe = core.G3Pipeline()
+    pipe.Add(core.G3Reader, filename=str(raw))
+    pipe.Add(dfmux.FixedLengthScans, N=25)
+    pipe.Add(dfmux.DfMuxCollator)
+    pipe.Add(mntes_stream.g3.OpticalPower, kind="electrical")
+    pipe.Add(core.G3Writer, filename=str(tmp_path / "user.g3"))
+    pipe.Run()
+    g3_to_g3(raw, tmp_path / "cli.g3", kind="electrical", scan_samples=25)
+    mine, flags = _optical(tmp_path / "user.g3")
+    ref, _ = _optical(tmp_path / "cli.g3")
+    assert set(mine) == set(LAYOUT)
+    for name in LAYOUT:
+        np.testing.assert_array_equal(mine[name], ref[name])
+        assert mine[name].size == N_SAMP and not flags[name].any()
+    kinds = [str(f.type) for f in core.G3File(str(tmp_path / "user.g3"))]
+    assert kinds.count("Scan") == 3 and "Wiring" in kinds and "Housekeeping" in kinds  # everything else passes
