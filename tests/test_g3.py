@@ -236,7 +236,11 @@ def test_missing_bath_source_is_a_clear_error(tmp_path):
     params = {n: table1_params(n) for n in LAYOUT}
     with pytest.raises(ConfigError, match="no bath temperature"):
         g3_to_g3(path, tmp_path / "x.g3", params=params, kind="exact")
-    assert G3InputConfig(t_bath_default_k=0.1).t_bath_default_k == 0.1
+    # A default makes it convert; kinds that ignore the bath need neither.
+    assert g3_to_g3(path, tmp_path / "d.g3", params=params, kind="exact",
+                    config=G3InputConfig(t_bath_default_k=0.1))["detector_samples"] == len(LAYOUT) * N_SAMP
+    for kind, p in (("electrical", None), ("electrical", params), ("linear", params)):
+        assert g3_to_g3(path, tmp_path / f"{kind}{p is None}.g3", params=p, kind=kind)["scans"] == 3
 
 
 SPT3G_1_0_2 = r"""

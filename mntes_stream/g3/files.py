@@ -96,7 +96,8 @@ def g3_to_g3(inputs, output, *, params=None, kind: str = "table", config: G3Inpu
     files = expand_inputs(inputs)
     metadata, counts = preload(files)
     module = OpticalPower(params=params, kind=kind, config=config, preload=metadata, **converter_options)
-    module.bath.require()
+    if module.needs_bath:
+        module.bath.require()
     pipe = core.G3Pipeline()
     pipe.Add(core.G3Reader, filename=files)
     if counts.get("Timepoint"):

@@ -334,6 +334,11 @@ class BathHistory:
             self._t.insert(k, t_ns)
             self._v.insert(k, t_bath_k)
 
+    @property
+    def available(self) -> bool:
+        """A reading or a default exists."""
+        return bool(self._t) or self.config.t_bath_default_k is not None
+
     def require(self) -> None:
         """ConfigError unless a reading or a default exists."""
         if not self._t and self.config.t_bath_default_k is None:

@@ -157,15 +157,16 @@ class OpticalPower:
             return
         self._t_last_ns = int(blk.t_ns[-1]) if blk.n_samples else self._t_last_ns
         names, p, f = self.convert_block(blk)
-        start = core.G3Time(int(blk.t_ns[0]) // 10) if blk.n_samples else core.G3Time()
-        stop = core.G3Time(int(blk.t_ns[-1]) // 10) if blk.n_samples else core.G3Time()
-        mi = frame[self.input_i]
-        if blk.n_samples and names:
-            start, stop = mi.start, mi.stop
+        start, stop = frame[self.input_i].start, frame[self.input_i].stop  # the input's span, as spt3g keeps it
         frame[self.output] = core.G3TimestreamMap(list(names), p, start, stop, core.G3TimestreamUnits.Power)
         frame[self.flags_output] = core.G3TimestreamMap(list(names), f.astype(np.int32), start, stop)
         self.scans += 1
         self.samples += p.size
+
+    @property
+    def needs_bath(self) -> bool:
+        """True for the MNTES kinds (the bath temperature enters the power balance)."""
+        return self.kind in ("table", "grid", "exact")
 
     # -- conversion ---------------------------------------------------------------------------
     def _prepare(self):
@@ -216,8 +217,13 @@ class OpticalPower:
         with np.errstate(invalid="ignore"):
             ci_eff = np.where(bad, np.nan, ci * scale)
             cq_eff = np.where(bad, np.nan, cq * scale)
-        env = EnvironmentBlock(t_bath_k=self.bath.at(blk.t_ns), b_field_t=np.full(blk.n_samples, self.config.b_field_t),
-                               v_thev_v=volts)
         det_ids = [self.wiring.detector_ids[r] for r in rows]
+        if self.needs_bath:
+            t_bath = self.bath.at(blk.t_ns)
+        else:  # linear and electrical ignore the environment: the bath reading if any, else each nominal
+            t_bath = self.bath.at(blk.t_ns) if self.bath.available else \
+                np.array([self._converter.params[k].t_bath_k for k in sel])[:, None] * np.ones(blk.n_samples)
+        env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=np.full(blk.n_samples, self.config.b_field_t),
+                               v_thev_v=volts)
         out = self._converter.convert(det_ids, ci_eff, cq_eff, env)
         return names, out.p_opt_w, out.flags
