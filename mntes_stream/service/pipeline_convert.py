@@ -109,12 +109,30 @@ class Conversion:
                 return None
         except Exception:  # find out which chunk it was: one by one, each failure counted
             return None
+        known = np.concatenate([r.known for r in group]) if any(r.n_unknown for r in group) else None
+        p_opt, flags = self._finish(p_opt, flags, env_flags, known)  # once for the block, not per chunk
         out, r0 = [], 0
         for r in group:
             r1 = r0 + r.chunk.channels.size
-            out.append((p_opt[r0:r1], flags[r0:r1]))
+            out.append((p_opt[r0:r1], flags[r0:r1], True))
             r0 = r1
         return out
+
+    def _finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None):
+        """Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
+
+        Books the flag counts and unknown-channel samples; ``known``: rows with parameters (None: all).
+        """
+        flags = flags | env_flags
+        if known is not None:
+            flags[~known] |= fl.UNKNOWN_CHANNEL
+            self.counters.unknown_channel_samples += int((~known).sum()) * flags.shape[1]
+        if flags.any():
+            unusable = (flags & fl.UNUSABLE) != 0
+            if unusable.any():
+                p_opt = np.where(unusable, np.nan, p_opt)
+            self.flag_counts.update(fl.counts_by_flag(flags))
+        return p_opt, flags
 
     def _convert_one(self, r: _Ready) -> tuple:
         chunk = r.chunk
@@ -131,21 +149,15 @@ class Conversion:
             flags = np.full(shape, fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
             self._bad("convert_failed", f"{type(exc).__name__}: {exc}",
                       keys.counts_key(self.config.setup, chunk.board, chunk.module))
-        return p_opt, flags
+        return p_opt, flags, False
 
     def _power(self, r: _Ready, converted: tuple) -> tuple[str, bytes]:
         """The power message of a converted chunk (flags completed, flagged power NaN), counters booked."""
         chunk, cfg = r.chunk, self.config
-        p_opt, flags = converted
+        p_opt, flags, finished = converted
         n_ch, n = chunk.counts_i.shape
-        # Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
-        flags = flags | r.env_flags
-        if r.n_unknown:
-            flags[~r.known] |= fl.UNKNOWN_CHANNEL
-            self.counters.unknown_channel_samples += r.n_unknown * n
-        unusable = (flags & fl.UNUSABLE) != 0
-        if unusable.any():
-            p_opt = np.where(unusable, np.nan, p_opt)
+        if not finished:
+            p_opt, flags = self._finish(p_opt, flags, r.env_flags, r.known if r.n_unknown else None)
         t_pub = self._stamp()
         power = PowerChunk(
             setup=cfg.setup,
@@ -170,8 +182,6 @@ class Conversion:
         if r.env_flags_t.any():
             c.hk_stale_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_STALE))
             c.hk_missing_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_MISSING))
-        if flags.any():
-            self.flag_counts.update(fl.counts_by_flag(flags))
         self._interval_chunks += 1
         self._interval_samples += n_ch * n
         self._interval_latency_ms.append((t_pub - chunk.t_pub_ns) / 1e6)
