@@ -130,3 +130,23 @@ def test_detector_ids_no_stream_can_match_are_said_at_start_and_give_no_stream_s
     st = pipe.status()
     assert st.bad_messages["unknown_stream"] == 10 and set(pipe._streams) == {(0, 1)}
     assert {k for k, _ in outs if "/power/" in k} == {"mntes/lab/power/0/1"}
+
+
+@pytest.mark.parametrize("detector,value,match", [
+    ('"../../x"', "0.18", "detector id '../../x' is not a safe name"),
+    ("b0m0c000", '"hot"', r"\[detectors.b0m0c000\] t_c_k: expected a number"),
+    ("b0m0c000", "[0.1, 0.2]", r"t_c_k: expected a number"),
+])
+def test_serve_with_bad_parameters_ends_in_one_line_exit_2(tmp_path, detector, value, match):
+    import re
+    import subprocess
+    import sys
+
+    (tmp_path / "p.toml").write_text('schema = "mntes-params"\nversion = 1\n[defaults]\npreset = "table1"\n'
+                                     f"[detectors.{detector}]\nt_c_k = {value}\n")
+    (tmp_path / "c.toml").write_text('[converter]\nparams = "p.toml"\ntable_cache = ""\n')
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "serve", "--config", "c.toml"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    (line,) = res.stderr.strip().splitlines()
+    assert line.startswith("mntes-stream: error: ") and re.search(match, line) and "p.toml" in line
