@@ -222,7 +222,8 @@ def test_text_mode_prints_a_bounded_live_table():
     assert "saturated 2" in last and "b0m0c003 saturated, b0m1c003 saturated" in last
     assert "t_bath 100.0000 mK" in last and "b_field 2.000 uT" in last
     row = next(line for line in last.splitlines() if line.startswith("monitor"))
-    assert float(row.split()[1]) == pytest.approx(10.0, rel=0.3)  # chunks/s received: 2 modules x 5 chunks/s
+    # chunks/s received: 2 modules x 5 chunks/s, as paced by a publisher that may lag on a loaded machine
+    assert float(row.split()[1]) == pytest.approx(10.0, rel=0.5)
 
 
 def test_bad_f_hwp_is_a_config_error():

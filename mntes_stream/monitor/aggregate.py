@@ -58,7 +58,10 @@ STATE_NAMES = ("transition", "saturated", "superconducting", "flagged", "silent"
 STATE_TRANSITION, STATE_SATURATED, STATE_SUPERCONDUCTING, STATE_FLAGGED, STATE_SILENT = range(5)
 
 # Flags that make a channel "flagged" (saturated and superconducting have their own states).
-_OTHER_FLAGS = np.uint16(sum(fl.NAMES) & ~(fl.SATURATED | fl.SUPERCONDUCTING))
+# A TES that dropped out of the transition on the low side shows "superconducting", whichever bit says so
+# (a LATCHED bit, where the flag set has one, as well as SUPERCONDUCTING).
+_LOW_FLAGS = np.uint16(sum(bit for bit, name in fl.NAMES.items() if name in ("superconducting", "latched")))
+_OTHER_FLAGS = np.uint16(sum(fl.NAMES) & ~(fl.SATURATED | _LOW_FLAGS))
 _SCALAR_SENSORS = ("t_bath", "b_field")
 _LATENCIES_KEPT = 10_000  # per tick interval: the latency figures' sample
 
@@ -245,7 +248,7 @@ class ModuleBuffer:
         self.newest_t_pub_ns = max(self.newest_t_pub_ns, int(t_pub_ns))
         self.sequence.observe(seq, int(t_ns[0]) if t_ns.size else int(t_pub_ns))
         sat = (flags & fl.SATURATED) != 0
-        sc = (flags & fl.SUPERCONDUCTING) != 0
+        sc = (flags & _LOW_FLAGS) != 0
         finite = np.isfinite(p_opt_w)
         other = ((flags & _OTHER_FLAGS) != 0) | (~finite & ~sat & ~sc)
         self._n += flags.shape[1]
