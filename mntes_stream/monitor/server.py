@@ -446,6 +446,8 @@ def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float
     if not is_loopback(bind):
         log.warning("monitor listening on %s, beyond loopback: anyone who can reach it sees the stream "
                     "(there is no authentication)", bind)
+        if bind in ("0.0.0.0", "::", "") and not allowed_hosts:
+            log.warning("monitor: only loopback names are answered; list the names it is reached by in allowed_hosts")
     web_options = {"guard": WebGuard(bind, tuple(allowed_hosts)), "max_clients": max_clients,
                    "send_timeout_s": send_timeout_s}
     asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None), stop_event,
