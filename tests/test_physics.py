@@ -181,10 +181,17 @@ def test_states_off_the_branch():
     assert op.r_ohm[1] > 0.995 * p.r_normal_ohm
     tab = p.replace(transition=_tabulated_from_arctan(p))
     assert int(m.solve_operating_point(tab, 5e-12).state) == m.STATE_NORMAL
-    op_sc = m.solve_operating_point(p, 0.0, v_thev_v=0.05e-6)
-    assert int(op_sc.state) == m.STATE_SUPERCONDUCTING
+    # Far under-biased, the arctan TES is not at R = 0 but on the stable part below |z|
+    # (loop gain between -1 and 0): latched, with R from the power balance.
+    op_lat = m.solve_operating_point(p, 0.0, v_thev_v=0.05e-6)
+    assert int(op_lat.state) == m.STATE_LATCHED
+    assert 1e-3 < float(op_lat.r_ohm) < abs(p.z_thev_ohm)
+    assert abs(float(m.power_of_resistance_w(p, op_lat.r_ohm, p.t_bath_k, 0.0, 0.05e-6))) < 1e-22
+    assert float(m.balance_slope_w_per_ohm(p, op_lat.r_ohm, 0.05e-6)) > 0  # a stable state
+    tab0 = p.replace(transition=TabulatedTransition(t_k=(0.17, 0.1795, 0.18, 0.1805, 0.19), r_ohm=(0.0, 0.1, 0.5, 0.9, 1.0)))
+    assert int(m.solve_operating_point(tab0, 0.0, v_thev_v=0.05e-6).state) == m.STATE_SUPERCONDUCTING
     inv = m.invert_current(p, np.array([m.SQRT2 * 0.8e-6 / (0.01 + p.z_thev_ohm), m.SQRT2 * 0.8e-6 / (1.2 + p.z_thev_ohm)]))
-    assert list(inv.state) == [m.STATE_SUPERCONDUCTING, m.STATE_NORMAL]
+    assert list(inv.state) == [m.STATE_LATCHED, m.STATE_NORMAL]
     assert np.all(np.isnan(inv.p_opt_w))
 
 

@@ -34,7 +34,8 @@ def _model_truth(sim, blk):
     """Independent forward solve of a block with the physics core (Illinois bracket)."""
     pa = ParamArray.from_params(list(sim.truth_params))
     b = blk.truth_b_field_t[None, :]
-    op = model.solve_operating_point(pa, blk.truth_p_opt_w, blk.truth_t_bath_k[None, :], b, blk.truth_v_thev_v)
+    op = model.solve_operating_point(pa, blk.truth_p_opt_w, blk.truth_t_bath_k[None, :], b, blk.truth_v_thev_v,
+                                     sequential=True)
     return pa, op, model.readout_current_a(pa, op.i_a, b)
 
 
@@ -65,7 +66,7 @@ def test_fast_solve_matches_model(p_frac, t_bath, b, v_frac, gamma, guess):
     pa = ParamArray.from_params(ps)
     p_opt = np.linspace(0.2, 1.0, 5)[None, :] * p_frac * base.p_sat_w
     v = v_frac * base.v_thev_v
-    ref = model.solve_operating_point(pa, p_opt, t_bath, b, v)
+    ref = model.solve_operating_point(pa, p_opt, t_bath, b, v, sequential=True)  # samples are a time stream
     got = solve_quasi_static(pa, p_opt, t_bath, b, v, r_guess_ohm=guess)
     assert np.array_equal(ref.state, got.state)
     assert np.allclose(got.r_ohm, ref.r_ohm, rtol=1e-12, atol=1e-14)
@@ -114,7 +115,9 @@ def test_bias_tuning_and_channel_kinds():
     r_frac = op.r_ohm[:, 0] / r_n
     assert np.allclose(r_frac[:4], 0.7, atol=1e-9)
     assert r_frac[4] > 0.995                       # driven far above T_c
-    assert np.all(blk.truth_state[5] == model.STATE_SUPERCONDUCTING)
+    # Under-biased: not at R = 0 but on the stable part below |z| (loop gain between -1 and 0).
+    assert np.all(blk.truth_state[5] == model.STATE_LATCHED)
+    assert np.all((op.r_ohm[5] > 1e-3) & (op.r_ohm[5] < np.abs(pa.z_thev_ohm[5])))
     assert np.all(blk.truth_state[:5] == model.STATE_TRANSITION)
     # Each detector's nominal loading is where it was tuned.
     for p in sim.truth_params[:4]:

@@ -7,7 +7,31 @@ import json
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 
+def run_range(args) -> int:
+    """The operating-range sweep: every transition model and conversion kind, per region."""
+    from mntes_stream.core.sweep import range_sweep
+    from mntes_stream.reports.range_report import summary_rows, write_range_report
+
+    def progress(step):
+        if not args.json:
+            print(f"range: {step}", flush=True)
+
+    res = range_sweep(n_samples=args.samples, seed=args.seed, progress=progress)
+    paths = write_range_report(res, args.out)
+    if args.json:
+        print(json.dumps({"stats": res.stats, "report": paths}, indent=2))
+        return 0
+    rows = summary_rows(res)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+    print(f"wrote {paths['report']}, {paths['summary']} and {paths['figure']}")
+    return 0
+
+
 def run(args) -> int:
+    if args.range:
+        return run_range(args)
     from tqdm import tqdm
 
     from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
@@ -57,4 +81,8 @@ def register(sub) -> None:
                    help="HWP frequency: LFT 0.77, MFT 0.65, HFT 1.02 Hz (default LFT)")
     p.add_argument("--sample-rate", type=float, default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
                    help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground, 20 MHz / 2**17); 19.1 is flight-like")
+    p.add_argument("--range", action="store_true",
+                   help="instead: sweep P_opt 0-3 P_sat, bath, field and bias for every transition model and "
+                        "conversion kind; flagged fraction and worst unflagged error per region, and a PNG")
+    p.add_argument("--samples", type=int, default=60_000, help="--range: samples per transition model")
     p.set_defaults(func=run)

@@ -9,8 +9,11 @@ the table and a short binomial series (see ``core.tables``), and so does
 exact power). It runs far above numpy's many-temporaries speed; see
 ``benchmarks/README.md``.
 
-Per-detector scalars ``phys`` (n_bank, 15): gain re/im, pickup re/im, z re/im,
-K, n, c1, c2, gamma, nominal bias, stable-branch bounds lo/hi, nominal bath.
+Per-detector scalars ``phys`` (n_bank, 21): gain re/im, pickup re/im, z re/im,
+K, n, c1, c2, gamma, nominal bias, R at |z| and the saturation cap, nominal
+bath, R at the bottom, the phase-residual limit (A), R at the top, and the
+noise margins (Ohm V) at the top, at |z| and at the bottom; see
+``core.model.FlagThresholds``.
 ``dom``: bath temperature lo/hi, field lo/hi, bias fraction lo/hi.
 """
 
@@ -34,6 +37,8 @@ SERIES_LIMIT = 0.05
 _INVALID = int(fl.INVALID_INPUT)
 _SAT = int(fl.SATURATED)
 _SC = int(fl.SUPERCONDUCTING)
+_LAT = int(fl.LATCHED)
+_PHASE = int(fl.PHASE_RESIDUAL)
 _OOT = int(fl.OUT_OF_TABLE)
 _ENV = int(fl.ENV_OUT_OF_RANGE)
 _UNKNOWN = int(fl.UNKNOWN_CHANNEL)
@@ -110,8 +115,8 @@ def front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
     -------
     r_ohm : ``Re(sqrt(2) V / i - z)`` with the pickup removed
     i_abs_a : ``|i|`` with the pickup removed
-    flags : uint16, housekeeping | INVALID_INPUT | SATURATED | SUPERCONDUCTING
-        | ENV_OUT_OF_RANGE (outside ``dom``) | UNKNOWN_CHANNEL
+    flags : uint16, housekeeping | INVALID_INPUT | SATURATED | SUPERCONDUCTING | LATCHED
+        | PHASE_RESIDUAL | ENV_OUT_OF_RANGE (outside ``dom``) | UNKNOWN_CHANNEL
     valid : bool, input usable (R meaningful)
     ok : bool, valid and on the stable branch
     """
@@ -128,8 +133,12 @@ def front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
         valid = counts_ok & env_ok & (m2 > 0) & known
         invalid = known & (~counts_ok | (counts_ok & env_ok & ~(m2 > 0)) | (~env_ok & ((hk & _HK_MISSING) == 0)))
         r = SQRT2 * v * ire / m2 - ph[:, 4]
-        sat = valid & (r >= ph[:, 13])
-        sc = valid & ~sat & ~(r > ph[:, 12])
+        sat = valid & ((r >= ph[:, 13]) | ((r - ph[:, 17]) * v >= -ph[:, 18]))
+        low = valid & ~sat & ((r - ph[:, 12]) * v <= ph[:, 19])
+        sc = low & ((r - ph[:, 15]) * v <= ph[:, 20])
+        lat = low & ~sc
+        # The quadrature current the model does not explain: Im(sqrt2 V/i - z) |i|^2 / (sqrt2 V).
+        phase = valid & (np.abs(SQRT2 * v * iim + ph[:, 5] * m2) > ph[:, 16] * SQRT2 * v)
         # Bias bounds as products (fraction x nominal), as a caller computes a bias.
         env_out = known & env_ok & ~(
             (tb >= dom[0]) & (tb <= dom[1]) & (b >= dom[2]) & (b <= dom[3])
@@ -139,9 +148,11 @@ def front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
     f[invalid] |= _INVALID
     f[sat] |= _SAT
     f[sc] |= _SC
+    f[lat] |= _LAT
+    f[phase] |= _PHASE
     f[env_out] |= _ENV
     f[~known[:, 0]] |= _UNKNOWN
-    return r, np.sqrt(m2), f, valid, valid & ~sat & ~sc
+    return r, np.sqrt(m2), f, valid, valid & ~sat & ~low
 
 
 def _chunks(n_rows, n_samp, elements=1 << 19):
@@ -236,7 +247,8 @@ if numba is not None:
     def _front(xi, xq, tb, b, v, hk, det, dom):
         """One sample: flags so far, R, |i| and whether R is on the stable branch.
 
-        ``det`` = (g_re, g_im, m_re, m_im, z_re, v_lo, lo, hi, v_hi) with the
+        ``det`` = (g_re, g_im, m_re, m_im, z_re, v_lo, r_z, r_cap, v_hi, z_im,
+        r_bottom, phase limit x sqrt2, r_top, k_top, k_z, k_bottom) with the
         domain's bias bounds ``v_lo, v_hi`` in volts, and ``dom`` the 6 domain
         bounds, both tuples of scalars hoisted out of the sample loop (array
         reads here were reloaded every sample: ~8x slower).
@@ -258,17 +270,20 @@ if numba is not None:
         if not m2 > 0.0:
             return f | _INVALID, 0.0, 0.0, False
         r = SQRT2 * v * ire / m2 - det[4]
-        if r >= det[7]:
+        if abs(SQRT2 * v * iim + det[9] * m2) > det[11] * v:
+            f |= _PHASE
+        if r >= det[7] or (r - det[12]) * v >= -det[13]:
             return f | _SAT, r, 0.0, False
-        if not r > det[6]:
-            return f | _SC, r, 0.0, False
+        if (r - det[6]) * v <= det[14]:
+            return f | (_SC if (r - det[10]) * v <= det[15] else _LAT), r, 0.0, False
         return f, r, math.sqrt(m2), True
 
     @_inline
     def _det(phys, d, dom):
         v_nom = phys[d, 11]
         return (phys[d, 0], phys[d, 1], phys[d, 2], phys[d, 3], phys[d, 4], dom[4] * v_nom,
-                phys[d, 12], phys[d, 13], dom[5] * v_nom)
+                phys[d, 12], phys[d, 13], dom[5] * v_nom, phys[d, 5], phys[d, 15], phys[d, 16] * SQRT2,
+                phys[d, 17], phys[d, 18], phys[d, 19], phys[d, 20])
 
     _binomials = _inline(binomials)
     _series = _inline(binomial_series)

@@ -23,14 +23,23 @@ silent number. Flag rules, per sample:
   (``|x| >= 2**31 - 1``: ADC saturation or sentinel), zero current after the
   pickup is removed, non-finite field, bath temperature or bias not > 0
   (not added where the housekeeping already says ``HK_MISSING``);
-- ``SATURATED``: ``R = Re(sqrt(2) V / i - z)`` at or above the point where the
-  loop gain at the nominal state falls below ``model.LOOP_GAIN_NORMAL`` (0.001):
-  the TES has left the transition in practice (the arctan placeholder never
-  reaches R_n exactly, so the top of the model alone would never flag it);
-- ``SUPERCONDUCTING``: R at or below the stable branch (``R <= |z|``);
+- thresholds on ``R = Re(sqrt(2) V / i - z)`` per detector from
+  :func:`core.model.flag_thresholds` (the model, the readout noise
+  ``readout_noise_a`` and the counts' quantisation, with 7 sigma margins):
+- ``SATURATED``: R at or above the lowest of: the top of the model less the
+  noise margin, the point where one count moves the power by more than
+  ``model.P_RESOLUTION_W``, and loop gain < ``model.LOOP_GAIN_NORMAL``;
+- ``LATCHED``: R not above ``|z|`` by the noise margin (loop gain <= 0: the
+  detector dropped out of the transition); ``SUPERCONDUCTING`` instead where R
+  is within the noise of the bottom of the transition;
+- ``PHASE_RESIDUAL``: the quadrature current the model does not explain,
+  ``|Im(sqrt(2) V / i - z)| |i|^2 / (sqrt(2) V)``, above 7 sigma of readout
+  noise and quantisation (the value is kept);
 - ``OUT_OF_TABLE``: inside the branch but outside the table's R range (or, for
-  ``"grid"``, a bias matching no tabulated bias state);
-- ``ENV_OUT_OF_RANGE``: table kinds, environment outside the bank's domain
+  ``"grid"``, a bias matching no tabulated bias state); for the baselines
+  ``linear`` and ``electrical``, outside the R range their linearisation
+  domain (``TableDomain``) reaches;
+- ``ENV_OUT_OF_RANGE``: table kinds and baselines, environment outside the (bank's) domain
   (the value is still given; ``"table"`` stays exact there when R is covered);
 - ``UNKNOWN_CHANNEL``: detector id without parameters/tables (whole row);
 - housekeeping ``flags`` of the environment are OR-ed in.
@@ -47,7 +56,7 @@ import numpy as np
 from mntes_stream.core import _kernels, model
 from mntes_stream.core import flags as fl
 from mntes_stream.core.params import DetectorParams
-from mntes_stream.core.tables import TableBank, build_bank, params_identity
+from mntes_stream.core.tables import TableBank, TableDomain, build_bank, params_identity, resistance_range_ohm
 from mntes_stream.errors import ConfigError, SchemaError
 
 __all__ = [
@@ -217,23 +226,23 @@ def _prepare(rows_of, v_nominal: np.ndarray, detector_ids, counts_i, counts_q,
     return _Inputs(rows, ci, cq, tb, b, v, _hk_flags(env.flags, shape), ltb)
 
 
-def _phys(params: Sequence[DetectorParams]) -> np.ndarray:
-    """Per-detector scalars for the kernels, shape (n_det, 15) (see ``_kernels``).
+def _phys(params: Sequence[DetectorParams], readout_noise_a: float) -> np.ndarray:
+    """Per-detector scalars for the kernels, shape (n_det, 21) (see ``_kernels``).
 
-    Columns 12 and 13 are the usable R interval: the stable branch, capped
-    where the loop gain falls below ``model.LOOP_GAIN_NORMAL``
-    (:func:`core.model.saturation_resistance_ohm`).
+    Columns 12, 13 and 15-20 are the flag thresholds of
+    :func:`core.model.flag_thresholds`: resistances and their noise margins
+    (Ohm V, divided by each sample's bias), and the phase-residual limit (A).
     """
-    out = np.empty((len(params), 15))
+    out = np.empty((len(params), 21))
     for k, p in enumerate(params):
-        lo, hi = model.branch_bounds_ohm(p)
-        hi = min(float(hi), model.saturation_resistance_ohm(p))
+        th = model.flag_thresholds(p, readout_noise_a)
         out[k] = (
             p.gain_a_per_count.real, p.gain_a_per_count.imag,
             p.pickup_a_per_t.real, p.pickup_a_per_t.imag,
             p.z_thev_ohm.real, p.z_thev_ohm.imag,
             p.k_w_per_k_n, p.n, p.t_c_shift_k_per_t, p.t_c_shift_k_per_t2,
-            p.current_shift_k_per_a, p.v_thev_v, float(lo), float(hi), p.t_bath_k,
+            p.current_shift_k_per_a, p.v_thev_v, th.r_z_ohm, th.r_cap_ohm, p.t_bath_k,
+            th.r_bottom_ohm, th.phase_limit_a, th.r_top_ohm, th.k_top_ohm_v, th.k_z_ohm_v, th.k_bottom_ohm_v,
         )
     return out
 
@@ -269,13 +278,15 @@ def _row_chunks(n_rows: int, n_samp: int):
 class _Base:
     kind: str = ""
 
-    def __init__(self, params: Sequence[DetectorParams], identity: str) -> None:
+    def __init__(self, params: Sequence[DetectorParams], identity: str,
+                 readout_noise_a: float = model.DEFAULT_READOUT_NOISE_A) -> None:
         self.params = tuple(params)
         self.detector_ids = tuple(p.detector_id for p in self.params)
         self.identity = identity
         self._index = {d: k for k, d in enumerate(self.detector_ids)}
         self._rows_cache: dict[tuple, np.ndarray] = {}
-        self._phys = _phys(self.params)
+        self.readout_noise_a = float(readout_noise_a)
+        self._phys = _phys(self.params, self.readout_noise_a)
         self._v_nominal = self._phys[:, 11].copy() if self.params else np.empty(0)
 
     def _rows(self, detector_ids) -> np.ndarray:
@@ -333,14 +344,14 @@ class ExactConverter(_Base):
 
     kind = "exact"
 
-    def __init__(self, params: Sequence[DetectorParams]) -> None:
-        super().__init__(params, params_identity(params, {"kind": "exact"}))
+    def __init__(self, params: Sequence[DetectorParams], readout_noise_a: float = model.DEFAULT_READOUT_NOISE_A) -> None:
+        super().__init__(params, params_identity(params, {"kind": "exact"}), readout_noise_a)
 
     def _convert(self, inp, p, f):
         n_det, n_samp = p.shape
         for r0, r1 in _row_chunks(n_det, n_samp):
-            _, _, flags, valid, _ = _front(inp, self._phys, r0, r1)
-            flags &= ~np.uint16(fl.SATURATED | fl.SUPERCONDUCTING)  # the oracle decides the state
+            # The flags are the shared front end's thresholds; the oracle gives the value.
+            _, _, flags, _, _ = _front(inp, self._phys, r0, r1)
             i = _measured_current(self._phys, np.maximum(inp.rows[r0:r1], 0), inp, r0, r1)
             for k in range(r0, r1):
                 row = inp.rows[k]
@@ -350,10 +361,6 @@ class ExactConverter(_Base):
                     inv = model.invert_current(self.params[row], i[k - r0], inp.t_bath_k[k],
                                                inp.b_field_t[k], inp.v_thev_v[k])
                 p[k] = inv.p_opt_w
-                ok = valid[k - r0]
-                normal = (inv.state == model.STATE_NORMAL) | (inv.r_ohm >= self._phys[row, 13])
-                flags[k - r0][ok & normal] |= fl.SATURATED
-                flags[k - r0][ok & (inv.state == model.STATE_SUPERCONDUCTING)] |= fl.SUPERCONDUCTING
             f[r0:r1] = flags
         _finish(p, f)
 
@@ -361,20 +368,32 @@ class ExactConverter(_Base):
 class _Baseline(_Base):
     """Linear baselines: built at each detector's nominal operating point, env ignored."""
 
-    def __init__(self, params: Sequence[DetectorParams]) -> None:
-        super().__init__(params, params_identity(params, {"kind": self.kind}))
+    def __init__(self, params: Sequence[DetectorParams], readout_noise_a: float = model.DEFAULT_READOUT_NOISE_A,
+                 domain: TableDomain | None = None) -> None:
+        domain = domain or TableDomain()
+        super().__init__(params, params_identity(params, {"kind": self.kind}), readout_noise_a)
         self._nominal = []
         for q in self.params:
             op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
             if int(op.state) != model.STATE_TRANSITION:
                 raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
             self._nominal.append(op)
+        # The linearisation's domain: the environment of ``domain`` and the R range its states reach.
+        self.domain = domain
+        self._dom = np.array([*domain.t_bath_k, *domain.b_field_t, *domain.v_frac], dtype=float)
+        self._r_range = np.array([resistance_range_ohm(q, domain) for q in self.params]).reshape(-1, 2)
 
     def _convert(self, inp, p, f):
         n_det, n_samp = p.shape
         for r0, r1 in _row_chunks(n_det, n_samp):
             rows = np.maximum(inp.rows[r0:r1], 0)
-            _, _, f[r0:r1], _, _ = _front(inp, self._phys, r0, r1)
+            r, _, f[r0:r1], _, ok = _kernels.front_numpy(
+                inp.counts_i[r0:r1], inp.counts_q[r0:r1], inp.t_bath_k[r0:r1], inp.b_field_t[r0:r1],
+                inp.v_thev_v[r0:r1], inp.hk_flags[r0:r1], inp.rows[r0:r1], self._phys, self._dom)
+            rr = self._r_range[rows]
+            with np.errstate(invalid="ignore"):
+                outside = ok & ~((r >= rr[:, :1]) & (r <= rr[:, 1:]))
+            f[r0:r1][outside] |= fl.OUT_OF_TABLE
             with np.errstate(invalid="ignore", over="ignore"):
                 p[r0:r1] = self._power(rows, _measured_current(self._phys, rows, inp, r0, r1), inp.v_thev_v[r0:r1])
         _finish(p, f)
@@ -394,8 +413,8 @@ class LinearConverter(_Baseline):
 
     kind = "linear"
 
-    def __init__(self, params: Sequence[DetectorParams]) -> None:
-        super().__init__(params)
+    def __init__(self, params: Sequence[DetectorParams], **options) -> None:
+        super().__init__(params, **options)
         self.i0_a = np.array([complex(op.i_a) for op in self._nominal])
         self.responsivity_a_per_w = np.array(
             [complex(model.small_signal(q, op.r_ohm).responsivity_a_per_w) for q, op in zip(self.params, self._nominal)]
@@ -418,8 +437,8 @@ class ElectricalConverter(_Baseline):
 
     kind = "electrical"
 
-    def __init__(self, params: Sequence[DetectorParams]) -> None:
-        super().__init__(params)
+    def __init__(self, params: Sequence[DetectorParams], **options) -> None:
+        super().__init__(params, **options)
         self.p_total_w = np.array([
             q.p_opt_w + float(model.joule_power_w(q, op.r_ohm, q.v_thev_v)) for q, op in zip(self.params, self._nominal)
         ])
@@ -443,8 +462,9 @@ class TableConverter(_Base):
         within this relative tolerance.
     """
 
-    def __init__(self, bank: TableBank, backend: str = "auto", bias_rtol: float = 1e-6) -> None:
-        super().__init__(bank.params, bank.identity)
+    def __init__(self, bank: TableBank, backend: str = "auto", bias_rtol: float = 1e-6,
+                 readout_noise_a: float = model.DEFAULT_READOUT_NOISE_A) -> None:
+        super().__init__(bank.params, bank.identity, readout_noise_a)
         if backend not in ("auto", "numba", "numpy"):
             raise ConfigError(f"backend must be auto, numba or numpy, got {backend!r}")
         if backend == "auto":
@@ -488,8 +508,12 @@ def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
     bank : TableBank, optional
         Table kinds only; built from ``params`` when absent.
     **options
+        Every kind: ``readout_noise_a`` (readout noise per quadrature and
+        sample, peak A rms; sets the flag thresholds' margins and the
+        phase-residual limit, default ``model.DEFAULT_READOUT_NOISE_A``).
         Table kinds: ``domain`` (TableDomain), ``backend``, ``bias_rtol``,
         ``progress`` and the build options of :func:`core.tables.build_bank`.
+        Baselines: ``domain``, the linearisation domain they flag outside.
 
     Raises
     ------
@@ -501,7 +525,7 @@ def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
     if params is not None and not isinstance(params, Mapping):
         raise ConfigError("params must be a mapping detector id -> DetectorParams")
     if kind in ("table", "grid"):
-        run_opts = {k: options.pop(k) for k in ("backend", "bias_rtol") if k in options}
+        run_opts = {k: options.pop(k) for k in ("backend", "bias_rtol", "readout_noise_a") if k in options}
         if bank is None:
             if not params:
                 raise ConfigError(f"kind {kind!r} needs params or a bank")
@@ -520,8 +544,9 @@ def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
         return TableConverter(bank, **run_opts)
     if bank is not None:
         raise ConfigError(f"kind {kind!r} takes no table bank")
-    if options:
-        raise ConfigError(f"kind {kind!r} takes no options, got {sorted(options)}")
+    allowed = {"readout_noise_a"} | ({"domain"} if kind in ("linear", "electrical") else set())
+    if set(options) - allowed:
+        raise ConfigError(f"kind {kind!r} takes only {sorted(allowed)} as options, got {sorted(options)}")
     if not params:
         raise ConfigError(f"kind {kind!r} needs params")
     plist = list(params.values())
@@ -529,4 +554,4 @@ def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
         if key != q.detector_id:
             raise ConfigError(f"params key {key!r} != detector_id {q.detector_id!r}")
     cls = {"exact": ExactConverter, "linear": LinearConverter, "electrical": ElectricalConverter}[kind]
-    return cls(plist)
+    return cls(plist, **options)

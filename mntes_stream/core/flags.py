@@ -11,8 +11,8 @@ import numpy as np
 
 FLAG_DTYPE = np.dtype("<u2")
 
-SATURATED = 1 << 0          # TES normal / saturated: R at or above the normal threshold
-SUPERCONDUCTING = 1 << 1    # TES latched: R at or below the stable branch (R <= |z|)
+SATURATED = 1 << 0          # TES normal / saturated, or its response below the counts' resolution
+SUPERCONDUCTING = 1 << 1    # R indistinguishable from the bottom of the transition
 OUT_OF_TABLE = 1 << 2       # counts outside the range the response table covers
 ENV_OUT_OF_RANGE = 1 << 3   # bath temperature, field or bias outside the tabulated range
 HK_STALE = 1 << 4           # housekeeping held longer than the allowed staleness
@@ -20,7 +20,8 @@ HK_MISSING = 1 << 5         # no housekeeping at all for this sample
 INVALID_INPUT = 1 << 6      # NaN / absurd counts, zero current, bad gain
 UNKNOWN_CHANNEL = 1 << 7    # channel has no detector parameters / table
 GAP = 1 << 8                # sample lies in a gap (missing chunk) of the stream
-PHASE_RESIDUAL = 1 << 9     # Im(sqrt2 V/i - z) too large: gain phase or pickup off
+PHASE_RESIDUAL = 1 << 9     # quadrature the model does not explain beyond its noise: gain phase, pickup off
+LATCHED = 1 << 10           # resistive but not certainly above |z| (loop gain <= 0): dropped out of the transition
 
 NAMES = {
     SATURATED: "saturated",
@@ -33,10 +34,12 @@ NAMES = {
     UNKNOWN_CHANNEL: "unknown_channel",
     GAP: "gap",
     PHASE_RESIDUAL: "phase_residual",
+    LATCHED: "latched",
 }
 
 # Flags after which the power value is not usable (NaN in the output).
-UNUSABLE = SATURATED | SUPERCONDUCTING | OUT_OF_TABLE | HK_MISSING | INVALID_INPUT | UNKNOWN_CHANNEL | GAP
+UNUSABLE = (SATURATED | SUPERCONDUCTING | LATCHED | OUT_OF_TABLE | HK_MISSING | INVALID_INPUT | UNKNOWN_CHANNEL
+            | GAP)
 
 
 def describe(mask: int) -> list[str]:

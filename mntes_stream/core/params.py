@@ -28,7 +28,8 @@ from mntes_stream.core.transition import (
 )
 from mntes_stream.errors import ConfigError
 
-__all__ = ["DetectorParams", "ParamArray", "table1_params", "PRESETS", "params_from_dict", "PARAM_KEYS"]
+__all__ = ["DetectorParams", "ParamArray", "table1_params", "tabulated_example_params", "PRESETS", "params_from_dict",
+           "PARAM_KEYS"]
 
 
 @dataclass(frozen=True)
@@ -272,3 +273,20 @@ class ParamArray:
 
     def __len__(self) -> int:
         return len(self.detector_ids)
+
+
+def tabulated_example_params(detector_id: str = "b0m0c100") -> DetectorParams:
+    """A detector with a measured-looking R(T): nonuniform points of a skewed
+    logistic with flat tails, field and current dependence, bias tuned to 0.7 R_n."""
+    from mntes_stream.core import model
+    from mntes_stream.core.transition import TabulatedTransition
+
+    t = np.concatenate([[0.160, 0.170], np.linspace(0.1745, 0.1865, 41) + 1e-5 * np.sin(np.arange(41)), [0.195, 0.210]])
+    x = (t - 0.1800) / 0.0011
+    r = 1.0 / (1.0 + np.exp(-x - 0.15 * x * np.abs(x) / (1 + np.abs(x))))
+    r = np.where(t < 0.171, 0.0, np.where(t > 0.19, 1.0, r))
+    p = table1_params(
+        detector_id, t_c_shift_k_per_t=0.3, t_c_shift_k_per_t2=-80.0, pickup_a_per_t=3e-5 - 7e-5j,
+        current_shift_k_per_a=250.0, gain_a_per_count=1e-12 * np.exp(0.7j),
+    ).replace(transition=TabulatedTransition(t_k=tuple(t), r_ohm=tuple(r)))
+    return p.replace(v_thev_v=float(model.tune_bias_v(p, 0.7)))

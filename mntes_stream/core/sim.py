@@ -406,13 +406,16 @@ def _gather(pa: ParamArray, index) -> ParamArray:
 
 
 def solve_quasi_static(pa: ParamArray, p_opt_w, t_bath_k, b_field_t, v_thev_v, r_guess_ohm=None,
-                       max_iter: int = 100) -> model.OperatingPoint:
+                       max_iter: int = 100, dropped0=None) -> model.OperatingPoint:
     """Same result as :func:`model.solve_operating_point`, faster for time streams.
 
     Safeguarded Newton in R: the bracket ``(a, b)`` always holds the root (the
     residual is monotone on the stable branch), a Newton step that leaves it
     is replaced by bisection, and converged elements drop out. Starts from
-    ``r_guess_ohm`` (broadcast to the sample shape) or mid-branch.
+    ``r_guess_ohm`` (broadcast to the sample shape) or mid-branch. Below
+    ``|z|`` the states come from the stability criterion
+    (:func:`model.lower_states`) with hysteresis along the samples
+    (:func:`model.latch_sequence`), starting from ``dropped0`` (n_det,).
 
     Parameters
     ----------
@@ -488,13 +491,22 @@ def solve_quasi_static(pa: ParamArray, p_opt_w, t_bath_k, b_field_t, v_thev_v, r
     r_min, r_max = pa.transition.r_domain_ohm()
     r = np.where(sc, np.broadcast_to(r_min, shape), np.broadcast_to(r_max, shape)).astype(float)
     r.ravel()[flat] = r_out
+    # Below |z| the operating branch continues to R2; a low branch or R = 0 may exist too.
+    r, op_exists, low_exists, r_low = model.lower_candidates(pa, shape, p_opt, t_bath, b, v, r, sc, normal)
+    dropped = model.latch_sequence(op_exists, low_exists, dropped0) & low_exists
+    r = np.where(dropped, r_low, r)
+    at_bottom = dropped & ~(r > r_min)
+    r = np.where(at_bottom, np.broadcast_to(r_min, shape), r)
     i = model.tes_current_a(pa, r, v)
-    state = np.where(sc, model.STATE_SUPERCONDUCTING,
-                     np.where(normal, model.STATE_NORMAL, model.STATE_TRANSITION)).astype(np.int8)
-    # Temperature: on the branch from the transition, off it from the balance at fixed R.
-    t_on = model.effective_temperature_k(pa, np.clip(r, lo, hi), np.abs(i), b)
+    latched = ~normal & ~at_bottom & ~(r > np.abs(pa.z_thev_ohm) + 1e-9 * pa.transition.r_n_ohm)
+    state = np.select([at_bottom, normal, latched],
+                      [model.STATE_SUPERCONDUCTING, model.STATE_NORMAL, model.STATE_LATCHED],
+                      model.STATE_TRANSITION).astype(np.int8)
+    # Temperature: on the transition from its shape, off it from the balance at fixed R.
+    on = ~normal & ~at_bottom
+    t_on = model.effective_temperature_k(pa, np.where(on, r, 0.5 * (lo + hi)), np.abs(i), b)
     t_off = (t_bath**pa.n + (p_opt + model.joule_power_w(pa, r, v)) / pa.k_w_per_k_n) ** (1.0 / pa.n)
-    return model.OperatingPoint(r_ohm=r, t_k=np.where(ok, t_on, t_off), i_a=i, state=state)
+    return model.OperatingPoint(r_ohm=r, t_k=np.where(on, t_on, t_off), i_a=i, state=state, dropped=dropped)
 
 
 def _readings_in(t0_ns: int, rate_hz: float, phase: float, start_ns: int, end_ns: int):
@@ -621,6 +633,7 @@ class ArraySimulator:
         self._step_factor = np.cumprod([1.0 + f for _, f in c.bias_steps])
         self._pos = 0
         self._r_prev = c.r_frac * np.asarray(self._pa.transition.r_n_ohm, dtype=float)
+        self._dropped = np.zeros(len(self._pa), dtype=bool)  # every detector starts on its branch (tuned from normal)
 
     # --- layout ---------------------------------------------------------------------------
     @property
@@ -722,7 +735,8 @@ class ArraySimulator:
                 noise = noise + self._pink.next(n)
             p_opt = p_opt + self._sigma_p_w * noise
         op = solve_quasi_static(self._pa, p_opt, tb[None, :], b[None, :], v,
-                                r_guess_ohm=self._guess_r(p_opt, tb, b, v))
+                                r_guess_ohm=self._guess_r(p_opt, tb, b, v), dropped0=self._dropped)
+        self._dropped = op.dropped[:, -1]  # the latch carries into the next block
         self._r_prev = np.where(op.state[:, -1:] == model.STATE_TRANSITION, op.r_ohm[:, -1:], self._r_prev)
         i_meas = model.readout_current_a(self._pa, op.i_a, b[None, :])
         counts = i_meas / self._pa.gain_a_per_count

@@ -8,7 +8,7 @@ import numpy as np
 
 from mntes_stream.core.model import invert_current, readout_current_a, solve_operating_point, tune_bias_v
 from mntes_stream.core.params import DetectorParams
-from mntes_stream.core.scan import SCANS, retuned_response, scan_parameter
+from mntes_stream.core.scan import SCANS, retuned_response, scan_parameter, transition_width_peaks_k
 
 __all__ = ["figure_parameter_dependence", "figure_response_function", "pyplot"]
 
@@ -45,10 +45,20 @@ def figure_parameter_dependence(p: DetectorParams, path: str | Path, r_frac: flo
         if name == "iqr_k":
             for ax in axes[:, col]:
                 ax.set_xscale("log")
+            # Both measures: the relative one peaks near 11 mK, the absolute |d2I/dP2| (the
+            # paper's Figure 1 quantity) near the paper's 5 mK.
+            peaks = transition_width_peaks_k(p, r_frac)
+            twin = axes[1, col].twinx()
+            twin.plot(x, res.abs_d2i_dp2_a_per_w2 / 1e18, color="C2", ls="--", label="|d2I/dP2| [10^18 A/W^2]")
+            for measure, color in (("relative", "C1"), ("absolute", "C2")):
+                axes[1, col].axvline(peaks[measure] * 1e3, color=color, lw=0.8, ls=":")
+            twin.legend(loc="lower center", fontsize=8)
+            out["iqr_peaks_k"] = peaks
         out[name] = {
             "values": res.values.tolist(),
             "abs_responsivity_a_per_w": res.abs_responsivity_a_per_w.tolist(),
             "nonlinearity_per_pw": res.nonlinearity_per_pw.tolist(),
+            "abs_d2i_dp2_a_per_w2": res.abs_d2i_dp2_a_per_w2.tolist(),
         }
     axes[0, 0].set_ylabel("|S| [10^6 A/W]")
     axes[1, 0].set_ylabel("|d2I/dP2| / |S| [1/pW]")
