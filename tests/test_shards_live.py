@@ -197,7 +197,8 @@ def test_killed_shard_is_reported_and_resumes_with_the_gap_reported(tmp_path):
         router = Proc(f"mntes-stream router -l tcp/127.0.0.1:{port}", tmp_path)
         procs.append(router)
         router.wait_for(r"router router: zenoh id")
-        shards = [_serve(tmp_path, "converter.toml", f"converter.shard={i}/3") for i in range(3)]
+        ckpt = [f"converter.checkpoint=ckpt-{i}.json" for i in range(3)]  # a restart then knows what it missed
+        shards = [_serve(tmp_path, "converter.toml", f"converter.shard={i}/3", ckpt[i]) for i in range(3)]
         recorder = _serve(tmp_path, "recorder.toml")
         procs += [*shards, recorder]
         for i, p in enumerate(shards):
@@ -221,13 +222,20 @@ def test_killed_shard_is_reported_and_resumes_with_the_gap_reported(tmp_path):
                                  cwd=tmp_path, capture_output=True, text=True, timeout=60).stdout
             assert "unconverted=" + ",".join(lost_streams) in out, out
             # Restarted, it picks its streams up again; the recorder reports the gap it left.
-            shards[victim] = _serve(tmp_path, "converter.toml", f"converter.shard={victim}/3")
+            shards[victim] = _serve(tmp_path, "converter.toml", f"converter.shard={victim}/3", ckpt[victim])
             procs.append(shards[victim])
             shards[victim].wait_for(rf"converter converter-{victim}of3: \d+ detectors")
             rec = _until(lambda: (lambda r: r if r.get("unconverted") == [] and r.get("power_gaps") else None)(
                 services().get("recorder", {})), 20.0)[0]
             assert sorted(rec["power_gaps"]) == lost_streams and min(rec["power_gaps"].values()) > 0
+            # ... and the restarted shard flags it too: what it missed, per stream, in its status and log.
+            again = _until(lambda: services().get(f"converter-{victim}of3", {}).get("chunks_missed_while_down"), 10)[0]
+            # The recorder counts what never reached it (power of a SIGKILLed process still in flight included),
+            # the shard what came after its last checkpoint: the same to within a status interval (0.5 s).
+            total = sum(rec["power_gaps"].values())
+            assert 0 < again <= total <= again + len(lost_streams) * 6, (again, rec["power_gaps"])
         recorder.wait_for(r"stream 0/\d: power again after a gap of \d+ chunk", 5)
+        shards[victim].wait_for(r"restart: mntes/lab/counts/0/\d missed \d+ chunks", 5)
         source.interrupt(30)
         time.sleep(1.0)
         for p in (*shards, recorder, router):
