@@ -255,11 +255,38 @@ return null;
 """
 
 
+def _replay_2023(driver, port: int) -> dict:
+    """Publish 10 s of power recorded from 2023-11-14 22:13:20 UTC at 10 chunks/s of wall time; the page state."""
+    from mntes_stream.io.messages import PowerChunk, detector_ids_for
+
+    t_rec = 1_700_000_000_000_000_000
+    ch = np.arange(8, dtype=np.int32)
+    with open_session(loopback(None, [port])) as z:
+        pubs = Publishers(z)
+        assert pubs.wait_matching([keys.power_key("lab", 0, 0)], 20)
+        for seq in range(100):
+            t0 = t_rec + seq * 100_000_000
+            pubs.put(keys.power_key("lab", 0, 0), PowerChunk(
+                "lab", 0, 0, ch, detector_ids_for(0, 0, ch), seq, t0, 100.0, np.full((8, 10), 5e-13),
+                np.zeros((8, 10), np.uint16), "tables-x", "table", t0, t0 + 120_000_000).to_bytes())
+            if seq >= 20:
+                s = driver.execute_script(
+                    "const M = window.mntesMonitor, ts = document.getElementById('timestreams');"
+                    "return {badge: {text: document.getElementById('fresh').textContent,"
+                    " cls: document.getElementById('fresh').className},"
+                    " ts_title: ts._fullLayout.xaxis.title.text, latency_text: document.getElementById('latency').textContent};")
+                if s["badge"]["cls"] == "pill replay":
+                    return s
+            time.sleep(0.1)
+    return s
+
+
 @pytest.mark.slow
 def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path):
     """Issue 16 item 4 in real Chromium: an empty page draws no year-2000 axis; a focal-plane click plots a
-    channel; killing the source turns the badge red within 1 s of the staleness threshold; restarting it
-    turns it green again."""
+    channel (by board/module/channel and by sky position); killing the source turns the badge red within 1 s
+    of the staleness threshold; restarting it turns it green again; power recorded in 2023 and re-published
+    shows as a replay with its latency on the recording's clock."""
     _browser_or_skip()
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.support.ui import Select
@@ -269,19 +296,19 @@ def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path
     sim = ArraySimulator(SimConfig(modules=1, channels=8))
     sky = {f"b0m0c{c:03d}": [round(0.5 * (c % 3), 2), round(0.4 * (c // 3), 2)] for c in range(8)}  # degrees
     dump_params(list(sim.truth_params), tmp_path / "params.toml", metadata={"focal_plane": sky})
-    p_sim, p_conv = free_tcp_port(), free_tcp_port()
+    p_sim, p_conv, p_mon = free_tcp_port(), free_tcp_port(), free_tcp_port()
     (tmp_path / "converter.toml").write_text(
         '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\n[status]\ninterval_s = 1.0\n'
         f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{p_conv}"]\nconnect = ["tcp/127.0.0.1:{p_sim}"]\n')
     sim_args = ["simulate", "--listen", f"tcp/127.0.0.1:{p_sim}", "--setup", "lab", "--modules", "1", "--channels",
                 "8", "--duration", "300", "--no-truth"]
     with contextlib.ExitStack() as stack:
-        stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration", "300"],
-                                     tmp_path / "converter.log"))
+        converter = stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration",
+                                                  "300"], tmp_path / "converter.log"))
         monitor = stack.enter_context(_process(
             ["monitor", "--port", "0", "--setup", "lab", "--duration", "300", "--update-s", "0.25",
              "--params", str(tmp_path / "params.toml"),
-             "--connect", f"tcp/127.0.0.1:{p_conv}"], tmp_path / "monitor.log"))
+             "--connect", f"tcp/127.0.0.1:{p_conv}", "--listen", f"tcp/127.0.0.1:{p_mon}"], tmp_path / "monitor.log"))
         line = _read_line(monitor, 60, tmp_path / "monitor.log")
         assert "serving http://127.0.0.1:" in line, line
         url = line.split("serving ", 1)[1].split()[0]
@@ -334,6 +361,14 @@ def test_badge_turns_red_when_the_source_dies_and_green_when_it_returns(tmp_path
               f"chunk interval {fr['chunk_interval_s']:.3f} s); badge changes after the kill: {changes}")
         assert -0.05 < late_s < 1.0
         # Restart it: green again.
-        stack.enter_context(_process(sim_args, tmp_path / "simulate-2.log"))
+        source = stack.enter_context(_process(sim_args, tmp_path / "simulate-2.log"))
         s = _wait(driver, lambda s: s["fresh"]["state"] == "live", 90, "a green badge after the source restarted")
         assert "ok" in s["badge"]["cls"] and s["errors"] == []
+        # A replay (power recorded in 2023, re-published now, as `mntes-stream replay` does) once the source is gone.
+        for proc in (source, converter):  # no live power any more
+            proc.kill()
+            proc.wait(10)
+        _wait(driver, lambda s: s["fresh"]["state"] == "stale", 30, "a red badge once live power stopped")
+        s = _replay_2023(driver, p_mon)
+        assert s["badge"]["cls"] == "pill replay" and s["badge"]["text"].startswith("REPLAY · recorded 2023-11-14 22:13:")
+        assert "recording time (UTC)" in s["ts_title"] and "recording's clock" in s["latency_text"]
