@@ -442,3 +442,29 @@ def test_sky_positions_from_the_parameter_file(tmp_path):
     path.write_text('[metadata.focal_plane]\nb0m0c000 = [1.5, "x"]\n')
     with pytest.raises(ConfigError, match=r"metadata.focal_plane.b0m0c000 must be \[x_deg, y_deg\]"):
         load_positions(path)
+
+
+def test_ring_grows_wraps_and_filters_like_the_last_samples_appended():
+    from mntes_stream.monitor.history import Ring
+
+    rng = np.random.default_rng(7)
+    ring = Ring(3, 250)
+    ts, vs, t = [], [], 0
+    for _ in range(60):
+        n = int(rng.integers(1, 40))
+        tt = t + np.arange(n, dtype=np.int64) * 10
+        t = int(tt[-1]) + 10
+        v = rng.standard_normal((3, n)).astype(np.float32)
+        ring.append(tt, v)
+        ts.append(tt)
+        vs.append(v)
+        t_all, v_all = np.concatenate(ts)[-250:], np.concatenate(vs, axis=1)[:, -250:]
+        got_t, got_v = ring.read()
+        np.testing.assert_array_equal(got_t, t_all)
+        np.testing.assert_array_equal(got_v, v_all)
+        since = int(t_all[len(t_all) // 3]) + 5
+        got_t, got_v = ring.read(np.array([2, 0]), since)
+        keep = t_all >= since
+        np.testing.assert_array_equal(got_t, t_all[keep])
+        np.testing.assert_array_equal(got_v, v_all[[2, 0]][:, keep])
+    assert ring.nbytes <= Ring.max_nbytes(3, 250)

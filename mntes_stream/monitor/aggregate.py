@@ -805,10 +805,11 @@ class Aggregator:
             for i, (row, det) in enumerate(members):
                 t_i, p_i, resolution = td, pd[i], "full rate"
                 if window_s is not None and window_s > self.config.history_s:
+                    since = None if buf.newest_t_ns is None else buf.newest_t_ns - int(window_s * 1e9)
                     if row in buf.watched:
-                        t_l, p_l = buf.watched[row].read()
+                        t_l, p_l = buf.watched[row].read(since_ns=since)
                     else:
-                        t_l, p_l = buf.slow.read(np.array([row]))
+                        t_l, p_l = buf.slow.read(np.array([row]), since)
                         resolution = f"{self.config.slow_bin_s:g} s means"
                     t_i, p_l = decimate_minmax(*self._window(t_l, p_l, window_s), self.config.max_points)
                     p_i = p_l[0]

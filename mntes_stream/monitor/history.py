@@ -85,14 +85,21 @@ class Ring:
             n_rows = self.n_rows if rows is None else len(rows)
             return np.zeros(0, dtype=np.int64), np.zeros((n_rows, 0))
         start = (self._head - self.count) % alloc
-        idx = (start + np.arange(self.count)) % alloc
-        t = self._t[idx]
+        # Oldest first as (at most) two slices; the times are ordered, so `since_ns` is a binary search.
+        parts = [(start, min(start + self.count, alloc))]
+        if start + self.count > alloc:
+            parts.append((0, start + self.count - alloc))
         if since_ns is not None:
-            keep = t >= since_ns
-            idx, t = idx[keep], t[keep]
-        if rows is None:
-            return t, self._v[:, idx].astype(np.float64)
-        return t, self._v[np.asarray(rows)[:, None], idx[None, :]].astype(np.float64)
+            kept = []
+            for a, b in parts:
+                a = a + int(np.searchsorted(self._t[a:b], since_ns, side="left"))
+                if a < b:
+                    kept.append((a, b))
+            parts = kept
+        t = np.concatenate([self._t[a:b] for a, b in parts]) if parts else self._t[:0].copy()
+        v = self._v if rows is None else self._v[np.asarray(rows)]
+        vals = [v[:, a:b] for a, b in parts]
+        return t, (np.concatenate(vals, axis=1) if vals else v[:, :0]).astype(np.float64)
 
     @property
     def newest_t_ns(self) -> int | None:
