@@ -221,7 +221,7 @@ def test_every_flag_is_set_where_it_belongs(params, bank, grid_bank, kind, backe
     # The baselines flag outside their linearisation domain as the tables do outside theirs.
     table_kind = kind != "exact"
     expected = [
-        0, fl.SATURATED, fl.LATCHED, fl.OUT_OF_TABLE if table_kind else 0,
+        0, fl.SATURATED, fl.SUPERCONDUCTING | fl.LATCHED, fl.OUT_OF_TABLE if table_kind else 0,
         fl.INVALID_INPUT, fl.INVALID_INPUT, fl.INVALID_INPUT, fl.INVALID_INPUT,
         fl.HK_STALE, fl.HK_MISSING, fl.ENV_OUT_OF_RANGE if table_kind else 0,
     ]

@@ -92,7 +92,7 @@ def test_latched_threshold_just_inside_and_outside(det, kind):
     p = det
     th = model.flag_thresholds(p)
     out_r = _latched_r(p, th)
-    for r, expect in ((th.r_latched_ohm * 1.02, 0), (out_r, fl.LATCHED)):
+    for r, expect in ((th.r_latched_ohm * 1.02, 0), (out_r, fl.LATCHED | fl.SUPERCONDUCTING)):
         f = int(_convert(kind, p, *_counts(p, r, p.v_thev_v), p.v_thev_v).flags[0, 0])
         f &= fl.LATCHED | fl.SUPERCONDUCTING | fl.SATURATED
         assert f == expect, (kind, r, f)

@@ -248,3 +248,28 @@ def test_bad_configs_are_rejected():
         ArraySimulator(SimConfig()).next_block(0)
     cfg = SimConfig.from_dict(SimConfig(channels=128, bias_steps=((5.0, 0.01),)).to_dict())
     assert cfg.channels == 128 and cfg.bias_steps == ((5.0, 0.01),)
+
+
+def test_bistable_channel_latches_until_its_power_passes_the_reentry_point():
+    """Starts on its low branch; a Jupiter crossing lifts it above P(R1); it stays on the branch after."""
+    from mntes_stream.core.sim import CHANNEL_BISTABLE
+
+    cfg = SimConfig.noise_free(channels=3, latched_per_module=1, bistable_per_module=1, jupiter_peak_w=0.3e-12,
+                               jupiter_t_s=5.0, sample_rate_hz=20.0)
+    sim = ArraySimulator(cfg)
+    assert [ch.kind for ch in sim.channels] == [CHANNEL_OK, CHANNEL_BISTABLE, CHANNEL_LATCHED]
+    whole = sim.next_block(300)
+    st = whole.truth_state[1]
+    k = np.flatnonzero(np.diff(st))
+    assert k.size == 1 and st[0] == model.STATE_LATCHED and st[-1] == model.STATE_TRANSITION
+    p = sim.truth_params[1]
+    # Same loading before and after the crossing: two stable states, the history picks.
+    assert whole.truth_p_opt_w[1, 0] == whole.truth_p_opt_w[1, -1]
+    r0, r1, r2 = (float(x) for x in model.stability_bounds_ohm(p, p.v_thev_v))
+    p_r1, p_r2 = (float(model.power_of_resistance_w(p, r, p.t_bath_k, 0.0, p.v_thev_v)) for r in (r1, r2))
+    assert p_r2 < whole.truth_p_opt_w[1, 0] < p_r1
+    assert whole.truth_p_opt_w[1, k[0] + 1] > p_r1 >= whole.truth_p_opt_w[1, k[0]]
+    # The latch carries across blocks.
+    again = ArraySimulator(cfg)
+    parts = np.concatenate([again.next_block(n).truth_state for n in (50, 37, 213)], axis=1)
+    assert np.array_equal(parts, whole.truth_state)

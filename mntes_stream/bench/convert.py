@@ -32,6 +32,10 @@ def add_arguments(p) -> None:
     p.add_argument("--no-numpy", action="store_true", help="skip timing the numpy backend")
     p.add_argument("--png", metavar="FILE", help="write a figure of the errors against the exact inverse")
     p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--range", action="store_true",
+                   help="also the operating-range sweep (core.sweep): per kind, worst unflagged error over every "
+                        "region and transition model, and the transition's flagged fraction")
+    p.add_argument("--range-samples", type=int, default=20_000, help="--range: samples per transition model")
 
 
 def synthetic_params(n_det: int, seed: int = 0, start: int = 0) -> dict:
@@ -184,11 +188,32 @@ def run(args) -> dict:
         "grid_max_abs_error_w": _max_err(g_out.p_opt_w, ref.p_opt_w),
         "grid_bank_mib_per_5000_detectors": grid_bank.nbytes / n_det * 5000 / 2**20,
     })
+    if getattr(args, "range", False):
+        result["range"] = range_summary(args.range_samples, seed=args.seed)
     if args.png:
         _figure(args.png, ref.p_opt_w, {"table": out.p_opt_w, "grid": g_out.p_opt_w, "linear": lin.p_opt_w,
                                         "electrical": ele.p_opt_w})
         result["figure"] = args.png
     return result
+
+
+def range_summary(n_samples: int, seed: int = 0) -> dict:
+    """Per kind, over every transition model: worst unflagged error in any region and the largest
+    flagged fraction of in-domain transition samples (:func:`core.sweep.range_sweep`)."""
+    from mntes_stream.core.sweep import range_sweep
+
+    t0 = time.perf_counter()
+    res = range_sweep(n_samples=n_samples, seed=seed)
+    out = {}
+    for kinds in res.stats.values():
+        for kind, per in kinds.items():
+            o = out.setdefault(kind, {"worst_unflagged_error_w": 0.0, "transition_flagged_frac_in_domain": 0.0})
+            o["worst_unflagged_error_w"] = max(o["worst_unflagged_error_w"],
+                                               max(r["worst_unflagged_error_w"] for r in per.values()))
+            o["transition_flagged_frac_in_domain"] = max(o["transition_flagged_frac_in_domain"],
+                                                         per["transition"]["flagged_frac_in_domain"])
+    return {"samples_per_model": n_samples, "models": list(res.stats), "by_kind": out,
+            "elapsed_s": time.perf_counter() - t0}
 
 
 def _figure(path: str, ref: np.ndarray, kinds: dict) -> None:

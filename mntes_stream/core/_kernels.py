@@ -135,8 +135,9 @@ def front_numpy(ci_, cq_, tb, b, v, hk, rows, phys, dom):
         r = SQRT2 * v * ire / m2 - ph[:, 4]
         sat = valid & ((r >= ph[:, 13]) | ((r - ph[:, 17]) * v >= -ph[:, 18]))
         low = valid & ~sat & ((r - ph[:, 12]) * v <= ph[:, 19])
-        sc = low & ((r - ph[:, 15]) * v <= ph[:, 20])
-        lat = low & ~sc
+        # The superconducting side: SUPERCONDUCTING always, LATCHED too where R is resistive.
+        sc = low
+        lat = low & ~((r - ph[:, 15]) * v <= ph[:, 20])
         # The quadrature current the model does not explain: Im(sqrt2 V/i - z) |i|^2 / (sqrt2 V).
         phase = valid & (np.abs(SQRT2 * v * iim + ph[:, 5] * m2) > ph[:, 16] * SQRT2 * v)
         # Bias bounds as products (fraction x nominal), as a caller computes a bias.
@@ -275,7 +276,7 @@ if numba is not None:
         if r >= det[7] or (r - det[12]) * v >= -det[13]:
             return f | _SAT, r, 0.0, False
         if (r - det[6]) * v <= det[14]:
-            return f | (_SC if (r - det[10]) * v <= det[15] else _LAT), r, 0.0, False
+            return f | (_SC if (r - det[10]) * v <= det[15] else _SC | _LAT), r, 0.0, False
         return f, r, math.sqrt(m2), True
 
     @_inline

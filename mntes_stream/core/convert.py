@@ -29,9 +29,9 @@ silent number. Flag rules, per sample:
 - ``SATURATED``: R at or above the lowest of: the top of the model less the
   noise margin, the point where one count moves the power by more than
   ``model.P_RESOLUTION_W``, and loop gain < ``model.LOOP_GAIN_NORMAL``;
-- ``LATCHED``: R not above ``|z|`` by the noise margin (loop gain <= 0: the
-  detector dropped out of the transition); ``SUPERCONDUCTING`` instead where R
-  is within the noise of the bottom of the transition;
+- ``SUPERCONDUCTING``: R not above ``|z|`` by the noise margin (loop gain
+  <= 0: the detector dropped out of the transition), with ``LATCHED`` too where
+  R is above the bottom of the transition by the margin (resistive, latched);
 - ``PHASE_RESIDUAL``: the quadrature current the model does not explain,
   ``|Im(sqrt(2) V / i - z)| |i|^2 / (sqrt(2) V)``, above 7 sigma of readout
   noise and quantisation (the value is kept);

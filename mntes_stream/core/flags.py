@@ -12,7 +12,7 @@ import numpy as np
 FLAG_DTYPE = np.dtype("<u2")
 
 SATURATED = 1 << 0          # TES normal / saturated, or its response below the counts' resolution
-SUPERCONDUCTING = 1 << 1    # R indistinguishable from the bottom of the transition
+SUPERCONDUCTING = 1 << 1    # superconducting side: R not certainly above |z| (off the operating branch)
 OUT_OF_TABLE = 1 << 2       # counts outside the range the response table covers
 ENV_OUT_OF_RANGE = 1 << 3   # bath temperature, field or bias outside the tabulated range
 HK_STALE = 1 << 4           # housekeeping held longer than the allowed staleness
@@ -21,7 +21,7 @@ INVALID_INPUT = 1 << 6      # NaN / absurd counts, zero current, bad gain
 UNKNOWN_CHANNEL = 1 << 7    # channel has no detector parameters / table
 GAP = 1 << 8                # sample lies in a gap (missing chunk) of the stream
 PHASE_RESIDUAL = 1 << 9     # quadrature the model does not explain beyond its noise: gain phase, pickup off
-LATCHED = 1 << 10           # resistive but not certainly above |z| (loop gain <= 0): dropped out of the transition
+LATCHED = 1 << 10           # with SUPERCONDUCTING: R above the bottom, the TES latched resistive (loop gain <= 0)
 
 NAMES = {
     SATURATED: "saturated",

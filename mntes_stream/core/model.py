@@ -731,8 +731,9 @@ class FlagThresholds:
     (``k = k_sigma sigma_i |R + z|^2 / sqrt(2)``, Ohm V), exact at every
     sample's bias (:meth:`at_bias`). A sample is
 
-    - ``SUPERCONDUCTING`` where ``R <= r_bottom_ohm + k_bottom / V`` (the bottom of the transition);
-    - ``LATCHED`` where ``R <= r_z_ohm + k_z / V`` (not certainly above ``|z|``: loop gain <= 0);
+    - ``SUPERCONDUCTING`` where ``R <= r_z_ohm + k_z / V`` (not certainly above ``|z|``: loop
+      gain <= 0, off the operating branch), with ``LATCHED`` too where also
+      ``R > r_bottom_ohm + k_bottom / V`` (resistive: latched, not at the bottom);
     - ``SATURATED`` where ``R >= r_top_ohm - k_top / V`` (the top of the transition) or
       ``R >= r_cap_ohm`` (loop gain < ``LOOP_GAIN_NORMAL``, or the optional resolution criterion);
     - ``PHASE_RESIDUAL`` where the current the model does not explain,
@@ -757,15 +758,17 @@ class FlagThresholds:
 
     @property
     def r_superconducting_ohm(self) -> float:
-        """At the nominal bias the thresholds were built for (``v_ref_v``)."""
+        """At or below (nominal bias): at the bottom, SUPERCONDUCTING without LATCHED."""
         return float(self.at_bias(self._v_ref)[0])
 
     @property
     def r_latched_ohm(self) -> float:
+        """At or below (nominal bias): off the operating branch, SUPERCONDUCTING (+ LATCHED if resistive)."""
         return float(self.at_bias(self._v_ref)[1])
 
     @property
     def r_saturated_ohm(self) -> float:
+        """At or above (nominal bias): SATURATED."""
         return float(self.at_bias(self._v_ref)[2])
 
 

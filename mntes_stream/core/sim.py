@@ -58,6 +58,7 @@ __all__ = [
     "HkReadings",
     "SimBlock",
     "ArraySimulator",
+    "CHANNEL_BISTABLE",
     "cmb_dpdt_w_per_k",
     "solve_quasi_static",
 ]
@@ -67,7 +68,9 @@ HWP_FREQUENCIES_HZ = {"LFT": 0.77, "MFT": 0.65, "HFT": 1.02}
 
 CHANNEL_OK = "ok"
 CHANNEL_SATURATED = "saturated"  # optical loading above saturation: TES normal
-CHANNEL_LATCHED = "latched"      # bias far below the tuned value: TES superconducting
+CHANNEL_LATCHED = "latched"      # bias far below the tuned value: TES below |z| (loop gain < 0)
+CHANNEL_BISTABLE = "bistable"    # bias in the bistable window at its loading: starts latched on the low
+                                 # branch, re-enters the transition once its power exceeds P(R1)
 
 _H_J_S = 6.62607015e-34
 _KB_J_PER_K = 1.380649e-23
@@ -116,6 +119,8 @@ class SimConfig(Settings):
     latched_per_module: int = setting(1, "channels per module biased into the superconducting state", ge=0)
     saturated_loading_factor: float = setting(3.0, "x P_sat (arctan tails: R ~ 0.997 R_n, not exactly normal)", gt=0)
     latched_bias_factor: float = setting(0.25, "x tuned bias", gt=0)
+    bistable_per_module: int = setting(0, "channels per module biased into the bistable window, starting latched",
+                                       ge=0)
     # --- optical signals ---------------------------------------------------------------
     f_hwp_hz: float = setting(HWP_FREQUENCIES_HZ["LFT"], "half-wave-plate rotation frequency (LFT by default)", unit="Hz", ge=0)
     hwp_1f_w: float = setting(0.0, "HWP-synchronous signal at 1 f_HWP", unit="W")
@@ -159,8 +164,8 @@ class SimConfig(Settings):
 
     def __post_init__(self) -> None:
         super().__post_init__()  # every declared setting: type, range, choices
-        if self.saturated_per_module + self.latched_per_module > self.channels:
-            raise ConfigError("more saturated + latched channels than channels per module")
+        if self.saturated_per_module + self.latched_per_module + self.bistable_per_module > self.channels:
+            raise ConfigError("more saturated + latched + bistable channels than channels per module")
         if any(1.0 + f <= 0 for _, f in self.bias_steps):
             raise ConfigError("a bias step may not take the bias to zero or below")
         object.__setattr__(self, "bias_steps", tuple(sorted(self.bias_steps)))
@@ -206,7 +211,7 @@ class SimChannel:
     board: int
     module: int
     channel: int
-    kind: str  # CHANNEL_OK, CHANNEL_SATURATED or CHANNEL_LATCHED
+    kind: str  # CHANNEL_OK, CHANNEL_SATURATED, CHANNEL_LATCHED or CHANNEL_BISTABLE
 
 
 @dataclass(frozen=True)
@@ -509,6 +514,30 @@ def solve_quasi_static(pa: ParamArray, p_opt_w, t_bath_k, b_field_t, v_thev_v, r
     return model.OperatingPoint(r_ohm=r, t_k=np.where(on, t_on, t_off), i_a=i, state=state, dropped=dropped)
 
 
+def _bistable_bias_v(p, load_w: float, v_tuned: float) -> float:
+    """A bias putting ``load_w`` inside the detector's bistable window, at 30% of it from the bottom.
+
+    Scans 0.3-0.8 of the tuned bias for the window ``(P(R2), P(R1))`` of the
+    stability criterion (:func:`model.stability_bounds_ohm`) at the nominal bath.
+    """
+    fracs = np.linspace(0.3, 0.8, 51)
+    best, best_d = None, np.inf
+    for f in fracs:
+        v = f * v_tuned
+        r0, r1, r2 = (float(x) for x in model.stability_bounds_ohm(p, v))
+        if not r1 > r0:
+            continue
+        p1, p2 = (float(model.power_of_resistance_w(p, r, p.t_bath_k, 0.0, v)) for r in (r1, r2))
+        if not p1 > p2:
+            continue
+        d = abs((load_w - p2) / (p1 - p2) - 0.3)
+        if d < best_d:
+            best, best_d = v, d
+    if best is None or best_d > 0.3:
+        raise ConfigError(f"{p.detector_id}: no bias puts its loading in a bistable window")
+    return float(best)
+
+
 def _readings_in(t0_ns: int, rate_hz: float, phase: float, start_ns: int, end_ns: int):
     """Indices ``j >= 0`` and times of readings ``t0 + round((j + phase)/rate s)`` in [start, end)."""
     if rate_hz <= 0 or end_ns <= start_ns:
@@ -550,11 +579,13 @@ class ArraySimulator:
         normal = lambda: rng.standard_normal(n_det)  # noqa: E731
         uniform = lambda lo, hi: rng.uniform(lo, hi, n_det)  # noqa: E731
         kinds = np.full(c.channels, CHANNEL_OK, dtype=object)
-        n_sat, n_lat = c.saturated_per_module, c.latched_per_module
+        n_sat, n_lat, n_bi = c.saturated_per_module, c.latched_per_module, c.bistable_per_module
         if n_lat:
             kinds[c.channels - n_lat:] = CHANNEL_LATCHED
         if n_sat:
             kinds[c.channels - n_lat - n_sat: c.channels - n_lat] = CHANNEL_SATURATED
+        if n_bi:
+            kinds[c.channels - n_lat - n_sat - n_bi: c.channels - n_lat - n_sat] = CHANNEL_BISTABLE
         self.channels = tuple(
             SimChannel(detector_id(b, m, ch), b, m, ch, str(kinds[ch]))
             for b in range(c.boards) for m in range(c.modules) for ch in range(c.channels)
@@ -595,6 +626,9 @@ class ArraySimulator:
         is_lat = np.array([ch.kind == CHANNEL_LATCHED for ch in self.channels])
         is_sat = np.array([ch.kind == CHANNEL_SATURATED for ch in self.channels])
         v_set = np.where(is_lat, c.latched_bias_factor * v_tuned, v_tuned)
+        is_bi = np.array([ch.kind == CHANNEL_BISTABLE for ch in self.channels])
+        for k in np.flatnonzero(is_bi):
+            v_set[k] = _bistable_bias_v(params[k], float(nominal_load[k] * (1 + c.loading_offset_frac)), v_tuned[k])
         self.truth_params = tuple(p.replace(v_thev_v=float(v)) for p, v in zip(params, v_set))
         self._pa = ParamArray.from_params(list(self.truth_params))
         p_sat = np.array([p.p_sat_w for p in self.truth_params])
@@ -633,7 +667,9 @@ class ArraySimulator:
         self._step_factor = np.cumprod([1.0 + f for _, f in c.bias_steps])
         self._pos = 0
         self._r_prev = c.r_frac * np.asarray(self._pa.transition.r_n_ohm, dtype=float)
-        self._dropped = np.zeros(len(self._pa), dtype=bool)  # every detector starts on its branch (tuned from normal)
+        # Every detector starts on its branch (tuned from normal), but the bistable ones:
+        # they sit on their low branch until their power exceeds the re-entry point P(R1).
+        self._dropped = np.array([ch.kind == CHANNEL_BISTABLE for ch in self.channels])
 
     # --- layout ---------------------------------------------------------------------------
     @property
