@@ -17,6 +17,7 @@ from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.monitor.aggregate import MonitorConfig
 from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["MonitorServiceConfig", "MonitorService", "load_positions"]
 
@@ -41,6 +42,7 @@ class MonitorServiceConfig(Settings):
     update_s: float = setting(0.5, "update period of the page or table", unit="s", ge=0.05, le=60)
     text: bool = setting(False, "print a terminal table instead of serving the page")
     duration_s: float = setting(0.0, "stop after this long (0: until stopped)", unit="s", ge=0)
+    metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 
