@@ -192,3 +192,27 @@ def test_range_sweep_meets_the_acceptance_for_every_mntes_kind(tmp_path):
     assert main(["validate", "--range", "--samples", "3000", "--out", str(out), "--json"]) == 0
     assert (out / "range_errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "arctan" in (out / "range_summary.json").read_text()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_superconducting_bottom_inside_and_outside(kind):
+    """A tabulated transition with a zero-resistance bottom: R = 0 reads SUPERCONDUCTING alone;
+    20 sigma_R above the bottom threshold (from Brent, under-biased) it reads SUPERCONDUCTING | LATCHED."""
+    p = tabulated_params("b0m0c002")
+    th = model.flag_thresholds(p)
+    v = 0.2 * p.v_thev_v
+    r_min = float(p.transition.r_domain_ohm()[0])
+    assert r_min == 0.0
+    # Independent: below P(R = 0+) the balance has no root in the transition; the TES is superconducting.
+    p0 = _balance(p, 1e-12, 0.0, v)
+    assert p0 > 0 and int(model.solve_operating_point(p, 0.5 * p0, v_thev_v=v).state) == model.STATE_SUPERCONDUCTING
+    sigma_r0 = th.k_bottom_ohm_v / (model.K_SIGMA * v)
+    r_up = th.at_bias(v)[0] + 20 * sigma_r0
+    p_up = _balance(p, r_up, 0.0, v)
+    r = _brent_r(p, p_up, v, 1e-12, 0.9 * abs(p.z_thev_ohm))
+    assert abs(r - r_up) < 1e-12
+    mask = fl.SUPERCONDUCTING | fl.LATCHED | fl.SATURATED
+    env_v = v
+    for r_at, expect in ((0.0, fl.SUPERCONDUCTING), (r, fl.SUPERCONDUCTING | fl.LATCHED)):
+        f = int(_convert(kind, p, *_counts(p, r_at, env_v), env_v).flags[0, 0]) & mask
+        assert f == expect, (kind, r_at, f)
