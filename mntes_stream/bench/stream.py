@@ -39,6 +39,10 @@ def add_arguments(p) -> None:
     p.add_argument("--passthrough-s", type=float, default=3.0, metavar="S", help="passthrough phase length (default 3 s)")
     p.add_argument("--kind", default="table", help="conversion kind (default table)")
     p.add_argument("--flat-out", action="store_true", help="stream phase as fast as possible instead of real time")
+    p.add_argument("--recorder-shards", type=int, default=1, metavar="K",
+                   help="K recorder processes, each recording its shard of the streams (default 1)")
+    p.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"),
+                   help="recorder chunk compression (default zstd)")
     p.add_argument("--keep", metavar="DIR", help="keep the recording and parameters in DIR")
     add_zenoh_args(p)
 
@@ -182,20 +186,29 @@ def run(args) -> dict:
     rec_dir = work / "recordings"
     params_file = work / "params.toml"
     dump_params(MinimalSource(sc).params, params_file)
-    p_rec, p_conv, p_src, p_sink = (free_tcp_port() for _ in range(4))
+    if args.recorder_shards < 1:
+        from mntes_stream.errors import ConfigError
+
+        raise ConfigError("--recorder-shards takes a count >= 1")
+    p_recs = [free_tcp_port() for _ in range(args.recorder_shards)]
+    p_conv, p_src, p_sink = (free_tcp_port() for _ in range(3))
     zenoh = zenoh_layer(args)
-    rec_cfg = RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0, log_interval_s=3600,
-                             zenoh=zenoh.over(loopback(p_rec)))
+    rec_cfgs = [RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0,
+                               log_interval_s=3600, compression=args.compression,
+                               shard=f"{i}/{args.recorder_shards}" if args.recorder_shards > 1 else "",
+                               zenoh=zenoh.over(loopback(p))) for i, p in enumerate(p_recs)]
+    rec_names = [f"recorder{i}" if i else "recorder" for i in range(len(rec_cfgs))]
     conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, provenance_interval_s=0,
-                               zenoh=zenoh.over(loopback(p_conv, [p_rec])))
-    src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, [p_conv, p_rec, p_sink])),
+                               zenoh=zenoh.over(loopback(p_conv, p_recs)))
+    src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, [p_conv, *p_recs, p_sink])),
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
                "flat_out": args.flat_out}
     sink_cfg = {"zenoh": zenoh.over(loopback(p_sink)), "key": keys.counts_key(pass_setup, "*", "*")}
     load_before = os.getloadavg()[0]
     services = Services()
     try:
-        services.start("recorder", "recorder", rec_cfg)
+        for name, rec_cfg in zip(rec_names, rec_cfgs):
+            services.start(name, "recorder", rec_cfg)
         services.start("converter", "converter", conv_cfg)
         services.start("sink", _Sink, sink_cfg)
         services.start("source", _Source, src_cfg)
@@ -217,9 +230,11 @@ def run(args) -> dict:
                 received = n_in
             sub.close()
         ok_src = services.stop("source")
-        ok = services.stop("converter") & services.stop("recorder") & services.stop("sink") & ok_src
+        ok = services.stop("converter") & services.stop("sink") & ok_src
+        for name in rec_names:
+            ok &= services.stop(name)
     finally:
-        for name in ("source", "converter", "recorder", "sink"):
+        for name in ("source", "converter", *rec_names, "sink"):
             services.stop(name, timeout_s=10)
     results, ok_all = services.collect()
     src, conv, rec, sink = (results.get(k, {}) for k in ("source", "converter", "recorder", "sink"))
@@ -265,7 +280,10 @@ def run(args) -> dict:
         "source_behind_max_ms": round(src.get("behind_max_ms", 0.0), 2),
         "stream_wall_s": round(stream_wall, 2),
         "passthrough_msamples_per_s": round(sink.get("msamples_per_s", 0.0), 3) if isinstance(sink, dict) else None,
-        "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "recorder": cpu(rec), "sink": cpu(sink)},
+        "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "sink": cpu(sink),
+                         **{name: cpu(results.get(name, {})) for name in rec_names}},
+        "recorder_shards": args.recorder_shards,
+        "compression": args.compression,
         "max_rss_mb": {k: round(r["process_max_rss_mb"]) if isinstance(r, dict) and "process_max_rss_mb" in r else None
                        for k, r in (("converter", conv), ("recorder", rec), ("source", src))},
         "recording_mb": round(sum(f.stat().st_size for f in rec_dir.glob("*.mcap")) / 1e6, 1),
