@@ -58,7 +58,7 @@ class StreamClaims:
     """
 
     def __init__(self, session, setup: str, name: str, streams: Iterable[tuple[int, int]], standby: bool = False,
-                 t_claim_ns: int | None = None, settle_s: float = 0.5):
+                 t_claim_ns: int | None = None, settle_s: float = 3.0):
         self.streams = frozenset(streams)
         self.me = Claim(int(t_claim_ns if t_claim_ns is not None else time.time_ns()), str(session.zid()), name,
                         bool(standby))
