@@ -216,3 +216,16 @@ def test_superconducting_bottom_inside_and_outside(kind):
     for r_at, expect in ((0.0, fl.SUPERCONDUCTING), (r, fl.SUPERCONDUCTING | fl.LATCHED)):
         f = int(_convert(kind, p, *_counts(p, r_at, env_v), env_v).flags[0, 0]) & mask
         assert f == expect, (kind, r_at, f)
+
+
+def test_a_converter_pickled_with_the_old_kernel_layout_rebuilds_its_thresholds():
+    """Restart snapshots pickle converters; one from before the 21-column layout must not be read past its end."""
+    import pickle
+
+    p = table1_params("b0m0c001")
+    conv = make_converter("exact", {p.detector_id: p})
+    old = pickle.loads(pickle.dumps(conv))
+    old.__dict__["_phys"] = conv._phys[:, :15].copy()  # the 15 columns of the old layout
+    del old.__dict__["readout_noise_a"]
+    back = pickle.loads(pickle.dumps(old))
+    assert np.array_equal(back._phys, conv._phys)

@@ -226,6 +226,9 @@ def _prepare(rows_of, v_nominal: np.ndarray, detector_ids, counts_i, counts_q,
     return _Inputs(rows, ci, cq, tb, b, v, _hk_flags(env.flags, shape), ltb)
 
 
+_PHYS_COLUMNS = 21
+
+
 def _phys(params: Sequence[DetectorParams], readout_noise_a: float) -> np.ndarray:
     """Per-detector scalars for the kernels, shape (n_det, 21) (see ``_kernels``).
 
@@ -233,7 +236,7 @@ def _phys(params: Sequence[DetectorParams], readout_noise_a: float) -> np.ndarra
     :func:`core.model.flag_thresholds`: resistances and their noise margins
     (Ohm V, divided by each sample's bias), and the phase-residual limit (A).
     """
-    out = np.empty((len(params), 21))
+    out = np.empty((len(params), _PHYS_COLUMNS))
     for k, p in enumerate(params):
         th = model.flag_thresholds(p, readout_noise_a)
         out[k] = (
@@ -288,6 +291,15 @@ class _Base:
         self.readout_noise_a = float(readout_noise_a)
         self._phys = _phys(self.params, self.readout_noise_a)
         self._v_nominal = self._phys[:, 11].copy() if self.params else np.empty(0)
+
+    def __setstate__(self, state: dict) -> None:
+        # A converter pickled by an older version (a restart snapshot) may carry the kernels'
+        # per-detector scalars in an older layout: the compiled kernel does not bounds-check,
+        # so rebuild them from the parameters rather than read past the end.
+        self.__dict__.update(state)
+        if self._phys.shape[1] != _PHYS_COLUMNS:
+            self.readout_noise_a = float(state.get("readout_noise_a", model.DEFAULT_READOUT_NOISE_A))
+            self._phys = _phys(self.params, self.readout_noise_a)
 
     def _rows(self, detector_ids) -> np.ndarray:
         """Index of each id in this converter (-1 unknown); cached per id list (a stream repeats it)."""
