@@ -141,7 +141,7 @@ def _one(args, n_shards: int, work: Path, params_file: Path, sc) -> dict:
                 setup=setup, directory=str(rec_dir), shard=shard, rotate_s=0, log_interval_s=3600, zenoh=client))
         for i in range(n_shards):
             cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, provenance_interval_s=0,
-                                  shard=f"{i}/{n_shards}" if n_shards > 1 else "", table_cache=str(work / "cache"),
+                                  shard=f"{i}/{n_shards}" if n_shards > 1 else "",
                                   zenoh=client)
             names.append(cfg.name)
             services.start(cfg.name, "converter", cfg)
