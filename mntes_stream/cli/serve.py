@@ -39,6 +39,14 @@ def run_serve(args) -> int:
         if not hasattr(config, "duration_s"):
             raise ConfigError(f"--duration does not apply to the {service.name} service")
         config = dataclasses.replace(config, duration_s=args.duration)
+    part = {k: v for k, v in (("shard", args.shard), ("boards", _numbers(args.boards, "--boards")),
+                              ("modules", _numbers(args.modules, "--modules")), ("standby", args.standby or None))
+            if v is not None}
+    for key in part:
+        if not hasattr(config, key):
+            raise ConfigError(f"--{key} does not apply to the {service.name} service")
+    if part:  # a converter's (or recorder's) part of the focal plane, as [converter] shard/boards/modules say
+        config = dataclasses.replace(config, **part)
     svc = service(config)
     done = threading.Event()
     if args.heartbeat_s > 0:
@@ -89,6 +97,18 @@ def _defaults(service):
         return service.config_from_document({service.name: {"params": "params.toml"}})
 
 
+def _numbers(text: str | None, flag: str) -> tuple[int, ...] | None:
+    """``"0,3"`` -> ``(0, 3)``; None stays None."""
+    if text is None:
+        return None
+    from mntes_stream.errors import ConfigError
+
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(f"{flag} {text!r}: expected numbers separated by commas, e.g. 0,3") from None
+
+
 def register(sub) -> None:
     p = sub.add_parser("serve", help="run one service from its config file (services/*.toml)",
                        description="Run the service a config describes ([converter], [source], [simulator], "
@@ -97,6 +117,10 @@ def register(sub) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a setting, e.g. converter.kind=exact (repeatable; VALUE in TOML)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (overrides duration_s)")
+    p.add_argument("--shard", metavar="I/N", help="converter or recorder: own bucket I of N of the streams (shard)")
+    p.add_argument("--boards", metavar="B,B", help="converter: own these boards only (boards)")
+    p.add_argument("--modules", metavar="M,M", help="converter: ... and these modules (modules)")
+    p.add_argument("--standby", action="store_true", help="converter: run as a hot standby (standby = true)")
     p.add_argument("--heartbeat-s", type=float, default=10.0, metavar="S",
                    help="log the service's heartbeat this often (0: never; default 10)")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
