@@ -169,6 +169,17 @@ def test_three_shards_publish_every_detector_once(tmp_path):
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "inspect", "recordings"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    res = subprocess.run([sys.executable, "-m", "mntes_stream", "export", "recordings", "--out", "power.h5", "--json"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    import h5py
+
+    with h5py.File(tmp_path / "power.h5") as f:  # every detector, every sample, from both recorder shards
+        names = []
+        f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+        tod = [f[n] for n in names if n.endswith("/tod")]
+        assert len(tod) == MODULES and sum(d.shape[0] for d in tod) == MODULES * CHANNELS
+        assert {d.shape[1] for d in tod} == {n_steps * 15} and all(np.isfinite(d[()]).all() for d in tod)
 
 
 def _client(port: int) -> ZenohSettings:
