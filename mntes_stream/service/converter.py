@@ -179,8 +179,10 @@ def _cached_bank(cfg: ConverterConfig, params):
     from mntes_stream.core.tables import TABLE_FORMAT, build_bank, params_identity
     from mntes_stream.errors import MntesError
     from mntes_stream.io.tablefile import load_bank, save_bank
+    from mntes_stream.service.snapshot import build_fingerprint
 
-    key = params_identity(list(params.values()), {"kind": cfg.kind, "format": TABLE_FORMAT, "software": __version__})
+    key = params_identity(list(params.values()), {"kind": cfg.kind, "format": TABLE_FORMAT, "software": __version__,
+                                                  "code": build_fingerprint()})
     directory = Path(os.path.expanduser(cfg.table_cache))
     path = directory / f"{cfg.kind}-{key[:32]}.npz"
     if path.exists():

@@ -18,6 +18,7 @@ version) and it is ignored with a warning: the converter is built as before.
 from __future__ import annotations
 
 import copyreg
+import functools
 import hashlib
 import logging
 import os
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["snapshot_key", "load_snapshot", "save_snapshot"]
+__all__ = ["snapshot_key", "load_snapshot", "save_snapshot", "build_fingerprint"]
 
 log = logging.getLogger("mntes_stream.converter")
 
@@ -51,6 +52,20 @@ def _digest(path: str) -> str:
     return h.hexdigest()
 
 
+@functools.cache
+def build_fingerprint() -> str:
+    """SHA-256 of the source of ``mntes_stream/core/*.py``: what builds tables, thresholds and converters.
+
+    Part of every cache key (table banks, converter snapshots): the version number
+    does not change with every edit of the code, and a bank or converter built by
+    other code must not be taken for this code's (its identity would differ).
+    """
+    h = hashlib.sha256()
+    for path in sorted((Path(__file__).resolve().parent.parent / "core").glob("*.py")):
+        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def snapshot_key(cfg) -> str:
     """What the converter built from ``cfg`` depends on: file contents, kind, part of the focal plane, software."""
     from mntes_stream import __version__
@@ -60,7 +75,7 @@ def snapshot_key(cfg) -> str:
         f"params={_digest(cfg.params) if cfg.params else ''}",
         f"tables={_digest(cfg.tables) if cfg.tables else ''}",
         f"kind={cfg.kind}", f"boards={list(cfg.boards)}", f"modules={list(cfg.modules)}", f"shard={cfg.shard}",
-        f"software={__version__}", f"format={TABLE_FORMAT}", f"numpy={np.__version__}",
+        f"software={__version__}", f"code={build_fingerprint()}", f"format={TABLE_FORMAT}", f"numpy={np.__version__}",
         f"python={platform.python_version()}", f"pickle={pickle.HIGHEST_PROTOCOL}",
     ]
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
