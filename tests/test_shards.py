@@ -156,3 +156,19 @@ def test_batched_handling_gives_the_power_of_message_by_message(array):
         np.testing.assert_array_equal(batched[k].p_opt_w, pw.p_opt_w)
         np.testing.assert_array_equal(batched[k].flags, pw.flags)
     assert np.isfinite(pw.p_opt_w).all()
+
+
+def test_claims_of_a_large_focal_plane():
+    """1,200 streams (more claims than zenoh's default reply channel holds): seen at once, handed over at once."""
+    port = free_tcp_port()
+    streams = [(b, m) for b in range(20) for m in range(60)]
+    with open_session(loopback(port)) as za, open_session(loopback(None, [port])) as zb:
+        first = StreamClaims(za, "lab", "first", streams)
+        second = StreamClaims(zb, "lab", "second", streams, standby=True)
+        assert len(second.others()) == len(streams) and not second.publishing()
+        first.close()
+        deadline = time.monotonic() + 10
+        while second.publishing() != frozenset(streams):
+            assert time.monotonic() < deadline, len(second.publishing())
+            time.sleep(0.01)
+        second.close()

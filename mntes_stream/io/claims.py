@@ -70,12 +70,18 @@ class StreamClaims:
         liveliness = session.liveliness()
         selector = keys.claim_key(setup, "**")
         try:
-            self._sub = liveliness.declare_subscriber(selector, self._on_sample, history=True)
-            # The claims already there, before this converter decides anything (the subscriber's history
-            # arrives asynchronously; a query returns them now).
-            for reply in liveliness.get(selector, timeout=settle_s):
+            # The claims already there, before this converter decides anything: a query returns them now.
+            # Then the subscriber (its history covers a claim made in between). In this order: a callback
+            # subscriber delivering its history while this thread waits on the query's replies deadlocks.
+            import zenoh
+
+            # zenoh's default reply channel is bounded: a setup with more claims than it holds would never
+            # finish the query. Every claim of the setup fits this one.
+            replies = zenoh.handlers.FifoChannel(max(1 << 16, 8 * len(self.streams)))
+            for reply in liveliness.get(selector, replies, timeout=settle_s):
                 if reply.ok is not None:
                     self._change(str(reply.ok.key_expr), alive=True)
+            self._sub = liveliness.declare_subscriber(selector, self._on_sample, history=True)
             for b, m in sorted(self.streams):
                 self._tokens.append(liveliness.declare_token(
                     keys.claim_key(setup, b, m, self.me.t_claim_ns, self.me.instance,
