@@ -39,6 +39,10 @@ silent number. Flag rules, per sample:
   ``"grid"``, a bias matching no tabulated bias state); for the baselines
   ``linear`` and ``electrical``, outside the R range their linearisation
   domain (``TableDomain``) reaches;
+- ``NONLINEAR``: baselines only, a usable sample whose value differs from the
+  exact inverse (:func:`core.model.invert_current`, same counts and
+  environment) by more than ``tolerance_w`` (default ``BASELINE_TOLERANCE_W``),
+  or where the exact inverse gives none; the value is kept;
 - ``ENV_OUT_OF_RANGE``: table kinds and baselines, environment outside the (bank's) domain
   (the value is still given; ``"table"`` stays exact there when R is covered);
 - ``UNKNOWN_CHANNEL``: detector id without parameters/tables (whole row);
@@ -61,6 +65,7 @@ from mntes_stream.errors import ConfigError, SchemaError
 
 __all__ = [
     "CONVERTER_KINDS",
+    "BASELINE_TOLERANCE_W",
     "COUNTS_RAIL",
     "EnvironmentBlock",
     "PowerBlock",
@@ -76,6 +81,8 @@ __all__ = [
 CONVERTER_KINDS = ("table", "grid", "exact", "linear", "electrical")
 COUNTS_RAIL = _kernels.RAIL
 SQRT2 = model.SQRT2
+# Photon noise per sample (issue 17): no unflagged baseline sample is further than this from the model.
+BASELINE_TOLERANCE_W = 1e-17
 
 
 @dataclass(frozen=True)
@@ -378,12 +385,24 @@ class ExactConverter(_Base):
 
 
 class _Baseline(_Base):
-    """Linear baselines: built at each detector's nominal operating point, env ignored."""
+    """Linear baselines: built at each detector's nominal operating point, env ignored.
+
+    ``tolerance_w``: samples whose value differs from the exact inverse by more
+    get ``NONLINEAR`` (value kept); None or 0 disables the check (and its cost:
+    one exact inverse per sample).
+    """
 
     def __init__(self, params: Sequence[DetectorParams], readout_noise_a: float = model.DEFAULT_READOUT_NOISE_A,
-                 domain: TableDomain | None = None) -> None:
+                 domain: TableDomain | None = None, tolerance_w: float | None = BASELINE_TOLERANCE_W) -> None:
         domain = domain or TableDomain()
-        super().__init__(params, params_identity(params, {"kind": self.kind}), readout_noise_a)
+        tol = 0.0 if tolerance_w is None else tolerance_w
+        if not isinstance(tol, (int, float)) or not (np.isfinite(tol) and tol >= 0):
+            raise ConfigError(f"tolerance_w must be None or a finite number >= 0 (W), got {tolerance_w!r}")
+        self.tolerance_w = float(tol)
+        # The default keeps the identity older runs recorded; another tolerance flags differently.
+        extra = {"kind": self.kind} if self.tolerance_w == BASELINE_TOLERANCE_W else {
+            "kind": self.kind, "tolerance_w": self.tolerance_w}
+        super().__init__(params, params_identity(params, extra), readout_noise_a)
         self._nominal = []
         for q in self.params:
             op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
@@ -406,9 +425,30 @@ class _Baseline(_Base):
             with np.errstate(invalid="ignore"):
                 outside = ok & ~((r >= rr[:, :1]) & (r <= rr[:, 1:]))
             f[r0:r1][outside] |= fl.OUT_OF_TABLE
+            i_meas = _measured_current(self._phys, rows, inp, r0, r1)
             with np.errstate(invalid="ignore", over="ignore"):
-                p[r0:r1] = self._power(rows, _measured_current(self._phys, rows, inp, r0, r1), inp.v_thev_v[r0:r1])
+                p[r0:r1] = self._power(rows, i_meas, inp.v_thev_v[r0:r1])
+            if self.__dict__.get("tolerance_w", BASELINE_TOLERANCE_W):  # absent in converters pickled before it
+                self._flag_nonlinear(inp, r0, r1, i_meas, p, f)
         _finish(p, f)
+
+    def _flag_nonlinear(self, inp: _Inputs, r0: int, r1: int, i_meas: np.ndarray, p: np.ndarray,
+                        f: np.ndarray) -> None:
+        """Set ``NONLINEAR`` on rows ``r0:r1`` where the value is not within tolerance of the exact inverse."""
+        tol = self.__dict__.get("tolerance_w", BASELINE_TOLERANCE_W)
+        for k in range(r0, r1):
+            row = inp.rows[k]
+            if row < 0:
+                continue
+            idx = np.flatnonzero(((f[k] & fl.UNUSABLE) == 0) & np.isfinite(p[k]))
+            if not idx.size:
+                continue
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                exact = model.invert_current(self.params[row], i_meas[k - r0, idx], inp.t_bath_k[k, idx],
+                                             inp.b_field_t[k, idx], inp.v_thev_v[k, idx]).p_opt_w
+            # Not "> tol": an exact inverse that gives no value cannot vouch for the baseline's.
+            bad = ~(np.abs(p[k, idx] - exact) <= tol)
+            f[k, idx[bad]] |= fl.NONLINEAR
 
     def _power(self, rows: np.ndarray, i_meas_a: np.ndarray, v_thev_v: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -525,7 +565,10 @@ def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
         phase-residual limit, default ``model.DEFAULT_READOUT_NOISE_A``).
         Table kinds: ``domain`` (TableDomain), ``backend``, ``bias_rtol``,
         ``progress`` and the build options of :func:`core.tables.build_bank`.
-        Baselines: ``domain``, the linearisation domain they flag outside.
+        Baselines: ``domain``, the linearisation domain they flag outside
+        (``OUT_OF_TABLE``), and ``tolerance_w`` (W, default
+        ``BASELINE_TOLERANCE_W``; None or 0 disables): ``NONLINEAR`` where the
+        value differs from the exact inverse by more.
 
     Raises
     ------
@@ -556,7 +599,7 @@ def make_converter(kind: str, params: Mapping[str, DetectorParams] | None,
         return TableConverter(bank, **run_opts)
     if bank is not None:
         raise ConfigError(f"kind {kind!r} takes no table bank")
-    allowed = {"readout_noise_a"} | ({"domain"} if kind in ("linear", "electrical") else set())
+    allowed = {"readout_noise_a"} | ({"domain", "tolerance_w"} if kind in ("linear", "electrical") else set())
     if set(options) - allowed:
         raise ConfigError(f"kind {kind!r} takes only {sorted(allowed)} as options, got {sorted(options)}")
     if not params:

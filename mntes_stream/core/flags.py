@@ -22,6 +22,7 @@ UNKNOWN_CHANNEL = 1 << 7    # channel has no detector parameters / table
 GAP = 1 << 8                # sample lies in a gap (missing chunk) of the stream
 PHASE_RESIDUAL = 1 << 9     # quadrature the model does not explain beyond its noise: gain phase, pickup off
 LATCHED = 1 << 10           # with SUPERCONDUCTING: R above the bottom, the TES latched resistive (loop gain <= 0)
+NONLINEAR = 1 << 11         # baseline (linear, electrical) differs from the physics model by more than its tolerance
 
 NAMES = {
     SATURATED: "saturated",
@@ -35,9 +36,11 @@ NAMES = {
     GAP: "gap",
     PHASE_RESIDUAL: "phase_residual",
     LATCHED: "latched",
+    NONLINEAR: "nonlinear",
 }
 
-# Flags after which the power value is not usable (NaN in the output).
+# Flags after which the power value is not usable (NaN in the output). PHASE_RESIDUAL and
+# NONLINEAR are warnings: the value is kept (validate compares linear against MNTES with it).
 UNUSABLE = (SATURATED | SUPERCONDUCTING | LATCHED | OUT_OF_TABLE | HK_MISSING | INVALID_INPUT | UNKNOWN_CHANNEL
             | GAP)
 

@@ -74,7 +74,8 @@ def write_range_report(res: RangeResult, out_dir) -> dict:
     md = ["# Fidelity over the operating range", "",
           "Error = converted power minus the model's power for the measured counts (truth on the branch) "
           "or minus the true P_opt (truth normal, latched or superconducting). 'flagged' = no value "
-          "(UNUSABLE) or PHASE_RESIDUAL.", "",
+          "(UNUSABLE), PHASE_RESIDUAL or NONLINEAR (baselines: off the exact inverse by more than "
+          "their tolerance, 1e-17 W).", "",
           "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
     md += ["| " + " | ".join(r) + " |" for r in rows[1:]]
     md += ["", f"![errors]({png.name})", ""]
