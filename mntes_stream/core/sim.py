@@ -36,8 +36,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import integrate
-from scipy.signal import lfilter
 
 from mntes_stream.core import model
 from mntes_stream.core.align import sample_times_ns
@@ -287,6 +285,8 @@ def cmb_dpdt_w_per_k(band_center_hz: float, fractional_bandwidth: float, optical
         x = _H_J_S * nu / (_KB_J_PER_K * t_cmb_k)
         return x * x * math.exp(x) / math.expm1(x) ** 2
 
+    from scipy import integrate  # here, not at import: every service's start imports this module (registry)
+
     lo = band_center_hz * (1 - fractional_bandwidth / 2)
     hi = band_center_hz * (1 + fractional_bandwidth / 2)
     value, _ = integrate.quad(integrand, lo, hi)
@@ -351,6 +351,8 @@ class _PinkNoise:
         self._pos = 0
 
     def next(self, n: int) -> np.ndarray:
+        from scipy.signal import lfilter  # scipy.signal costs ~0.4 s to import: only a simulation pays it
+
         out = np.zeros((self._zi.shape[0], n))
         for j, a in enumerate(self._a):
             w = self._white[j].take(self._pos, n)

@@ -61,8 +61,6 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import CubicSpline
-from scipy.optimize import brentq
 
 from mntes_stream.core import model
 from mntes_stream.core.params import DetectorParams, params_from_dict
@@ -171,6 +169,10 @@ def resistance_range_ohm(p: DetectorParams, domain: TableDomain) -> tuple[float,
 
     def p_min(r: float) -> float:
         return float(np.min(model.power_of_resistance_w(p, r, domain.t_bath_k[1], b, v_hi)))
+
+    # scipy imported where used: a converter restarted from its snapshot never builds a table, and
+    # scipy.interpolate/optimize at module level cost its start ~0.25 s.
+    from scipy.optimize import brentq
 
     p_lo, p_hi = domain.p_opt_w
     with np.errstate(over="ignore", invalid="ignore"):
@@ -667,6 +669,8 @@ def grid_bank_from_curves(
     if b_nodes_t.size >= 2 and not np.allclose(np.diff(b_nodes_t), b_nodes_t[1] - b_nodes_t[0], rtol=1e-9, atol=0):
         raise ConfigError("B nodes must be uniformly spaced")
     if dp_dr_w_per_ohm is None:
+        from scipy.interpolate import CubicSpline
+
         slopes = [np.ascontiguousarray(CubicSpline(x, v, axis=0)(x, 1)) for x, v in zip(knots, values)]
     else:
         slopes = [np.asarray(d, dtype=float) for d in dp_dr_w_per_ohm]

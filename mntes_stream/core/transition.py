@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
 
 from mntes_stream.core.solve import bracketed_root
 from mntes_stream.errors import ConfigError
@@ -152,6 +151,9 @@ class TabulatedTransition:
             raise ConfigError(
                 "tabulated transition: need >= 4 strictly increasing resistance points inside the transition"
             )
+        # Imported here: scipy.interpolate costs a converter's start ~0.25 s, and only tabulated curves need it.
+        from scipy.interpolate import PchipInterpolator
+
         object.__setattr__(self, "_t_of_r", PchipInterpolator(rc, tc, extrapolate=False))
         object.__setattr__(self, "_r_core", (float(rc[0]), float(rc[-1])))
 

@@ -7,8 +7,6 @@ server, to a few hundred points per trace, whatever the stream's rate.
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal
-from scipy.ndimage import median_filter
 
 __all__ = [
     "HARMONICS",
@@ -100,6 +98,8 @@ def welch_psd(y: np.ndarray, fs_hz: float, segments: int = 3) -> tuple[np.ndarra
     filled = np.where(finite, y, 0.0)
     mean = filled.sum(axis=1) / np.maximum(finite.sum(axis=1), 1)
     filled = np.where(finite, y, mean[:, None])
+    from scipy import signal  # here: scipy.signal costs every service's start ~0.4 s, only the monitor needs it
+
     f, p = signal.welch(filled, fs=fs_hz, window="hann", nperseg=nperseg, noverlap=nperseg // 2, axis=-1)
     p[~good] = np.nan
     return f, p
@@ -185,6 +185,8 @@ def estimate_f_hwp(
     if df > search_hz[0] / 4:
         return None
     size = max(int(round(0.5 / df)) | 1, 9)  # a 0.5 Hz window: several times a line's width
+    from scipy.ndimage import median_filter
+
     floor = median_filter(p, size=(1, size), mode="nearest")
     excess = np.log(np.median(p / floor, axis=0))
     lo, hi = search_hz
