@@ -20,6 +20,7 @@ from mntes_stream.core.convert import (
     EnvironmentBlock,
     PowerBlock,
     make_converter,
+    numba_available,
 )
 from mntes_stream.core.params import table1_params
 from mntes_stream.core.tables import TableDomain, build_bank
@@ -295,6 +296,36 @@ def test_environment_layouts_are_equivalent(params, bank):
     assert np.array_equal(conv.convert(ids, ci, cq, nominal).p_opt_w, conv.convert(ids, ci, cq, explicit).p_opt_w,
                           equal_nan=True)
 
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_no_layout_of_the_inputs_compiles_the_kernel_again(params, bank, grid_bank):
+    """Read-only message views, slices, broadcast environments and float counts all run on the two
+    signatures compiled before the first conversion: a live chunk never waits seconds for numba."""
+    from mntes_stream.bench.convert import synthetic_block
+    from mntes_stream.core import _kernels
+
+    ids, ci, cq, env = synthetic_block(params, 40, seed=8, bad_fraction=0.0)
+    ro_i = np.frombuffer(ci.tobytes(), dtype=np.int32).reshape(ci.shape)  # as decoded from a message
+    ro_q = np.frombuffer(cq.tobytes(), dtype=np.int32).reshape(cq.shape)
+    n = len(ids)
+    layouts = [
+        (ids, ci, cq, env),
+        (ids, ro_i, ro_q, env),
+        (ids[:1], ro_i[:1, :2], ro_q[:1, :2], EnvironmentBlock(env.t_bath_k[:2], env.b_field_t[:2])),  # warm-up shape
+        (ids, ci[:, ::2], cq[:, ::2], EnvironmentBlock(env.t_bath_k[::2], env.b_field_t[::2], env.v_thev_v)),
+        (ids, ci.astype(float), cq.astype(float), env),
+        (ids, ci, cq, EnvironmentBlock(np.tile(env.t_bath_k, (n, 1)), np.tile(env.b_field_t, (n, 1)),
+                                       np.repeat(env.v_thev_v[:, None], ci.shape[1], axis=1),
+                                       np.zeros(ci.shape, np.uint16))),
+    ]
+    for b in (bank, grid_bank):
+        conv = make_converter(b.kind, None, bank=b, backend="numba")
+        twin = make_converter(b.kind, None, bank=b, backend="numpy")
+        for lid, li, lq, lenv in layouts:
+            out, ref = conv.convert(lid, li, lq, lenv), twin.convert(lid, li, lq, lenv)
+            assert np.array_equal(out.flags, ref.flags)
+            assert np.allclose(out.p_opt_w, ref.p_opt_w, rtol=0, atol=TARGET_W, equal_nan=True)
+    assert len(_kernels._kernel.signatures) == 2
 
 def test_float_counts_may_carry_nan(params, bank):
     ci = np.array([[1.0e6, np.nan, np.inf]])

@@ -15,6 +15,11 @@ bath, R at the bottom, the phase-residual limit (A), R at the top, and the
 noise margins (Ohm V) at the top, at |z| and at the bottom; see
 ``core.model.FlagThresholds``.
 ``dom``: bath temperature lo/hi, field lo/hi, bias fraction lo/hi.
+Per-detector constants of the compiled kernel ``pre`` (n_bank, 10), from
+:func:`row_constants`: the binomials ``C(n, 1..8)``, ``1 / T0`` and ``K T0^n``
+with ``T0`` the bath the table refers to; computed once per converter, not
+once per row of every call (a row of a 20-sample chunk paid a ``pow`` and
+seven divisions for them).
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ import numpy as np
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
 
-__all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy"]
+__all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy",
+           "row_constants", "compile_kernels"]
 
 SQRT2 = model.SQRT2
 # Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
@@ -88,6 +94,25 @@ def binomials(n):
 def binomial_series(x, a):
     """``(1 + x)^n`` as ``1 + sum_k a[k-1] x^k`` (Horner), ``a = binomials(n)``."""
     return 1.0 + x * (a[0] + x * (a[1] + x * (a[2] + x * (a[3] + x * (a[4] + x * (a[5] + x * (a[6] + x * a[7])))))))
+
+
+def row_constants(phys, t0_k):
+    """The compiled kernel's per-detector constants ``pre`` (n_det, 10), C-contiguous float64.
+
+    Parameters
+    ----------
+    phys : ndarray, shape (n_det, 21)
+        The kernels' per-detector scalars (column 6 K, column 7 n).
+    t0_k : ndarray, shape (n_det,)
+        The bath temperature the detector's table refers to (nominal bath for
+        "table", ``t_ref_k`` for "grid").
+    """
+    phys = np.asarray(phys, dtype=np.float64)
+    t0 = np.asarray(t0_k, dtype=np.float64)
+    k, n = phys[:, 6], phys[:, 7]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        cols = [*binomials(n), 1.0 / t0, k * t0**n]
+    return np.ascontiguousarray(np.stack(cols, axis=1)) if len(t0) else np.empty((0, 10))
 
 
 def hermite_basis(u, h):
@@ -286,7 +311,6 @@ if numba is not None:
                 phys[d, 12], phys[d, 13], dom[5] * v_nom, phys[d, 5], phys[d, 15], phys[d, 16] * SQRT2,
                 phys[d, 17], phys[d, 18], phys[d, 19], phys[d, 20])
 
-    _binomials = _inline(binomials)
     _series = _inline(binomial_series)
     _hermite = _inline(hermite_basis)
     _lagrange = _inline(lagrange4)
@@ -304,7 +328,7 @@ if numba is not None:
         return (dom[0], dom[1], dom[2], dom[3], dom[4], dom[5])
 
     @_jit
-    def _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
+    def _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo,
                 grid, coef, p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
         """Both table kinds in one pass over (n_det, n_samp) samples (``grid`` picks the kind).
 
@@ -329,9 +353,8 @@ if numba is not None:
             x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
             k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]
             zr, zi = phys[d, 4], phys[d, 5]
-            a = _binomials(n)
-            t0 = t_ref[d] if grid else phys[d, 14]  # bath of the table / nominal bath
-            inv_t0, k_t0_n = 1.0 / t0, k * t0**n
+            a = (pre[d, 0], pre[d, 1], pre[d, 2], pre[d, 3], pre[d, 4], pre[d, 5], pre[d, 6], pre[d, 7])
+            inv_t0, k_t0_n = pre[d, 8], pre[d, 9]  # of the table's bath (row_constants)
             for s in range(n_samp):
                 bs = b[row, s]
                 vs = v[row, s]
@@ -393,15 +416,49 @@ if numba is not None:
     _NO_COEF = np.zeros((0, 8))
     _NO_GRID = np.zeros((0, 1, 1))
 
-    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
-        """Structured-table conversion (same contract as :func:`table_numpy`)."""
-        _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, False, coef,
+    def _signatures():
+        """The kernel's only signatures: every input a read-only array of any layout, counts int32 or float64.
+
+        Compiled once, before the first conversion (:func:`compile_kernels`), and
+        then no other: numba would otherwise compile a new specialisation
+        (seconds) for each new combination of layouts and read-only flags, the
+        first time a live stream's chunk happened to bring one.
+        """
+        from numba import types as t
+
+        def a(dtype, ndim, readonly=True):
+            return t.Array(dtype, ndim, "A", readonly=readonly)
+
+        f8 = t.float64
+        rest = (a(f8, 2), a(f8, 2), a(f8, 2), a(f8, 2), a(t.uint16, 2), a(t.int64, 1), a(f8, 2), a(f8, 2),
+                a(f8, 1), a(t.int64, 1), a(f8, 1), a(t.int64, 1), a(t.int32, 1), a(f8, 1), t.boolean, a(f8, 2),
+                a(f8, 3), a(f8, 3), a(f8, 2), a(f8, 1), a(f8, 1), f8, a(f8, 2, False), a(t.uint16, 2, False))
+        return [t.void(a(c, 2), a(c, 2), *rest) for c in (t.int32, f8)]
+
+    _compiled = []
+
+    def compile_kernels() -> None:
+        """Compile (or load from numba's cache) the kernel's signatures, once per process."""
+        if not _compiled:
+            for sig in _signatures():
+                _kernel.compile(sig)
+            _kernel.disable_compile()
+            _compiled.append(True)
+
+    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
+        """Structured-table conversion (same contract as :func:`table_numpy`; ``pre``: :func:`row_constants`)."""
+        compile_kernels()
+        _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo, False, coef,
                 _NO_GRID, _NO_GRID, np.ones((1, 1)), np.zeros(4), np.ones(1), 0.0, out_p, out_f)
 
-    def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo,
+    def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo,
                    p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
-        """Grid-table conversion (same contract as :func:`grid_numpy`)."""
-        _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cpo, True, _NO_COEF,
+        """Grid-table conversion (same contract as :func:`grid_numpy`; ``pre``: :func:`row_constants`)."""
+        compile_kernels()
+        _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo, True, _NO_COEF,
                 p_w, dp_w, bias_v, b_nodes, t_ref, float(bias_rtol), out_p, out_f)
 else:  # pragma: no cover - exercised only without numba
     table_numba = grid_numba = None
+
+    def compile_kernels() -> None:
+        """Nothing to compile without numba."""

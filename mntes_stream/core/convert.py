@@ -532,16 +532,25 @@ class TableConverter(_Base):
         d = bank.domain
         self._domain = np.array([*d.t_bath_k, *d.b_field_t, *d.v_frac], dtype=float)
 
+    def _row_constants(self) -> np.ndarray:
+        """The compiled kernel's per-detector constants (``_kernels.row_constants``), made once."""
+        pre = self.__dict__.get("_pre")  # absent from converters pickled by older versions
+        if pre is None:
+            t0 = self.bank.arrays["t_ref_k"] if self.kind == "grid" else self._phys[:, 14]
+            pre = self._pre = _kernels.row_constants(self._phys, t0)
+        return pre
+
     def _convert(self, inp, p, f):
         a = self.bank.arrays
+        numba = self.backend == "numba"
         common = (inp.counts_i, inp.counts_q, inp.t_bath_k, inp.log_t_bath, inp.b_field_t, inp.v_thev_v, inp.hk_flags,
-                  inp.rows, self._phys, self._domain, a["knot_offset"], a["r_knot_ohm"], a["cell_offset"],
-                  a["cell_interval"], a["cell_per_ohm"])
+                  inp.rows, self._phys, *((self._row_constants(),) if numba else ()), self._domain, a["knot_offset"],
+                  a["r_knot_ohm"], a["cell_offset"], a["cell_interval"], a["cell_per_ohm"])
         if self.kind == "table":
-            kernel = _kernels.table_numba if self.backend == "numba" else _kernels.table_numpy
+            kernel = _kernels.table_numba if numba else _kernels.table_numpy
             kernel(*common, a["coeffs"], p, f)
         else:
-            kernel = _kernels.grid_numba if self.backend == "numba" else _kernels.grid_numpy
+            kernel = _kernels.grid_numba if numba else _kernels.grid_numpy
             kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], a["t_ref_k"],
                    self.bias_rtol, p, f)
 
