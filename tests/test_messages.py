@@ -128,6 +128,17 @@ def test_round_trip_and_schema(msg):
     _same(m.decode(payload), msg)
 
 
+@settings(max_examples=60, suppress_health_check=[HealthCheck.too_slow])
+@given(power_chunks())
+def test_unchecked_construction_encodes_the_same_bytes(msg):
+    """What the converter builds with unchecked() (its own, already checked values) is the checked message."""
+    values = {f.name: getattr(msg, f.name) for f in dataclasses.fields(msg)}
+    assert m.PowerChunk.unchecked(**values).to_bytes() == msg.to_bytes()
+    del values["t_ns"]
+    with pytest.raises(SchemaError, match="every field"):
+        m.PowerChunk.unchecked(**values)
+
+
 def test_every_field_is_in_its_schema_and_back():
     for name, cls in m.MESSAGE_TYPES.items():
         props = set(json_schema(name)["properties"]) - {"schema", "version"}

@@ -37,6 +37,26 @@ class _Ready:
     env_flags_t: np.ndarray
 
 
+def _layout(group: list[_Ready]) -> tuple | None:
+    """A group's rows, module by module (None when a module appears twice: not merged)."""
+    rows = sorted((r.chunk.board, r.chunk.module, r.chunk.channels.tobytes(), r.v_bias is None) for r in group)
+    return tuple(rows) if len({row[:2] for row in rows}) == len(rows) else None
+
+
+def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
+    """Groups with one row layout, together, in the order each layout first appears.
+
+    A stream's chunks stay in order: within a run they go group by group, and a
+    stream changes layout at most once in a while (its first bias reading),
+    from a run that started earlier to one that starts later.
+    """
+    runs: dict[object, list[list[_Ready]]] = {}
+    for k, group in enumerate(groups):
+        layout = _layout(group)
+        runs.setdefault(k if layout is None else layout, []).append(group)
+    return list(runs.values())
+
+
 class Conversion:
     """Rows, environment, grouped conversion and power messages of released chunks (see the module docstring)."""
 
@@ -71,51 +91,72 @@ class Conversion:
         return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t)
 
     def _convert_ready(self, out: list) -> None:
-        """Convert the released chunks, those that share sample times and housekeeping in one converter call.
+        """Convert the released chunks in as few converter calls as may be.
 
         The modules of one readout step share their sample times, hence their
-        aligned bath temperature and field (the same cached arrays): one call
-        for all of them costs the converter's per-call work once, not once per
-        module. Rows are independent, so the power is the same as chunk by chunk.
+        aligned bath temperature and field (the same cached arrays): a *group*.
+        Consecutive groups with the same rows (modules and channel lists) form a
+        *run*, converted as one block whose rows are the detectors and whose
+        columns are the samples of every step in turn: a backlog of steps costs
+        the converter's per-call work once, and each detector's tables are
+        looked up once per run rather than once per step (on a 5,000-detector
+        focal plane those lookups miss the cache). Rows and samples are
+        independent, so the power is the same as chunk by chunk.
         """
         ready, self._ready = self._ready, []
         groups: dict[tuple, list[_Ready]] = {}
         for r in ready:
             groups.setdefault((id(r.t_bath), id(r.b_field), r.v_bias is None), []).append(r)
-        for group in groups.values():
-            blocks = self._convert_group(group) if len(group) > 1 else None
-            for k, r in enumerate(group):
-                try:
-                    out.append(self._power(r, blocks[k] if blocks is not None else self._convert_one(r)))
-                except Exception as exc:
-                    self._dropped(r.chunk, exc)
+        for run in _runs(list(groups.values())):
+            blocks = self._convert_run(run) if len(run) > 1 or len(run[0]) > 1 else None
+            for g, group in enumerate(run):
+                for k, r in enumerate(group):
+                    try:
+                        out.append(self._power(r, blocks[g][k] if blocks is not None else self._convert_one(r)))
+                    except Exception as exc:
+                        self._dropped(r.chunk, exc)
 
-    def _convert_group(self, group: list[_Ready]) -> list[tuple] | None:
-        """One converter call for the group; each chunk's (p_opt, flags) rows. None: convert them one by one."""
+    def _convert_run(self, run: list[list[_Ready]]) -> list[list[tuple]] | None:
+        """One converter call for a run of groups; each chunk's (p_opt, flags) block, per group in its order.
+
+        None: convert them one by one (which finds and counts the chunk that failed).
+        """
         try:
-            ids = [d for r in group for d in r.ids]
-            ci = np.concatenate([r.chunk.counts_i for r in group])
-            cq = np.concatenate([r.chunk.counts_q for r in group])
-            first = group[0]
-            if first.v_bias is None:
-                v_bias, env_flags = None, first.env_flags
+            orders = [sorted(range(len(g)), key=lambda k, g=g: (g[k].chunk.board, g[k].chunk.module)) for g in run]
+            rows = [run[0][k] for k in orders[0]]  # the run's row layout, module by module
+            cols = np.cumsum([0] + [g[0].chunk.counts_i.shape[1] for g in run])
+
+            def block(field):  # modules stacked, each module's steps side by side
+                return np.concatenate([np.concatenate([field(g[o[m]]) for g, o in zip(run, orders)], axis=1)
+                                       for m in range(len(rows))])
+
+            ci = block(lambda r: r.chunk.counts_i)
+            cq = block(lambda r: r.chunk.counts_q)
+            t_bath = np.concatenate([g[0].t_bath for g in run]) if len(run) > 1 else run[0][0].t_bath
+            b_field = np.concatenate([g[0].b_field for g in run]) if len(run) > 1 else run[0][0].b_field
+            if rows[0].v_bias is None:
+                v_bias = None
+                env_flags = np.concatenate([g[0].env_flags for g in run]) if len(run) > 1 else run[0][0].env_flags
             else:
-                v_bias = np.concatenate([r.v_bias for r in group])
-                env_flags = np.concatenate([np.broadcast_to(r.env_flags, r.chunk.counts_i.shape) for r in group])
-            env = EnvironmentBlock(t_bath_k=first.t_bath, b_field_t=first.b_field, v_thev_v=v_bias, flags=env_flags)
-            block = self.converter.convert(ids, ci, cq, env)
-            p_opt, flags = np.asarray(block.p_opt_w, dtype=float), np.asarray(block.flags, dtype=fl.FLAG_DTYPE)
+                v_bias = block(lambda r: r.v_bias)
+                env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
+            env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
+            block_out = self.converter.convert([d for r in rows for d in r.ids], ci, cq, env)
+            p_opt, flags = np.asarray(block_out.p_opt_w, dtype=float), np.asarray(block_out.flags, dtype=fl.FLAG_DTYPE)
             if p_opt.shape != ci.shape or flags.shape != ci.shape:
                 return None
         except Exception:  # find out which chunk it was: one by one, each failure counted
             return None
-        known = np.concatenate([r.known for r in group]) if any(r.n_unknown for r in group) else None
+        known = np.concatenate([r.known for r in rows]) if any(r.n_unknown for r in rows) else None
         p_opt, flags = self._finish(p_opt, flags, env_flags, known)  # once for the block, not per chunk
-        out, r0 = [], 0
-        for r in group:
-            r1 = r0 + r.chunk.channels.size
-            out.append((p_opt[r0:r1], flags[r0:r1], True))
-            r0 = r1
+        starts = np.cumsum([0] + [r.chunk.channels.size for r in rows])
+        out = []
+        for g, (group, order) in enumerate(zip(run, orders)):
+            c0, c1 = cols[g], cols[g + 1]
+            pieces = [None] * len(group)
+            for m, k in enumerate(order):
+                pieces[k] = (p_opt[starts[m]:starts[m + 1], c0:c1], flags[starts[m]:starts[m + 1], c0:c1], True)
+            out.append(pieces)
         return out
 
     def _finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None):
@@ -159,7 +200,8 @@ class Conversion:
         if not finished:
             p_opt, flags = self._finish(p_opt, flags, r.env_flags, r.known if r.n_unknown else None)
         t_pub = self._stamp()
-        power = PowerChunk(
+        # Made here from checked inputs (ids from the channels, arrays of the wire dtypes): not checked again.
+        power = PowerChunk.unchecked(
             setup=cfg.setup,
             board=chunk.board,
             module=chunk.module,
