@@ -164,11 +164,15 @@ class _Calls:
         return self.conv.convert(*args)
 
 
-@pytest.mark.parametrize("bias", [False, True])
-def test_batched_handling_gives_the_power_of_message_by_message(array, bias):
+@pytest.mark.parametrize("bias,threads", [(False, 1), (True, 1), (True, 3)])
+def test_batched_handling_gives_the_power_of_message_by_message(array, bias, threads, monkeypatch):
     """handle_many converts the modules of a step in one call, and a backlog of steps in one call per run of
-    steps with the same rows: the same power and flags as handle(), message by message."""
+    steps with the same rows (split across threads if asked): the same power and flags as handle(),
+    message by message."""
     from mntes_stream.core.convert import make_converter
+    from mntes_stream.service import pipeline_convert
+
+    monkeypatch.setattr(pipeline_convert, "_SPLIT_SAMPLES", 0)  # this small array's runs are split too
 
     _, sc = array
     src = MinimalSource(sc)
@@ -188,7 +192,7 @@ def test_batched_handling_gives_the_power_of_message_by_message(array, bias):
     for _, group in itertools.groupby(msgs, key=lambda m: m[2]):
         outs += many.handle_many(list(group))
     stepwise = powers(outs + many.flush())
-    backlog = ConverterPipeline(_Calls(conv), PipelineConfig(), clock=None)
+    backlog = ConverterPipeline(_Calls(conv), PipelineConfig(), clock=None, threads=threads)
     in_order = backlog.handle_many(msgs) + backlog.flush()
     whole = powers(in_order)
     assert len(whole) == len(stepwise) == len(single) == 6 * 21  # 2 s of 15-sample chunks at 152.6 Hz
@@ -205,7 +209,8 @@ def test_batched_handling_gives_the_power_of_message_by_message(array, bias):
         assert [s[2] for s in seqs if s[:2] == stream] == sorted(s[2] for s in seqs if s[:2] == stream)
     # (the last step waits for housekeeping until flush(); with bias, three row layouts, two in the last step;
     # step by step it would take one call per step and layout: 21 or 32)
-    assert backlog.converter.calls <= (5 if bias else 2)
+    assert backlog.converter.calls <= (5 if bias else 2) * threads
+    assert (backlog._executor is not None) == (threads > 1)
     if bias:
         assert any(np.any(pw.p_opt_w != single[(0, 0, pw.seq)].p_opt_w) for pw in whole.values()
                    if (pw.board, pw.module) == (0, 1))  # the bias readings changed the power

@@ -39,6 +39,8 @@ def add_arguments(p) -> None:
     p.add_argument("--passthrough-s", type=float, default=3.0, metavar="S", help="passthrough phase length (default 3 s)")
     p.add_argument("--kind", default="table", help="conversion kind (default table)")
     p.add_argument("--flat-out", action="store_true", help="stream phase as fast as possible instead of real time")
+    p.add_argument("--threads", type=int, default=1, metavar="N",
+                   help="the converter's conversion threads ([converter] threads, default 1)")
     p.add_argument("--recorder-shards", type=int, default=1, metavar="K",
                    help="K recorder processes, each recording its shard of the streams (default 1)")
     p.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"),
@@ -88,7 +90,7 @@ def _sink(cfg: dict, stop, ready) -> dict:
                 item = sub.get()
         sub.close()
     span = (t_last - t_first) / 1e9 if n > 1 else 0.0
-    return {"messages": n, "samples": samples, "span_s": span,
+    return {"messages": n, "samples": samples, "span_s": span, "t_first_ns": t_first, "t_last_ns": t_last,
             "msamples_per_s": samples / span / 1e6 if span > 0 else 0.0}
 
 
@@ -160,6 +162,28 @@ def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window
     return lat_ms, len(seen), power, counts, samples_window, t_first, t_last
 
 
+def _cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a live process so far (Linux /proc); None where unreadable."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            stat = f.read().rsplit(")", 1)[1].split()
+        return (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _cpu_in(samples: list, t0_ns: int | None, t1_ns: int | None) -> dict:
+    """Cores each process used between two wall-clock times, from ``(t_ns, {name: cpu_s})`` samples."""
+    if t0_ns is None or t1_ns is None:
+        return {}
+    inside = [s for s in samples if t0_ns <= s[0] <= t1_ns]
+    if len(inside) < 2:
+        return {}
+    (ta, a), (tb, b) = inside[0], inside[-1]
+    wall = (tb - ta) / 1e9
+    return {k: round((b[k] - a[k]) / wall, 3) for k in a if a[k] is not None and b.get(k) is not None}
+
+
 def run(args) -> dict:
     from mntes_stream.errors import TransportError
     from mntes_stream.io import keys
@@ -199,6 +223,7 @@ def run(args) -> dict:
                                zenoh=zenoh.over(loopback(p))) for i, p in enumerate(p_recs)]
     rec_names = [f"recorder{i}" if i else "recorder" for i in range(len(rec_cfgs))]
     conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, provenance_interval_s=0,
+                               threads=args.threads,
                                zenoh=zenoh.over(loopback(p_conv, p_recs)))
     src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, [p_conv, *p_recs, p_sink])),
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
@@ -213,20 +238,23 @@ def run(args) -> dict:
         services.start("sink", _Sink, sink_cfg)
         services.start("source", _Source, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
+        pids = {name: proc.pid for name, proc in services.procs.items()}
+        cpu_samples = []  # (wall ns, CPU seconds of each process so far): what each used in each phase
         with open_session(zenoh.over(loopback(None, [p_conv]))) as z:
             sub = QueueSubscriber(z, [keys.status_key(setup, conv_cfg.name)])
             # The source keeps its session open after publishing (queued is not delivered): wait
             # until the converter has received something, holds nothing and has made no progress
             # for 4.5 s. Its power went out before that, so the recorder has had as long to take it in.
-            received, pending, still = 0, 0, 0
-            while still < 3 and time.monotonic() < deadline and services.alive():
-                item = sub.get(timeout_s=1.5)
+            received, pending, last_change = 0, 0, time.monotonic()
+            while time.monotonic() - last_change < 4.5 and time.monotonic() < deadline and services.alive():
+                cpu_samples.append((time.time_ns(), {name: _cpu_s(pid) for name, pid in pids.items()}))
+                item = sub.get(timeout_s=0.25)
+                n_in = received
                 if item is not None:
                     st = StatusMessage.from_bytes(item[1])
                     n_in, pending = st.chunks_received, st.chunks_pending
-                else:
-                    n_in = received
-                still = still + 1 if n_in == received and received > 0 and pending == 0 else 0
+                if n_in != received or received == 0 or pending:
+                    last_change = time.monotonic()
                 received = n_in
             sub.close()
         ok_src = services.stop("source")
@@ -250,6 +278,15 @@ def run(args) -> dict:
         span = args.duration - args.warmup
         msps = samples_window / span / 1e6 if span > 0 else 0.0
     q = statistics.quantiles(lat, n=100, method="inclusive") if len(lat) >= 2 else [float("nan")] * 99
+    # Cores each process used while the stream was converted, and while the passthrough ran: flat out on
+    # a small host they share the cores, so a rate alone does not say which process set it.
+    stream_end = t_last if args.flat_out else src["t_end_ns"]
+    cores_stream = _cpu_in(cpu_samples, src["t_start_ns"], stream_end)
+    cores_pass = _cpu_in(cpu_samples, sink.get("t_first_ns"), sink.get("t_last_ns")) if isinstance(sink, dict) else {}
+    conv_cores = cores_stream.get("converter")
+    sink_cores = cores_pass.get("sink")
+    per_core = msps / conv_cores if conv_cores else None
+    pass_per_core = sink["msamples_per_s"] / sink_cores if sink_cores and isinstance(sink, dict) else None
     stream_wall = (src["t_end_ns"] - src["t_start_ns"]) / 1e9
 
     def cpu(r):
@@ -280,8 +317,17 @@ def run(args) -> dict:
         "source_behind_max_ms": round(src.get("behind_max_ms", 0.0), 2),
         "stream_wall_s": round(stream_wall, 2),
         "passthrough_msamples_per_s": round(sink.get("msamples_per_s", 0.0), 3) if isinstance(sink, dict) else None,
+        "ratio_to_passthrough": round(msps / sink["msamples_per_s"], 3) if isinstance(sink, dict)
+        and sink.get("msamples_per_s") else None,
+        # Per core of the process itself: the converter's rate per core it used, the plain subscriber's likewise.
+        "cores_during_stream": cores_stream,
+        "cores_during_passthrough": cores_pass,
+        "converter_msamples_per_core_s": round(per_core, 3) if per_core else None,
+        "passthrough_msamples_per_core_s": round(pass_per_core, 3) if pass_per_core else None,
+        "ratio_per_core": round(per_core / pass_per_core, 3) if per_core and pass_per_core else None,
         "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "sink": cpu(sink),
                          **{name: cpu(results.get(name, {})) for name in rec_names}},
+        "converter_threads": args.threads,
         "recorder_shards": args.recorder_shards,
         "compression": args.compression,
         "max_rss_mb": {k: round(r["process_max_rss_mb"]) if isinstance(r, dict) and "process_max_rss_mb" in r else None

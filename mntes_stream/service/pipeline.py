@@ -109,14 +109,20 @@ class ConverterPipeline(Conversion):
     owns : dict, optional
         The part of the focal plane a converter shard owns, for its provenance
         (``service.ownership.owns_summary``); None: the whole of it.
+    threads : int
+        Threads converting a large run of chunks side by side (1: the calling
+        thread alone). The power is the same whatever the number.
 
     Attribute ``owns_status`` (a callable returning a dict, or None) gives the
     status its ``owns``: what is owned, published and held back now.
     """
 
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
-                 clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None):
+                 clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1):
         self.converter = converter
+        if not isinstance(threads, int) or threads < 1:
+            raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
+        self._threads, self._executor = threads, None
         self._owns = dict(owns or {})
         self.owns_status: Callable[[], dict] | None = None
         self.config = config or PipelineConfig()

@@ -19,6 +19,10 @@ from mntes_stream.io.messages import CountsChunk, PowerChunk, detector_ids_for
 
 __all__ = ["Conversion"]
 
+# A run is split across threads only from this many samples (rows x samples): below, a thread hand-over
+# (tens of microseconds) costs more than the kernel time it saves.
+_SPLIT_SAMPLES = 200_000
+
 log = logging.getLogger("mntes_stream.converter")
 
 
@@ -58,7 +62,10 @@ def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
 
 
 class Conversion:
-    """Rows, environment, grouped conversion and power messages of released chunks (see the module docstring)."""
+    """Rows, environment, grouped conversion and power messages of released chunks (see the module docstring).
+
+    Its host sets ``_threads`` (>= 1) and ``_executor`` (None until a thread pool is needed).
+    """
 
     def _rows_for(self, chunk: CountsChunk) -> tuple:
         """Detector ids of the rows and which the converter knows (cached per channel list)."""
@@ -117,47 +124,76 @@ class Conversion:
                         self._dropped(r.chunk, exc)
 
     def _convert_run(self, run: list[list[_Ready]]) -> list[list[tuple]] | None:
-        """One converter call for a run of groups; each chunk's (p_opt, flags) block, per group in its order.
+        """Converter calls for a run of groups; each chunk's (p_opt, flags) block, per group in its order.
 
-        None: convert them one by one (which finds and counts the chunk that failed).
+        One call, or with ``threads`` > 1 and a large run, one call per part of
+        its modules, side by side in threads (the compiled kernel releases the
+        GIL). None: convert them one by one (which finds and counts the chunk that failed).
         """
+        orders = [sorted(range(len(g)), key=lambda k, g=g: (g[k].chunk.board, g[k].chunk.module)) for g in run]
+        n_mod = len(orders[0])
+        cols = np.cumsum([0] + [g[0].chunk.counts_i.shape[1] for g in run])
+        n_rows = sum(r.chunk.channels.size for r in run[0])
+        k = min(self._threads, n_mod) if n_rows * int(cols[-1]) >= _SPLIT_SAMPLES else 1
+        bounds = [round(i * n_mod / k) for i in range(k + 1)]
+        parts = [(bounds[i], bounds[i + 1]) for i in range(k)]
         try:
-            orders = [sorted(range(len(g)), key=lambda k, g=g: (g[k].chunk.board, g[k].chunk.module)) for g in run]
-            rows = [run[0][k] for k in orders[0]]  # the run's row layout, module by module
-            cols = np.cumsum([0] + [g[0].chunk.counts_i.shape[1] for g in run])
-
-            def block(field):  # modules stacked, each module's steps side by side
-                return np.concatenate([np.concatenate([field(g[o[m]]) for g, o in zip(run, orders)], axis=1)
-                                       for m in range(len(rows))])
-
-            ci = block(lambda r: r.chunk.counts_i)
-            cq = block(lambda r: r.chunk.counts_q)
-            t_bath = np.concatenate([g[0].t_bath for g in run]) if len(run) > 1 else run[0][0].t_bath
-            b_field = np.concatenate([g[0].b_field for g in run]) if len(run) > 1 else run[0][0].b_field
-            if rows[0].v_bias is None:
-                v_bias = None
-                env_flags = np.concatenate([g[0].env_flags for g in run]) if len(run) > 1 else run[0][0].env_flags
+            if k == 1:
+                done = [self._convert_part(run, orders, 0, n_mod)]
             else:
-                v_bias = block(lambda r: r.v_bias)
-                env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
-            env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
-            block_out = self.converter.convert([d for r in rows for d in r.ids], ci, cq, env)
-            p_opt, flags = np.asarray(block_out.p_opt_w, dtype=float), np.asarray(block_out.flags, dtype=fl.FLAG_DTYPE)
-            if p_opt.shape != ci.shape or flags.shape != ci.shape:
-                return None
+                futures = [self._pool().submit(self._convert_part, run, orders, m0, m1) for m0, m1 in parts[1:]]
+                done = [self._convert_part(run, orders, *parts[0])] + [f.result() for f in futures]
         except Exception:  # find out which chunk it was: one by one, each failure counted
             return None
-        known = np.concatenate([r.known for r in rows]) if any(r.n_unknown for r in rows) else None
-        p_opt, flags = self._finish(p_opt, flags, env_flags, known)  # once for the block, not per chunk
-        starts = np.cumsum([0] + [r.chunk.channels.size for r in rows])
-        out = []
-        for g, (group, order) in enumerate(zip(run, orders)):
-            c0, c1 = cols[g], cols[g + 1]
-            pieces = [None] * len(group)
-            for m, k in enumerate(order):
-                pieces[k] = (p_opt[starts[m]:starts[m + 1], c0:c1], flags[starts[m]:starts[m + 1], c0:c1], True)
-            out.append(pieces)
+        out = [[None] * len(g) for g in run]
+        for (m0, m1), (p_opt, flags, env_flags, rows) in zip(parts, done):
+            known = np.concatenate([r.known for r in rows]) if any(r.n_unknown for r in rows) else None
+            p_opt, flags = self._finish(p_opt, flags, env_flags, known)  # once for the block, not per chunk
+            starts = np.cumsum([0] + [r.chunk.channels.size for r in rows])
+            for g, order in enumerate(orders):
+                c0, c1 = cols[g], cols[g + 1]
+                for m in range(m0, m1):
+                    r0, r1 = starts[m - m0], starts[m - m0 + 1]
+                    out[g][order[m]] = (p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1], True)
         return out
+
+    def _convert_part(self, run: list[list[_Ready]], orders: list[list[int]], m0: int, m1: int) -> tuple:
+        """Modules ``m0:m1`` of the run (in stream order) through one converter call.
+
+        Returns p_opt and flags (rows, samples), the environment flags and the rows' chunks of the first group.
+        Raises on any failure (the caller then converts chunk by chunk).
+        """
+        rows = [run[0][k] for k in orders[0][m0:m1]]  # the part's row layout, module by module
+        steps = len(run)
+
+        def block(field):  # modules stacked, each module's steps side by side
+            return np.concatenate([np.concatenate([field(g[o[m]]) for g, o in zip(run, orders)], axis=1)
+                                   for m in range(m0, m1)])
+
+        ci = block(lambda r: r.chunk.counts_i)
+        cq = block(lambda r: r.chunk.counts_q)
+        t_bath = np.concatenate([g[0].t_bath for g in run]) if steps > 1 else run[0][0].t_bath
+        b_field = np.concatenate([g[0].b_field for g in run]) if steps > 1 else run[0][0].b_field
+        if rows[0].v_bias is None:
+            v_bias = None
+            env_flags = np.concatenate([g[0].env_flags for g in run]) if steps > 1 else run[0][0].env_flags
+        else:
+            v_bias = block(lambda r: r.v_bias)
+            env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
+        env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
+        out = self.converter.convert([d for r in rows for d in r.ids], ci, cq, env)
+        p_opt, flags = np.asarray(out.p_opt_w, dtype=float), np.asarray(out.flags, dtype=fl.FLAG_DTYPE)
+        if p_opt.shape != ci.shape or flags.shape != ci.shape:
+            raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {ci.shape}")
+        return p_opt, flags, env_flags, rows
+
+    def _pool(self):
+        """Threads for the parts of a large run beyond the first (made on first use)."""
+        if self._executor is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._executor = ThreadPoolExecutor(max_workers=self._threads - 1, thread_name_prefix="convert")
+        return self._executor
 
     def _finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None):
         """Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
