@@ -92,8 +92,17 @@ def binomials(n):
 
 
 def binomial_series(x, a):
-    """``(1 + x)^n`` as ``1 + sum_k a[k-1] x^k`` (Horner), ``a = binomials(n)``."""
-    return 1.0 + x * (a[0] + x * (a[1] + x * (a[2] + x * (a[3] + x * (a[4] + x * (a[5] + x * (a[6] + x * a[7])))))))
+    """``(1 + x)^n`` as ``1 + sum_k a[k-1] x^k``, ``a = binomials(n)``.
+
+    Estrin's scheme: pairs of terms, then x^2 and x^4, three levels of
+    multiply-adds instead of Horner's chain of eight (the kernel evaluates
+    two of these per sample, each otherwise a long serial dependency).
+    """
+    x2 = x * x
+    x4 = x2 * x2
+    lo = (a[0] + a[1] * x) + x2 * (a[2] + a[3] * x)
+    hi = (a[4] + a[5] * x) + x2 * (a[6] + a[7] * x)
+    return 1.0 + x * (lo + x4 * hi)
 
 
 def row_constants(phys, t0_k):
@@ -271,7 +280,7 @@ if numba is not None:
 
     @_inline
     def _front(xi, xq, tb, b, v, hk, det, dom):
-        """One sample: flags so far, R, |i| and whether R is on the stable branch.
+        """One sample: flags so far, R, |i|^2 and whether R is on the stable branch.
 
         ``det`` = (g_re, g_im, m_re, m_im, z_re, v_lo, r_z, r_cap, v_hi, z_im,
         r_bottom, phase limit x sqrt2, r_top, k_top, k_z, k_bottom) with the
@@ -302,7 +311,7 @@ if numba is not None:
             return f | _SAT, r, 0.0, False
         if (r - det[6]) * v <= det[14]:
             return f | (_SC if (r - det[10]) * v <= det[15] else _SC | _LAT), r, 0.0, False
-        return f, r, math.sqrt(m2), True
+        return f, r, m2, True  # |i| only where a detector's current shift needs it: sqrt costs
 
     @_inline
     def _det(phys, d, dom):
@@ -358,7 +367,7 @@ if numba is not None:
             for s in range(n_samp):
                 bs = b[row, s]
                 vs = v[row, s]
-                f, r, iabs, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
+                f, r, i2, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
                                         int(hk[row, s]), det, dm)
                 p = math.nan
                 if ok:
@@ -378,7 +387,7 @@ if numba is not None:
                         u = r - x[j]
                         w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
                         inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
-                        delta = c1 * bs + c2 * bs * bs - gamma * iabs
+                        delta = c1 * bs + c2 * bs * bs - (gamma * math.sqrt(i2) if gamma != 0.0 else 0.0)
                         xx = delta * inv_ts
                         if abs(xx) <= SERIES_LIMIT:
                             kt = w * _series(xx, a)
