@@ -34,7 +34,9 @@ def add_arguments(p) -> None:
     p.add_argument("--channels", type=int, default=128, help="channels per module (default 128)")
     p.add_argument("--sample-rate", type=float, default=200.0, metavar="HZ", help="default 200")
     p.add_argument("--chunk-s", type=float, default=0.1, help="chunk length (default 0.1 s)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="stream phase length (default 20 s)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="seconds of data in the stream phase (default 20; 60 with --flat-out, where 20 s of data "
+                        "pass in about two and the rate would be mostly start-up)")
     p.add_argument("--warmup", type=float, default=2.0, metavar="S", help="left out of rates and latencies (default 2 s)")
     p.add_argument("--passthrough-s", type=float, default=3.0, metavar="S", help="passthrough phase length (default 3 s)")
     p.add_argument("--kind", default="table", help="conversion kind (default table)")
@@ -196,6 +198,8 @@ def run(args) -> dict:
     from mntes_stream.service.supervise import Services
 
     setup, pass_setup = "bench", "benchpass"
+    if args.duration is None:
+        args.duration = 60.0 if args.flat_out else 20.0
     n = max(1, round(args.chunk_s * args.sample_rate))
     sc = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
                       sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate,

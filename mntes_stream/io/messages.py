@@ -91,12 +91,11 @@ class _Message:
 
     def _body(self) -> dict:
         body = {}
-        arrays = self._ARRAYS
         for name in _field_order(type(self)):
             value = getattr(self, name)
             if value is None:
                 continue
-            if name in arrays:
+            if name in self._ARRAYS:
                 value = encode_array(value)
             elif isinstance(value, tuple):
                 value = list(value)
@@ -105,15 +104,10 @@ class _Message:
 
     @classmethod
     def unchecked(cls, **values):
-        """Construct from values this process made and checked itself, without validating them again.
-
-        For the converter's own power chunks (every field given, arrays of the
-        wire dtypes): the checks cost as much as the encoding. Anything that
-        came from outside goes through the constructor or :meth:`from_bytes`.
-        """
-        names = _field_order(cls)
-        if set(values) != set(names):
-            raise SchemaError(f"{cls.SCHEMA}: unchecked() takes every field ({', '.join(names)})")
+        """Every field, from values this process made and checked itself (the converter's own power: the checks
+        would cost as much as the encoding); anything from outside goes through the constructor or from_bytes."""
+        if set(values) != _field_names(cls):
+            raise SchemaError(f"{cls.SCHEMA}: unchecked() takes every field ({', '.join(_field_order(cls))})")
         obj = object.__new__(cls)
         obj.__dict__.update(values)
         return obj

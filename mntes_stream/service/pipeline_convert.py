@@ -102,8 +102,8 @@ class Conversion:
 
         The modules of one readout step share their sample times, hence their
         aligned bath temperature and field (the same cached arrays): a *group*.
-        Consecutive groups with the same rows (modules and channel lists) form a
-        *run*, converted as one block whose rows are the detectors and whose
+        The groups with the same rows (modules and channel lists) form a *run*
+        (:func:`_runs`), converted as one block whose rows are the detectors and whose
         columns are the samples of every step in turn: a backlog of steps costs
         the converter's per-call work once, and each detector's tables are
         looked up once per run rather than once per step (on a 5,000-detector
