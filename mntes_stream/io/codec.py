@@ -84,8 +84,8 @@ def encode_array(a: np.ndarray) -> dict:
     """Array to ``{"dtype", "shape", "data"}`` with explicit little-endian dtype."""
     a = np.asarray(a)
     dt = a.dtype.newbyteorder("<") if a.dtype.byteorder not in ("|", "<") else a.dtype
-    a = np.asarray(a, dtype=dt, order="C")
-    return {"dtype": dt.str, "shape": list(a.shape), "data": a.tobytes()}
+    # tobytes() writes C order from any layout: a strided view (a chunk of a larger block) is copied once.
+    return {"dtype": dt.str, "shape": list(a.shape), "data": a.astype(dt, copy=False).tobytes()}
 
 
 def decode_array(d: Any, field: str = "array", dtype: str | None = None, ndim: int | None = None) -> np.ndarray:
