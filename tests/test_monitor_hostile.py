@@ -138,16 +138,36 @@ def test_claimed_rates_and_made_up_streams_keep_monitor_memory_bounded(tmp_path)
             time.sleep(0.5)
             s = _state(base)
         assert len(s["health"]["services"]) == 64 and s["memory"]["services_evicted"] == 1000 - 64, json.dumps(s["health"]["monitor"])
-        # The real stream is still shown, live, after the flood.
-        _publish(zport, _real(20, 20, t0), keys.power_key("lab", 0, 0))
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            s = _state(base)
-            if any((r["board"], r["module"]) == (0, 0) for r in s["layout"]) and s["freshness"]["state"] == "live":
-                break
-            time.sleep(0.2)
-        else:
-            pytest.fail(f"the real module is not shown live after the flood: {s['freshness']}")
+        # The real stream is shown, live, after the flood: a live stream keeps publishing, and once the made-up
+        # modules have been idle for silent_s it gets the room they held (if the flood outlasted silent_s, the
+        # monitor had evicted the real module as idle meanwhile: which it did, whenever it took the flood slowly).
+        stop = threading.Event()
+
+        def live():
+            import zenoh
+
+            with open_session(loopback(None, [zport])) as z:
+                seq = 20
+                while not stop.is_set():
+                    z.put(keys.power_key("lab", 0, 0), power(0, 0, seq, t0_ns=time.time_ns() - seq * 10**8),
+                          congestion_control=zenoh.CongestionControl.BLOCK)
+                    seq += 1
+                    stop.wait(0.1)
+
+        publisher = threading.Thread(target=live, daemon=True)
+        publisher.start()
+        try:
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                s = _state(base)
+                if any((r["board"], r["module"]) == (0, 0) for r in s["layout"]) and s["freshness"]["state"] == "live":
+                    break
+                time.sleep(0.2)
+            else:
+                pytest.fail(f"the real module is not shown live after the flood: {s['freshness']}, {s['memory']}")
+        finally:
+            stop.set()
+            publisher.join(10)
     finally:
         proc.terminate()
         try:
