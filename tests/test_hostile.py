@@ -128,20 +128,68 @@ def test_an_oversized_housekeeping_message_is_rejected_whole(source, converter):
     assert len(pipe.hk.sensors["t_bath"]) < 100 and got
 
 
-def test_chunks_far_behind_their_stream_are_shed_and_counted(source, converter):
-    """Overload: a converter that falls 5 s behind sheds (counted) instead of growing its latency without bound."""
-    msgs = _messages(source, 30)
-    late = []
-    for key, payload, t in msgs:
-        # From the 10th step on, everything is received 5 s late and later (the converter fell behind).
+def _late_messages(source, steps):
+    """From the 10th step on, everything is received 5 s late and later (the converter fell behind)."""
+    out = []
+    for key, payload, t in _messages(source, steps):
         lag = 0 if t < T0 + 10 * 10**8 else 5 * 10**9 + (t - T0)
-        late.append((key, payload, t + lag))
+        out.append((key, payload, t + lag))
+    return out
+
+
+def _run_overloaded(converter, messages, set_aside_bytes=256 << 20):
+    """As _run, the service having declared a real overload (``overloaded``) from the first message."""
+    pipe = ConverterPipeline(converter, PipelineConfig(max_lag_s=2.0), clock=None, set_aside_bytes=set_aside_bytes)
+    pipe.overloaded = True
+    outs = []
+    for key, payload, t in messages:
+        outs.extend(pipe.handle(key, payload, t))
+    live = _power(outs)
+    return pipe, live, _power(pipe.flush())
+
+
+def test_a_stall_or_a_lagging_stream_sheds_nothing_without_a_real_overload(source, converter):
+    """Chunks 5 s behind their stream's pace, but the service never declared an overload (a stall, a busy
+    machine, an offline run): every chunk is converted live, nothing shed, the ledger balances."""
+    late = _late_messages(source, 30)
     pipe, got = _run(converter, late, max_lag_s=2.0)
+    n_counts = len([m for m in late if "/counts/" in m[0]])
     st = pipe.status()
-    assert st.bad_messages["overload"] == pipe.counters.chunks_shed > 0
-    assert all(seq < 10 for _, _, seq in got)  # what was on time was converted, the rest shed
-    keep, got_keep = _run(converter, late, overload="keep")
-    assert "overload" not in keep.status().bad_messages and len(got_keep) == len([m for m in late if "/counts/" in m[0]])
+    assert len(got) == n_counts and st.chunks_shed == st.chunks_late == st.chunks_lost == 0
+    assert "overload" not in st.bad_messages
+    tot = pipe.ledger.totals()
+    assert tot.received == tot.done == n_counts and pipe.ledger.balanced()
+
+
+def test_under_a_real_overload_chunks_behind_are_set_aside_then_converted_late(source, converter):
+    """Overloaded: chunks far behind are not converted now but set aside, and converted later as late power
+    (same values as live conversion, marked late); the ledger says which were live and which late."""
+    late = _late_messages(source, 30)
+    _, reference = _run(converter, late, max_lag_s=2.0)
+    pipe, live, later = _run_overloaded(converter, late)
+    assert live and later and not set(live) & set(later)
+    assert max(seq for _, _, seq in live) < min(seq for _, _, seq in later)  # what was on time went live
+    assert set(live) | set(later) == set(reference)
+    for k, pw in later.items():
+        assert pw.late is True and np.array_equal(pw.p_opt_w, reference[k].p_opt_w, equal_nan=True)
+    assert all(pw.late is None for pw in live.values())
+    st = pipe.status()
+    assert st.chunks_late == len(later) and st.chunks_shed == 0 and st.chunks_lost == 0 and st.chunks_set_aside == 0
+    assert pipe.ledger.balanced() and pipe.ledger.totals().done == len(live)
+
+
+def test_a_full_set_aside_budget_sheds_the_oldest_and_the_ledger_says_so(source, converter):
+    """Beyond the set-aside budget the oldest set-aside chunks are shed: counted per stream as shed (overload),
+    in chunks_lost, never silently; received = converted + late + shed for every stream."""
+    late = _late_messages(source, 30)
+    one = CountsChunk.from_bytes(next(p for k, p, _ in late if "/counts/" in k))
+    pipe, live, later = _run_overloaded(converter, late, set_aside_bytes=3 * 2 * one.counts_i.nbytes)
+    st = pipe.status()
+    assert st.chunks_shed > 0 and st.bad_messages["overload"] == st.chunks_shed == pipe.counters.chunks_shed
+    assert st.chunks_lost == st.chunks_shed and st.chunks_late == len(later) <= 3 * 2  # 3 per stream at most
+    for cols in st.ledger.values():
+        assert cols["received"] == cols.get("done", 0) + cols.get("late", 0) + sum(cols.get("shed", {}).values())
+    assert f"lost {st.chunks_shed} of" in pipe.ledger.line() and "shed" in pipe.ledger.line()
 
 
 def test_a_bias_reading_goes_stale_after_bias_staleness_s(source, converter):

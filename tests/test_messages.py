@@ -292,5 +292,5 @@ def test_every_status_field_is_checked_by_exactly_one_rule():
 
     S = m.StatusMessage
     ruled = list(S._RATES + S._LATENCIES + S._COUNTERS) + [
-        "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns"]
+        "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns", "ledger"]
     assert sorted(ruled) == sorted(f.name for f in fields(S))

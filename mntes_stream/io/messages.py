@@ -12,19 +12,17 @@ Sample times of counts and power chunks are either ``t0_ns`` plus
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 import numpy as np
 
 from mntes_stream.core.align import sample_times_ns
-from mntes_stream.core.ids import detector_id
 from mntes_stream.errors import SCHEMA_REASONS, SchemaError
 from mntes_stream.io import fields as fc
-from mntes_stream.io.codec import decode_array, encode_array, pack, unpack
 from mntes_stream.io.fields import SAMPLE_RATE_RANGE_HZ
 from mntes_stream.io.keys import NAME_PATTERN
+from mntes_stream.io.message_base import _Message, _unpack, detector_ids_for
 
 __all__ = [
     "REASONS",
@@ -43,111 +41,6 @@ __all__ = [
 # Why a message was rejected; the keys of StatusMessage.bad_messages.
 REASONS = SCHEMA_REASONS
 SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V"}
-
-def _unpack(payload: Any, expected=None) -> dict:
-    if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise SchemaError(f"payload must be bytes, got {type(payload).__name__}", "malformed")
-    msg = unpack(bytes(payload))
-    # Checked after the envelope so an unknown name or version is reported as such.
-    names = (expected,) if isinstance(expected, str) else expected
-    if names is not None and msg["schema"] not in names:
-        raise SchemaError(f"expected schema {'/'.join(names)}, got {msg['schema']!r}", "wrong_schema")
-    return msg
-
-
-@functools.cache
-def _field_names(cls) -> frozenset[str]:
-    return frozenset(f.name for f in fields(cls))
-
-
-@functools.cache
-def _field_order(cls) -> tuple[str, ...]:
-    return tuple(f.name for f in fields(cls))
-
-
-@functools.lru_cache(maxsize=4096)
-def _ids(board: int, module: int, channels: bytes) -> tuple[str, ...]:
-    return tuple(detector_id(board, module, c) for c in np.frombuffer(channels, dtype="<i4").tolist())
-
-
-def detector_ids_for(board: int, module: int, channels: np.ndarray) -> tuple[str, ...]:
-    """Detector ids of a module's channel rows (cached: streams repeat them every chunk)."""
-    return _ids(int(board), int(module), np.ascontiguousarray(channels, dtype="<i4").tobytes())
-
-
-def _time_body(obj) -> dict:
-    if obj.t_ns is not None:
-        return {"t_ns": encode_array(obj.t_ns)}
-    return {"t0_ns": obj.t0_ns, "sample_rate_hz": obj.sample_rate_hz}
-
-
-class _Message:
-    """Shared encode/decode machinery; subclasses are frozen dataclasses."""
-
-    SCHEMA: ClassVar[str]
-    _ARRAYS: ClassVar[dict[str, tuple[str, int | tuple[int, ...]]]] = {}
-    # Fields that may be absent on the wire although the constructor takes them positionally.
-    _OPTIONAL: ClassVar[tuple[str, ...]] = ()
-
-    def _body(self) -> dict:
-        body = {}
-        for name in _field_order(type(self)):
-            value = getattr(self, name)
-            if value is None:
-                continue
-            if name in self._ARRAYS:
-                value = encode_array(value)
-            elif isinstance(value, tuple):
-                value = list(value)
-            body[name] = value
-        return body
-
-    @classmethod
-    def unchecked(cls, **values):
-        """Every field, from values this process made and checked itself (the converter's own power: the checks
-        would cost as much as the encoding); anything from outside goes through the constructor or from_bytes."""
-        if set(values) != _field_names(cls):
-            raise SchemaError(f"{cls.SCHEMA}: unchecked() takes every field ({', '.join(_field_order(cls))})")
-        obj = object.__new__(cls)
-        obj.__dict__.update(values)
-        return obj
-
-    def to_bytes(self) -> bytes:
-        """msgpack bytes of this message (envelope with schema name and version)."""
-        return pack(self.SCHEMA, self._body())
-
-    @classmethod
-    def from_bytes(cls, payload: bytes):
-        """Decode and validate; raises :class:`SchemaError` (with ``.reason``)."""
-        return cls._from_map(_unpack(payload, cls.SCHEMA))
-
-    @classmethod
-    def _from_map(cls, msg: dict):
-        names = _field_names(cls)
-        extra = set(msg) - names - {"schema", "version"}
-        if extra:
-            raise SchemaError(f"{cls.SCHEMA}: unknown field(s) {sorted(map(str, extra))}")
-        kwargs = {}
-        for name in names:
-            if name not in msg:
-                continue
-            value = msg[name]
-            if name in cls._ARRAYS:
-                dtype, ndim = cls._ARRAYS[name]
-                try:
-                    value = decode_array(value, name, dtype, ndim if isinstance(ndim, int) else None)
-                except SchemaError as exc:
-                    raise SchemaError(f"{cls.SCHEMA}: {exc}") from None
-            kwargs[name] = value
-        for name in cls._OPTIONAL:
-            kwargs.setdefault(name, None)
-        try:
-            return cls(**kwargs)
-        except SchemaError as exc:
-            raise SchemaError(f"{cls.SCHEMA}: {exc}", exc.reason) from None
-        except TypeError as exc:  # missing required fields
-            raise SchemaError(f"{cls.SCHEMA}: {exc}") from None
-
 
 # --- messages --------------------------------------------------------------------------
 
@@ -295,6 +188,9 @@ class PowerChunk(_Message):
     table_identity, converter_kind : str
     source_t_pub_ns, t_pub_ns : int
         Publication times of the counts chunk and of this chunk.
+    late : bool or None
+        True: converted late, after being set aside under overload (older than the
+        stream's live power); None (absent on the wire): converted live.
     """
 
     SCHEMA: ClassVar[str] = "mntes.power"
@@ -316,9 +212,12 @@ class PowerChunk(_Message):
     source_t_pub_ns: int
     t_pub_ns: int
     t_ns: np.ndarray | None = None
+    late: bool | None = None
 
     def __post_init__(self) -> None:
         fc.as_str(self.setup, "setup", NAME_PATTERN)
+        if self.late is not None and not isinstance(self.late, bool):
+            raise SchemaError("late must be true, or absent")
         for name in ("board", "module", "seq", "source_t_pub_ns", "t_pub_ns"):
             object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
         fc.as_str(self.table_identity, "table_identity")
@@ -393,13 +292,23 @@ class StatusMessage(_Message):
     latency_max_ms: float | None = None
     last_error: str = ""
     owns: dict = field(default_factory=dict)
+    chunks_missing: int = 0
+    chunks_shed: int = 0
+    chunks_late: int = 0
+    chunks_rejected: int = 0
+    chunks_set_aside: int = 0
+    ledger: dict = field(default_factory=dict)
 
+    # Absent from statuses of earlier versions of the converter: decoded with their defaults.
+    _LATER: ClassVar[frozenset] = frozenset(
+        {"owns", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected", "chunks_set_aside", "ledger"})
     _RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
     _LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms")
     _COUNTERS: ClassVar[tuple[str, ...]] = (
         "t_ns", "chunks_received", "chunks_converted", "chunks_pending", "samples_converted", "chunks_lost",
         "chunks_duplicated", "chunks_out_of_order", "hk_received", "hk_stale_samples", "hk_missing_samples",
-        "unknown_channel_samples",
+        "unknown_channel_samples", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected",
+        "chunks_set_aside",
     )
 
     def __post_init__(self) -> None:
@@ -423,6 +332,7 @@ class StatusMessage(_Message):
             self, "hk_age_s", {fc.as_str(k, "hk_age_s key"): float(fc.as_float(v, f"hk_age_s[{k}]")) for k, v in self.hk_age_s.items()}
         )
         object.__setattr__(self, "owns", _owns_map(self.owns))
+        object.__setattr__(self, "ledger", _ledger_map(self.ledger))
 
     def _body(self) -> dict:
         # Optional latencies travel as nil (the schema allows null), not absent; an unsharded converter says no owns.
@@ -430,7 +340,7 @@ class StatusMessage(_Message):
 
     @classmethod
     def _from_map(cls, msg: dict):
-        missing = {f.name for f in fields(cls)} - set(msg) - {"owns"}
+        missing = {f.name for f in fields(cls)} - set(msg) - cls._LATER
         if missing:
             raise SchemaError(f"{cls.SCHEMA}: missing field(s) {sorted(missing)}")
         return super()._from_map(msg)
@@ -471,6 +381,20 @@ class Provenance(_Message):
         if not self.owns:  # a converter of the whole focal plane: the bytes of before
             body.pop("owns", None)
         return body
+
+
+def _ledger_map(value) -> dict:
+    """A status's ledger: stream -> columns (ints, or maps of reason -> int for shed and rejected)."""
+    if not isinstance(value, dict):
+        raise SchemaError("ledger must be a map")
+    out = {}
+    for stream, cols in value.items():
+        if not isinstance(cols, dict):
+            raise SchemaError(f"ledger[{stream}] must be a map")
+        out[fc.as_str(stream, "ledger key")] = {
+            fc.as_str(k, "ledger column"): _count_map(v, f"ledger[{stream}][{k}]") if isinstance(v, dict)
+            else fc.as_int(v, f"ledger[{stream}][{k}]") for k, v in cols.items()}
+    return out
 
 
 def _owns_map(value) -> dict:

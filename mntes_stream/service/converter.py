@@ -69,6 +69,12 @@ class ConverterConfig(Settings):
     queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
     threads: int = setting(1, "threads converting a large batch side by side (the compiled kernel releases the "
                            "GIL): on a host with a core to spare, lower latency at high rates", ge=1, le=64)
+    overload_after_s: float = setting(
+        10.0, "a real overload: behind (every batch full) without a break for this long; only then are chunks "
+        "further behind than [alignment] max_lag_s set aside (converted late when there is time, shed beyond "
+        "set_aside_mb). A shorter stall or latency spike sheds nothing", unit="s", gt=0)
+    set_aside_mb: float = setting(256.0, "counts held under overload for late conversion; beyond, the oldest are "
+                                  "shed (in the ledger; their counts are recorded for offline convert)", unit="MB", gt=0)
     batch_max: int = setting(512, "received messages handled as one batch at most (chunks of one batch that share "
                              "sample times are converted in one call)", ge=1)
     checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
@@ -277,7 +283,8 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
         streams = sorted(modules) if modules is not None else None
     _warm_up(conv)
     summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
-    pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None, threads=cfg.threads)
+    pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None, threads=cfg.threads,
+                             set_aside_bytes=int(cfg.set_aside_mb * 1e6))
     if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
         n = pipe.resume_sequences(ckpt[0])
         log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
@@ -311,14 +318,23 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                      _owning(cfg, streams, owner), topics if len(topics) <= 8 else f"{len(topics)} key expressions")
             if ready is not None:
                 ready.set()
+            behind_since = None  # monotonic time since when every batch was full (None: caught up)
             while not stopping.is_set():
                 if cfg.duration_s and time.monotonic() - t_start >= cfg.duration_s:
                     break
-                item = sub.get(timeout_s=0.05)
+                item = sub.get(timeout_s=0.05 if not pipe.set_aside else 0.0)
                 # What has arrived is handled as one batch (converted together: less work per chunk); nothing
                 # waits for more to come, so a batch is what piled up while the previous one was converted.
                 now = time.time_ns()
-                outs = pipe.tick(now) if item is None else pipe.handle_many([item, *sub.drain(cfg.batch_max - 1)])
+                if item is None:  # nothing waiting: time for what was set aside under overload
+                    behind_since, pipe.overloaded = None, False
+                    outs = pipe.tick(now) + pipe.convert_late(cfg.batch_max // 8 or 1)
+                else:
+                    batch = [item, *sub.drain(cfg.batch_max - 1)]
+                    mono = time.monotonic()
+                    behind_since = (behind_since or mono) if len(batch) >= cfg.batch_max else None
+                    pipe.overloaded = behind_since is not None and mono - behind_since >= cfg.overload_after_s
+                    outs = pipe.handle_many(batch)
                 if owner is not None:
                     outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
                 for key, payload in outs:
@@ -348,9 +364,10 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                 claims.close()  # a standby takes over at once, not after the session's lease
             pubs.close()
     final = pipe.status()
-    log.info("converter stopped: %d chunks converted, %d lost, %d bad messages",
-             final.chunks_converted, final.chunks_lost, sum(final.bad_messages.values()))
-    return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close}
+    line = pipe.ledger_now().line()
+    log.info("converter %s stopped: %s", cfg.name, line)
+    return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close,
+                                                                    "ledger_line": line}
 
 
 def _owning(cfg: ConverterConfig, streams, owner) -> str:

@@ -45,6 +45,7 @@ import numpy as np
 
 from mntes_stream import __version__
 from mntes_stream.core import flags as fl
+from mntes_stream.core.ledger import OTHER, Ledger
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
@@ -57,6 +58,7 @@ from mntes_stream.io.messages import (
 from mntes_stream.service.housekeeping import DelayFloor, Housekeeping, known_modules, ns
 from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
 from mntes_stream.service.pipeline_convert import Conversion, _Ready
+from mntes_stream.service.pipeline_overload import Overload
 
 __all__ = ["PipelineConfig", "ConverterPipeline", "PipelineCounters", "SCALAR_SENSORS"]
 
@@ -87,9 +89,10 @@ class _Pending:
     t_recv_ns: int
     t_ns: np.ndarray
     t_last_ns: int | None
+    late: bool = False  # set aside under overload: converted later, published as late power
 
 
-class ConverterPipeline(Conversion):
+class ConverterPipeline(Overload, Conversion):
     """Counts + housekeeping in, power chunks + status out (no I/O).
 
     Parameters
@@ -112,14 +115,28 @@ class ConverterPipeline(Conversion):
     threads : int
         Threads converting a large run of chunks side by side (1: the calling
         thread alone). The power is the same whatever the number.
+    set_aside_bytes : int
+        Counts held at most under overload for late conversion; beyond, the
+        oldest set-aside chunk is shed (counted in the ledger).
+
+    Attribute ``overloaded`` (False unless the live service sets it, so offline
+    runs never shed): while True, a chunk further behind its stream's pace than
+    ``max_lag_s`` is set aside, not converted now; :meth:`convert_late`
+    converts set-aside chunks when the service has time. ``ledger``
+    (``core.ledger.Ledger``) accounts for every chunk of every stream.
 
     Attribute ``owns_status`` (a callable returning a dict, or None) gives the
     status its ``owns``: what is owned, published and held back now.
     """
 
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
-                 clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1):
+                 clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
+                 set_aside_bytes: int = 256 << 20):
         self.converter = converter
+        self.ledger = Ledger("converted")
+        self.overloaded = False
+        self._aside: collections.deque[_Pending] = collections.deque()
+        self._aside_bytes, self._aside_max = 0, int(set_aside_bytes)
         if not isinstance(threads, int) or threads < 1:
             raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
         self._threads, self._executor = threads, None
@@ -221,6 +238,7 @@ class ConverterPipeline(Conversion):
         out: list[tuple[str, bytes]] = []
         self._guarded(self._release, "flush", out, True)
         self._guarded(self._convert_ready, "flush", out)
+        out += self.convert_late(len(self._aside))
         if self._now_ns is not None:
             self._guarded(lambda: out.append(self._emit_status()), "flush")
         return out
@@ -234,6 +252,8 @@ class ConverterPipeline(Conversion):
         lat = np.asarray(self._interval_latency_ms)
         c = self.counters
         streams = self._streams.values()
+        led = self.ledger_now()
+        tot = led.totals()
         return StatusMessage(
             setup=self.config.setup,
             service=self.config.service,
@@ -244,7 +264,13 @@ class ConverterPipeline(Conversion):
             chunks_converted=c.chunks_converted,
             chunks_pending=len(self._pending),
             samples_converted=c.samples_converted,
-            chunks_lost=max(sum(s.lost for s in streams), 0),
+            chunks_lost=tot.lost,
+            chunks_missing=tot.missing,
+            chunks_shed=tot.shed_total,
+            chunks_late=tot.late,
+            chunks_rejected=tot.rejected_total,
+            chunks_set_aside=len(self._aside),
+            ledger=led.as_dict(),
             chunks_duplicated=sum(s.duplicated for s in streams),
             chunks_out_of_order=sum(s.out_of_order for s in streams),
             hk_received=c.hk_received,
@@ -336,7 +362,12 @@ class ConverterPipeline(Conversion):
         kind = info["kind"]
         try:
             if kind == "counts":
-                self._on_counts(info, CountsChunk.from_bytes(payload), key, t_recv_ns)
+                try:
+                    chunk = CountsChunk.from_bytes(payload)
+                except SchemaError as exc:  # the key names its stream: booked there as received and rejected
+                    self._reject(info, exc.reason)
+                    raise
+                self._on_counts(info, chunk, key, t_recv_ns)
             elif kind == "hk":
                 self._on_hk(info, HousekeepingChunk.from_bytes(payload), key, t_recv_ns)
             else:
@@ -344,20 +375,33 @@ class ConverterPipeline(Conversion):
         except SchemaError as exc:
             self._bad(exc.reason, str(exc), key)
 
+    def _reject(self, info: dict, reason: str) -> None:
+        """A counts message refused: in its stream's ledger when the stream is ours, else under OTHER (bounded)."""
+        b, m = info.get("board", ""), info.get("module", "")
+        stream = (int(b), int(m)) if b.isdigit() and m.isdigit() else None
+        if stream is None or (self._modules is not None and stream not in self._modules):
+            stream = OTHER
+        self.ledger.received(stream)
+        self.ledger.rejected(stream, reason)
+
     def _on_counts(self, info: dict, chunk: CountsChunk, key: str, t_recv_ns: int) -> None:
         if chunk.setup != self.config.setup or info["board"] != str(chunk.board) or info["module"] != str(chunk.module):
+            self._reject(info, "wrong_key")
             self._bad("wrong_key", f"payload is setup {chunk.setup} board {chunk.board} module {chunk.module}", key)
             return
         stream = (chunk.board, chunk.module)
         if self._modules is not None and stream not in self._modules:
+            self._reject(info, "unknown_stream")
             self._bad("unknown_stream", f"board {chunk.board} module {chunk.module}: no detector of it in the "
                                         "parameters (given no state, not converted)", key)
             return
         self.counters.chunks_received += 1
+        self.ledger.received(stream)
         t = chunk.times_ns()
         t_first = int(t[0]) if t.size else chunk.t_pub_ns
         verdict = self._sequence(stream, chunk.seq, t_first, key)
         if verdict == "duplicate":
+            self.ledger.duplicate(stream)
             return
         delay = t_recv_ns - chunk.t_pub_ns
         pace = self._pace.get(stream)
@@ -365,12 +409,13 @@ class ConverterPipeline(Conversion):
             pace = self._pace[stream] = DelayFloor()
         lag = delay - pace.add(t_first, delay)
         self.hk.note_delay(stream, delay)
-        if lag > self._max_lag_ns and self.config.overload == "shed":
-            # Behind its own stream's pace: converting it would only make every later chunk later too.
-            self.counters.chunks_shed += 1
-            self._bad("overload", f"chunk seq {chunk.seq} {lag / 1e9:.3g} s behind its stream: shed", key)
+        p = _Pending(chunk, t_recv_ns, t, int(t.max()) if t.size else None)
+        if self.overloaded and lag > self._max_lag_ns and self.config.overload == "shed":
+            # A real overload (the service says so), and behind its own stream's pace: converting it now
+            # would make every later chunk later too. Kept for when there is time (late power).
+            self._set_aside(p, stream, lag, key)
             return
-        self._pending.append(_Pending(chunk, t_recv_ns, t, int(t.max()) if t.size else None))
+        self._pending.append(p)
 
     def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> str:
         """Book-keep a sequence number; the tracker's verdict (``duplicate``: drop it)."""
@@ -427,6 +472,7 @@ class ConverterPipeline(Conversion):
     def _dropped(self, chunk: CountsChunk, exc: Exception) -> None:
         key = keys.counts_key(self.config.setup, chunk.board, chunk.module)
         self.counters.chunks_failed += 1
+        self.ledger.rejected((chunk.board, chunk.module), "internal_error")
         self._bad("internal_error", f"chunk seq {chunk.seq} dropped: {type(exc).__name__}: {exc}", key)
         log.error("internal error converting %s seq %d; chunk dropped", key, chunk.seq, exc_info=exc)
 

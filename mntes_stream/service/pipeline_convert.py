@@ -39,6 +39,7 @@ class _Ready:
     v_bias: np.ndarray | None
     env_flags: np.ndarray
     env_flags_t: np.ndarray
+    late: bool = False
 
 
 def _layout(group: list[_Ready]) -> tuple | None:
@@ -95,7 +96,7 @@ class Conversion:
         ids, known, n_unknown = self._rows_for(chunk)
         v_bias, f_bias = self.hk.bias(chunk, t, ids)
         env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
-        return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t)
+        return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
 
     def _convert_ready(self, out: list) -> None:
         """Convert the released chunks in as few converter calls as may be.
@@ -113,7 +114,7 @@ class Conversion:
         ready, self._ready = self._ready, []
         groups: dict[tuple, list[_Ready]] = {}
         for r in ready:
-            groups.setdefault((id(r.t_bath), id(r.b_field), r.v_bias is None), []).append(r)
+            groups.setdefault((id(r.t_bath), id(r.b_field), r.v_bias is None, r.late), []).append(r)
         for run in _runs(list(groups.values())):
             blocks = self._convert_run(run) if len(run) > 1 or len(run[0]) > 1 else None
             for g, group in enumerate(run):
@@ -205,7 +206,8 @@ class Conversion:
             flags[~known] |= fl.UNKNOWN_CHANNEL
             self.counters.unknown_channel_samples += int((~known).sum()) * flags.shape[1]
         if flags.any():
-            unusable = (flags & fl.UNUSABLE) != 0
+            # Stale housekeeping: the last good reading is older than its limit, so the value it gives is not power.
+            unusable = (flags & (fl.UNUSABLE | (fl.HK_STALE if self.config.hk_stale_power == "nan" else 0))) != 0
             if unusable.any():
                 p_opt = np.where(unusable, np.nan, p_opt)
             self.flag_counts.update(fl.counts_by_flag(flags))
@@ -253,7 +255,9 @@ class Conversion:
             source_t_pub_ns=chunk.t_pub_ns,
             t_pub_ns=t_pub,
             t_ns=chunk.t_ns,
+            late=True if r.late else None,
         )
+        self.ledger.done((chunk.board, chunk.module), late=r.late)
         c = self.counters
         c.chunks_converted += 1
         c.samples_converted += n_ch * n
