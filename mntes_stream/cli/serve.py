@@ -57,6 +57,9 @@ def run_serve(args) -> int:
         done.set()
     if args.json:
         print(json.dumps(result, indent=2, default=str))
+    if isinstance(result, dict) and result.get("ledger_line"):  # the last line: what happened to every chunk
+        print(f"{service.name} {getattr(config, 'name', '')}: {result['ledger_line']}".replace("  ", " "),
+              file=sys.stderr if args.json else sys.stdout)
     return 0
 
 

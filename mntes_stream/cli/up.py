@@ -217,10 +217,13 @@ def run_up(args) -> int:
     n_files, size = files.now()
     conv = summary.get("converter", {}) if isinstance(summary.get("converter"), dict) else {}
     rec = summary.get("recorder", {}) if isinstance(summary.get("recorder"), dict) else {}
-    say(f"done{' (interrupted)' if interrupted else ''}: {conv.get('chunks_converted', 0)} power chunks "
-        f"({conv.get('samples_converted', 0) / 1e6:.2f} Msamples), lost {conv.get('chunks_lost', '?')}, "
-        f"recorded {rec.get('messages', 0)} messages into {n_files} MCAP file(s), {size / 1e6:.2f} MB: "
+    say(f"done{' (interrupted)' if interrupted else ''}: {conv.get('samples_converted', 0) / 1e6:.2f} Msamples "
+        f"converted; recorded {rec.get('messages', 0)} messages into {n_files} MCAP file(s), {size / 1e6:.2f} MB: "
         f"{', '.join(rec.get('files', [])) or '-'}")
+    if rec.get("ledger_line"):
+        say(f"  recorder counts: {rec['ledger_line']}")
+    # The last line is the converter's ledger: what happened to every chunk (lost = never received + shed + rejected).
+    say(f"  converter: {conv.get('ledger_line') or 'no final statistics (it did not stop cleanly): see its log'}")
     if args.json:
         print(json.dumps({"interrupted": interrupted, "ok": not failed, "params": str(params_file),
                           "services": summary}, indent=2, default=str))

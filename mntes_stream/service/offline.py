@@ -29,6 +29,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from mntes_stream.core.ledger import Ledger
 from mntes_stream.errors import ConfigError
 
 __all__ = ["OfflineStats", "build_converter", "convert_recording", "recorded_calibrations"]
@@ -56,6 +57,8 @@ class OfflineStats:
     input_complete: bool
     flag_counts: dict = field(default_factory=dict)
     calibrations: int = 1  # recorded calibrations used (more than one: switched at their receive times)
+    ledger: dict = field(default_factory=dict)  # core.ledger: every recorded counts chunk of every stream
+    ledger_line: str = ""
 
     def summary(self) -> str:
         same = "same tables as recorded" if self.table_identity == self.recorded_table_identity else \
@@ -67,7 +70,8 @@ class OfflineStats:
                 f"  params: {self.params_source}; tables: {self.tables_source}; bad messages: {bad}"
                 + (f"\n  the calibration changed {self.calibrations - 1} time(s) during the recording: each part "
                    "converted with its own (figures above: the last)" if self.calibrations > 1 else "")
-                + ("" if self.input_complete else "\n  input was not finished by its recorder: converted what was recovered"))
+                + ("" if self.input_complete else "\n  input was not finished by its recorder: converted what was recovered")
+                + (f"\n  ledger: {self.ledger_line}" if self.ledger_line else ""))
 
 
 def _calibration(prov) -> tuple:
@@ -271,8 +275,10 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     )
     totals = {"samples_converted": 0, "chunks_lost": 0}
     bad, flag_counts = Counter(), Counter()
+    ledger = Ledger("converted")
 
     def add_status(pipe) -> None:
+        ledger.merge(pipe.ledger_now())
         status = pipe.status()
         totals["samples_converted"] += status.samples_converted
         totals["chunks_lost"] += status.chunks_lost
@@ -341,6 +347,8 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         input_complete=session.complete,
         flag_counts={k: v for k, v in flag_counts.items() if v},
         calibrations=len(plan),
+        ledger=ledger.as_dict(),
+        ledger_line=ledger.line(),
     )
 
 
