@@ -264,7 +264,7 @@ def test_damaged_chunk_is_skipped_with_a_warning(chunked, tmp_path):
     assert any("damaged chunk" in str(w.message) for w in caught)
 
 
-def test_messages_whose_channel_was_lost_are_counted_not_silently_dropped(chunked, tmp_path):
+def test_messages_whose_channel_was_lost_keep_a_channel_rebuilt_from_their_payloads(chunked, tmp_path):
     data, sent, idx = chunked
     bad = bytearray(data[: idx[-1].chunk_start_offset + idx[-1].chunk_length])  # unfinished: scan path
     c = idx[0]  # the chunk that defines the counts and hk channels
@@ -274,9 +274,13 @@ def test_messages_whose_channel_was_lost_are_counted_not_silently_dropped(chunke
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         got = [m.payload for m in mio.iter_messages(path)]
-    assert got == [provenance_payload()]  # its channel is defined in the last, intact chunk
-    assert any("110 messages skipped" in str(w.message) for w in caught)
-    assert any("damaged chunk" in str(w.message) for w in caught)
+    # Every readable message: the counts and hk payloads name their keys, so their channels are rebuilt.
+    assert got == sent[10:]
+    assert any("1 damaged chunk(s), 10 messages lost" in str(w.message) for w in caught)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", mio.TruncatedFileWarning)
+        topics = {m.topic for m in mio.iter_messages(path)}
+    assert topics == {"mntes/t/counts/0/0", "mntes/t/hk/t_bath", "mntes/t/provenance"}
 
 
 # Envelopes that claim mntes.provenance but are not one: a bytes-keyed map (json.dumps
@@ -418,7 +422,8 @@ def test_inspect_verify_calls_a_crc_damaged_file_what_it_is(chunked, tmp_path):
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "inspect", "--verify", "--json", str(path)],
                          capture_output=True, text=True, timeout=60)
     doc = json.loads(res.stdout)
-    assert res.returncode == 0 and doc["complete"] is False and doc["verified"][0]["readable_messages"] == len(sent) - 10
+    assert res.returncode == 2 and doc["complete"] is False and doc["verified"][0]["readable_messages"] == len(sent) - 10
+    assert "DAMAGED" in res.stderr
     assert verify_file(_write_ok(tmp_path)).ok
 
 

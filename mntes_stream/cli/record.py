@@ -83,6 +83,9 @@ def run_replay_cmd(args) -> int:
 
 
 def run_inspect(args) -> int:
+    """Exit 2 when anything is called DAMAGED (an unreadable chunk or record, messages lost)."""
+    import sys
+
     from mntes_stream.io.mcap import Session
 
     with warnings.catch_warnings():
@@ -97,26 +100,54 @@ def run_inspect(args) -> int:
         "topics": dict(sorted(s.message_counts().items())),
         "metadata": [{"name": m.name, "file": m.path, **({"data": m.data} if args.full else {})} for m in meta],
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data), "log_time_ns": a.log_time_ns, "file": a.path} for a in s.attachments()],
+        "damaged": [dataclasses.asdict(d) for d in s.damage],
     }
     checks = None
     if args.verify:
         from mntes_stream.io.mcap.repair import verify_file
 
         checks = {c.path: c for c in (verify_file(f.path) for f in s.files)}
-        out["verified"] = [dataclasses.asdict(c) | {"ok": c.ok} for c in checks.values()]
-        out["complete"] = all(c.ok for c in checks.values())
+        out["verified"] = [dataclasses.asdict(c) | {"ok": c.ok, "lost_messages": c.lost_messages} for c in checks.values()]
+        out["complete"] = all(c.ok and c.complete for c in checks.values())
+        damaged = [p for p, c in checks.items() if not c.ok]
+    else:
+        damaged = sorted({d.path for d in s.damage} | {f.path for f in s.files if f.unlabelled_messages})
+    out["damaged_files"] = damaged
     if args.json:
         print(json.dumps(out, indent=2))
-        return 0
+    else:
+        _print_inspect(s, out, meta, checks)
+    if damaged:
+        what = "; ".join(f"{p}: {checks[p].summary()}" if checks else p for p in damaged)
+        print(f"mntes-stream: error: {len(damaged)} of {len(s.files)} file(s) DAMAGED ({what})", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _print_inspect(s, out, meta, checks) -> None:
     for f in s.files:
         state = "complete" if f.complete else f"UNFINISHED ({f.problem}); recovered {f.recovered_bytes}/{f.size_bytes} bytes"
         c = checks[f.path] if checks else None
-        if c is not None and c.damaged_chunks:
-            state = (f"{len(c.damaged_chunks)} of {c.chunks} chunks DAMAGED (first at byte {c.damaged_chunks[0][0]}: "
-                     f"{c.damaged_chunks[0][1]}); {c.readable_messages} of {f.messages} messages readable")
+        damage = c.damage if c is not None else [d for d in s.damage if d.path == f.path]
+        if c is not None and not c.ok:
+            state += f"; DAMAGED: {c.summary()}"
         elif c is not None:
             state += ", every chunk verified"
+        elif damage:
+            state += f"; DAMAGED: {len(damage)} chunk(s) unreadable (inspect --verify reads every chunk)"
         print(f"{f.path}: {f.messages} messages, {f.chunks} chunks, {state}")
+        for d in damage:
+            print(f"  damaged chunk at {d.describe(with_path=False)}")
+        if c is not None:
+            for off, why in c.damaged_chunks:
+                if not any(d.offset == off for d in c.damage):
+                    print(f"  damaged record at byte {off}: {why}")
+            if c.reconstructed_channels:
+                print(f"  channels rebuilt from their payloads (record lost): {', '.join(c.reconstructed_channels)}")
+    for m in meta:
+        if m.name == "mntes.damaged":  # written by recover/convert: this file is whole, its source was not
+            print(f"{m.path}: made from a damaged source: {m.data.get('messages_lost', '?')} messages lost in "
+                  f"{m.data.get('chunks', '?')} chunk(s) (metadata mntes.damaged)")
     if s.start_ns is not None:
         print(f"span: {(s.end_ns - s.start_ns) / 1e9:.3f} s of receive time")
     print("topics:")
@@ -124,18 +155,32 @@ def run_inspect(args) -> int:
         print(f"  {n:>9d}  {t}")
     print("metadata: " + ", ".join(sorted({m.name for m in meta})))
     print(f"attachments: {len(out['attachments'])}")
-    return 0
 
 
 def run_recover(args) -> int:
-    from mntes_stream.io.mcap.repair import recover_file
+    import sys
+
+    from mntes_stream.io.mcap.repair import DAMAGE_METADATA, recover_file
 
     c = recover_file(args.input, args.output)
     if args.json:
-        print(json.dumps(dataclasses.asdict(c), indent=2))
+        print(json.dumps(dataclasses.asdict(c) | {"ok": c.ok, "lost_messages": c.lost_messages}, indent=2))
+        return 0
+    for d in c.damage:
+        print(f"  damaged chunk at {d.describe(with_path=False)}", file=sys.stderr)
+    for off, why in c.damaged_chunks:
+        if not any(d.offset == off for d in c.damage):
+            print(f"  damaged record at byte {off}: {why}", file=sys.stderr)
+    if c.reconstructed_channels:
+        print(f"  channels rebuilt from their payloads (record lost): {', '.join(c.reconstructed_channels)}",
+              file=sys.stderr)
+    source = "finished" if c.complete else "unfinished"
+    if c.ok:
+        print(f"{args.output}: {c.readable_messages} messages from {c.path} ({c.chunks} chunks, every chunk read, "
+              f"source {source})")
     else:
-        print(f"{args.output}: {c.readable_messages} messages from {c.path} ({c.chunks} chunks, "
-              f"{len(c.damaged_chunks)} unreadable, source {'finished' if c.complete else 'unfinished'})")
+        print(f"{args.output}: {c.readable_messages} messages from {c.path} ({c.chunks} chunks, source {source}); "
+              f"DAMAGED: {c.summary()} (listed above; marked in its {DAMAGE_METADATA} metadata)")
     return 0
 
 

@@ -43,6 +43,7 @@ from mntes_stream.io.mcap.envelope import (
     writer_description,
 )
 from mntes_stream.io.mcap.recovery import FileInfo, TruncatedFileWarning
+from mntes_stream.io.mcap.rotating import RotatingMcapWriter
 from mntes_stream.io.mcap.session import (
     RecordedAttachment,
     RecordedMessage,
@@ -55,7 +56,7 @@ from mntes_stream.io.mcap.session import (
     session_files,
     topic_matcher,
 )
-from mntes_stream.io.mcap.writer import McapFileWriter, RotatingMcapWriter
+from mntes_stream.io.mcap.writer import McapFileWriter
 
 __all__ = [
     "MESSAGE_ENCODING",

@@ -48,6 +48,49 @@ def peek_envelope(payload: bytes) -> Envelope:
     return Envelope(name, version, t_pub, seq, "")
 
 
+def derived_channel(payload: bytes) -> tuple[str, str, int] | None:
+    """``(key, schema, version)`` that an mntes payload names (its setup, board/module or sensor), or None.
+
+    Used for messages whose channel record is lost: the key a publisher uses
+    is spelled by :mod:`mntes_stream.io.keys` from exactly these fields.
+    Never raises.
+    """
+    from mntes_stream.io import keys
+
+    env = peek_envelope(payload)
+    if env.problem or not env.schema.startswith(keys.PREFIX + "."):
+        return None
+    kind = env.schema[len(keys.PREFIX) + 1:]
+    try:
+        msg = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+        setup = msg["setup"]
+        if kind in ("counts", "power"):
+            b, m = msg["board"], msg["module"]
+            if not (_is_int(b) and _is_int(m)):
+                return None
+            key = keys.counts_key(setup, b, m) if kind == "counts" else keys.power_key(setup, b, m)
+        elif kind == "hk":
+            sensor = msg["sensor"]
+            if not isinstance(sensor, str) or "/" in sensor or "*" in sensor:
+                return None
+            b, m = msg.get("board"), msg.get("module")
+            if sensor == "bias" and not (_is_int(b) and _is_int(m)):
+                return None
+            key = keys.hk_key(setup, keys.hk_sensor(sensor, b, m))
+        elif kind == "status":
+            service = msg["service"]
+            if not isinstance(service, str) or not keys.NAME_PATTERN.fullmatch(service):
+                return None
+            key = keys.status_key(setup, service)
+        elif kind == "provenance":
+            key = keys.provenance_key(setup)
+        else:
+            return None
+    except Exception:  # a payload that claims a schema but lacks its fields: nothing to derive
+        return None
+    return key, env.schema, env.version
+
+
 def _is_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 

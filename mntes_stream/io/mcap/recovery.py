@@ -1,9 +1,20 @@
-"""Indexing MCAP files, finished or not: every complete chunk of a file whose writer died is kept."""
+"""Indexing MCAP files, finished or not: every complete chunk of a file whose writer died is kept.
+
+What cannot be read is described, never silently passed over: a damaged chunk
+(CRC, size, compression) or one cut by the end of the file is a
+:class:`DamagedChunk` with its time span (from the chunk record's header,
+which precedes the compressed body) and the messages and channels it held
+(from the message index records that follow it in the file, or that the
+summary points to). Messages whose channel record was in a damaged chunk keep
+a channel rebuilt from their own payloads (an mntes envelope names its setup,
+board, module or sensor, so its key), marked ``mntes.reconstructed``.
+"""
 
 from __future__ import annotations
 
 import io
 import struct
+import time
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -17,6 +28,9 @@ from mntes_stream.errors import TransportError
 
 _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")
+_TIMES = struct.Struct("<QQ")  # a chunk body starts with message_start_time, message_end_time
+_INDEX_HEAD = struct.Struct("<HI")  # a message index body: channel id, byte length of its (time, offset) pairs
+RECONSTRUCTED = "mntes.reconstructed"
 
 
 class TruncatedFileWarning(UserWarning):
@@ -42,6 +56,53 @@ class FileInfo:
     messages: int
     start_ns: int | None
     end_ns: int | None
+    damaged_chunks: int = 0  # known at indexing (unfinished files); a finished file's are found on reading
+    damaged_messages: int = 0  # messages those chunks held, where their message index says
+    unlabelled_messages: int = 0  # readable messages whose channel is lost and could not be rebuilt
+
+
+def _utc(t_ns: int | None) -> str:
+    if t_ns is None:
+        return "?"
+    s, ns = divmod(int(t_ns), 1_000_000_000)
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(s)) + f".{ns // 1_000_000:03d}Z"
+
+
+@dataclass(frozen=True, slots=True)
+class DamagedChunk:
+    """A chunk that could not be read, and what it held.
+
+    ``messages`` is None when unknown (a chunk cut by the end of the file has
+    no message index after it); ``topics`` pairs each topic (or
+    ``channel <id>`` when the channel record itself is lost) with its count.
+    """
+
+    path: str
+    offset: int
+    why: str
+    start_ns: int | None
+    end_ns: int | None
+    messages: int | None
+    topics: tuple[tuple[str, int], ...] = ()
+
+    def describe(self, with_path: bool = True) -> str:
+        held = "an unknown number of messages" if self.messages is None else f"{self.messages} messages"
+        topics = ", ".join(f"{t} x{n}" for t, n in self.topics)
+        return ((f"{self.path} " if with_path else "") + f"byte {self.offset}: {held}, {_utc(self.start_ns)} .. "
+                f"{_utc(self.end_ns)}" + (f" ({topics})" if topics else "") + f": {self.why}")
+
+
+def damage_line(damage) -> str:
+    """One line for a list of :class:`DamagedChunk` ("" when empty): how many, messages lost, time spans."""
+    damage = list(damage)
+    if not damage:
+        return ""
+    known = sum(d.messages for d in damage if d.messages is not None)
+    unknown = sum(d.messages is None for d in damage)
+    spans = "; ".join(f"{_utc(d.start_ns)} .. {_utc(d.end_ns)}" for d in damage[:5])
+    more = f" and {len(damage) - 5} more" if len(damage) > 5 else ""
+    return (f"{len(damage)} damaged chunk(s), {known} messages lost"
+            + (f" (+ {unknown} chunk(s) of unknown size)" if unknown else "") + f", spans {spans}{more}")
 
 
 @dataclass(slots=True)
@@ -50,6 +111,16 @@ class _ChunkRef:
     end_ns: int
     offset: int
     length: int
+    index_offsets: dict[int, int] = field(default_factory=dict)  # channel id -> offset of its message index
+
+
+@dataclass(slots=True)
+class _Damage:
+    offset: int
+    why: str
+    start_ns: int | None
+    end_ns: int | None
+    counts: dict[int, int] | None  # channel id -> messages; None: unknown
 
 
 @dataclass(slots=True)
@@ -74,6 +145,25 @@ class FileIndex:
     attachments: list[tuple[int, int]] = field(default_factory=list)
     metadata: list[tuple[int, int]] = field(default_factory=list)
     counts: dict[int, int] = field(default_factory=dict)
+    damaged: list[_Damage] = field(default_factory=list)
+    # channel id -> (derived (topic, schema, version) or None, messages, first offset) for messages read
+    # before any record of their channel: its record was in a damaged chunk.
+    orphans: dict[int, list] = field(default_factory=dict)
+    unlabelled: dict[int, int] = field(default_factory=dict)
+    stopped: tuple[int, str] | None = None  # (offset, why) of a damaged record that ended the scan
+
+    def damage(self) -> tuple[DamagedChunk, ...]:
+        """Every damaged chunk found so far, with topics named where the channels are known."""
+        return tuple(self.describe(d) for d in self.damaged)
+
+    def describe(self, d: _Damage) -> DamagedChunk:
+        topics: dict[str, int] = {}
+        for cid, n in (d.counts or {}).items():
+            ch = self.channels.get(cid)
+            name = ch.topic if ch is not None else f"channel {cid} (its record is lost)"
+            topics[name] = topics.get(name, 0) + n
+        msgs = None if d.counts is None else sum(d.counts.values())
+        return DamagedChunk(str(self.path), d.offset, d.why, d.start_ns, d.end_ns, msgs, tuple(sorted(topics.items())))
 
     def add_channel(self, ch: Channel) -> None:
         meta = ch.metadata or {}
@@ -86,12 +176,14 @@ class FileIndex:
         self.channels[ch.id] = _ChannelInfo(ch.topic, name, version, ch)
 
     def info(self) -> FileInfo:
-        msgs = sum(self.counts.values())
+        msgs = sum(self.counts.values()) - sum(self.unlabelled.values())
         starts = [c.start_ns for c in self.chunks] + [m.log_time for m in self.loose]
         ends = [c.end_ns for c in self.chunks] + [m.log_time for m in self.loose]
         return FileInfo(
             str(self.path), self.complete, self.problem, self.size, self.recovered,
             len(self.chunks), msgs, min(starts, default=None), max(ends, default=None),
+            len(self.damaged), sum(sum(d.counts.values()) for d in self.damaged if d.counts),
+            sum(self.unlabelled.values()),
         )
 
 
@@ -159,7 +251,8 @@ def index_from_summary(idx: FileIndex, f) -> bool:
     for ch in summary.channels.values():
         idx.add_channel(ch)
     idx.chunks = [
-        _ChunkRef(ci.message_start_time, ci.message_end_time, ci.chunk_start_offset, ci.chunk_length)
+        _ChunkRef(ci.message_start_time, ci.message_end_time, ci.chunk_start_offset, ci.chunk_length,
+                  dict(ci.message_index_offsets))
         for ci in summary.chunk_indexes
     ]
     idx.counts = dict(stats.channel_message_counts)
@@ -170,74 +263,166 @@ def index_from_summary(idx: FileIndex, f) -> bool:
     return True
 
 
+def _chunk_times(body: bytes) -> tuple[int | None, int | None]:
+    """The message time span in a chunk's header: readable even when its compressed records are not."""
+    return _TIMES.unpack_from(body) if len(body) >= _TIMES.size else (None, None)
+
+
+def _index_count(body: bytes) -> tuple[int, int] | None:
+    """``(channel id, messages)`` of a message index record's body, or None if it is too short."""
+    if len(body) < _INDEX_HEAD.size:
+        return None
+    cid, nbytes = _INDEX_HEAD.unpack_from(body)
+    return cid, nbytes // 16
+
+
+def damage_at(idx: FileIndex, f, ref: _ChunkRef, why: str) -> DamagedChunk:
+    """Describe an indexed chunk that failed to read, from the summary's message index offsets."""
+    counts: dict[int, int] = {}
+    for off in ref.index_offsets.values():
+        try:
+            f.seek(off)
+            hdr = f.read(9)
+            opcode, length = _RECORD_HEADER.unpack(hdr)
+            got = _index_count(f.read(min(length, _INDEX_HEAD.size))) if opcode == Opcode.MESSAGE_INDEX else None
+        except (OSError, struct.error):
+            got = None
+        if got is not None:
+            counts[got[0]] = counts.get(got[0], 0) + got[1]
+    d = _Damage(ref.offset, why, ref.start_ns, ref.end_ns, counts if ref.index_offsets and counts else None)
+    return idx.describe(d)
+
+
+def _note_orphan(idx: FileIndex, rec: Message, offset: int) -> None:
+    """A message read before any record of its channel: remember what its payload says its key is."""
+    from mntes_stream.io.mcap.envelope import derived_channel
+
+    got = derived_channel(rec.data)
+    entry = idx.orphans.get(rec.channel_id)
+    if entry is None:
+        idx.orphans[rec.channel_id] = [got, 1, offset]
+    else:
+        if entry[0] != got:  # messages of one channel that disagree: no one label is right for all
+            entry[0] = None
+        entry[1] += 1
+
+
+def _rebuild_channels(idx: FileIndex) -> None:
+    """Channels for orphaned messages whose payloads all name the same key; the rest stay unlabelled."""
+    from mntes_stream.io.mcap.envelope import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_text
+
+    for cid, (got, n, offset) in sorted(idx.orphans.items()):
+        if cid in idx.channels:
+            continue
+        if got is None:
+            idx.unlabelled[cid] = n
+            continue
+        topic, name, version = got
+        text = schema_text(name, version)
+        sid = 0
+        if text is not None:
+            sid = next((s.id for s in idx.schemas.values() if s.name == name and bytes(s.data) == text), 0)
+            if not sid:
+                sid = max(idx.schemas, default=0) + 1
+                idx.schemas[sid] = Schema(id=sid, name=name, encoding=SCHEMA_ENCODING, data=text)
+        meta = {"mntes.schema": name, "mntes.version": str(version),
+                RECONSTRUCTED: f"channel record lost in a damaged chunk; topic read from the {n} payloads "
+                               f"(first in the chunk at byte {offset})"}
+        idx.add_channel(Channel(id=cid, topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=sid, metadata=meta))
+
+
 def index_by_scan(idx: FileIndex, f) -> None:
     """Walk the records of a file whose end is missing, keeping every complete one."""
     pos = len(_MAGIC)
     size = idx.size
     f.seek(pos)
-    while True:
-        hdr = f.read(9)
-        if len(hdr) < 9:
-            idx.problem = "file ends without a footer" if not hdr else f"file ends inside a record header at byte {pos}"
-            break
-        opcode, length = _RECORD_HEADER.unpack(hdr)
-        end = pos + 9 + length
-        if end > size:
-            idx.problem = f"file ends inside a record (opcode {opcode:#x}) at byte {pos}"
-            break
-        if opcode == Opcode.CHUNK:
-            body = f.read(length)
-            try:
-                chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
-                counted = 0
-                for rec in chunk_records(chunk):
-                    if isinstance(rec, Schema):
-                        idx.schemas[rec.id] = rec
-                    elif isinstance(rec, Channel):
-                        idx.add_channel(rec)
-                    else:
-                        idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
-                        counted += 1
-                if counted:
-                    idx.chunks.append(_ChunkRef(chunk.message_start_time, chunk.message_end_time, pos, 9 + length))
-            except Exception as exc:  # a damaged chunk: skip it, keep going
-                idx.problem = f"damaged chunk at byte {pos} skipped ({exc})"
-        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-            # Records outside chunks (other writers): no CRC, so a damaged one means the
-            # framing after it cannot be trusted either. Keep what came before, stop.
-            try:
-                stream = ReadDataStream(io.BytesIO(f.read(length)))
-                if opcode == Opcode.SCHEMA:
-                    rec = Schema.read(stream)
-                elif opcode == Opcode.CHANNEL:
-                    rec = Channel.read(stream)
-                else:
-                    rec = Message.read(stream, length)
-            except Exception as exc:  # mcap raises EndOfFile, struct.error, UnicodeDecodeError...
-                idx.problem = f"damaged record (opcode {opcode:#x}) at byte {pos} ({type(exc).__name__}: {exc}); stopped there"
+    damaged: _Damage | None = None  # the message index records after a damaged chunk say what it held
+    try:
+        while True:
+            hdr = f.read(9)
+            if len(hdr) < 9:
+                idx.problem = "file ends without a footer" if not hdr else f"file ends inside a record header at byte {pos}"
                 break
-            if opcode == Opcode.SCHEMA:
-                idx.schemas[rec.id] = rec
-            elif opcode == Opcode.CHANNEL:
-                idx.add_channel(rec)
-            else:
-                idx.loose.append(rec)
-                idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
-        elif opcode == Opcode.ATTACHMENT:
-            idx.attachments.append((pos, 9 + length))
-        elif opcode == Opcode.METADATA:
-            idx.metadata.append((pos, 9 + length))
-        elif opcode == Opcode.FOOTER:
+            opcode, length = _RECORD_HEADER.unpack(hdr)
+            end = pos + 9 + length
+            if end > size:
+                idx.problem = f"file ends inside a record (opcode {opcode:#x}) at byte {pos}"
+                if opcode == Opcode.CHUNK:  # the chunk being written when the writer died: its span is known
+                    start_ns, end_ns = _chunk_times(f.read(_TIMES.size))
+                    idx.damaged.append(_Damage(pos, f"cut by the end of the file at byte {size}", start_ns, end_ns, None))
+                break
+            if opcode != Opcode.MESSAGE_INDEX:
+                damaged = None
+            if opcode == Opcode.CHUNK:
+                body = f.read(length)
+                try:
+                    chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+                    records = list(chunk_records(chunk))
+                except Exception as exc:  # a damaged chunk: described, skipped; the framing after it holds
+                    start_ns, end_ns = _chunk_times(body)
+                    damaged = _Damage(pos, str(exc) or type(exc).__name__, start_ns, end_ns, {})
+                    idx.damaged.append(damaged)
+                    idx.problem = f"damaged chunk at byte {pos} skipped ({exc})"
+                else:
+                    counted = 0
+                    for rec in records:
+                        if isinstance(rec, Schema):
+                            idx.schemas[rec.id] = rec
+                        elif isinstance(rec, Channel):
+                            idx.add_channel(rec)
+                        else:
+                            if rec.channel_id not in idx.channels:
+                                _note_orphan(idx, rec, pos)
+                            idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
+                            counted += 1
+                    if counted:
+                        idx.chunks.append(_ChunkRef(chunk.message_start_time, chunk.message_end_time, pos, 9 + length))
+            elif opcode == Opcode.MESSAGE_INDEX:
+                body = f.read(length)
+                got = _index_count(body)
+                if damaged is not None and got is not None:
+                    damaged.counts[got[0]] = damaged.counts.get(got[0], 0) + got[1]
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+                # Records outside chunks (other writers): no CRC, so a damaged one means the
+                # framing after it cannot be trusted either. Keep what came before, stop.
+                try:
+                    stream = ReadDataStream(io.BytesIO(f.read(length)))
+                    if opcode == Opcode.SCHEMA:
+                        rec = Schema.read(stream)
+                    elif opcode == Opcode.CHANNEL:
+                        rec = Channel.read(stream)
+                    else:
+                        rec = Message.read(stream, length)
+                except Exception as exc:  # mcap raises EndOfFile, struct.error, UnicodeDecodeError...
+                    idx.problem = f"damaged record (opcode {opcode:#x}) at byte {pos} ({type(exc).__name__}: {exc}); stopped there"
+                    idx.stopped = (pos, idx.problem)
+                    break
+                if opcode == Opcode.SCHEMA:
+                    idx.schemas[rec.id] = rec
+                elif opcode == Opcode.CHANNEL:
+                    idx.add_channel(rec)
+                else:
+                    if rec.channel_id not in idx.channels:
+                        _note_orphan(idx, rec, pos)
+                    idx.loose.append(rec)
+                    idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
+            elif opcode == Opcode.ATTACHMENT:
+                idx.attachments.append((pos, 9 + length))
+            elif opcode == Opcode.METADATA:
+                idx.metadata.append((pos, 9 + length))
+            elif opcode == Opcode.FOOTER:
+                pos = end
+                f.seek(pos)
+                idx.complete = f.read(len(_MAGIC)) == _MAGIC
+                if not idx.complete:
+                    idx.problem = "footer not followed by the closing magic"
+                idx.recovered = pos + (len(_MAGIC) if idx.complete else 0)
+                return
             pos = end
             f.seek(pos)
-            idx.complete = f.read(len(_MAGIC)) == _MAGIC
-            if not idx.complete:
-                idx.problem = "footer not followed by the closing magic"
-            idx.recovered = pos + (len(_MAGIC) if idx.complete else 0)
-            return
-        pos = end
-        f.seek(pos)
-        idx.recovered = pos
+            idx.recovered = pos
+    finally:
+        _rebuild_channels(idx)
 
 
 def index_file(path: Path) -> FileIndex:

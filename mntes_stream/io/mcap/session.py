@@ -15,9 +15,12 @@ from mcap.records import Attachment, Chunk, Message, Metadata, Schema
 from mntes_stream.errors import TransportError
 from mntes_stream.io.mcap.envelope import PROVENANCE_ATTACHMENT
 from mntes_stream.io.mcap.recovery import (
+    DamagedChunk,
     FileIndex,
     TruncatedFileWarning,
     chunk_records,
+    damage_at,
+    damage_line,
     index_file,
     read_record,
 )
@@ -122,6 +125,8 @@ class Session:
     def __init__(self, source, *, warn: bool = True):
         self._index = [index_file(p) for p in session_files(source)]
         self.files = [ix.info() for ix in self._index]
+        # Damaged chunks of unfinished files are known now; a finished file's when a read finds them.
+        self.damage: list[DamagedChunk] = [d for ix in self._index for d in ix.damage()]
         if warn:
             for fi in self.files:
                 if not fi.complete:
@@ -134,6 +139,25 @@ class Session:
                     )
                 elif fi.problem:
                     warnings.warn(f"{fi.path}: {fi.problem}", TruncatedFileWarning, stacklevel=3)
+            if self.damage:
+                warnings.warn(f"damaged: {damage_line(self.damage)}", TruncatedFileWarning, stacklevel=3)
+
+    @property
+    def damaged_messages(self) -> int:
+        """Messages known lost in the damaged chunks found so far (see :attr:`damage`)."""
+        return sum(d.messages or 0 for d in self.damage)
+
+    @property
+    def unlabelled_messages(self) -> int:
+        """Readable messages skipped because their channel record is lost and could not be rebuilt."""
+        return sum(fi.unlabelled_messages for fi in self.files)
+
+    def damage_line(self) -> str:
+        """One line on what could not be read ("" when nothing): chunks, messages, time spans."""
+        line = damage_line(self.damage)
+        if self.unlabelled_messages:
+            line = (line + "; " if line else "") + f"{self.unlabelled_messages} messages without a channel skipped"
+        return line
 
     @property
     def complete(self) -> bool:
@@ -231,8 +255,11 @@ class Session:
                 elif rec.id not in ix.channels:
                     ix.add_channel(rec)
             return out
-        except Exception as exc:
-            warnings.warn(f"{ix.path}: damaged chunk at byte {ref.offset} skipped ({exc})", TruncatedFileWarning, stacklevel=4)
+        except Exception as exc:  # CRC, size, compression: described once, with what it held
+            d = damage_at(ix, f, ref, str(exc) or type(exc).__name__)
+            if not any(x.path == d.path and x.offset == d.offset for x in self.damage):
+                self.damage.append(d)
+            warnings.warn(f"damaged chunk skipped: {d.describe()}", TruncatedFileWarning, stacklevel=4)
             return []
 
     def _records(self, which: str, opcode: int, read) -> Iterator:

@@ -1,13 +1,10 @@
-"""Writing recorded zenoh traffic to MCAP: one file (:class:`McapFileWriter`) or a rotating series."""
+"""Writing recorded zenoh traffic to one MCAP file (:class:`McapFileWriter`); a rotating series: :mod:`.rotating`."""
 
 from __future__ import annotations
 
 import contextlib
 import json
-import numbers
 import os
-import re
-import time
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -15,22 +12,18 @@ import msgpack
 from mcap.writer import CompressionType, Writer
 
 from mntes_stream import __version__
-from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, SchemaError, TransportError
-from mntes_stream.io import keys
 from mntes_stream.io.describe import mcap_metadata
 from mntes_stream.io.mcap.envelope import (
     MESSAGE_ENCODING,
     PROVENANCE_ATTACHMENT,
     PROVENANCE_SCHEMA,
-    RECORDING_METADATA,
     SCHEMA_ENCODING,
     Envelope,
     as_metadata,
     check_provenance,
     peek_envelope,
     schema_text,
-    writer_description,
 )
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
@@ -54,6 +47,16 @@ class McapFileWriter:
     provenance : (bytes, int), optional
         The latest ``mntes.provenance`` payload and its receive time, repeated at
         the start of this file.
+    whole : bool
+        Write to ``<path>.partial`` and rename to ``path`` only when
+        :meth:`close` has finished it (one-shot outputs: convert, transcode):
+        a file at ``path`` is then always complete. An exception inside a
+        ``with`` block removes the partial file. Recordings leave it False:
+        a killed recorder's file must be readable under its own name.
+
+    A write that fails (a full disk) raises one :class:`TransportError`
+    saying how many messages are in the file (those up to the last
+    successful :meth:`flush`); the writer then only closes its handle.
     """
 
     def __init__(
@@ -65,6 +68,7 @@ class McapFileWriter:
         fsync: bool = False,
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         provenance: tuple[bytes, int] | None = None,
+        whole: bool = False,
     ):
         if compression not in _COMPRESSION:
             raise ConfigError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
@@ -76,11 +80,19 @@ class McapFileWriter:
             if env.schema != PROVENANCE_SCHEMA or env.problem:
                 raise SchemaError(f"provenance to repeat is not a valid {PROVENANCE_SCHEMA} message ({env.problem or env.schema!r})")
         self.path = Path(path)
+        self.whole = bool(whole)
+        self._target = self.path.with_name(self.path.name + ".partial") if self.whole else self.path
+        if self.whole and self.path.exists():
+            raise TransportError(f"cannot create {self.path}: it exists (outputs are never overwritten)")
         try:
-            self._file = open(self.path, "xb")
+            if self.whole:
+                self._target.unlink(missing_ok=True)  # a previous run's leftover, never a finished file
+            self._file = open(self._target, "xb")
         except OSError as exc:
-            raise TransportError(f"cannot create {self.path}: {exc}") from None
+            raise TransportError(f"cannot create {self._target}: {exc}") from None
         self._fsync = fsync
+        self.messages_flushed = 0  # messages the file holds for sure: those before the last successful flush
+        self.failed: str = ""
         self._schemas: dict[tuple[str, int], int] = {}
         self._json_schemas: dict[str, int] = {}
         self._json_channels: dict[str, int] = {}
@@ -107,9 +119,29 @@ class McapFileWriter:
             with contextlib.suppress(OSError):
                 self._file.close()
             self.closed = True
+            if self.whole:
+                self._target.unlink(missing_ok=True)
             if isinstance(exc, OSError):
-                raise TransportError(f"cannot write {self.path}: {exc}") from None
+                raise TransportError(f"cannot write {self._target}: {exc}") from None
             raise
+
+    def _failure(self, exc: OSError) -> TransportError:
+        """Note a failed write (the file stays as the disk left it) and say what the file holds."""
+        self.failed = exc.strerror or str(exc)
+        lost = self.messages - self.messages_flushed
+        held = ("nothing: it is removed" if self.whole else
+                f"{self.messages_flushed} messages up to its last flush (more may be in complete chunks; "
+                f"`mntes-stream recover` finishes it)")
+        return TransportError(f"cannot write {self._target}: {self.failed}; the file holds {held}; "
+                              f"{lost} later message(s) may not be in it")
+
+    def _guard(self, call, *args, **kwargs):
+        if self.failed:
+            raise TransportError(f"cannot write {self._target}: an earlier write failed ({self.failed})")
+        try:
+            return call(*args, **kwargs)
+        except OSError as exc:
+            raise self._failure(exc) from None
 
     # -- channels
     def _channel(self, topic: str, env: Envelope) -> int:
@@ -139,20 +171,27 @@ class McapFileWriter:
         env = check_provenance(payload, peek_envelope(payload))
         if env.problem:
             self.invalid += 1
-        cid = self._channel(str(key), env)
         pub = env.publish_time_ns if env.publish_time_ns is not None and env.publish_time_ns >= 0 else log_time_ns
         seq = (env.seq or 0) & 0xFFFFFFFF
-        self._writer.add_message(cid, log_time=int(log_time_ns), data=payload, publish_time=int(pub), sequence=seq)
-        self.messages += 1
+        self.messages += 1  # counted before the write: a failed write is among the ones said to be missing
+
+        def add():
+            cid = self._channel(str(key), env)
+            self._writer.add_message(cid, log_time=int(log_time_ns), data=payload, publish_time=int(pub), sequence=seq)
+
+        self._guard(add)
         self.payload_bytes += len(payload)
         self.unflushed_bytes += len(payload)
         if env.schema == PROVENANCE_SCHEMA and not env.problem and (self._provenance is None or payload != self._provenance[0]):
-            self._add_provenance(payload, log_time_ns)
+            self._guard(self._add_provenance, payload, log_time_ns)
         return env
 
     def write_json(self, topic: str, schema_name: str, schema: Mapping, message: Mapping, log_time_ns: int) -> None:
         """One json message (encoding ``json``, its JSON Schema registered once as ``jsonschema``), e.g. the
         Foxglove channels of ``mntes_stream.foxglove.translate`` beside the msgpack originals."""
+        self._guard(self._write_json, topic, schema_name, schema, message, log_time_ns)
+
+    def _write_json(self, topic: str, schema_name: str, schema: Mapping, message: Mapping, log_time_ns: int) -> None:
         sid = self._json_schemas.get(schema_name)
         if sid is None:
             sid = self._json_schemas[schema_name] = self._writer.register_schema(
@@ -167,8 +206,8 @@ class McapFileWriter:
         self.unflushed_bytes += len(data)
 
     def add_attachment(self, name: str, media_type: str, data: bytes, log_time_ns: int, create_time_ns: int) -> None:
-        self._writer.add_attachment(create_time=int(create_time_ns), log_time=int(log_time_ns), name=name,
-                                    media_type=media_type, data=bytes(data))
+        self._guard(self._writer.add_attachment, create_time=int(create_time_ns), log_time=int(log_time_ns), name=name,
+                    media_type=media_type, data=bytes(data))
 
     def _add_provenance(self, payload: bytes, log_time_ns: int) -> None:
         """Attachment + metadata for a provenance payload that :func:`check_provenance` accepted."""
@@ -197,167 +236,70 @@ class McapFileWriter:
         return self._file.tell() + self.unflushed_bytes
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
-        self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+        self._guard(self._writer.add_metadata, name, {str(k): str(v) for k, v in data.items()})
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS (and the disk if ``fsync``)."""
+        self._guard(self._flush)
+
+    def _flush(self) -> None:
         self._writer.flush()
         if self._fsync:
             os.fsync(self._file.fileno())
         self.unflushed_bytes = 0
+        self.messages_flushed = self.messages
 
     def close(self) -> None:
-        """Finish the file (summary, indexes, footer) and close it."""
+        """Finish the file (summary, indexes, footer) and close it; a ``whole`` file then gets its name.
+
+        After a failed write only the handle is closed (nothing more is written), and a ``whole``
+        file's partial file is removed.
+        """
         if self.closed:
             return
         self.closed = True
+        if self.failed:
+            self.abort()
+            return
+        try:
+            self._guard(self._finish)
+        except BaseException:
+            self.abort()
+            raise
+        if self.whole:
+            try:
+                if self.path.exists():
+                    raise TransportError(f"cannot create {self.path}: it appeared while writing (never overwritten)")
+                os.replace(self._target, self.path)
+            except OSError as exc:
+                raise TransportError(f"cannot rename {self._target} to {self.path}: {exc}") from None
+            finally:
+                self._target.unlink(missing_ok=True)
+
+    def _finish(self) -> None:
         try:
             self._writer.finish()
             self._file.flush()
-            if self._fsync:
+            if self._fsync or self.whole:
                 os.fsync(self._file.fileno())
+            self.messages_flushed = self.messages
         finally:
+            with contextlib.suppress(OSError):  # after a failed write the buffer is unwritable: said already
+                self._file.close()
+
+    def abort(self) -> None:
+        """Close the handle without finishing; a ``whole`` file's partial file is removed."""
+        self.closed = True
+        with contextlib.suppress(OSError):
             self._file.close()
+        if self.whole:
+            self._target.unlink(missing_ok=True)
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
-
-
-class RotatingMcapWriter:
-    """Record into ``<directory>/<prefix>-<seq>.mcap``, flushing on a cadence and rotating.
-
-    Call :meth:`write` for every message and :meth:`tick` at least every
-    ``flush_interval_s`` (also when no messages arrive): the loss window of a
-    killed process is then at most ``flush_interval_s`` plus one tick period
-    of received data.
-
-    Parameters
-    ----------
-    directory : str or Path
-        Created if missing.
-    prefix : str
-        File name prefix; sequence numbers continue after the highest existing one.
-    flush_interval_s : float
-        Longest time a received message stays only in memory.
-    rotate_bytes : int
-        Start a new file once the current one reaches this size (0: never).
-    rotate_s : float
-        Start a new file after this many seconds (0: never).
-    compression, chunk_size_bytes, fsync
-        As :class:`McapFileWriter`.
-    metadata : mapping, optional
-        Extra fields of the ``mntes.recording`` metadata (e.g. the recorder config).
-    """
-
-    def __init__(
-        self,
-        directory: str | Path,
-        prefix: str = "mntes",
-        *,
-        flush_interval_s: float = 1.0,
-        rotate_bytes: int = 1 << 30,
-        rotate_s: float = 3600.0,
-        compression: str = "zstd",
-        chunk_size_bytes: int = 4 << 20,
-        fsync: bool = False,
-        metadata: Mapping[str, object] | None = None,
-    ):
-        if not isinstance(prefix, str) or not keys.NAME_PATTERN.fullmatch(prefix):
-            raise ConfigError(f"prefix {prefix!r} must match [A-Za-z0-9_.-]+")
-        flush_interval_s = finite_float("RotatingMcapWriter", "flush_interval_s", flush_interval_s)
-        rotate_s = finite_float("RotatingMcapWriter", "rotate_s", rotate_s)
-        if not flush_interval_s > 0:  # NaN would never flush: the crash-loss bound would be gone
-            raise ConfigError(f"flush_interval_s must be > 0, got {flush_interval_s}")
-        if not isinstance(rotate_bytes, numbers.Integral) or isinstance(rotate_bytes, bool) or rotate_bytes < 0 or rotate_s < 0:
-            raise ConfigError(f"rotate_bytes (an integer) and rotate_s must be >= 0 (0 disables), got {rotate_bytes!r}, {rotate_s}")
-        self.directory = Path(directory)
-        try:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise TransportError(f"cannot create recording directory {self.directory}: {exc}") from None
-        self.prefix = prefix
-        self.flush_interval_s = float(flush_interval_s)
-        self.rotate_bytes = int(rotate_bytes)
-        self.rotate_s = float(rotate_s)
-        self._file_kw = dict(compression=compression, chunk_size_bytes=chunk_size_bytes, fsync=fsync)
-        self._extra = dict(metadata or {})
-        pattern = re.compile(re.escape(prefix) + r"-(\d+)\.mcap$")
-        existing = [int(m.group(1)) for p in self.directory.iterdir() if (m := pattern.match(p.name))]
-        self._seq = max(existing, default=0)
-        self.files: list[Path] = []
-        self.messages = 0
-        self.payload_bytes = 0
-        self.invalid = 0
-        self.flushes = 0
-        self._current: McapFileWriter | None = None
-        self._provenance: tuple[bytes, int] | None = None
-        self._open_next()
-
-    def _open_next(self) -> None:
-        previous = self._current
-        if previous is not None:
-            self._provenance = previous.provenance
-            previous.close()
-        self._seq += 1
-        path = self.directory / f"{self.prefix}-{self._seq:06d}.mcap"
-        meta = writer_description(
-            file_seq=str(self._seq),
-            previous_file=self.files[-1].name if self.files else "",
-            flush_interval_s=str(self.flush_interval_s),
-            **self._extra,
-        )
-        self._current = McapFileWriter(path, metadata={RECORDING_METADATA: meta}, provenance=self._provenance, **self._file_kw)
-        self.files.append(path)
-        self._opened = time.monotonic()
-        self._last_flush = self._opened
-
-    @property
-    def current_path(self) -> Path:
-        return self._current.path
-
-    def write_json(self, topic: str, schema_name: str, schema: Mapping, message: Mapping, log_time_ns: int) -> None:
-        """:meth:`McapFileWriter.write_json` on the current file (schemas and channels are per file)."""
-        self._current.write_json(topic, schema_name, schema, message, log_time_ns)
-
-    def write(self, key: str, payload: bytes, log_time_ns: int) -> Envelope:
-        env = self._current.write(key, payload, log_time_ns)
-        self.messages += 1
-        self.payload_bytes += len(payload)
-        self.invalid += bool(env.problem)
-        if self.rotate_bytes and self._current.size_bytes >= self.rotate_bytes:
-            self._open_next()
-        return env
-
-    def tick(self) -> None:
-        """Flush if the cadence is due; rotate if the file is old enough."""
-        now = time.monotonic()
-        if self.rotate_s and now - self._opened >= self.rotate_s:
-            self._open_next()
-        elif now - self._last_flush >= self.flush_interval_s:
-            self.flush()
-
-    def next_tick_s(self) -> float:
-        """Seconds until :meth:`tick` has something to do."""
-        return max(0.0, self._last_flush + self.flush_interval_s - time.monotonic())
-
-    def flush(self) -> None:
-        self._current.flush()
-        self.flushes += 1
-        self._last_flush = time.monotonic()
-
-    def close(self) -> None:
-        if self._current is not None:
-            self._current.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-
-# ----------------------------------------------------------------------------- reader
-
+    def __exit__(self, exc_type, *exc):
+        if exc_type is not None and self.whole:
+            self.abort()  # an output that stopped half way must not look finished
+        else:
+            self.close()
