@@ -4,9 +4,11 @@ Free of zenoh like the pipeline that owns it. Readings are kept relative to
 the *data clock*: the receive clock minus the median over streams of each
 stream's latest delay (receive time minus ``t_pub_ns``), so a replayed old
 recording is judged by its own time and one stream, whatever its
-``t_pub_ns``, has one vote. Readings outside physical acceptance ranges and
-oversized messages are rejected, never held: one bad reading cannot poison a
-module until the next good one.
+``t_pub_ns``, has one vote. Readings outside physical acceptance ranges
+(non-finite ones, and a bias or bath temperature not above zero, which no
+converter can use, included) and oversized messages are rejected at the door
+and counted, never held: the last good reading stays in force, so one bad
+reading cannot poison a module until the next good one.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ __all__ = ["DelayFloor", "Housekeeping", "known_modules", "ns"]
 
 _INT64_MIN, _INT64_MAX = -(1 << 63), (1 << 63) - 1
 _ENV_CACHE = 1024  # aligned (times, sensor) results kept: every module of a step shares its times
+# The converters need these above zero (log of the bath temperature, R from V / I): 0 K or 0 V is a
+# failed read or a switched-off supply, never an operating point, whatever the acceptance range says.
+_POSITIVE = frozenset({"t_bath", "bias"})
 
 
 def ns(seconds: float) -> int | float:
@@ -118,10 +123,13 @@ class Housekeeping:
 
         Rejected whole: more than ``max_hk_readings`` readings (``too_large``),
         bias of a module the parameters do not know (``unknown_stream``).
-        Dropped: readings outside the sensor's acceptance range (``hk_range``),
-        stamped more than ``hk_max_ahead_s`` ahead of the data clock, or (bias
-        excepted: a setting holds) more than ``hk_retention_s`` behind it once
-        the data clock is known (``hk_time``).
+        Rejected (``hk_range``): readings that are not finite, outside the
+        sensor's acceptance range, or (bias, bath temperature) not above zero;
+        a bias row is rejected when any of its channels is. Dropped
+        (``hk_time``): readings stamped more than ``hk_max_ahead_s`` ahead of
+        the data clock, or (bias excepted: a setting holds) more than
+        ``hk_retention_s`` behind it once the data clock is known. A rejected
+        reading never reaches the history: the last good one holds.
         """
         cfg = self.config
         if hk.t_ns.size > cfg.max_hk_readings:
@@ -131,12 +139,19 @@ class Housekeeping:
         now = self.data_clock(t_recv_ns)
         t_ns, value = hk.t_ns, hk.value
         lo_v, hi_v = self._accept[hk.sensor]
-        in_range = (value >= lo_v) & (value <= hi_v) | ~np.isfinite(value)  # non-finite: a failed read, dropped later
-        in_range = in_range if in_range.ndim == 1 else in_range.all(axis=1)
+        positive = hk.sensor in _POSITIVE
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(value) & (value >= lo_v) & (value <= hi_v)
+            if positive:
+                ok &= value > 0
+        good = ok if ok.ndim == 1 else ok.all(axis=1)
         problems = []
-        if not in_range.all():
-            problems.append(("hk_range", f"{int((~in_range).sum())} {hk.sensor} reading(s) outside [{lo_v:g}, {hi_v:g}]"))
-            t_ns, value = t_ns[in_range], value[in_range]
+        if not good.all():
+            example = float(value[~ok][0])
+            accepted = f"finite, in [{lo_v:g}, {hi_v:g}]" + (" and > 0" if positive else "")
+            problems.append(("hk_range", f"{int((~good).sum())} {hk.sensor} reading(s) rejected (e.g. {example:g}; "
+                                         f"accepted: {accepted}): the last good reading holds"))
+            t_ns, value = t_ns[good], value[good]
         return problems + self._keep(hk, t_ns, value, now)
 
     def _keep(self, hk: HousekeepingChunk, t_ns: np.ndarray, value: np.ndarray, now: int) -> list[tuple[str, str]]:
@@ -148,6 +163,8 @@ class Housekeeping:
             problem = [("hk_time", f"{bad.size} reading(s) stamped {(int(bad[0]) - now) / 1e9:+.4g} s from the data "
                         f"clock (accepted: -{self.config.hk_retention_s:g} s to +{self.config.hk_max_ahead_s:g} s)")]
             t_ns, value = t_ns[ok], value[ok]
+        if t_ns.size == 0:  # nothing left: above all, a bias history is not reset by a message it never uses
+            return problem
         if hk.sensor == "bias":
             module = (hk.board, hk.module)
             entry = self._bias.get(module)
