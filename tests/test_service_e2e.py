@@ -175,7 +175,7 @@ def test_bad_input_is_reported_and_the_service_keeps_converting(source, params_f
     assert not power[7].flags.any() and np.all(np.isfinite(power[7].p_opt_w))
     assert not power[4].flags[0].any() and np.all(power[4].flags[1] == fl.UNKNOWN_CHANNEL)
     assert np.all(power[5].flags & fl.HK_MISSING) and np.all(np.isnan(power[5].p_opt_w))
-    assert np.all(power[6].flags == fl.HK_STALE) and np.all(np.isfinite(power[6].p_opt_w))
+    assert np.all(power[6].flags == fl.HK_STALE) and np.all(np.isnan(power[6].p_opt_w))  # hk_stale_power = "nan"
 
 
 def test_serve_stops_cleanly_on_sigterm(tmp_path, source, params_file):
