@@ -114,7 +114,8 @@ def test_coverage_reports_counts_without_power_and_power_gaps():
         cov.add("mntes/lab/power/0/2", k, float(k))
     assert cov.unconverted(4.5) == ["0/1"]
     cov.add("mntes/lab/power/0/1", 4, 5.0)  # back after seq 2 and 3
-    assert cov.summary(5.0) == {"streams": 2, "unconverted": [], "power_gaps": {"0/1": 2}}
+    assert cov.summary(5.0) == {"streams": 2, "unconverted": [], "unconverted_why": {}, "power_only": [],
+                                "power_gaps": {"0/1": 2}, "power_late": {}}
     assert cov.unconverted(9.0) == []  # counts stopped too: nothing to convert
 
 

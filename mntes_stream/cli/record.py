@@ -24,7 +24,7 @@ _RECORD_ALIASES = {"directory": ("--dir",), "flush_interval_s": ("--flush-s",), 
 
 
 def run_record(args) -> int:
-    from mntes_stream.service.recorder import RecorderService
+    from mntes_stream.service.recorder import RecorderService, final_line
 
     cfg = service_config(RecorderService, args.config, args.set, settings_from_args(args, _RECORD), zenoh_layer(args))
     setup_logging(not args.quiet)
@@ -36,6 +36,9 @@ def run_record(args) -> int:
               f"{out['seq_gaps']} sequence gaps) in {out['duration_s']:.1f} s into {len(out['files'])} file(s):")
         for f in out["files"]:
             print(f"  {f}")
+        for name, line in sorted((out.get("converters") or {}).items()):
+            print(f"converter {name} (its last recorded status): {line}")
+        print(final_line(out))  # the ledger, in one line, last
     return 0
 
 
@@ -113,15 +116,27 @@ def run_inspect(args) -> int:
     else:
         damaged = sorted({d.path for d in s.damage} | {f.path for f in s.files if f.unlabelled_messages})
     out["damaged_files"] = damaged
+    ledger = _ledger_of(s)
+    out["ledger"] = ledger.as_dict()
     if args.json:
         print(json.dumps(out, indent=2))
     else:
         _print_inspect(s, out, meta, checks)
+        print("\n".join(ledger.lines()))
     if damaged:
         what = "; ".join(f"{p}: {checks[p].summary()}" if checks else p for p in damaged)
         print(f"mntes-stream: error: {len(damaged)} of {len(s.files)} file(s) DAMAGED ({what})", file=sys.stderr)
         return 2
     return 0
+
+
+def _ledger_of(session):
+    """The recording's ledger (io/mcap/ledger.py): its mntes.ledger metadata, else recomputed from the messages."""
+    from mntes_stream.io.mcap.ledger import recording_ledger
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # damage is said once, above
+        return recording_ledger(session)
 
 
 def _print_inspect(s, out, meta, checks) -> None:

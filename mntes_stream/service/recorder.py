@@ -8,11 +8,22 @@ The zenoh callback only timestamps the sample and puts it on a bounded queue
 was still queued). Nothing is dropped: a full queue makes the callback wait,
 which BLOCK publishers feel as back-pressure; the high-water mark is reported
 so a recorder that cannot keep up shows it.
+
+Every counts chunk is in the recorder's ledger (``io.mcap.ledger.RecordingBook``:
+recorded, duplicate, malformed, never received), beside the power it saw (live,
+late) and each converter's newest status ledger; the ledger is written into
+every file at its close (metadata ``mntes.ledger``) and stated in the final
+statistics (``ledger``, ``ledger_line``). zenoh peers do not forward for each
+other: a peer recorder that connects to one peer turns gossip scouting on
+unless a layer names it, so it reaches the source too; a stream whose power
+comes without its counts is warned about (log, heartbeat ``power_only``, stats).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import time
 from dataclasses import asdict, dataclass
 
@@ -22,12 +33,13 @@ from mntes_stream.core.settings import Settings, setting
 from mntes_stream.core.shards import Shard
 from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
+from mntes_stream.io.mcap.ledger import LEDGER_METADATA, RecordingBook, power_is_late
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.coverage import Coverage
 from mntes_stream.service.metrics import MetricsSettings
 
-__all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "run_recorder"]
+__all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "final_line", "run_recorder"]
 
 log = logging.getLogger("mntes_stream.recorder")
 
@@ -107,7 +119,12 @@ class RecorderStats:
     queue could not take while the subscriber was being closed;
     ``unconverted`` the streams with counts but no power at the end,
     ``power_gaps`` the power chunks each stream missed while its counts came
-    (``service/coverage.py``).
+    and that never came late, ``power_late`` those that came late
+    (``service/coverage.py``); ``ledger`` the counts chunks of every stream
+    (``core.ledger``, verb ``recorded``) and ``ledger_line`` its one-line
+    summary; ``converters`` each converter's ledger line from its last
+    recorded status; ``power_only`` the streams whose power came while their
+    counts never did (this recorder does not receive their source).
     """
 
     messages: int
@@ -124,6 +141,26 @@ class RecorderStats:
     duration_s: float
     unconverted: tuple[str, ...] = ()
     power_gaps: dict | None = None
+    power_late: dict | None = None
+    unconverted_why: dict | None = None
+    power_only: tuple[str, ...] = ()
+    ledger: dict | None = None
+    ledger_line: str = ""
+    converters: dict | None = None
+
+    def final_line(self) -> str:
+        """The ledger in one line: what ``record`` prints last."""
+        return final_line(asdict(self))
+
+
+def final_line(stats: dict) -> str:
+    """The recorder's ledger in one line, from its statistics as a dict (``RecorderStats`` or a child's summary)."""
+    line = f"ledger: counts {stats.get('ledger_line') or 'received 0 chunks'}"
+    only = list(stats.get("power_only") or ())
+    if only:
+        line += (f"; WARNING power without its counts for {len(only)} stream(s) ({', '.join(only[:8])}"
+                 f"{', ...' if len(only) > 8 else ''}): this recorder does not receive their source")
+    return line
 
 
 def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=None) -> RecorderStats:
@@ -148,6 +185,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
     from mntes_stream.io.mcap import RotatingMcapWriter
     from mntes_stream.io.transport import QueueSubscriber
 
+    zenoh = _reach_the_source(config.zenoh)
     writer = RotatingMcapWriter(
         config.directory,
         config.file_prefix,
@@ -164,7 +202,11 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         from mntes_stream.foxglove.transcode import JsonChannels
 
         json_channels = JsonChannels(writer)
-    sequences: dict[str, StreamSequence] = {}
+    sequences: dict[str, StreamSequence] = {}  # topics other than counts (the book tracks those)
+    book = RecordingBook(None if config.key_expr else config.setup)
+    run = f"{socket.gethostname()}:{os.getpid()}:{time.time_ns()}"
+    # Every file gets the ledger of the run so far as it is finished (rotation or close).
+    writer.closing_metadata = lambda path: {LEDGER_METADATA: book.metadata(run, _index(writer.files, path))}
     by_kind: dict[str, int] = {}
     t_start = time.monotonic()
     next_log = t_start + config.log_interval_s
@@ -178,12 +220,19 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         if mine is not None and not mine(topic):
             return
         env = writer.write(topic, payload, t_ns)
-        coverage.add(topic, env.seq, time.monotonic())
+        kind = keys.kind_of(topic) or "other"
+        late = kind == "power" and not env.problem and power_is_late(payload)
+        coverage.add(topic, env.seq, time.monotonic(), late=late)
+        book.add(topic, payload, env, t_ns, late=late)
+        if kind == "status" and topic in book.status_topics:
+            service = book.status_topics[topic]
+            entry = book.converters.get(service)
+            if entry is not None:
+                coverage.converter_status(service, entry["ledger"], entry["chunks_set_aside"])
         if json_channels is not None and not env.problem:
             json_channels.add(env.schema, payload)
-        kind = keys.kind_of(topic) or "other"
         by_kind[kind] = by_kind.get(kind, 0) + 1
-        if env.seq is not None:
+        if env.seq is not None and kind != "counts":
             seq = sequences.get(topic)
             if seq is None:
                 seq = sequences[topic] = StreamSequence()
@@ -193,7 +242,7 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
     error: BaseException | None = None
     with stop_on_signals(stop_event) as stopping:
         try:
-            session = open_session(config.zenoh)
+            session = open_session(zenoh)
             # The callback only timestamps and queues; a full queue makes it wait,
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
             sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages,
@@ -220,8 +269,11 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
                     now = time.monotonic()
                     next_cover = now + 0.25
                     cover = coverage.summary(now)
-                    if heartbeat is not None:
-                        heartbeat.beat(**cover)
+                    if heartbeat is not None:  # numbers are Prometheus counters too (service/metrics.py)
+                        led = book.ledger_now()
+                        t = led.totals()
+                        heartbeat.beat(**cover, ledger_line=led.line(), chunks_recorded=t.done, chunks_missing=t.missing,
+                                       chunks_duplicate=t.duplicate, chunks_lost=t.lost)
                 if time.monotonic() >= next_log:
                     next_log += config.log_interval_s
                     log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)
@@ -245,24 +297,63 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         if isinstance(error, (MntesError, KeyboardInterrupt)):
             raise error
         raise TransportError(f"recorder failed: {type(error).__name__}: {error}") from error
+    led = book.ledger_now()
+    trackers = [*sequences.values(), *book.sequences.values()]
+    now = time.monotonic()
     stats = RecorderStats(
         messages=writer.messages,
         payload_bytes=writer.payload_bytes,
         by_kind=by_kind,
         invalid=writer.invalid,
-        seq_gaps=max(sum(q.lost for q in sequences.values()), 0),
-        seq_repeats=sum(q.duplicated + q.out_of_order + q.resets for q in sequences.values()),
+        seq_gaps=max(sum(q.lost for q in trackers), 0),
+        seq_repeats=sum(q.duplicated + q.out_of_order + q.resets for q in trackers),
         files=tuple(str(p) for p in writer.files),
         flushes=writer.flushes,
         queue_high_water=sub.high_water,
         queue_high_water_mb=sub.high_water_bytes / 1e6,
         dropped_on_close=sub.dropped_on_close,
         duration_s=time.monotonic() - t_start,
-        unconverted=tuple(coverage.unconverted(time.monotonic())),
+        unconverted=tuple(coverage.unconverted(now)),
         power_gaps=dict(coverage.gaps),
+        power_late=dict(coverage.late),
+        unconverted_why={s: coverage.reason(s) for s in coverage.unconverted(now)},
+        power_only=tuple(coverage.power_only(now)),
+        ledger=led.as_dict(),
+        ledger_line=led.line(),
+        converters={name: book.converter_line(name) for name in sorted(book.converters)},
     )
     log.info("recorder stopped: %s", stats)
+    log.info("recorder %s", stats.final_line())
     return stats
+
+
+def _index(files, path) -> int:
+    """1-based position of a file in the run's files (the ``file_seq`` of its ledger record)."""
+    return next((i for i, p in enumerate(files, 1) if p == path), len(files))
+
+
+def _reach_the_source(z: ZenohSettings) -> ZenohSettings:
+    """A peer recorder that connects to others: gossip scouting on unless a layer names it, so it connects to the
+    source too (zenoh peers do not forward another peer's publications: connected to the converter alone, it would
+    record power and status but no counts nor housekeeping). Named off: a warning, and it records what it reaches."""
+    from mntes_stream.io.transport import describe_config, zenoh_config
+
+    named = describe_config(zenoh_config(z))
+    if named.get("mode") != "peer" or not named.get("connect/endpoints") or named.get("scouting/gossip/enabled"):
+        return z
+    said = z.gossip is not None or any(c.partition(":")[0].strip("/").startswith("scouting") for c in z.cfg)
+    if not said and z.file:
+        from mntes_stream.io.transport import _named_paths
+
+        said = "scouting/gossip/enabled" in _named_paths(z.file) or "scouting/gossip" in _named_paths(z.file)
+    if said:
+        log.warning("gossip scouting is off and this peer recorder connects to %s: it records only what those "
+                    "peers publish themselves (zenoh peers do not forward); a source it does not connect to is not "
+                    "recorded", ", ".join(named["connect/endpoints"]))
+        return z
+    log.info("gossip scouting on: a peer connected to %s learns of the others (the source) and records them too",
+             ", ".join(named["connect/endpoints"]))
+    return ZenohSettings(gossip=True).over(z)
 
 
 def _shard_filter(shard: Shard):

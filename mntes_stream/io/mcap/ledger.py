@@ -1,0 +1,295 @@
+"""The ledger of a recording: what the recorder recorded of every stream, and what the converters said of it.
+
+The recorder books every message it writes in a :class:`RecordingBook`: the
+counts chunks of each stream (``core.ledger.Ledger("recorded")``: recorded,
+duplicate, malformed, never received from the stream's sequence numbers), the
+power chunks (converted live or late), and the newest status of every converter
+(its own ledger: converted, late, shed, rejected). At the close of each file the
+book is written as the metadata record ``mntes.ledger`` (:meth:`RecordingBook.metadata`;
+strings only, as MCAP metadata is), covering the recorder's run up to that file.
+:func:`recording_ledger` reads it back for ``inspect``, or, when a file has
+none (a killed recorder writes no closing metadata), recomputes the same book
+from the recorded messages.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import msgpack
+
+from mntes_stream.core.ledger import LOST_MEANS, OTHER, Ledger
+from mntes_stream.core.sequence import StreamSequence
+from mntes_stream.errors import MntesError
+from mntes_stream.io import keys
+from mntes_stream.io.mcap.envelope import Envelope, peek_envelope
+
+__all__ = ["LEDGER_METADATA", "RecordingBook", "RecordingLedger", "power_is_late", "recompute_ledger", "recording_ledger"]
+
+LEDGER_METADATA = "mntes.ledger"
+_MAX_STREAMS = 100_000  # streams booked by name at most; more (made-up topics) go to core.ledger.OTHER
+_MAX_CONVERTERS = 1000
+_STATUS_FIELDS = ("chunks_received", "chunks_converted", "chunks_late", "chunks_shed", "chunks_rejected",
+                  "chunks_missing", "chunks_set_aside", "chunks_lost", "t_ns")
+
+
+def power_is_late(payload: bytes) -> bool:
+    """Whether a power payload says ``late: true``, read key by key (array values are skipped, not copied)."""
+    try:
+        u = msgpack.Unpacker(raw=False, strict_map_key=False)
+        u.feed(payload)
+        for _ in range(u.read_map_header()):
+            key = u.unpack()
+            if key == "late":
+                return u.unpack() is True
+            u.skip()
+    except Exception:  # a malformed payload is recorded as invalid; it is not late power
+        return False
+    return False
+
+
+class RecordingBook:
+    """Everything a recording says of its streams, booked message by message (see the module docstring).
+
+    Parameters
+    ----------
+    setup : str, optional
+        Streams of this setup are named ``"<board>/<module>"``; others ``"<setup>:<board>/<module>"``.
+    """
+
+    def __init__(self, setup: str | None = None):
+        self.setup = setup
+        self.ledger = Ledger("recorded")
+        self.sequences: dict[str, StreamSequence] = {}  # counts topic -> its tracker
+        self._stream_of: dict[str, str] = {}  # counts topic -> ledger stream
+        self.power: dict[str, list[int]] = {}  # stream -> [live, late]
+        self.converters: dict[str, dict] = {}  # status service -> its newest ledger and counters
+        self.status_topics: dict[str, str] = {}  # status topic -> the service its newest status named
+
+    def _stream(self, topic: str) -> str | None:
+        parts = topic.split("/")
+        if len(parts) != 5 or parts[0] != keys.PREFIX:
+            return None
+        name = f"{parts[3]}/{parts[4]}"
+        return name if self.setup is None or parts[1] == self.setup else f"{parts[1]}:{name}"
+
+    def _bounded(self, stream: str, known) -> str:
+        return stream if stream in known or len(known) < _MAX_STREAMS else OTHER
+
+    def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None) -> str:
+        """Book one recorded message; returns the counts verdict (``new``, ``late``, ``duplicate``, ``reset``) or ``""``.
+
+        ``late``: whether a power payload is marked late, when the caller read it already (else read here).
+        """
+        kind = keys.kind_of(topic)
+        if kind == "counts":
+            return self._counts(topic, env, t_ns)
+        if kind == "power":
+            stream = self._stream(topic)
+            if stream is not None and not env.problem:
+                cols = self.power.setdefault(self._bounded(stream, self.power), [0, 0])
+                cols[1 if (power_is_late(payload) if late is None else late) else 0] += 1
+        elif kind == "status" and env.schema == "mntes.status" and not env.problem:
+            service = self.status(payload)
+            if service is not None and (topic in self.status_topics or len(self.status_topics) < _MAX_CONVERTERS):
+                self.status_topics[topic] = service
+        return ""
+
+    def _counts(self, topic: str, env: Envelope, t_ns: int) -> str:
+        stream = self._stream_of.get(topic)
+        if stream is None:
+            stream = self._stream(topic)
+            if stream is None:
+                return ""
+            stream = self._bounded(stream, self.ledger.streams)
+            if len(self._stream_of) < _MAX_STREAMS:
+                self._stream_of[topic] = stream
+        self.ledger.received(stream)
+        if env.problem or env.seq is None:
+            self.ledger.rejected(stream, "malformed" if env.problem else "no_seq")
+            return ""
+        seq = self.sequences.get(topic)
+        if seq is None:
+            seq = StreamSequence()
+            if len(self.sequences) < _MAX_STREAMS:
+                self.sequences[topic] = seq
+        verdict = seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
+        if verdict == "duplicate":
+            self.ledger.duplicate(stream)
+        else:
+            self.ledger.done(stream)
+        return verdict
+
+    def status(self, payload: bytes) -> str | None:
+        """A converter's status message: keep the newest of each service (its ledger and counters).
+
+        Returns the service it names, or None for a status that does not decode (or one too many services)."""
+        from mntes_stream.io.messages import StatusMessage
+
+        try:
+            st = StatusMessage.from_bytes(payload)
+        except MntesError:
+            return None
+        old = self.converters.get(st.service)
+        if old is None and len(self.converters) >= _MAX_CONVERTERS:
+            return None
+        if old is None or old["t_ns"] <= st.t_ns:
+            entry = {name: int(getattr(st, name, 0) or 0) for name in _STATUS_FIELDS}
+            entry["ledger"] = dict(getattr(st, "ledger", None) or {})
+            self.converters[st.service] = entry
+        return st.service
+
+    def converter_line(self, service: str) -> str:
+        """A converter's ledger in one line, as its newest recorded status says."""
+        return _converter_line(self.converters[service])
+
+    def ledger_now(self) -> Ledger:
+        """The recorder's ledger, each stream's never-received count as its tracker says now."""
+        missing: dict[str, int] = {}
+        for topic, seq in self.sequences.items():
+            stream = self._stream_of.get(topic, OTHER)
+            missing[stream] = missing.get(stream, 0) + seq.lost
+        for stream, n in missing.items():
+            self.ledger.set_missing(stream, n)
+        return self.ledger
+
+    def metadata(self, run: str, file_seq: int) -> dict[str, str]:
+        """The ``mntes.ledger`` record of this run up to and including file ``file_seq``."""
+        led = self.ledger_now()
+        out = {
+            "lost_means": LOST_MEANS,
+            "scope": "the recorder's run up to and including this file (run, file_seq)",
+            "run": str(run),
+            "file_seq": str(int(file_seq)),
+            "recorder": json.dumps(led.as_dict(), separators=(",", ":")),
+            "recorder_line": led.line(),
+            "power": json.dumps(self.power, separators=(",", ":")),
+            "converters": json.dumps(self.converters, separators=(",", ":")),
+        }
+        for name, entry in sorted(self.converters.items()):
+            out[f"converter.{name}"] = _converter_line(entry)
+        return out
+
+
+def _converter_line(c: dict) -> str:
+    led = c.get("ledger") or {}
+    if led:
+        return Ledger.from_dict(led).line()
+    return (f"converted {c.get('chunks_converted', 0)}, shed {c.get('chunks_shed', 0)}, lost {c.get('chunks_lost', 0)} "
+            "(its status has no per-stream ledger)")
+
+
+@dataclass(frozen=True)
+class RecordingLedger:
+    """The ledger of a recording, as :func:`recording_ledger` found it.
+
+    ``source`` is ``metadata`` (the recorder's ``mntes.ledger`` at close) or
+    ``recomputed`` (from the recorded messages; ``note`` says why);
+    ``recorder`` the counts streams (verb ``recorded``); ``power`` per stream
+    ``[live, late]`` power chunks recorded; ``converters`` each converter's
+    newest recorded status (``ledger`` as a dict, and its counters).
+    """
+
+    source: str
+    recorder: Ledger
+    power: dict
+    converters: dict
+    note: str = ""
+    runs: int = 1
+    lost_means: str = LOST_MEANS
+
+    def as_dict(self) -> dict:
+        return {"source": self.source, "note": self.note, "runs": self.runs, "lost_means": self.lost_means,
+                "recorder": self.recorder.as_dict(), "recorder_line": self.recorder.line(), "power": self.power,
+                "converters": self.converters,
+                "converter_lines": {n: Ledger.from_dict(c.get("ledger") or {}).line() for n, c in self.converters.items()}}
+
+    def lines(self) -> list[str]:
+        """The ledger as text lines: totals, each converter's, then one row per stream."""
+        how = "mntes.ledger metadata" if self.source == "metadata" else f"recomputed from the messages ({self.note})"
+        out = [f"ledger ({how}):", f"  recorder: counts {self.recorder.line()}"]
+        for name, c in sorted(self.converters.items()):
+            line = _converter_line(c)
+            held = f"; set aside now {c['chunks_set_aside']}" if c.get("chunks_set_aside") else ""
+            out.append(f"  converter {name} (last recorded status): {line}{held}")
+        live, late = (sum(v[i] for v in self.power.values()) for i in (0, 1))
+        out.append(f"  power recorded: live {live}" + (f", late {late}" if late else ""))
+        conv = {}
+        for c in self.converters.values():
+            conv = _merge_dicts(conv, c.get("ledger") or {})
+        streams = sorted(set(self.recorder.streams) | set(self.power) | set(conv), key=_order)
+        if streams:
+            out.append(f"  {'stream':<12}{'recorded':>10}{'never rcvd':>11}{'dup':>6}{'power':>8}{'late':>6}"
+                       f"{'conv shed':>10}{'conv rej':>9}")
+        for s in streams:
+            r = self.recorder.streams.get(s)
+            p = self.power.get(s, [0, 0])
+            c = Ledger.from_dict({s: conv[s]}).streams[s] if s in conv else None
+            out.append(f"  {s:<12}{r.done if r else 0:>10}{r.missing if r else 0:>11}{r.duplicate if r else 0:>6}"
+                       f"{p[0]:>8}{p[1]:>6}{c.shed_total if c else 0:>10}{c.rejected_total if c else 0:>9}")
+        out.append(f"  ({self.lost_means})")
+        return out
+
+
+def _order(key: str):
+    parts = key.split("/")
+    return (0, *map(int, parts)) if len(parts) == 2 and all(p.isdigit() for p in parts) else (1, key)
+
+
+def _merge_dicts(a: dict, b: dict) -> dict:
+    led = Ledger.from_dict(a)
+    led.merge(Ledger.from_dict(b))
+    return led.as_dict()
+
+
+def recording_ledger(session) -> RecordingLedger:
+    """The ledger of a recording (an ``io.mcap.Session``): its ``mntes.ledger`` metadata when every file has one
+    (the last file of each recorder run counts), else recomputed from the recorded messages."""
+    records = [m for m in session.metadata() if m.name == LEDGER_METADATA]
+    with_ledger = {m.path for m in records}
+    missing = [f.path for f in session.files if f.path not in with_ledger]
+    if records and not missing:
+        try:
+            return _from_metadata(records)
+        except (ValueError, TypeError, KeyError) as exc:
+            note = f"its {LEDGER_METADATA} metadata is unreadable: {exc}"
+    else:
+        note = (f"{len(missing)} of {len(session.files)} file(s) without {LEDGER_METADATA} metadata: "
+                "not finished by the recorder" if session.files else "no files")
+    return recompute_ledger(session, note)
+
+
+def recompute_ledger(session, note: str = "") -> RecordingLedger:
+    """The ledger of a recording from its messages alone (counts, power, status), as the recorder would book them."""
+    # One setup (the usual case): streams named "<board>/<module>" as the recorder names them.
+    setups = {t.split("/")[1] for t in session.message_counts() if keys.kind_of(t) == "counts"}
+    book = RecordingBook(setups.pop() if len(setups) == 1 else None)
+    for m in session.iter_messages():
+        if keys.kind_of(m.topic) in ("counts", "power", "status"):
+            book.add(m.topic, m.payload, peek_envelope(m.payload), m.log_time_ns)
+    return RecordingLedger("recomputed", book.ledger_now(), book.power, book.converters, note=note)
+
+
+def _from_metadata(records) -> RecordingLedger:
+    last: dict[str, dict] = {}
+    for m in records:
+        d = m.data
+        run = d.get("run", m.path)
+        if run not in last or int(d.get("file_seq", 0)) >= int(last[run].get("file_seq", 0)):
+            last[run] = d
+    recorder = Ledger("recorded")
+    power: dict[str, list[int]] = {}
+    converters: dict[str, dict] = {}
+    for d in last.values():
+        recorder.merge(Ledger.from_dict(json.loads(d["recorder"]), "recorded"))
+        for s, (live, late) in json.loads(d.get("power") or "{}").items():
+            cols = power.setdefault(s, [0, 0])
+            cols[0] += int(live)
+            cols[1] += int(late)
+        for name, c in json.loads(d.get("converters") or "{}").items():
+            if name not in converters or int(c.get("t_ns", 0)) > int(converters[name].get("t_ns", 0)):
+                converters[name] = c
+    lost_means = next(iter(last.values())).get("lost_means", LOST_MEANS)
+    return RecordingLedger("metadata", recorder, power, converters, runs=len(last), lost_means=lost_means)
+

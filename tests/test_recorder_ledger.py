@@ -1,0 +1,197 @@
+"""The recorder's ledger: real source, converter and recorders as processes on loopback zenoh.
+
+The README's recorder example (``record -e tcp/127.0.0.1:<converter>``: a peer
+connected to the converter alone) must record counts and housekeeping too; its
+file carries ``mntes.ledger`` at close, ``inspect`` prints it, and it balances:
+every counts chunk the source published is recorded, none never received. A
+recorder that reaches only the converter (gossip off, not listening) warns that
+it records power without counts. Coverage's bookkeeping of late power and of a
+converter's shedding runs on the real ledger objects.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from mntes_stream.core.ledger import Ledger
+from mntes_stream.io import mcap as mio
+from mntes_stream.io.mcap.ledger import LEDGER_METADATA, recompute_ledger, recording_ledger
+from mntes_stream.io.transport import free_tcp_port
+from mntes_stream.service.coverage import Coverage
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Proc:
+    """``mntes-stream ARGS`` in the background, output to files (every wait has a deadline)."""
+
+    def __init__(self, name: str, args: list[str], cwd: Path):
+        self.out, self.err = cwd / f"{name}.out", cwd / f"{name}.err"
+        with open(self.out, "w") as o, open(self.err, "w") as e:
+            self.p = subprocess.Popen([sys.executable, "-m", "mntes_stream", *args], cwd=cwd, stdout=o, stderr=e,
+                                      text=True)
+
+    def text(self) -> str:
+        return self.out.read_text() + self.err.read_text()
+
+    def wait_for(self, pattern: str, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not re.search(pattern, self.text()):
+            assert self.p.poll() is None, self.text()
+            assert time.monotonic() < deadline, f"no {pattern!r}: {self.text()[-3000:]}"
+            time.sleep(0.1)
+
+    def stop(self, timeout_s: float = 30.0) -> int:
+        if self.p.poll() is None:
+            self.p.send_signal(signal.SIGINT)
+        try:
+            return self.p.wait(timeout=timeout_s)
+        finally:
+            self.kill()
+
+    def kill(self) -> None:
+        if self.p.poll() is None:
+            self.p.kill()
+            self.p.wait()
+
+
+def _mntes(*args, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mntes_stream", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=120)
+
+
+@pytest.mark.slow
+def test_readme_recorder_example_records_counts_and_states_a_balanced_ledger(tmp_path):
+    shutil.copytree(ROOT / "services", tmp_path / "services", ignore=shutil.ignore_patterns("recordings", "*-params.toml"))
+    port = free_tcp_port()
+    for name in ("zenoh-converter.json5", "zenoh-local.json5"):
+        f = tmp_path / "services" / name
+        f.write_text(f.read_text().replace("7447", str(port)))
+    ep = f"tcp/127.0.0.1:{port}"
+    procs: list[Proc] = []
+    try:
+        conv = Proc("converter", ["serve", "--config", "services/converter.toml"], tmp_path)
+        procs.append(conv)
+        conv.wait_for(r"converter converter: \d+ detectors")
+        # The README's example, as written but for the port; and a recorder that reaches the converter alone.
+        rec = Proc("rec", ["record", "--setup", "lab", "--dir", "rec", "-e", ep], tmp_path)
+        alone = Proc("alone", ["record", "--setup", "lab", "--dir", "alone", "-e", ep,
+                               "--cfg", "scouting/gossip/enabled:false", "--cfg", "listen/endpoints:[]"], tmp_path)
+        procs += [rec, alone]
+        for p in (rec, alone):
+            p.wait_for(r"recording mntes/lab/\*\* into")
+        src = Proc("source", ["serve", "--config", "services/source.toml", "--set", "source.duration_s=3", "--json"],
+                   tmp_path)
+        procs.append(src)
+        assert src.p.wait(timeout=60) == 0, src.text()
+        sent = json.loads(src.out.read_text())
+        time.sleep(1.5)  # the converter takes in and converts what is on its way
+        assert conv.stop() in (0, 130), conv.text()
+        time.sleep(0.5)  # its final status reaches the recorders
+        assert rec.stop() in (0, 130) and alone.stop() in (0, 130), rec.text() + alone.text()
+    finally:
+        for p in procs:
+            p.kill()
+    assert "gossip scouting on" in rec.text() and "Traceback" not in rec.text() + alone.text()
+
+    # Everything the source published is recorded: its counts and housekeeping, each once.
+    session = mio.Session(tmp_path / "rec")
+    counts = session.message_counts()
+    n_counts = sum(n for t, n in counts.items() if "/counts/" in t)
+    n_hk = sum(n for t, n in counts.items() if "/hk/" in t)
+    assert n_counts > 40 and n_hk > 0 and n_counts + n_hk == sent["messages"], (counts, sent)
+    # Its final line is the ledger, balanced: recorded = received = published, never received 0, lost 0.
+    last = rec.out.read_text().strip().splitlines()[-1]
+    assert last == f"ledger: counts received {n_counts} chunks: recorded {n_counts}; lost 0 of {n_counts}", last
+    assert re.search(r"^converter converter \(its last recorded status\): received \d+ chunks: converted \d+",
+                     rec.out.read_text(), re.M)
+
+    # The file's mntes.ledger metadata, read back, equals the ledger recomputed from the messages.
+    (meta,) = [m.data for m in session.metadata() if m.name == LEDGER_METADATA]
+    assert meta["recorder_line"] == f"received {n_counts} chunks: recorded {n_counts}; lost 0 of {n_counts}"
+    led = recording_ledger(session)
+    again = recompute_ledger(session, "test")
+    assert led.source == "metadata" and again.source == "recomputed"
+    assert led.recorder.as_dict() == again.recorder.as_dict() and led.power == again.power
+    assert led.converters == again.converters and set(led.converters) == {"converter"}
+    assert sorted(led.recorder.streams) == ["0/0", "0/1"] and led.recorder.balanced()
+    n_power = sum(n for t, n in counts.items() if "/power/" in t)
+    assert sum(live + late for live, late in led.power.values()) == n_power > 0
+    conv_led = Ledger.from_dict(led.converters["converter"]["ledger"])
+    assert conv_led.totals().received == n_counts  # the converter received what the recorder recorded
+
+    # inspect prints it (from the metadata) and in --json.
+    res = _mntes("inspect", "rec", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "ledger (mntes.ledger metadata):" in res.stdout
+    assert f"recorder: counts received {n_counts} chunks: recorded {n_counts}; lost 0 of {n_counts}" in res.stdout
+    assert re.search(r"^\s+0/1\s+\d+\s+0\s+0\s+\d+\s+0\s+0\s+0$", res.stdout, re.M), res.stdout
+    js = json.loads(_mntes("inspect", "rec", "--json", cwd=tmp_path).stdout)
+    assert js["ledger"]["recorder_line"] == meta["recorder_line"]
+
+    # The recorder that reached the converter alone recorded power and no counts, and says so.
+    alone_counts = mio.Session(tmp_path / "alone").message_counts()
+    assert not any("/counts/" in t for t in alone_counts) and any("/power/" in t for t in alone_counts)
+    last = alone.out.read_text().strip().splitlines()[-1]
+    assert "WARNING power without its counts for 2 stream(s) (0/0, 0/1)" in last, last
+    assert "power for 2 s but never its counts" in alone.text()
+
+
+def test_killed_recorder_file_is_recomputed_by_inspect(tmp_path):
+    """A file without mntes.ledger (its recorder died before the close): inspect recomputes the ledger."""
+    from mcap_helpers import counts_payload
+
+    from mntes_stream.io.mcap.writer import McapFileWriter
+
+    path = tmp_path / "k-000001.mcap"
+    with McapFileWriter(path) as w:  # a plain writer adds no ledger, as a killed recorder leaves none
+        for t, seq in enumerate((0, 1, 2, 5, 5, 6)):  # 3 and 4 never came, 5 twice
+            w.write("mntes/t/counts/0/1", counts_payload(seq, module=1), 10**9 + t)
+    led = recording_ledger(mio.Session(path))
+    assert led.source == "recomputed" and "without mntes.ledger" in led.note
+    s = led.recorder.streams["0/1"]
+    assert (s.received, s.done, s.duplicate, s.missing, s.lost) == (6, 5, 1, 2, 2)
+    res = _mntes("inspect", str(path), cwd=tmp_path)
+    assert "recorder: counts received 6 chunks: recorded 5, duplicate 1; never received 2; lost 2 of 8" in res.stdout
+
+
+def test_coverage_names_the_converters_shedding_and_counts_late_power():
+    cov = Coverage(after_s=1.0)
+    for k in range(6):
+        cov.add("mntes/lab/counts/0/1", k, float(k))
+    cov.add("mntes/lab/power/0/1", 0, 0.0)
+    assert cov.reason("0/1") == "no converter publishes it"
+    conv = Ledger("converted")  # what the converter's status ledger says: 3 shed, 2 set aside
+    conv.received("0/1", 6)
+    conv.done("0/1", 1)
+    conv.shed("0/1", "overload", 3)
+    cov.converter_status("conv-a", conv.as_dict(), set_aside=2)
+    assert cov.unconverted(5.0) == ["0/1"]
+    assert cov.summary(5.0)["unconverted_why"] == {"0/1": "converter conv-a shed 3 chunks of it (overload)"}
+    held = Ledger("converted")
+    held.received("0/1", 6)
+    held.done("0/1", 1)
+    cov.converter_status("conv-a", held.as_dict(), set_aside=5)
+    assert cov.reason("0/1") == "converter conv-a holds 5 chunks of it set aside (overload)"
+    # Live power jumps 0 -> 5 (1-4 set aside): a gap of 4; then 2 and 3 come late: the gap is 2, late 2.
+    cov.add("mntes/lab/power/0/1", 5, 5.0)
+    assert cov.gaps == {"0/1": 4}
+    cov.add("mntes/lab/power/0/1", 2, 5.1, late=True)
+    cov.add("mntes/lab/power/0/1", 3, 5.2, late=True)
+    s = cov.summary(5.3)
+    assert s["power_gaps"] == {"0/1": 2} and s["power_late"] == {"0/1": 2} and s["unconverted"] == []
+    cov.add("mntes/lab/power/0/1", 1, 5.4, late=True)
+    cov.add("mntes/lab/power/0/1", 4, 5.5, late=True)
+    assert cov.gaps == {} and cov.late == {"0/1": 4} and cov.live == {"0/1": 2}
+    # Power of a stream whose counts never came: said once it lasted after_s.
+    cov.add("mntes/lab/power/0/2", 0, 5.0)
+    assert cov.power_only(5.5) == [] and cov.power_only(6.1) == ["0/2"]
