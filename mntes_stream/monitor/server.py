@@ -23,6 +23,11 @@ must come from the page's own origin, and a browser's cross-site request
 cross-origin reads. Each websocket client has a send queue of one update (a
 slow client skips ticks, never piles them up) and is closed when one update
 takes longer than ``send_timeout_s`` to go out.
+
+Bounded (:mod:`~mntes_stream.monitor.web_limits`): a connection limit below
+the descriptor limit (the oldest idle connection makes way for a new one), a
+deadline for the first request (``header_timeout_s``), aiohttp's keep-alive
+timeout (``idle_timeout_s``), and one log line per cause per interval.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from pathlib import Path
 from aiohttp import WSMsgType, web
 
 from mntes_stream.errors import ConfigError
+from mntes_stream.monitor.web_limits import ConnectionGuard, RateLog, WebLimits, descriptor_cap
 
 __all__ = ["WebGuard", "is_loopback", "plotly_js_path", "make_app", "serve"]
 
@@ -181,7 +187,7 @@ def _parse_f_hwp(value):
 
 
 def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, max_clients: int = 32,
-             send_timeout_s: float = 10.0):
+             send_timeout_s: float = 10.0, connections: ConnectionGuard | None = None, rate_log: RateLog | None = None):
     """The aiohttp application serving ``subscriber`` (a :class:`MonitorSubscriber`).
 
     Parameters
@@ -196,8 +202,13 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
         Websocket clients served at once; more get HTTP 503.
     send_timeout_s : float
         A client that takes longer than this to accept one update is closed.
+    connections : ConnectionGuard, optional
+        Told when a request starts and ends (a connection handling one is never evicted); shown in /api/state.
+    rate_log : RateLog, optional
+        Where repeated refusals are logged (one line per cause per interval).
     """
     plotly_js = plotly_js_path()
+    rate_log = rate_log or RateLog(log)
     guard = guard or WebGuard()
     clients: set = set()
     refused: dict[str, int] = {"host_or_origin": 0, "too_many_clients": 0, "slow_client": 0}
@@ -207,15 +218,18 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
         why = guard.refusal(request.headers)
         if why is not None:
             refused["host_or_origin"] += 1
-            if refused["host_or_origin"] <= 5 or refused["host_or_origin"] % 1000 == 0:
-                log.warning("monitor refused %s %s: %s (%d refused)", request.method, request.path, why,
-                            refused["host_or_origin"])
+            rate_log.note("host_or_origin", f"refused {request.method} {request.path[:100]}: {why[:200]}")
             raise web.HTTPForbidden(text=why, headers=_SECURITY_HEADERS)
+        if connections is not None:
+            connections.begin(request.protocol)
         try:
             resp = await handler(request)
         except web.HTTPException as exc:
             exc.headers.update(_SECURITY_HEADERS)
             raise
+        finally:
+            if connections is not None:
+                connections.end(request.protocol)
         if not resp.prepared:  # a websocket's handshake went out already
             resp.headers.update(_SECURITY_HEADERS)
         return resp
@@ -260,7 +274,10 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
     async def api_state(request):
         hub = request.app[_HUB]
         tick, layout = hub.snapshot or ({}, [])
-        body = {"seq": hub.seq, "layout": layout, **tick, "web": {"clients": len(clients), "refused": dict(refused)}}
+        web_state = {"clients": len(clients), "refused": dict(refused)}
+        if connections is not None:
+            web_state["connections"] = connections.snapshot()
+        body = {"seq": hub.seq, "layout": layout, **tick, "web": web_state}
         return web.Response(text=_dumps(body), content_type="application/json")
 
     async def api_view(request):
@@ -274,6 +291,7 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
     async def ws_handler(request):
         if len(clients) >= max_clients:
             refused["too_many_clients"] += 1
+            rate_log.note("too_many_clients", f"refused a page: {max_clients} already (max_clients)")
             raise web.HTTPServiceUnavailable(text=f"monitor: {max_clients} clients already (max_clients)")
         ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=1 << 16)
         await ws.prepare(request)
@@ -308,7 +326,8 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
                     return
                 except TimeoutError:
                     refused["slow_client"] += 1
-                    log.warning("monitor closed a client that took over %.0f s to take one update", send_timeout_s)
+                    rate_log.note("slow_client", f"closed a page that took over {send_timeout_s:g} s to take one update "
+                                  "(send_timeout_s)")
                     # A peer that reads nothing never completes a closing handshake either: drop the transport.
                     if request.transport is not None:
                         request.transport.abort()
@@ -396,7 +415,7 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
     return app
 
 
-def _listen_socket(bind: str, port: int) -> socket.socket:
+def _listen_socket(bind: str, port: int, backlog: int = 128) -> socket.socket:
     family = socket.AF_INET6 if ":" in bind else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -405,23 +424,58 @@ def _listen_socket(bind: str, port: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         raise ConfigError(f"cannot listen on {bind}:{port}: {exc}") from None
-    sock.listen(128)
+    sock.listen(backlog)
     sock.setblocking(False)
     return sock
 
 
+class _GuardedSite(web.SockSite):
+    """aiohttp's SockSite, its connections made by a :class:`ConnectionGuard`'s protocol factory."""
+
+    def __init__(self, runner, sock, factory, backlog: int):
+        super().__init__(runner, sock, backlog=backlog)
+        self._factory = factory
+
+    async def start(self) -> None:
+        await web.BaseSite.start(self)  # registers the site with its runner (cleanup closes it)
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(self._factory, sock=self._sock, backlog=self._backlog)
+
+
+async def _flush_logs(rate_log: RateLog) -> None:
+    with contextlib.suppress(asyncio.CancelledError):
+        while True:
+            await asyncio.sleep(min(rate_log.interval_s / 4, 1.0))
+            rate_log.flush()
+
+
 async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: float, on_ready, stop_event,
-                 web_options: dict) -> None:
-    app = make_app(subscriber, update_s, **web_options)
+                 web_options: dict, limits: WebLimits) -> None:
+    loop = asyncio.get_running_loop()
+    rate_log = RateLog(log, limits.log_interval_s)
+    max_connections, nofile = descriptor_cap(limits.max_connections, limits.backlog)
+    if max_connections < limits.max_connections:
+        log.warning("monitor: at most %d connections (max_connections %d, but the descriptor limit is %s, less "
+                    "what is open, a reserve and the backlog of %d)", max_connections, limits.max_connections, nofile,
+                    limits.backlog)
+    connections = ConnectionGuard(limits, rate_log, max_connections)
+    # aiohttp's and asyncio's own error logging (a failed accept, a broken request) goes through the rate
+    # log too: one line per cause per interval, never a traceback per connection.
+    http_log = logging.getLogger("mntes_stream.monitor.http")
+    http_log.addFilter(rate_log.filter)
+    loop.set_exception_handler(rate_log.loop_exception)
+    app = make_app(subscriber, update_s, connections=connections, rate_log=rate_log, **web_options)
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
-    sock = _listen_socket(bind, port)
-    site = web.SockSite(runner, sock)
+    sock = _listen_socket(bind, port, limits.backlog)
+    factory = connections.factory(runner.server, loop, keepalive_timeout=limits.idle_timeout_s, logger=http_log,
+                                  access_log=None)
+    site = _GuardedSite(runner, sock, factory, limits.backlog)
     await site.start()
+    flusher = asyncio.create_task(_flush_logs(rate_log))
     host, real_port = sock.getsockname()[:2]
     on_ready(host, real_port)
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):  # not the main thread
             loop.add_signal_handler(sig, stop.set)
@@ -431,17 +485,21 @@ async def _serve(subscriber, bind: str, port: int, update_s: float, duration_s: 
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(stop.wait(), min(0.1, max(t_end - time.monotonic(), 0.0)))
     finally:
+        flusher.cancel()
         await runner.cleanup()
+        rate_log.flush()
+        http_log.removeFilter(rate_log.filter)
 
 
 def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float = 0.5,
           duration_s: float = 0.0, on_ready=None, stop_event=None, allowed_hosts: tuple[str, ...] = (),
-          max_clients: int = 32, send_timeout_s: float = 10.0) -> None:
+          max_clients: int = 32, send_timeout_s: float = 10.0, limits: WebLimits | None = None) -> None:
     """Serve the page until SIGINT/SIGTERM, ``duration_s`` or ``stop_event``; returns after a clean shutdown.
 
     ``on_ready(host, port)`` is called once listening (``port=0`` picks a free port).
     ``stop_event`` (anything with ``is_set()``) lets another thread stop it. ``allowed_hosts``,
-    ``max_clients`` and ``send_timeout_s``: see :class:`WebGuard` and :func:`make_app`.
+    ``max_clients`` and ``send_timeout_s``: see :class:`WebGuard` and :func:`make_app`; ``limits``: the
+    socket bounds (:class:`~mntes_stream.monitor.web_limits.WebLimits`).
     """
     if not is_loopback(bind):
         log.warning("monitor listening on %s, beyond loopback: anyone who can reach it sees the stream "
@@ -451,4 +509,4 @@ def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float
     web_options = {"guard": WebGuard(bind, tuple(allowed_hosts)), "max_clients": max_clients,
                    "send_timeout_s": send_timeout_s}
     asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None), stop_event,
-                       web_options))
+                       web_options, limits or WebLimits()))

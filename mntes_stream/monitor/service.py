@@ -16,6 +16,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.monitor.aggregate import MonitorConfig
+from mntes_stream.monitor.web_limits import WebLimits
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.metrics import MetricsSettings
 
@@ -36,6 +37,7 @@ class MonitorServiceConfig(Settings):
     max_clients: int = setting(32, "websocket clients served at once", ge=1, le=1024)
     send_timeout_s: float = setting(10.0, "a page that takes longer to accept one update is disconnected", unit="s",
                                     gt=0)
+    web: WebLimits = setting(default_factory=WebLimits, doc="the page server's socket limits", flatten=True)
     params: str | None = setting(None, "parameter file whose [metadata.focal_plane] gives sky positions "
                                  "(detector id = [x_deg, y_deg]) for the focal-plane view")
     port: int = setting(8050, "HTTP port (0: any free port)", ge=0, le=65535)
@@ -116,7 +118,8 @@ class MonitorService(Service):
                         ready.set()
 
                 serve(sub, cfg.bind, cfg.port, cfg.update_s, cfg.duration_s, on_ready, stopping,
-                      allowed_hosts=cfg.allowed_hosts, max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s)
+                      allowed_hosts=cfg.allowed_hosts, max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s,
+                      limits=cfg.web)
             with sub.lock:
                 health = sub.aggregator.tick(time.time_ns())["health"]["monitor"]
         return {k: v for k, v in health.items() if isinstance(v, (int, float, str))}
