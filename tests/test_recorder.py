@@ -69,6 +69,9 @@ def test_records_everything_verbatim_with_stats(tmp_path):
     assert stats.messages == len(sent) and stats.invalid == 2
     assert stats.by_kind == {"provenance": 2, "counts": 61, "hk": 10}
     assert stats.seq_gaps == 0 and stats.seq_repeats == 0
+    # The ledger of the counts: the garbage payload on counts/0/0 is a rejected (malformed) chunk of that stream.
+    assert stats.ledger_line == "received 61 chunks: recorded 60, rejected 1 (malformed 1); lost 1 of 61"
+    assert stats.ledger["0/0"] == {"received": 31, "done": 30, "rejected": {"malformed": 1}}
     assert mio.latest_provenance(tmp_path) == provenance_payload("a")
     meta = {m.name: m.data for m in mio.read_metadata(tmp_path)}
     assert meta["mntes.recording"]["recorder.subscription"] == "mntes/t/**"
@@ -84,6 +87,9 @@ def test_duration_stops_by_itself_and_counts_gaps(tmp_path):
         _wait_for(lambda: "stats" in result, what="the recorder to stop by itself")
     stats = result["stats"]
     assert stats.messages == 6 and stats.seq_gaps == 2 and stats.seq_repeats == 2
+    assert stats.ledger_line == "received 6 chunks: recorded 5, duplicate 1; never received 2; lost 2 of 8"
+    (meta,) = [m.data for m in mio.read_metadata(stats.files[0]) if m.name == "mntes.ledger"]
+    assert meta["recorder_line"] == stats.ledger_line  # written into the file at its close
     with open(stats.files[0], "rb") as f:
         assert make_reader(f).get_summary().statistics.message_count == 6
 
