@@ -9,7 +9,8 @@ cadence with its own timestamps. For each sample time ``t``:
   oldest value is used;
 - the *age* of a sample's value is its distance to the nearest reading used
   (``min(t - t_prev, t_next - t)`` when bracketed). Age above the staleness
-  limit sets ``HK_STALE`` (the value is still given); with no usable reading
+  limit sets ``HK_STALE`` (the value is still given here: the converter
+  decides what its power is, see ``hk_stale_power``); with no usable reading
   at all the value is NaN and ``HK_MISSING`` is set. Before the oldest
   reading, only a reading within the staleness limit is used; otherwise the
   sample is ``HK_MISSING`` (nothing is known that early);
