@@ -97,6 +97,12 @@ def _run_export(args) -> int:
         "seconds": round(summary.seconds, 3),
         "samples_per_s": round(summary.samples_per_s),
     }
+    damaged = getattr(summary, "damaged", "")
+    if damaged:  # said on stderr and in the summary; the file lists the spans (attribute damaged_spans_ns)
+        import sys
+
+        print(f"mntes-stream: warning: input DAMAGED: {damaged}", file=sys.stderr)
+        result["damaged"] = damaged
     print_mapping(result, args.json)
     return 0
 

@@ -216,6 +216,10 @@ def run_convert(args) -> int:
         return run_g3_convert(args, pipeline)
     stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, pipeline_config=pipeline,
                               progress=not args.quiet)
+    if stats.damaged:  # on stderr too: a convert in a script must not pass over it
+        import sys
+
+        print(f"mntes-stream: warning: {args.input}: input DAMAGED: {stats.damaged}", file=sys.stderr)
     if args.json:
         print(json.dumps(dataclasses.asdict(stats), indent=2))
     else:

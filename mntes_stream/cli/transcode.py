@@ -9,9 +9,15 @@ def run(args) -> int:
 
     view = FoxgloveView(args.detectors or (), args.per_module, args.max_rate_hz)
     st = transcode(args.input, args.output, foxglove=args.foxglove, view=view, compression=args.compression)
+    damaged = getattr(st, "damaged", "")
+    if damaged:
+        import sys
+
+        print(f"mntes-stream: warning: {args.input}: input DAMAGED: {damaged}", file=sys.stderr)
     print(f"{args.output}: {st.messages} messages copied, {st.json_messages} json messages added"
           f" ({st.undecodable} undecodable), {st.metadata} metadata records, {st.attachments} attachments,"
-          f" {st.seconds:.1f} s")
+          f" {st.seconds:.1f} s" + (f"; input DAMAGED: {damaged} (marked in its mntes.damaged metadata)"
+                                     if damaged else ""))
     return 0
 
 

@@ -34,6 +34,7 @@ time span of all detectors reads a handful of chunks.
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,6 +73,7 @@ class ExportSummary:
     segment_breaks: int
     file_bytes: int
     seconds: float
+    damaged: str = ""  # what of the session could not be read ("" when nothing); listed in the file's damaged_spans
 
     @property
     def samples_per_s(self) -> float:
@@ -123,16 +125,18 @@ def _create_observation(f, rec: RecordedPower, sid, block_samples: int, filters:
     return g
 
 
-def _write_block(g, b: TodBlock) -> None:
+def _write_block(ds: dict, b: TodBlock) -> None:
+    """One block into an observation's datasets (held open: a dataset object freed mid-write by h5py reports
+    a failed write, a full disk, only as an ignored error in its deallocation, and HDF5 then goes on)."""
     a, z = b.first_sample, b.first_sample + b.n_samples
     for name in ("tod", "flags"):
-        g[name].resize(z, axis=1)
+        ds[name].resize(z, axis=1)
     for name in ("time", "time_ns"):
-        g[name].resize(z, axis=0)
-    g["tod"][:, a:z] = b.p_opt_w
-    g["flags"][:, a:z] = b.flags
-    g["time"][a:z] = b.t_s
-    g["time_ns"][a:z] = b.t_ns
+        ds[name].resize(z, axis=0)
+    ds["tod"][:, a:z] = b.p_opt_w
+    ds["flags"][:, a:z] = b.flags
+    ds["time"][a:z] = b.t_s
+    ds["time_ns"][a:z] = b.t_ns
 
 
 def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = DEFAULT_BLOCK_SAMPLES,
@@ -169,65 +173,183 @@ def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = 
         raise ConfigError(f"{out} exists (use overwrite=True / --overwrite)")
     t_start = time.perf_counter()
     rec = RecordedPower(source, progress=progress, **selection)
-    provenance = rec.provenance()
     tmp = out.with_name(out.name + ".partial")
     try:
-        f = h5py.File(tmp, "w")
+        tmp.unlink(missing_ok=True)  # a previous run's leftover: never a finished file
+        disk = _GuardedFile(tmp, out)
+        f = h5py.File(disk, "w")
     except OSError as exc:
         raise TransportError(f"cannot create {tmp}: {exc}") from None
     try:
-        with f:
-            f.attrs.update({
-                "format": FORMAT, "format_version": FORMAT_VERSION,
-                "software_version": f"mntes-stream {__version__}",
-                "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "source_files": _json([str(p) for p in rec.files]),
-                "observations": _json(rec.names),
-                "selection": _json(rec.selection),
-                "max_gap_s": rec.max_gap_s,
-                "recording": _json(rec.recording_metadata()),
-                "units": _json({"tod": "W", "time": "s", "time_ns": "ns"}),
-                "flags_schema": _json(flags_schema()),  # schemas/flags.v1.json: bit names, meanings, units
-            })
-            pg = f.create_group("provenance")
-            pg.attrs["description"] = "distinct mntes.provenance records of the session (detector parameters, table identity)"
-            prov_paths: dict[tuple, list[str]] = {}
-            for k, (p, log_ns, path) in enumerate(provenance):
-                g = pg.create_group(str(k))
-                g.attrs.update({"setup": p.setup, "params_toml": p.params_toml, "table_identity": p.table_identity,
-                                "converter_kind": p.converter_kind, "software_version": p.software_version,
-                                "t_ns": p.t_ns, "recorded_log_time_ns": log_ns, "source_file": str(path)})
-                prov_paths.setdefault((p.setup, p.table_identity), []).append(g.name)
-            groups = {sid: _create_observation(f, rec, sid, block_samples, filters) for sid in rec.streams}
-            for b in rec.iter_blocks(block_samples):
-                _write_block(groups[b.stream], b)
-            summary_samples = gap = absent = dups = breaks = 0
-            for sid, g in groups.items():
-                st, ix = rec.stats[sid], rec.streams[sid]
-                n = g["time_ns"].shape[0]
-                tn = g["time_ns"]
-                g.attrs.update({
-                    "n_samples": n,
-                    "t_start_ns": int(tn[0]) if n else 0,
-                    "t_end_ns": int(tn[-1]) if n else 0,
-                    "table_identities": _json(st.table_identities),
-                    "converter_kinds": _json(st.converter_kinds),
-                    "segment_starts": _json(st.segment_starts),
-                    "provenance": _json([p for t in st.table_identities for p in prov_paths.get((sid.setup, t), [])]),
-                    "counts": _json({k: v for k, v in st.as_dict().items() if not isinstance(v, list)}
-                                    | {"chunks_indexed": len(ix.chunks)}),
-                })
-                summary_samples += n * len(ix.detectors)
-                gap += st.gap_samples
-                absent += st.absent_samples
-                dups += st.duplicate_chunks
-                breaks += len(st.segment_starts)
+        totals = _write_file(f, rec, block_samples, filters, disk)
+        f.close()
+        disk.sync()
+        disk.check()
         tmp.replace(out)
     except BaseException:
+        import contextlib
+
+        with contextlib.suppress(Exception):  # HDF5 never saw an error (see _GuardedFile): closing is safe
+            f.close()
+        disk.close()
         tmp.unlink(missing_ok=True)
         raise
-    return ExportSummary(str(out), tuple(rec.names), summary_samples, gap, absent, dups, breaks, out.stat().st_size,
-                         time.perf_counter() - t_start)
+    disk.close()
+    return ExportSummary(str(out), tuple(rec.names), *totals, out.stat().st_size, time.perf_counter() - t_start,
+                         damaged=rec.session.damage_line())
+
+
+class _GuardedFile:
+    """The file object HDF5 writes through (h5py's ``fileobj`` driver), keeping write errors from HDF5.
+
+    HDF5 2.0 meeting a full disk swallows some errors in object deallocation,
+    goes on, and crashes at close or exit (the export's rc 139). Here a failed
+    write is remembered and its bytes kept in memory (reads see them), so
+    HDF5 always sees a working file; the export stops after the block in
+    progress (:meth:`check`), closes cleanly and removes the partial file.
+    Memory after a failure is bounded by one block and HDF5's caches.
+    """
+
+    def __init__(self, path: Path, out: Path):
+        self.out = out
+        self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+        self._pos = 0
+        self._spill: dict[int, bytes] = {}  # offset -> bytes that could not be written
+        self.error: OSError | None = None
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        base = {0: 0, 1: self._pos, 2: self._size()}[whence]
+        self._pos = base + offset
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def _size(self) -> int:
+        return max([os.fstat(self._fd).st_size] + [o + len(b) for o, b in self._spill.items()])
+
+    def write(self, data) -> int:
+        data = bytes(data)
+        if self.error is None:
+            try:
+                n = os.pwrite(self._fd, data, self._pos)
+                if n < len(data):
+                    raise OSError(28, os.strerror(28))  # a short write: the disk is full
+                self._pos += n
+                return n
+            except OSError as exc:
+                self.error = exc
+        self._spill[self._pos] = data
+        self._pos += len(data)
+        return len(data)
+
+    def readinto(self, buf) -> int:
+        n = len(buf)
+        out = bytearray(os.pread(self._fd, n, self._pos).ljust(n, b"\0"))
+        for o, b in self._spill.items():
+            lo, hi = max(o, self._pos), min(o + len(b), self._pos + n)
+            if lo < hi:
+                out[lo - self._pos:hi - self._pos] = b[lo - o:hi - o]
+        memoryview(buf).cast("B")[:n] = out
+        self._pos += n
+        return n
+
+    def read(self, n: int = -1) -> bytes:
+        buf = bytearray(max(0, self._size() - self._pos) if n is None or n < 0 else n)
+        self.readinto(buf)
+        return bytes(buf)
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self._pos if size is None else size
+        if self.error is None:
+            os.ftruncate(self._fd, size)
+        return size
+
+    def flush(self) -> None:
+        pass
+
+    def sync(self) -> None:
+        """To the disk before the rename: a finished name never points at data still in memory."""
+        if self.error is None:
+            try:
+                os.fsync(self._fd)
+            except OSError as exc:
+                self.error = exc
+
+    def check(self) -> None:
+        """TransportError (one line) once a write has failed."""
+        if self.error is not None:
+            raise TransportError(f"cannot write {self.out}: {self.error.strerror or self.error} (nothing written: "
+                                 "the partial file is removed)")
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        self._spill.clear()
+
+
+def _write_file(f, rec: RecordedPower, block_samples: int, filters: dict, disk: _GuardedFile) -> tuple:
+    """The whole export into the open file ``f``; ``(samples, gap, absent, duplicates, breaks)``."""
+    provenance = rec.provenance()
+    f.attrs.update({
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "software_version": f"mntes-stream {__version__}",
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "source_files": _json([str(p) for p in rec.files]),
+        "observations": _json(rec.names),
+        "selection": _json(rec.selection),
+        "max_gap_s": rec.max_gap_s,
+        "recording": _json(rec.recording_metadata()),
+        "units": _json({"tod": "W", "time": "s", "time_ns": "ns"}),
+        "flags_schema": _json(flags_schema()),  # schemas/flags.v1.json: bit names, meanings, units
+    })
+    pg = f.create_group("provenance")
+    pg.attrs["description"] = "distinct mntes.provenance records of the session (detector parameters, table identity)"
+    prov_paths: dict[tuple, list[str]] = {}
+    for k, (p, log_ns, path) in enumerate(provenance):
+        g = pg.create_group(str(k))
+        g.attrs.update({"setup": p.setup, "params_toml": p.params_toml, "table_identity": p.table_identity,
+                        "converter_kind": p.converter_kind, "software_version": p.software_version,
+                        "t_ns": p.t_ns, "recorded_log_time_ns": log_ns, "source_file": str(path)})
+        prov_paths.setdefault((p.setup, p.table_identity), []).append(g.name)
+    groups = {sid: _create_observation(f, rec, sid, block_samples, filters) for sid in rec.streams}
+    datasets = {sid: {name: g[name] for name in ("tod", "flags", "time", "time_ns")} for sid, g in groups.items()}
+    for b in rec.iter_blocks(block_samples):
+        _write_block(datasets[b.stream], b)
+        disk.check()  # stop at the first failed write: what follows would only fill memory
+    summary_samples = gap = absent = dups = breaks = 0
+    for sid, g in groups.items():
+        st, ix = rec.stats[sid], rec.streams[sid]
+        n = g["time_ns"].shape[0]
+        tn = g["time_ns"]
+        g.attrs.update({
+            "n_samples": n,
+            "t_start_ns": int(tn[0]) if n else 0,
+            "t_end_ns": int(tn[-1]) if n else 0,
+            "table_identities": _json(st.table_identities),
+            "converter_kinds": _json(st.converter_kinds),
+            "segment_starts": _json(st.segment_starts),
+            "provenance": _json([p for t in st.table_identities for p in prov_paths.get((sid.setup, t), [])]),
+            "counts": _json({k: v for k, v in st.as_dict().items() if not isinstance(v, list)}
+                            | {"chunks_indexed": len(ix.chunks)}),
+        })
+        summary_samples += n * len(ix.detectors)
+        gap += st.gap_samples
+        absent += st.absent_samples
+        dups += st.duplicate_chunks
+        breaks += len(st.segment_starts)
+    _mark_damage(f, rec.session)
+    return summary_samples, gap, absent, dups, breaks
+
+
+def _mark_damage(f, session) -> None:
+    """What of the recording could not be read: the file says so, with the spans (the power there is GAP)."""
+    f.attrs["damaged"] = session.damage_line()
+    f.attrs["damaged_spans_ns"] = _json([[d.start_ns, d.end_ns] for d in session.damage])
+    f.attrs["damaged_chunks"] = _json([{"file": d.path, "offset": d.offset, "why": d.why, "start_ns": d.start_ns,
+                                        "end_ns": d.end_ns, "messages": d.messages, "topics": dict(d.topics)}
+                                       for d in session.damage])
 
 
 def observation_names(path) -> list[str]:

@@ -65,6 +65,7 @@ class TranscodeStats:
     metadata: int
     attachments: int
     seconds: float
+    damaged: str = ""  # what of the input could not be read (marked in the output's mntes.damaged metadata)
 
 
 def transcode(source, out: str | Path, *, foxglove: bool = True, view=None, compression: str = "zstd") -> TranscodeStats:
@@ -97,7 +98,7 @@ def transcode(source, out: str | Path, *, foxglove: bool = True, view=None, comp
     first["mntes.transcode"] = writer_description(source=", ".join(str(p) for p in session.files),
                                                   foxglove_channels=str(bool(foxglove)))
     n = 0
-    with McapFileWriter(out, compression=compression, metadata=first) as writer:
+    with McapFileWriter(out, compression=compression, metadata=first, whole=True) as writer:  # OUT only when finished
         seen = set()
         for m in metadata:
             if m.name in seen:
@@ -113,5 +114,10 @@ def transcode(source, out: str | Path, *, foxglove: bool = True, view=None, comp
             if channels is not None:
                 channels.add(msg.schema_name, msg.payload)
         json_messages = writer.json_messages
+        if session.damage_line():
+            from mntes_stream.io.mcap.repair import DAMAGE_METADATA, damage_metadata
+
+            writer.add_metadata(DAMAGE_METADATA, damage_metadata(session.damage, session.unlabelled_messages))
     return TranscodeStats(messages=n, json_messages=json_messages, undecodable=channels.bad if channels else 0,
-                          metadata=len(metadata), attachments=len(attachments), seconds=time.monotonic() - t0)
+                          metadata=len(metadata), attachments=len(attachments), seconds=time.monotonic() - t0,
+                          damaged=session.damage_line())

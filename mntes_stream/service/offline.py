@@ -57,6 +57,8 @@ class OfflineStats:
     input_complete: bool
     flag_counts: dict = field(default_factory=dict)
     calibrations: int = 1  # recorded calibrations used (more than one: switched at their receive times)
+    damaged: str = ""  # what of the input could not be read (chunks, messages, spans); "" when nothing
+    damaged_messages: int = 0
     ledger: dict = field(default_factory=dict)  # core.ledger: every recorded counts chunk of every stream
     ledger_line: str = ""
 
@@ -71,7 +73,10 @@ class OfflineStats:
                 + (f"\n  the calibration changed {self.calibrations - 1} time(s) during the recording: each part "
                    "converted with its own (figures above: the last)" if self.calibrations > 1 else "")
                 + ("" if self.input_complete else "\n  input was not finished by its recorder: converted what was recovered")
-                + (f"\n  ledger: {self.ledger_line}" if self.ledger_line else ""))
+                + (f"\n  ledger: {self.ledger_line}" if self.ledger_line else "")
+                # On the final line: what could not be read, and where the output marks it.
+                + (f"{';' if self.ledger_line else chr(10) + ' '} input DAMAGED: {self.damaged} (converted what "
+                   "was readable; the gap is in the output's mntes.damaged metadata)" if self.damaged else ""))
 
 
 def _calibration(prov) -> tuple:
@@ -285,7 +290,8 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         bad.update(status.bad_messages)
         flag_counts.update(status.flag_counts)
 
-    with McapFileWriter(output, metadata={"mntes.recording": meta}) as out:
+    # whole: OUT appears only once finished; a failure (a full disk) leaves no file that looks complete.
+    with McapFileWriter(output, metadata={"mntes.recording": meta}, whole=True) as out:
         bar = tqdm(total=total, unit="msg", desc="convert", disable=not progress)
         t_last = None
         epoch = 0
@@ -330,6 +336,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
             emit(pipe.flush(), t_last)
             add_status(pipe)
         bar.close()
+        _mark_damage(session, out)
     return OfflineStats(
         input_messages=n_in,
         power_chunks=n_power,
@@ -349,7 +356,20 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         calibrations=len(plan),
         ledger=ledger.as_dict(),
         ledger_line=ledger.line(),
+        damaged=session.damage_line(),
+        damaged_messages=session.damaged_messages + session.unlabelled_messages,
     )
+
+
+def _mark_damage(session, out) -> None:
+    """The input's unreadable chunks (and its own recorded losses) as ``mntes.damaged`` records of the output."""
+    from mntes_stream.io.mcap.repair import DAMAGE_METADATA, damage_metadata
+
+    for m in session.metadata():
+        if m.name == DAMAGE_METADATA:  # the input was itself made from a damaged file (recover)
+            out.add_metadata(DAMAGE_METADATA, {**m.data, "inherited_from": m.path})
+    if session.damage or session.unlabelled_messages:
+        out.add_metadata(DAMAGE_METADATA, damage_metadata(session.damage, session.unlabelled_messages))
 
 
 def _setup_of(topic: str) -> str | None:
