@@ -167,7 +167,13 @@ def test_bad_input_is_reported_and_the_service_keeps_converting(source, params_f
         sub.close()
     st = [s for s in _of(msgs, StatusMessage) if s.chunks_converted >= 8][-1]
     assert st.bad_messages == {"malformed": 1, "wrong_version": 1, "unknown_schema": 1, "wrong_key": 1, "hk_time": 1}
-    assert st.chunks_out_of_order == 1 and st.chunks_duplicated == 1 and st.chunks_lost == 0
+    assert st.chunks_out_of_order == 1 and st.chunks_duplicated == 1 and st.chunks_missing == 0
+    # The ledger: the three unreadable messages on 0/0's key and the wrong-key one on 0/1's are rejected chunks of
+    # those streams (lost: no power for them); the duplicate is dropped; every other chunk converted.
+    assert st.chunks_rejected == 4 and st.chunks_lost == 4
+    assert st.ledger["0/0"] == {"received": 12, "done": 8, "duplicate": 1,
+                                "rejected": {"malformed": 1, "wrong_version": 1, "unknown_schema": 1}}
+    assert st.ledger["0/1"] == {"received": 1, "rejected": {"wrong_key": 1}}
     assert st.unknown_channel_samples == 20 and st.flag_counts["unknown_channel"] == 20
     assert st.hk_missing_samples == 20 and st.hk_stale_samples == 20
     power = {pw.seq: pw for pw in _of(msgs, PowerChunk)}
