@@ -41,6 +41,7 @@ from mntes_stream.monitor.analysis import (
     welch_psd,
 )
 from mntes_stream.monitor.history import Ring, SlowRing
+from mntes_stream.monitor.ledger_view import ShedWatch, ledger_view
 
 __all__ = [
     "STATE_NAMES",
@@ -106,6 +107,14 @@ class MonitorConfig(Settings):
         ``stale_min_s``) makes the whole view stale.
     replay_after_s : float
         Power published longer than this before it arrives is a replay.
+    lagging_after_s : float
+        Power whose newest sample is older than this when it arrives is not
+        live: a recording replayed through a converter, or a converter behind.
+    shedding_recent_s : float
+        A converter whose shed count grew this recently (or that holds chunks
+        set aside) shows SHEDDING.
+    max_ledger_streams : int
+        Streams of each converter's ledger sent to the page (lossy ones first).
     flag_frac : float
         Fraction of a channel's samples (since the last tick) that must be
         saturated, superconducting or otherwise flagged for it to leave "transition".
@@ -136,6 +145,12 @@ class MonitorConfig(Settings):
     stale_min_s: float = setting(0.5, "the stale threshold is at least this", unit="s", ge=0)
     replay_after_s: float = setting(60.0, "power published longer than this before it arrives is a replay",
                                     unit="s", gt=0)
+    lagging_after_s: float = setting(30.0, "power whose newest sample is older than this on arrival is not live "
+                                     "(LAGGING: a replay through a converter, or a converter behind)", unit="s", gt=0)
+    shedding_recent_s: float = setting(10.0, "a converter that shed chunks this recently, or holds chunks set "
+                                       "aside, shows SHEDDING", unit="s", gt=0)
+    max_ledger_streams: int = setting(256, "streams of each converter's ledger sent to the page (lossy ones first)",
+                                      ge=1, le=100_000)
     flag_frac: float = setting(0.1, "share of a channel's samples flagged for it to leave 'transition'", gt=0, le=1)
     hk_stale_s: float = setting(2.0, "housekeeping or a service status not received this long is stale", unit="s",
                                 gt=0)
@@ -203,6 +218,8 @@ class ModuleBuffer:
         self.replay = False
         self.sequence = StreamSequence()
         self.late = 0
+        self.late_power = 0  # power the converter marked late (converted after being set aside)
+        self.lag_s: float | None = None  # newest sample to receipt, of the last live chunk
         self.restarts = 0
         self.state = np.full(n_ch, STATE_SILENT, dtype=np.uint8)
         # Focal-plane figures of the last tick with samples (NaN: none yet).
@@ -238,8 +255,13 @@ class ModuleBuffer:
             return max((self._recv_times[-1] - self._recv_times[0]) / (len(self._recv_times) - 1) / 1e9, 1e-4)
         return self._chunk_s
 
-    def add(self, t_ns: np.ndarray, p_opt_w: np.ndarray, flags: np.ndarray, seq: int, t_pub_ns: int, t_recv_ns: int) -> None:
-        """Append one chunk: times (n,), power and flags (n_ch, n)."""
+    def add(self, t_ns: np.ndarray, p_opt_w: np.ndarray, flags: np.ndarray, seq: int, t_pub_ns: int, t_recv_ns: int,
+            late: bool = False) -> None:
+        """Append one chunk: times (n,), power and flags (n_ch, n); ``late``: converted late (not a lag)."""
+        if late:
+            self.late_power += 1
+        elif t_ns.size:
+            self.lag_s = (int(t_recv_ns) - int(t_ns[-1])) / 1e9
         if self.last_recv_ns is None or t_recv_ns >= self.last_recv_ns:
             self._recv_times.append(int(t_recv_ns))
         self.last_recv_ns = int(t_recv_ns)
@@ -407,6 +429,8 @@ class Aggregator:
         self.hk: dict[str, _HkHistory] = {s: _HkHistory(self.config.history_s, hk_max) for s in _SCALAR_SENSORS}
         self.bias_readings = 0
         self.statuses: dict[str, tuple] = {}  # service -> (status, t_recv_ns, input rate or None)
+        self._ledgers: dict[str, dict | None] = {}  # service -> its status's ledger as the page shows it
+        self._shed_watch = ShedWatch()
         self.bad_messages: collections.Counter = collections.Counter()
         self.dropped = 0
         self.power_chunks = 0
@@ -431,13 +455,16 @@ class Aggregator:
             buf = self._admit(key, chunk.channels, rate, int(t_recv_ns))
             if buf is None:
                 return
-        buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns)
+        late = bool(getattr(chunk, "late", None))
+        buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns, late)
         self.modules.move_to_end(key)
         self.power_chunks += 1
         self.power_samples += int(chunk.p_opt_w.size)
         self._interval_chunks += 1
         self._interval_samples += int(chunk.p_opt_w.size)
-        if buf.replay:  # the recording's own clock: its samples' end to its publication
+        if late:  # converted after being set aside: its delay is the overload's, counted as late, not latency
+            pass
+        elif buf.replay:  # the recording's own clock: its samples' end to its publication
             if t_ns.size:
                 self._interval_latency_ms.append((int(chunk.t_pub_ns) - int(t_ns[-1])) / 1e6)
         else:
@@ -519,8 +546,14 @@ class Aggregator:
         if prev is None and len(self.statuses) >= self.config.max_services:
             stalest = min(self.statuses, key=lambda s: self.statuses[s][1])
             del self.statuses[stalest]
+            self._ledgers.pop(stalest, None)
+            self._shed_watch.forget(stalest)
             self.services_evicted += 1
         self.statuses[status.service] = (status, int(t_recv_ns), rate)
+        # Reduced once per status, not per tick: a ledger may list thousands of streams.
+        self._ledgers[status.service] = ledger_view(getattr(status, "ledger", None) or {},
+                                                    self.config.max_ledger_streams)
+        self._shed_watch.observe(status.service, int(getattr(status, "chunks_shed", 0) or 0), int(t_recv_ns))
 
     def add_bad(self, reason: str) -> None:
         """A message that could not be decoded (counted and shown, never raised)."""
@@ -636,24 +669,57 @@ class Aggregator:
         Returns
         -------
         dict
-            ``state``: "waiting" (no power yet), "live", "stale" or
+            ``state``: "waiting" (no power yet), "live", "stale",
             "replay" (live, but the data were published long before, see
-            ``replay_after_s``); ``age_s`` of the newest power chunk (receive
-            clock), ``threshold_s``, ``chunk_interval_s``, ``newest_t_ns``
-            (sample time of the newest data: the recording's clock in a replay).
+            ``replay_after_s``), "lagging" (live, but the newest sample was
+            older than ``lagging_after_s`` on arrival: a recording replayed
+            through a converter, or a converter behind) or "shedding" (a
+            converter holds chunks set aside or shed some within
+            ``shedding_recent_s``; any state but stale); ``age_s`` of the
+            newest power chunk (receive clock), ``threshold_s``,
+            ``chunk_interval_s``, ``newest_t_ns`` (sample time of the newest
+            data: the recording's clock in a replay), ``lag_s`` (newest sample
+            to receipt), ``shedding`` (``services``, ``shed``, ``set_aside``).
         """
+        shedding = [x for x in (self._shedding(name, now_ns) for name in self.statuses) if x["shedding"]]
+        shed = {"services": [x["service"] for x in shedding], "shed": int(sum(x["chunks_shed"] for x in shedding)),
+                "set_aside": int(sum(x["chunks_set_aside"] for x in shedding))}
         bufs = [b for b in self.modules.values() if b.last_recv_ns is not None]
         if not bufs:
-            return {"state": "waiting", "age_s": None, "threshold_s": None, "chunk_interval_s": None,
-                    "newest_t_ns": None, "replay": False, "stale_chunks": self.config.stale_chunks}
+            return {"state": "shedding" if shedding else "waiting", "age_s": None, "threshold_s": None,
+                    "chunk_interval_s": None, "newest_t_ns": None, "replay": False,
+                    "stale_chunks": self.config.stale_chunks, "lag_s": None,
+                    "lagging_after_s": self.config.lagging_after_s, "shedding": shed}
         newest = max(bufs, key=lambda b: b.last_recv_ns)
         recent = [b for b in bufs if newest.last_recv_ns - b.last_recv_ns <= self.config.silent_s * 1e9]
         interval = float(np.median([b.chunk_interval_s() for b in recent]))
         threshold = max(self.config.stale_chunks * interval, self.config.stale_min_s)
         age = max(int(now_ns) - newest.last_recv_ns, 0) / 1e9
+        lags = [b.lag_s for b in recent if b.lag_s is not None]
+        lag = float(np.median(lags)) if lags else None
         state = "stale" if age > threshold else ("replay" if newest.replay else "live")
+        if state == "live" and lag is not None and lag > self.config.lagging_after_s:
+            state = "lagging"
+        if state != "stale" and shedding:  # no data at all is worse; otherwise shedding is what to know first
+            state = "shedding"
         return {"state": state, "age_s": age, "threshold_s": threshold, "chunk_interval_s": interval,
-                "newest_t_ns": newest.newest_t_ns, "replay": bool(newest.replay), "stale_chunks": self.config.stale_chunks}
+                "newest_t_ns": newest.newest_t_ns, "replay": bool(newest.replay), "stale_chunks": self.config.stale_chunks,
+                "lag_s": lag, "lagging_after_s": self.config.lagging_after_s, "shedding": shed}
+
+    def _shedding(self, name: str, now_ns: int) -> dict:
+        """One service's ledger as the page shows it, and whether it is shedding now."""
+        s, t_recv, _ = self.statuses[name]
+        set_aside = int(getattr(s, "chunks_set_aside", 0) or 0)
+        age = (now_ns - t_recv) / 1e9
+        fresh = age <= max(self.config.hk_stale_s, 3 * s.interval_s)  # a silent converter sets nothing aside now
+        recent = self._shed_watch.shed_recently(name, now_ns, self.config.shedding_recent_s)
+        return {"service": name, "chunks_shed": int(getattr(s, "chunks_shed", 0) or 0),
+                "chunks_late": int(getattr(s, "chunks_late", 0) or 0),
+                "chunks_rejected": int(getattr(s, "chunks_rejected", 0) or 0),
+                "chunks_missing": int(getattr(s, "chunks_missing", 0) or 0),
+                "chunks_set_aside": set_aside,
+                "shedding": bool(fresh and (set_aside > 0 or recent)),
+                "ledger": self._ledgers.get(name)}
 
     def _focal(self) -> dict:
         parts = [self.modules[k] for k in sorted(self.modules)]
@@ -708,6 +774,7 @@ class Aggregator:
                 "hk_age_s": dict(s.hk_age_s),
                 "bad_messages": int(sum(s.bad_messages.values())),
                 "last_error": s.last_error,
+                **self._shedding(name, now_ns),
             })
         mods = self.modules.values()
         return {
@@ -719,6 +786,7 @@ class Aggregator:
                 "power_chunks": self.power_chunks,
                 "lost_chunks": int(sum(max(b.sequence.lost, 0) for b in mods)),
                 "late_chunks": int(sum(b.late for b in mods)),
+                "late_power_chunks": int(sum(b.late_power for b in mods)),
                 "dropped": self.dropped,
                 "bad_messages": dict(self.bad_messages),
                 "channels": len(self._index),

@@ -5,8 +5,9 @@ from __future__ import annotations
 import datetime as _dt
 
 from mntes_stream.monitor.aggregate import STATE_NAMES, Aggregator
+from mntes_stream.monitor.ledger_view import COLUMNS
 
-__all__ = ["freshness_text", "render_text"]
+__all__ = ["freshness_text", "ledger_lines", "render_text"]
 
 
 def _f(v, fmt: str = "{:.1f}") -> str:
@@ -14,7 +15,15 @@ def _f(v, fmt: str = "{:.1f}") -> str:
 
 
 def freshness_text(fr: dict) -> str:
-    """The badge as words: LIVE, REPLAY (with the recording's time), STALE with the age, or WAITING."""
+    """The badge as words: LIVE, SHEDDING (with the counts), LAGGING, REPLAY (with the recording's time),
+    STALE with the age, or WAITING."""
+    if fr["state"] == "shedding":
+        sh = fr["shedding"]
+        return (f"SHEDDING: {', '.join(sh['services'])} shed {sh['shed']:,} chunks, {sh['set_aside']:,} set aside "
+                "(overload: late power follows; offline convert gives what was shed)")
+    if fr["state"] == "lagging":
+        return (f"LAGGING: data {fr['lag_s']:.1f} s old on arrival (> {fr['lagging_after_s']:g} s: a replay through "
+                "a converter, or a converter behind)")
     if fr["state"] == "waiting":
         return "WAITING: no power received yet"
     if fr["state"] == "stale":
@@ -44,13 +53,14 @@ def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
     lines = [f"mntes-stream monitor  {when}  channels {mon['channels']} in {mon['modules']} modules  "
              + freshness_text(tick["freshness"])]
     lines.append(f"{'source':<12}{'in/s':>8}{'out/s':>8}{'Msamp/s':>9}{'lat p50':>9}{'p99':>8}{'max ms':>8}"
-                 f"{'lost':>6}{'pend':>6}{'hk stale':>10}{'bad':>5}{'age s':>7}")
+                 f"{'lost':>6}{'shed':>6}{'late':>6}{'pend':>6}{'hk stale':>10}{'bad':>5}{'age s':>7}")
     for s in h["services"]:
+        flags = ("  STALE" if s['stale'] else "") + ("  SHEDDING" if s.get("shedding") else "")
         lines.append(
             f"{s['service'][:11]:<12}{_f(s['in_chunks_per_s']):>8}{_f(s['out_chunks_per_s']):>8}"
             f"{_f(s['out_msamples_per_s'], '{:.3f}'):>9}{_f(s['latency_p50_ms']):>9}{_f(s['latency_p99_ms']):>8}"
-            f"{_f(s['latency_max_ms']):>8}{s['chunks_lost']:>6}{s['chunks_pending']:>6}{s['hk_stale_samples']:>10}"
-            f"{s['bad_messages']:>5}{_f(s['age_s']):>7}{'  STALE' if s['stale'] else ''}"
+            f"{_f(s['latency_max_ms']):>8}{s['chunks_lost']:>6}{s.get('chunks_shed', 0):>6}{s.get('chunks_late', 0):>6}"
+            f"{s['chunks_pending']:>6}{s['hk_stale_samples']:>10}{s['bad_messages']:>5}{_f(s['age_s']):>7}{flags}"
         )
     bad = sum(mon["bad_messages"].values())
     lines.append(
@@ -58,6 +68,7 @@ def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
         f"{_f(mon['latency_p50_ms']):>9}{'':>8}{_f(mon['latency_max_ms']):>8}{mon['lost_chunks']:>6}"
         f"{'':>6}{'':>10}{bad:>5}   dropped {mon['dropped']}"
     )
+    lines.extend(ledger_lines(h["services"], max_listed))
     hk = []
     for name, s in h["hk"].items():
         if s["value"] is None:
@@ -74,3 +85,27 @@ def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
         more = f" (+{total - len(listed)} more)" if total > len(listed) else ""
         lines.append("not in transition: " + ", ".join(f"{d} {s}" for d, s in listed) + more)
     return "\n".join(lines)
+
+
+_HEADS = {"converted": "conv", "late": "late", "shed": "shed", "rejected": "rej", "duplicate": "dup",
+          "never_received": "never", "lost": "lost", "pending": "pend"}
+
+
+def ledger_lines(services: list[dict], max_listed: int = 12) -> list[str]:
+    """Each converter's ledger: its one-line summary, then its streams (lossy ones first, ``max_listed`` at most)."""
+    out = []
+    for s in services:
+        led = s.get("ledger")
+        if not led:
+            continue
+        out.append(f"ledger {s['service']}: {led['line']}")
+        rows = led["streams"][:max_listed]
+        if not rows:
+            continue
+        out.append("  " + f"{'stream':<10}" + "".join(f"{_HEADS[c]:>9}" for c in COLUMNS))
+        for r in rows:
+            out.append("  " + f"{r['stream'][:9]:<10}" + "".join(f"{r[c]:>9,}" for c in COLUMNS))
+        more = led["streams_total"] - len(rows)
+        if more > 0:
+            out.append(f"  (+{more} more streams)")
+    return out

@@ -114,7 +114,7 @@ function setFresh(state, text) {
   M.fresh = { state, text };
   const b = $("fresh");
   if (b.textContent !== text) b.textContent = text;
-  const cls = "pill " + ({ live: "ok", replay: "replay", stale: "bad", waiting: "bad", silent: "bad" }[state] || "bad");
+  const cls = "pill " + ({ live: "ok", replay: "replay", shedding: "warn", lagging: "warn", stale: "bad", waiting: "bad", silent: "bad" }[state] || "bad");
   if (b.className !== cls) b.className = cls;
 }
 
@@ -131,6 +131,8 @@ function refreshBadge() {
   if (fr.state === "waiting") setFresh("waiting", "waiting for data");
   else if (fr.state === "stale") setFresh("stale", `STALE: no data for ${ageText(fr.age_s + since)} (> ${fr.stale_chunks} chunk intervals, ${fmt(fr.threshold_s, 2)} s)`);
   else if (fr.state === "replay") setFresh("replay", `REPLAY · recorded ${utc(fr.newest_t_ns)}`);
+  else if (fr.state === "shedding") setFresh("shedding", `SHEDDING · ${fr.shedding.shed.toLocaleString("en")} chunks shed, ${fr.shedding.set_aside.toLocaleString("en")} set aside (${fr.shedding.services.join(", ")})`);
+  else if (fr.state === "lagging") setFresh("lagging", `LAGGING · data ${ageText(fr.lag_s)} old on arrival (replay or converter behind)`);
   else setFresh("live", `LIVE · ${fmt(fr.age_s, 1)} s`);
 }
 setInterval(refreshBadge, 200);
@@ -296,24 +298,45 @@ function housekeeping(msg) {
 function health(msg) {
   const h = msg.health, mon = h.monitor, pl = h.page_latency_ms;
   const cell = (v, bad) => `<td class="${bad ? "bad-cell" : ""}">${v}</td>`;
-  let rows = "<tr><th>source</th><th>in [chunks/s]</th><th>out [chunks/s]</th><th>out [Msamples/s]</th><th>latency p50 / p99 / max [ms]</th><th>lost chunks</th><th>pending</th><th>stale hk samples</th><th>bad msgs</th><th>status age [s]</th></tr>";
+  let rows = "<tr><th>source</th><th>in [chunks/s]</th><th>out [chunks/s]</th><th>out [Msamples/s]</th><th>latency p50 / p99 / max [ms]</th><th>lost chunks</th><th>shed / set aside / late</th><th>pending</th><th>stale hk samples</th><th>bad msgs</th><th>status age [s]</th></tr>";
+  let ledgers = "";
   for (const s of h.services) {
-    rows += `<tr><td>${s.service}</td>${cell(fmt(s.in_chunks_per_s, 1))}${cell(fmt(s.out_chunks_per_s, 1))}${cell(fmt(s.out_msamples_per_s, 3))}` +
+    const shed = `${s.chunks_shed} / ${s.chunks_set_aside} / ${s.chunks_late}${s.shedding ? " SHEDDING" : ""}`;
+    rows += `<tr><td>${esc(s.service)}</td>${cell(fmt(s.in_chunks_per_s, 1))}${cell(fmt(s.out_chunks_per_s, 1))}${cell(fmt(s.out_msamples_per_s, 3))}` +
       `${cell(`${fmt(s.latency_p50_ms, 1)} / ${fmt(s.latency_p99_ms, 1)} / ${fmt(s.latency_max_ms, 1)}`)}` +
-      `${cell(s.chunks_lost, s.chunks_lost > 0)}${cell(s.chunks_pending)}${cell(s.hk_stale_samples, s.hk_stale_samples > 0)}` +
+      `${cell(s.chunks_lost, s.chunks_lost > 0)}<td class="${s.shedding ? "warn-cell" : s.chunks_shed > 0 ? "bad-cell" : ""}">${shed}</td>${cell(s.chunks_pending)}${cell(s.hk_stale_samples, s.hk_stale_samples > 0)}` +
       `${cell(s.bad_messages, s.bad_messages > 0)}${cell(fmt(s.age_s, 1), s.stale)}</tr>`;
+    if (s.ledger) ledgers += ledgerTable(s.service, s.ledger);
   }
   const bad = Object.values(mon.bad_messages).reduce((a, b) => a + b, 0);
   rows += `<tr><td>monitor (received${msg.freshness.replay ? "; replay: latency on the recording's clock" : ""})</td>${cell(fmt(mon.chunks_per_s, 1))}${cell("")}${cell(fmt(mon.msamples_per_s, 3))}` +
     `${cell(`${fmt(mon.latency_p50_ms, 1)} / – / ${fmt(mon.latency_max_ms, 1)}`)}${cell(mon.lost_chunks, mon.lost_chunks > 0)}` +
-    `${cell(`dropped ${mon.dropped}`, mon.dropped > 0)}${cell("")}${cell(bad, bad > 0)}${cell("")}</tr>`;
-  rows += `<tr><td>page (publication → drawn)</td>${cell("")}${cell("")}${cell("")}${cell(`${fmt(pl.p50, 0)} / – / ${fmt(pl.max, 0)}`)}${cell("")}${cell("")}${cell("")}${cell("")}${cell("")}</tr>`;
+    `${cell(`late ${mon.late_power_chunks}`)}${cell(`dropped ${mon.dropped}`, mon.dropped > 0)}${cell("")}${cell(bad, bad > 0)}${cell("")}</tr>`;
+  rows += `<tr><td>page (publication → drawn)</td>${cell("")}${cell("")}${cell("")}${cell(`${fmt(pl.p50, 0)} / – / ${fmt(pl.max, 0)}`)}${cell("")}${cell("")}${cell("")}${cell("")}${cell("")}${cell("")}</tr>`;
   let hk = "";
   for (const [name, s] of Object.entries(h.hk)) {
     const v = s.value === null ? "–" : name === "t_bath" ? `${fmt(s.value * 1e3, 4)} mK` : `${fmt(s.value * 1e6, 3)} µT`;
     hk += `<span class="${s.stale ? "bad-cell" : ""}">${name}: ${v} (received ${fmt(s.age_s, 1)} s ago${s.stale ? ", STALE" : ""})</span> &nbsp; `;
   }
-  $("health").innerHTML = `<table>${rows}</table><p>${hk} &nbsp; channels: ${mon.channels} in ${mon.modules} modules</p>`;
+  $("health").innerHTML = `<table>${rows}</table><p>${hk} &nbsp; channels: ${mon.channels} in ${mon.modules} modules</p>${ledgers}`;
+}
+
+// Names come from the network: never markup.
+const esc = (v) => String(v).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+const LEDGER_COLUMNS = [["converted", "converted"], ["late", "late"], ["shed", "shed"], ["rejected", "rejected"],
+  ["duplicate", "duplicate"], ["never_received", "never received"], ["lost", "lost"], ["pending", "pending"]];
+
+// One converter's ledger: its summary line and a row per stream (lossy streams first).
+function ledgerTable(service, led) {
+  const head = LEDGER_COLUMNS.map(([, name]) => `<th>${name}</th>`).join("");
+  const row = (name, r) => `<tr><td>${esc(name)}</td>` + LEDGER_COLUMNS.map(([k]) =>
+    `<td class="${(k === "lost" || k === "shed" || k === "rejected") && r[k] > 0 ? "bad-cell" : ""}">${r[k].toLocaleString("en")}</td>`).join("") + "</tr>";
+  let body = row("all streams", led.totals);
+  for (const r of led.streams) body += row(r.stream, r);
+  const more = led.streams_total - led.streams.length;
+  return `<h3 class="ledger">ledger of ${esc(service)}: ${esc(led.line)}</h3>` +
+    `<table class="ledger"><tr><th>stream</th>${head}</tr>${body}</table>` +
+    `${more > 0 ? `<p>+${more} more streams</p>` : ""}<p class="note">${esc(led.lost_means)}</p>`;
 }
 
 async function draw(msg) {
