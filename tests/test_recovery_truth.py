@@ -249,3 +249,38 @@ def test_recorder_writer_on_a_full_disk_says_what_the_file_holds(small_disk):
         warnings.simplefilter("ignore", mio.TruncatedFileWarning)
         got = len(list(mio.iter_messages(small_disk / "rec-000001.mcap")))
     assert said <= got < said + 50  # the count said is what the file holds up to its last flush
+
+
+def test_export_of_a_finished_file_with_a_damaged_chunk_marks_the_gap(killed, tmp_path, capsys):
+    """A finished file (summary path): the damage is found on reading, said, and listed in the HDF5 file."""
+    import h5py
+
+    data, _, _ = killed
+    (tmp_path / "in.mcap").write_bytes(data)
+    conv = tmp_path / "conv.mcap"
+    rc, _, _ = _cli(capsys, "convert", "-q", tmp_path / "in.mcap", tmp_path / "one_chunk.mcap")
+    assert rc == 0
+    with mio.McapFileWriter(conv) as w:  # the same, finished, in chunks of 20 messages
+        for k, m in enumerate(_messages(tmp_path / "one_chunk.mcap")):
+            w.write(m.topic, m.payload, m.log_time_ns)
+            if k % 20 == 19:
+                w.flush()
+    chunks = sorted(index_file(conv).chunks, key=lambda c: c.offset)
+    c = chunks[len(chunks) // 2]
+    bad = bytearray(conv.read_bytes())
+    bad[c.offset + c.length - 20] ^= 0xFF
+    (tmp_path / "bad.mcap").write_bytes(bytes(bad))
+    lost = len(_messages(conv)) - len(_messages(tmp_path / "bad.mcap"))
+    assert lost > 0
+    rc, out, err = _cli(capsys, "export", tmp_path / "bad.mcap", "--out", tmp_path / "p.h5", "--json")
+    assert rc == 0, err
+    doc = json.loads(out)
+    assert rc == 0 and "input DAMAGED" in err and f"1 damaged chunk(s), {lost} messages lost" in doc["damaged"]
+    assert doc["gap_samples"] > 0  # the power the chunk held is a hole: NaN + GAP
+    with h5py.File(tmp_path / "p.h5") as f:
+        assert json.loads(f.attrs["damaged_spans_ns"]) == [[c.start_ns, c.end_ns]]
+        assert json.loads(f.attrs["damaged_chunks"])[0]["messages"] == lost
+    rc, out, _ = _cli(capsys, "export", conv, "--out", tmp_path / "ok.h5", "--json")
+    assert rc == 0 and "damaged" not in json.loads(out)
+    with h5py.File(tmp_path / "ok.h5") as f:
+        assert f.attrs["damaged"] == "" and json.loads(f.attrs["damaged_spans_ns"]) == []
