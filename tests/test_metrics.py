@@ -96,6 +96,10 @@ def test_up_serves_every_dashboard_metric_with_nonzero_rates(tmp_path):
     assert _total(second, "mntes_flagged_samples_total", flag="saturated") <= _total(second, "mntes_samples_converted_total")
     assert {dict(lab)["sensor"] for n, lab in second if n == "mntes_hk_age_seconds"} >= {"t_bath", "b_field"}
     assert _total(second, "mntes_chunks_total", outcome="lost") == 0
+    # The ledger per stream adds up to the status's totals (one status message behind both).
+    assert {dict(lab)["stream"] for n, lab in second if n == "mntes_ledger_chunks_total"} == {"0/0", "0/1"}
+    assert (_total(second, "mntes_ledger_chunks_total", column="received")
+            == _total(second, "mntes_chunks_total", outcome="received") > 0)
 
 
 def _required(name: str) -> dict:

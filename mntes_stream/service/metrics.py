@@ -171,9 +171,22 @@ class ServiceMetrics:
         chunks = c("mntes_chunks", "counts chunks by outcome (cumulative, from the status)", labels=[*ln, "outcome"])
         for outcome, value in (("received", status.chunks_received), ("converted", status.chunks_converted),
                                ("lost", status.chunks_lost), ("duplicated", status.chunks_duplicated),
-                               ("out_of_order", status.chunks_out_of_order)):
+                               ("out_of_order", status.chunks_out_of_order), ("missing", status.chunks_missing),
+                               ("shed", status.chunks_shed), ("late", status.chunks_late),
+                               ("rejected", status.chunks_rejected)):
             chunks.add_metric([*lv, outcome], float(value))
         yield chunks
+        aside = g("mntes_chunks_set_aside", "chunks held under overload for late conversion now", labels=ln)
+        aside.add_metric(lv, float(status.chunks_set_aside))
+        yield aside
+        # The ledger per stream (core/ledger.py): every chunk in one column; shed and rejected by reason.
+        ledger = c("mntes_ledger_chunks", "counts chunks of each stream by ledger column (and reason)",
+                   labels=[*ln, "stream", "column", "reason"])
+        for stream, cols in status.ledger.items():
+            for column, value in cols.items():
+                for reason, n in (value.items() if isinstance(value, dict) else (("", value),)):
+                    ledger.add_metric([*lv, stream, column, reason], float(n))
+        yield ledger
         bad = c("mntes_bad_messages", "messages rejected, by reason", labels=[*ln, "reason"])
         for reason, value in {**dict.fromkeys(SCHEMA_REASONS, 0), **status.bad_messages}.items():
             bad.add_metric([*lv, reason], float(value))
