@@ -93,8 +93,8 @@ class Coverage:
             holes.pop(0)
         missing = hi - lo
         self.gaps[stream] = self.gaps.get(stream, 0) + missing
-        log.warning("stream %s: live power again after %d chunk(s) without (seq %d to %d): %s", stream, missing, lo,
-                    hi - 1, self.reason(stream, "not converted"))
+        log.warning("stream %s: power again after a gap of %d chunk(s) (seq %d to %d not converted live): %s", stream,
+                    missing, lo, hi - 1, self.reason(stream, "no converter published them"))
 
     def _fill(self, stream: str, seq: int) -> None:
         holes = self._holes.get(stream, ())
