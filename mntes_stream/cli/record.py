@@ -79,6 +79,7 @@ def run_replay_cmd(args) -> int:
     else:
         print(f"replayed {stats.messages} messages on {stats.topics} topics: {stats.recorded_span_s:.2f} s of recording "
               f"in {stats.duration_s:.2f} s (at most {stats.behind_max_ms:.1f} ms behind schedule)")
+        print(f"ledger: counts {stats.ledger_line}")  # the last line: every recorded chunk of every stream
     return 0
 
 

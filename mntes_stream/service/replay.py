@@ -16,6 +16,8 @@ from datetime import UTC, datetime
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
+from mntes_stream.io.mcap.envelope import peek_envelope
+from mntes_stream.io.mcap.ledger import RecordingBook
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.metrics import MetricsSettings
@@ -73,6 +75,8 @@ class ReplayStats:
     recorded_span_s: float
     behind_max_ms: float
     complete: bool
+    ledger: dict | None = None  # counts chunks of every stream published (core.ledger), gaps of the recording
+    ledger_line: str = ""
 
 
 def parse_time(text: str, session_start_ns: int | None) -> int:
@@ -104,6 +108,7 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False, he
     topics = sorted(t for t in session_in.message_counts() if match(t))
     total = session_in.count(topics)
     by_kind: dict[str, int] = {}
+    book = RecordingBook()
     n = nbytes = 0
     behind_max = 0.0
     first_log = last_log = None
@@ -133,6 +138,8 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False, he
                 break
             last_log = msg.log_time_ns
             pubs.put(msg.topic, msg.payload)
+            if keys.kind_of(msg.topic) == "counts":  # what the recording holds of each stream, and its gaps
+                book.add(msg.topic, msg.payload, peek_envelope(msg.payload), msg.log_time_ns)
             n += 1
             nbytes += len(msg.payload)
             kind = keys.kind_of(msg.topic) or "other"
@@ -155,9 +162,16 @@ def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False, he
         recorded_span_s=0.0 if first_log is None else (last_log - first_log) / 1e9,
         behind_max_ms=behind_max * 1e3,
         complete=session_in.complete,
+        ledger=(led := book.ledger_now()).as_dict(),
+        ledger_line=_published(led).line(),
     )
     log.info("replay done: %s", stats)
     return stats
+
+
+def _published(led):
+    led.verb = "published"
+    return led
 
 
 class ReplayService(Service):
