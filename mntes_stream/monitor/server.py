@@ -209,6 +209,14 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
     """
     plotly_js = plotly_js_path()
     rate_log = rate_log or RateLog(log)
+
+    def failed(cause: str, exc: BaseException) -> None:
+        # The first of a cause with its traceback (a bug to report), the rest counted: a tick every 0.5 s or
+        # an update per page must not flood the log.
+        first = cause not in rate_log.counts
+        rate_log.note(cause, f"{cause.replace('_', ' ')}: {type(exc).__name__}: {exc}"[:300], level=logging.ERROR)
+        if first:
+            log.error("monitor: %s, traceback of the first:", cause.replace("_", " "), exc_info=exc)
     guard = guard or WebGuard()
     clients: set = set()
     refused: dict[str, int] = {"host_or_origin": 0, "too_many_clients": 0, "slow_client": 0}
@@ -245,8 +253,8 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
                 t0 = time.monotonic()
                 try:
                     hub.publish(*await asyncio.to_thread(_tick))
-                except Exception:  # keep ticking: one bad tick must not freeze every page
-                    log.exception("monitor tick failed")
+                except Exception as exc:  # keep ticking: one bad tick must not freeze every page
+                    failed("tick_failed", exc)
                 await asyncio.sleep(max(update_s - (time.monotonic() - t0), 0.01))
         except asyncio.CancelledError:
             pass
@@ -318,7 +326,7 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
                 try:
                     msg = await asyncio.to_thread(_update, hub, client)
                 except Exception as exc:  # tell the page, keep serving it
-                    log.exception("monitor update failed")
+                    failed("update_failed", exc)
                     msg = _dumps({"type": "error", "message": f"server: {type(exc).__name__}: {exc}"})
                 try:
                     await asyncio.wait_for(ws.send_str(msg), send_timeout_s)
