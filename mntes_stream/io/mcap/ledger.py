@@ -265,9 +265,12 @@ def recompute_ledger(session, note: str = "") -> RecordingLedger:
     # One setup (the usual case): streams named "<board>/<module>" as the recorder names them.
     setups = {t.split("/")[1] for t in session.message_counts() if keys.kind_of(t) == "counts"}
     book = RecordingBook(setups.pop() if len(setups) == 1 else None)
-    for m in session.iter_messages():
-        if keys.kind_of(m.topic) in ("counts", "power", "status"):
-            book.add(m.topic, m.payload, peek_envelope(m.payload), m.log_time_ns)
+    try:
+        for m in session.iter_messages():
+            if keys.kind_of(m.topic) in ("counts", "power", "status"):
+                book.add(m.topic, m.payload, peek_envelope(m.payload), m.log_time_ns)
+    except MntesError as exc:  # what was read so far is still booked; the rest is said
+        note = f"{note}; reading stopped: {exc}" if note else f"reading stopped: {exc}"
     return RecordingLedger("recomputed", book.ledger_now(), book.power, book.converters, note=note)
 
 
