@@ -195,3 +195,31 @@ def test_coverage_names_the_converters_shedding_and_counts_late_power():
     # Power of a stream whose counts never came: said once it lasted after_s.
     cov.add("mntes/lab/power/0/2", 0, 5.0)
     assert cov.power_only(5.5) == [] and cov.power_only(6.1) == ["0/2"]
+
+
+def test_a_recorded_status_ledger_names_the_shedding_converter():
+    """The converter's real status bytes (ledger with shed chunks) -> the recorder's book -> Coverage's reason,
+    and the file's mntes.ledger record carries the converter's ledger."""
+    from mntes_stream.io.mcap.envelope import peek_envelope
+    from mntes_stream.io.mcap.ledger import RecordingBook
+    from mntes_stream.io.messages import StatusMessage
+
+    conv = Ledger("converted")
+    conv.received("0/3", 40)
+    conv.done("0/3", 30)
+    conv.shed("0/3", "overload", 10)
+    payload = StatusMessage(setup="lab", service="conv-b", t_ns=5, uptime_s=1.0, interval_s=1.0, chunks_received=40,
+                            chunks_converted=30, chunks_shed=10, chunks_lost=10, ledger=conv.as_dict()).to_bytes()
+    book = RecordingBook("lab")
+    book.add("mntes/lab/status/conv-b", payload, peek_envelope(payload), 5)
+    assert book.status_topics == {"mntes/lab/status/conv-b": "conv-b"}
+    entry = book.converters["conv-b"]
+    assert entry["chunks_shed"] == 10 and entry["ledger"] == {"0/3": {"received": 40, "done": 30, "shed": {"overload": 10}}}
+    cov = Coverage(after_s=1.0)
+    cov.converter_status("conv-b", entry["ledger"], entry["chunks_set_aside"])
+    cov.add("mntes/lab/counts/0/3", 0, 0.0)
+    cov.add("mntes/lab/counts/0/3", 1, 1.5)
+    assert cov.summary(2.0)["unconverted_why"] == {"0/3": "converter conv-b shed 10 chunks of it (overload)"}
+    meta = book.metadata("run-1", 1)
+    assert meta["converter.conv-b"] == "received 40 chunks: converted 30, shed 10 (overload 10); lost 10 of 40"
+    assert json.loads(meta["converters"])["conv-b"]["chunks_shed"] == 10
