@@ -316,8 +316,11 @@ def run(args) -> dict:
         "power_duplicates_recorded": power_msgs - unique_power,
         "lost": src["chunks_sent"] - unique_power,
         "converter_lost": conv.get("chunks_lost") if isinstance(conv, dict) else None,
-        # Overload policy (shed, counted): chunks the converter dropped for being too far behind their stream.
-        "converter_shed": conv.get("bad_messages", {}).get("overload", 0) if isinstance(conv, dict) else None,
+        # Overload (a real one: behind without a break for overload_after_s): set aside, converted late when
+        # there was time, shed beyond the set-aside budget; in the converter's ledger either way.
+        "converter_shed": conv.get("chunks_shed") if isinstance(conv, dict) else None,
+        "converter_late": conv.get("chunks_late") if isinstance(conv, dict) else None,
+        "converter_ledger": conv.get("ledger_line") if isinstance(conv, dict) else None,
         "source_behind_max_ms": round(src.get("behind_max_ms", 0.0), 2),
         "stream_wall_s": round(stream_wall, 2),
         "passthrough_msamples_per_s": round(sink.get("msamples_per_s", 0.0), 3) if isinstance(sink, dict) else None,
