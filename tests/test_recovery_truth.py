@@ -218,7 +218,9 @@ def test_full_disk_is_one_line_and_leaves_no_file_that_looks_finished(killed, sm
     _fill(small_disk, 64 * 1024)
     for argv, out in ((("convert", "-q", src), small_disk / "c.mcap"),
                       (("recover", src), small_disk / "r.mcap"),
-                      (("export", conv, "--compression", "none", "--json", "--out"), small_disk / "e.h5")):
+                      (("export", conv, "--compression", "none", "--json", "--out"), small_disk / "e.h5"),
+                      (("export", conv, "--format", "toast", "--out"), small_disk / "toast"),
+                      (("export", conv, "--format", "sotodlib", "--out"), small_disk / "so.h5")):
         res = _run(*argv, out)
         line = _one_line_error(res)  # never rc 139, never a traceback
         assert "No space left on device" in line, line

@@ -17,7 +17,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.feeds.blocks import GAP_FACTOR, TodBlock, concat_blocks
 
 __all__ = ["FocalPlane", "Positions", "as_block", "segments", "sample_rate_hz", "focal_plane", "read_positions", "metadata",
-           "observation_blocks", "PLACEHOLDER_NOTE", "output_dir"]
+           "observation_blocks", "PLACEHOLDER_NOTE", "output_dir", "check_room"]
 
 PLACEHOLDER_NOTE = ("placeholder: no detector positions or polarisation angles are known to mntes-stream for these "
                     "detectors; every detector is put at the boresight (xi = eta = 0) with polarisation angle 0")
@@ -217,12 +217,15 @@ def metadata(block: TodBlock, name: str, rate_hz: float, fp: FocalPlane, segment
     }
 
 
-def observation_blocks(source, **selection) -> Iterator[tuple[str, int, TodBlock, float | None]]:
+def observation_blocks(source, *, room_in: Path | None = None,
+                       **selection) -> Iterator[tuple[str, int, TodBlock, float | None]]:
     """A recording's observations: ``(name, segment, block, nominal rate)`` per module and segment.
 
     The name is the stream's (``<setup>_b<board>m<module>``), with ``_seg<k>``
     appended when a stream has several segments. ``source`` is what
     :class:`~mntes_stream.feeds.recorded.RecordedPower` takes, or one.
+    ``room_in``: the partial output (file or directory); each observation is
+    yielded only when its disk has room for it (:func:`check_room`).
     """
     from mntes_stream.feeds.recorded import RecordedPower
 
@@ -233,7 +236,39 @@ def observation_blocks(source, **selection) -> Iterator[tuple[str, int, TodBlock
         segs = segments(block)
         for k, seg in enumerate(segs):
             name = block.name if len(segs) == 1 else f"{block.name}_seg{k}"
+            if room_in is not None:
+                check_room(room_in, seg, name)
             yield name, k, seg, rec.streams[sid].sample_rate_hz
+
+
+# Beyond an observation's own arrays: HDF5 metadata, the frameworks' extra fields.
+_ROOM_MARGIN_BYTES = 1 << 20
+
+
+def check_room(where: Path, block: TodBlock, name: str) -> None:
+    """TransportError (one line) unless the disk of ``where`` has room for ``block`` written uncompressed.
+
+    The frameworks write through h5py, and HDF5 2.0 meeting a full disk goes on
+    after failed writes and crashes (rc 139), so the room is checked before
+    each observation. The bound is generous (float64 power and flags, 25 %
+    more, 256 bytes per sample for shared fields); a compressed output may
+    fit where this refuses.
+    """
+    import os
+
+    from mntes_stream.errors import TransportError
+
+    where = Path(where)
+    d = where if where.is_dir() else where.parent
+    # Per sample, beside the detectors: TOAST's shared fields (times, flags, boresight quaternions,
+    # position, velocity: about 130 bytes) and ours, doubled.
+    need = int(1.25 * block.p_opt_w.nbytes) + block.flags.nbytes + 256 * block.n_samples + _ROOM_MARGIN_BYTES
+    st = os.statvfs(d)
+    free = st.f_bavail * st.f_frsize
+    if free < need:
+        out = where.name.removesuffix(".partial")
+        raise TransportError(f"cannot write {out}: No space left on device ({free / 1e6:.1f} MB free in {d}, "
+                             f"observation {name} may need up to {need / 1e6:.1f} MB)")
 
 
 def observations(source, convert, **selection) -> list:

@@ -166,7 +166,7 @@ def export_litebird(source, out, *, overwrite: bool = False, compression: str | 
     rec = RecordedPower(source, **selection)
     names, n = [], 0
     with c.output_dir(out, overwrite) as tmp:
-        for name, k, block, rate in c.observation_blocks(rec):
+        for name, k, block, rate in c.observation_blocks(rec, room_in=tmp):
             obs = to_litebird(block, name=name, sample_rate_hz=rate, segment=k, positions=positions)
             (path,) = lbs.write_list_of_observations(
                 obs, tmp, tod_dtype=np.float64, file_name_mask=f"{name}.h5", start_index=len(names),

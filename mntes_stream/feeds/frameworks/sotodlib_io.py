@@ -112,7 +112,7 @@ def export_sotodlib(source, out, *, overwrite: bool = False, compression: str | 
     names, n = [], 0
     try:
         with h5py.File(tmp, "w") as f:
-            for name, k, block, rate in c.observation_blocks(rec):
+            for name, k, block, rate in c.observation_blocks(rec, room_in=tmp):
                 am = to_axismanager(block, name=name, sample_rate_hz=rate, segment=k, positions=positions)
                 am.save(f, name, compression=compression)
                 names.append(name)

@@ -142,7 +142,7 @@ def export_toast(source, out, *, overwrite: bool = False, positions: Mapping | N
     rec = RecordedPower(source, **selection)
     names, n = [], 0
     with c.output_dir(out, overwrite) as tmp:
-        for name, k, block, rate in c.observation_blocks(rec):
+        for name, k, block, rate in c.observation_blocks(rec, room_in=tmp):
             obs = to_toast(block, name=name, sample_rate_hz=rate, segment=k, positions=positions)
             save_hdf5(obs, str(tmp))
             names.append(name)
