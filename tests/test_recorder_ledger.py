@@ -182,6 +182,14 @@ def test_coverage_names_the_converters_shedding_and_counts_late_power():
     held.done("0/1", 1)
     cov.converter_status("conv-a", held.as_dict(), set_aside=5)
     assert cov.reason("0/1") == "converter conv-a holds 5 chunks of it set aside (overload)"
+    waiting = Ledger("converted")
+    waiting.received("0/1", 6)
+    cov.converter_status("conv-a", waiting.as_dict(), set_aside=0)
+    assert cov.reason("0/1") == "converter conv-a holds 6 chunks of it (waiting for housekeeping, or starting)"
+    waiting.done("0/1", 6)
+    cov.converter_status("conv-a", waiting.as_dict(), set_aside=0)
+    assert cov.reason("0/1").startswith("converter conv-a converted 6 chunks of it by its last status, but no power")
+    cov.converter_status("conv-a", held.as_dict(), set_aside=5)
     # Live power jumps 0 -> 5 (1-4 set aside): a gap of 4; then 2 and 3 come late: the gap is 2, late 2.
     cov.add("mntes/lab/power/0/1", 5, 5.0)
     assert cov.gaps == {"0/1": 4}

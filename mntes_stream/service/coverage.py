@@ -120,7 +120,7 @@ class Coverage:
 
     def reason(self, stream: str, default: str = "no converter publishes it") -> str:
         """Why a stream has no power, as the converters' latest ledgers say (shed, set aside), else ``default``."""
-        held = []
+        other = []
         for name, (ledger, set_aside) in sorted(self._converters.items()):
             cols = ledger.get(stream)
             if not cols:
@@ -130,8 +130,16 @@ class Coverage:
                 reasons = ", ".join(sorted(s.shed))
                 return f"converter {name} shed {s.shed_total} chunks of it ({reasons})"
             if set_aside and s.pending:
-                held.append(f"converter {name} holds {s.pending} chunks of it set aside (overload)")
-        return held[0] if held else default
+                other.insert(0, f"converter {name} holds {s.pending} chunks of it set aside (overload)")
+            elif s.rejected_total:
+                reasons = ", ".join(sorted(s.rejected))
+                other.append(f"converter {name} rejected {s.rejected_total} chunks of it ({reasons})")
+            elif s.pending and not s.done + s.late:
+                other.append(f"converter {name} holds {s.pending} chunks of it (waiting for housekeeping, or starting)")
+            elif s.done + s.late:
+                other.append(f"converter {name} converted {s.done + s.late} chunks of it by its last status, but no "
+                             f"power for {self.after_s:.3g} s (stalled, or its power does not reach this recorder)")
+        return other[0] if other else default
 
     def unconverted(self, now_s: float) -> list[str]:
         """Streams whose counts came in the last ``after_s`` with no power for ``after_s`` (logged once per reason)."""
