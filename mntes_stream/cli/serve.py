@@ -22,7 +22,9 @@ def _heartbeats(svc, every_s: float, done: threading.Event) -> None:
         st = svc.status()
         counters = ", ".join(f"{k} {v}" for k, v in st.items() if k not in ("service", "name", "state", "since_beat_s")
                              and isinstance(v, (int, float)) and not isinstance(v, bool) and k != "uptime_s")
-        log.info("%s %s: %s, up %.0f s%s", st["service"], st["name"], st["state"], st["uptime_s"],
+        # While a client waits for its router its state is the reason ("waiting for router ...").
+        state = st.get("waiting_for") or st["state"] if st["state"] == "waiting" else st["state"]
+        log.info("%s %s: %s, up %.0f s%s", st["service"], st["name"], state, st["uptime_s"],
                  f"; {counters}" if counters else "")
 
 

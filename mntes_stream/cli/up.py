@@ -8,6 +8,13 @@ MCAP file growing) and stops after ``--duration`` seconds or on Ctrl-C /
 SIGTERM, in order: source first, then the converter (which converts what it
 holds), then the recorder (which finishes its file). Ctrl-C at any moment
 ends with exit code 130 and the summary of what was written.
+
+A service that dies meanwhile (killed, or failed) is started again on the
+same ports and config, at most ``--restarts`` times a minute each (then up
+stops, saying why, exit code 1); the converter continues its streams from
+its checkpoint, so what was published while it was down is counted as never
+received. The restarts are in the per-second line, before the summary and
+in ``--json`` (``restarts``, ``deaths``); a run with restarts still exits 0.
 """
 
 from __future__ import annotations
@@ -80,6 +87,13 @@ def _flagged(st) -> str:
     return f"  flagged: {', '.join(parts)}" if parts else ""
 
 
+def _restarts(services) -> str:
+    """``  restarts converter 1, source 2`` once any service was restarted, else nothing."""
+    if not services.restarts:
+        return ""
+    return "  restarts " + ", ".join(f"{label} {n}" for label, n in services.restarts.items())
+
+
 def _converter_idle(sub, timeout_s: float) -> bool:
     """Wait for two converter statuses in a row with nothing new received and nothing pending."""
     from mntes_stream.io.messages import StatusMessage
@@ -109,9 +123,26 @@ class _Files:
         return len(files), sum(f.stat().st_size for f in files)
 
 
+def _restart_dead(services, budget, stopping, say) -> str | None:
+    """Start again every service that died; why up gives up instead, or None."""
+    from mntes_stream.service.supervise import exit_reason
+
+    for label in services.dead():
+        why = exit_reason(services.procs[label].exitcode)
+        if not budget.take(label):
+            return (f"{label} died ({why}) after {services.restarts[label]} restart(s), more than "
+                    f"{budget.per_minute} within a minute (--restarts); giving up")
+        say(f"  {label} died ({why}); restarting it (restart {services.restarts[label] + 1})", err=True)
+        t0 = time.monotonic()
+        services.restart(label, abort=stopping)
+        say(f"  {label} restarted in {time.monotonic() - t0:.1f} s", err=True)
+    return None
+
+
 def run_up(args) -> int:
     import dataclasses
 
+    from mntes_stream.core.ledger import Ledger
     from mntes_stream.errors import MntesError
     from mntes_stream.io import keys
     from mntes_stream.io.messages import StatusMessage
@@ -120,7 +151,7 @@ def run_up(args) -> int:
     from mntes_stream.service.base import stop_on_signals
     from mntes_stream.service.converter import ConverterConfig
     from mntes_stream.service.recorder import RecorderConfig
-    from mntes_stream.service.supervise import Services
+    from mntes_stream.service.supervise import RestartBudget, Services
 
     setup_logging(args.verbose)
     stdout = sys.stderr if args.json else sys.stdout  # --json: stdout is the JSON document alone
@@ -133,7 +164,10 @@ def run_up(args) -> int:
         from mntes_stream.errors import ConfigError
 
         raise ConfigError("up chooses its own listen ports on 127.0.0.1; use serve for fixed endpoints")
-    layered = lambda z: flags.over(z)  # noqa: E731
+    # A restarted service's peers re-dial it within a second (zenoh's default backoff grows to 4 s);
+    # a zenoh file, if given, says how instead.
+    redial = () if flags.file else ("connect/retry:{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2}",)
+    layered = lambda z: flags.over(dataclasses.replace(z, cfg=z.cfg + redial))  # noqa: E731
     setup = args.setup
     out = Path(args.out).resolve()
     rec_dir = out / "recordings"
@@ -151,7 +185,13 @@ def run_up(args) -> int:
                              log_interval_s=3600, zenoh=layered(loopback(p_rec)), **_metrics_of(metrics, "recorder"))
     conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, zenoh=layered(loopback(p_conv, [p_rec])),
                                **_metrics_of(metrics, "converter"))
-    conv_cfg = dataclasses.replace(conv_cfg, status=dataclasses.replace(conv_cfg.status, interval_s=1.0))
+    # A restarted converter continues from this run's checkpoint (an older run's would be a different stream).
+    checkpoint = out / "converter-checkpoint.json"
+    checkpoint.unlink(missing_ok=True)
+    conv_cfg = dataclasses.replace(conv_cfg, status=dataclasses.replace(conv_cfg.status, interval_s=1.0),
+                                   checkpoint=str(checkpoint))
+    budget = RestartBudget(args.restarts)
+    before, last_ledger = Ledger("converted"), {}  # converters that died: their ledgers, as their last status said
 
     services = Services()
     say(f"mntes-stream up: {what}, {len(truth)} detectors ({args.modules} modules x {args.channels} channels) "
@@ -172,21 +212,32 @@ def run_up(args) -> int:
                 sub = QueueSubscriber(session, [status_key])
                 t_end = time.monotonic() + args.duration if args.duration else float("inf")
                 while not stopping.is_set() and time.monotonic() < t_end:
-                    if not services.alive():
+                    if "converter" in services.dead():
+                        # Its last status holds its ledger: what it did before it died (the statuses
+                        # still queued are its own; the new one continues from its checkpoint).
+                        while (item := sub.get()) is not None:
+                            last_ledger = StatusMessage.from_bytes(item[1]).ledger
+                        before.merge(Ledger.from_dict(last_ledger))
+                        last_ledger = {}
+                    give_up = _restart_dead(services, budget, stopping, say)
+                    if give_up:
                         failed = True
-                        say("a service stopped unexpectedly; shutting down", err=True)
+                        say(give_up, err=True)
                         break
                     item = sub.get(timeout_s=0.2)
-                    if item is None or args.quiet:
+                    if item is None:
                         continue
                     st = StatusMessage.from_bytes(item[1])
+                    last_ledger = st.ledger
+                    if args.quiet:
+                        continue
                     n_files, size = files.now()
                     p50 = "-" if st.latency_p50_ms is None else f"{st.latency_p50_ms:.1f}"
                     p99 = "-" if st.latency_p99_ms is None else f"{st.latency_p99_ms:.1f}"
                     say(f"  t={st.uptime_s:6.1f} s  power chunks {st.chunks_converted:7d}  "
                         f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
                         f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
-                        f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}")
+                        f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}{_restarts(services)}")
                 interrupted = stopping.is_set()
                 # Ordered stop: no new data; the converter takes in and converts what is on its
                 # way (its status says when), converts what it still holds and says so in a
@@ -212,7 +263,15 @@ def run_up(args) -> int:
             failed |= not services.stop("recorder")
             if merged is not None:
                 merged.close()
+    if services.restarts:
+        say("restarted " + "; ".join(f"{label} {services.restarts[label]} time(s) ({', '.join(why)})"
+                                     for label, why in services.deaths.items()))
     summary, ok = services.collect()
+    if before.streams and isinstance(summary.get("converter"), dict):  # the ledger of every converter process
+        whole = Ledger.from_dict(summary["converter"].get("ledger") or {})
+        whole.merge(before)
+        summary["converter"] = {**summary["converter"], "ledger": whole.as_dict(), "ledger_line":
+                                f"{whole.line()} (over {services.restarts['converter'] + 1} converter processes)"}
     failed |= not ok and not interrupted
     n_files, size = files.now()
     conv = summary.get("converter", {}) if isinstance(summary.get("converter"), dict) else {}
@@ -226,7 +285,8 @@ def run_up(args) -> int:
     say(f"  converter: {conv.get('ledger_line') or 'no final statistics (it did not stop cleanly): see its log'}")
     if args.json:
         print(json.dumps({"interrupted": interrupted, "ok": not failed, "params": str(params_file),
-                          "services": summary}, indent=2, default=str))
+                          "services": summary, "restarts": dict(services.restarts), "deaths": services.deaths},
+                         indent=2, default=str))
     if interrupted:
         return 130
     return 1 if failed else 0
@@ -255,6 +315,9 @@ def register(sub) -> None:
     p.add_argument("--metrics-port", type=int, metavar="PORT",
                    help="serve every service's Prometheus metrics on http://127.0.0.1:PORT/metrics (0: any free port; "
                         "needs the metrics extra)")
+    p.add_argument("--restarts", type=int, default=3, metavar="N",
+                   help="restart a service that dies, at most N times a minute each (0: a death ends the run; "
+                        "default 3)")
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
     add_zenoh_args(p)
     p.set_defaults(func=run_up)

@@ -28,7 +28,10 @@ from dataclasses import dataclass, fields
 
 from mntes_stream.core.settings import setting
 from mntes_stream.errors import ConfigError, TransportError
+from mntes_stream.io import reconnect
 from mntes_stream.io.presence import announce
+from mntes_stream.io.zenoh_file import named_paths as _named_paths
+from mntes_stream.io.zenoh_file import names_listen_endpoints as _names_listen_endpoints
 
 __all__ = [
     "ZenohSettings",
@@ -70,6 +73,15 @@ class ZenohSettings:
     gossip: bool | None = setting(
         None, "gossip scouting: peers learn of each other through the peers they are connected to (default off)")
     cfg: tuple[str, ...] = setting((), "zenoh config changes KEY:VALUE (VALUE in JSON5), applied last")
+    # zenoh retries peers' and routers' connections itself; a client does not open without its router
+    # (io/reconnect.py): a service waits for it with this backoff.
+    reconnect_min_s: float | None = setting(
+        None, "a service in client mode whose router is unreachable at start retries after this long, "
+              "doubling (default 0.5 s)", unit="s", gt=0)
+    reconnect_max_s: float | None = setting(None, "... never waiting longer than this between tries (default 4 s)",
+                                            unit="s", gt=0)
+    reconnect_give_up_s: float | None = setting(
+        None, "... and gives up (exit code 2) after this long without a router (default 0: never)", unit="s", ge=0)
 
     def __post_init__(self):
         for item in self.cfg:
@@ -86,47 +98,6 @@ class ZenohSettings:
     def file(self) -> str | None:
         """The zenoh config file in force: ``config_file``, else ``$ZENOH_CONFIG``, else none."""
         return self.config_file or os.environ.get("ZENOH_CONFIG") or None
-
-
-def _named_paths(path: str) -> set[str]:
-    """Every key path (``scouting/multicast/enabled`` and its parents) a zenoh JSON5 file sets."""
-    import json5
-
-    try:
-        with open(path, encoding="utf-8") as f:
-            doc = json5.load(f)
-    except OSError as exc:
-        raise ConfigError(f"zenoh config file {path}: {exc.strerror or exc}") from None
-    except ValueError as exc:
-        raise ConfigError(f"zenoh config file {path}: not valid JSON5: {exc}") from None
-    if not isinstance(doc, dict):
-        raise ConfigError(f"zenoh config file {path}: expected an object at the top")
-    out: set[str] = set()
-
-    def walk(d: dict, prefix: str) -> None:
-        for k, v in d.items():
-            out.add(prefix + str(k))
-            if isinstance(v, dict):
-                walk(v, f"{prefix}{k}/")
-
-    walk(doc, "")
-    return out
-
-
-def _names_listen_endpoints(item: str) -> bool:
-    """Whether a ``KEY:VALUE`` change names where to listen (``listen/timeout_ms`` does not)."""
-    import json5
-
-    key, _, value = item.partition(":")
-    key = key.strip("/")
-    if key.startswith("listen/endpoints"):
-        return True
-    if key != "listen":
-        return False
-    try:
-        return "endpoints" in json5.loads(value)
-    except (ValueError, TypeError):  # zenoh itself reports a value it cannot take
-        return False
 
 
 def zenoh_config(settings: ZenohSettings):
@@ -173,20 +144,25 @@ def describe_config(conf) -> dict:
 
 
 def open_session(settings: ZenohSettings):
-    """Open a session; use it as a context manager so it is always closed."""
+    """Open a session; use it as a context manager so it is always closed.
+
+    Inside a running service (``io/reconnect.py``) a client whose router is unreachable waits for it.
+    """
     import zenoh
 
     conf = zenoh_config(settings)
+    named = describe_config(conf)
     try:
-        session = zenoh.open(conf)
+        session = reconnect.open_or_wait(zenoh.open, conf, named, settings)
+    except TransportError:  # stopped while waiting for the router, or gave up
+        raise
     except Exception as exc:  # e.g. a listen port already in use
-        named = describe_config(conf)
         raise TransportError(
             f"cannot open zenoh session (mode {named.get('mode')}, listen {named.get('listen/endpoints')}, "
             f"connect {named.get('connect/endpoints')}): {str(exc).splitlines()[0] if str(exc) else exc!r}"
         ) from None
     # A running service is seen on every session it opens (liveliness token, heartbeat, dead endpoints).
-    announce(session, tuple(describe_config(conf).get("connect/endpoints") or ()))
+    announce(session, tuple(named.get("connect/endpoints") or ()))
     return session
 
 

@@ -30,7 +30,7 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from mntes_stream.core.settings import build_document
-from mntes_stream.io import keys
+from mntes_stream.io import keys, reconnect
 from mntes_stream.io.presence import Presence, presence
 from mntes_stream.service.metrics import metrics_for
 
@@ -73,7 +73,8 @@ def stop_on_signals(outer=None):
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: flag.set())
     try:
-        yield flag
+        with reconnect.stopping_with(flag):  # a client waiting for its router stops too
+            yield flag
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -83,10 +84,11 @@ class Heartbeat:
     """What a running service says about itself; written by the service, read from any thread.
 
     States go ``starting`` -> ``running`` -> ``stopping`` -> ``stopped``
-    (or ``failed``). ``beat(**counters)`` records progress and the time of it.
+    (or ``failed``); ``waiting`` while a client waits for its router at start
+    (:meth:`waiting`). ``beat(**counters)`` records progress and the time of it.
     """
 
-    STATES = ("starting", "running", "stopping", "stopped", "failed")
+    STATES = ("starting", "waiting", "running", "stopping", "stopped", "failed")
     MAX_WARNINGS = 8
 
     def __init__(self, service: str, name: str = ""):
@@ -114,6 +116,17 @@ class Heartbeat:
             raise ValueError(f"unknown service state {state!r}")
         with self._lock:
             self._state = state
+            self._t_beat = time.monotonic()
+
+    def waiting(self, text: str | None) -> None:
+        """``text`` ("waiting for router ...") while the service waits to connect; None once connected."""
+        with self._lock:
+            if text is not None:
+                self._state = "waiting"
+                self._counters["connect_attempts"] = self._counters.get("connect_attempts", 0) + 1
+            elif self._state == "waiting":
+                self._state = "starting"
+            self._counters["waiting_for"] = text or ""
             self._t_beat = time.monotonic()
 
     @property
@@ -187,9 +200,10 @@ class Service(abc.ABC):
 
     def start(self, stop=None, ready=None) -> dict[str, Any]:
         """:meth:`run` with the heartbeat's state kept and the service announced on every zenoh
-        session it opens: what ``serve`` and the supervisor call."""
+        session it opens, where a client waits for its router (``io/reconnect.py``): what ``serve``
+        and the supervisor call."""
         try:
-            with presence(self.presence()), metrics_for(self):
+            with presence(self.presence()), reconnect.retrying(stop, self.heartbeat.waiting), metrics_for(self):
                 result = self.run(stop, _Ready(self.heartbeat, ready))
         except BaseException:
             self.heartbeat.set_state("failed")

@@ -4,10 +4,16 @@
 open, and each service gets an interpreter (and a core) of its own. A child
 knows its service by registry name (``service.registry``), never by an
 import string.
+
+Crash-only: a child that dies (killed, or failed) can be started again on
+the same config (:meth:`Services.restart`), within a budget of restarts per
+minute (:class:`RestartBudget`); its peers reconnect on their own (zenoh
+peers re-dial their ``connect`` endpoints), so a restart is only a new process.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import queue
@@ -18,7 +24,41 @@ import time
 from mntes_stream.errors import MntesError
 from mntes_stream.service.base import StopFlag
 
-__all__ = ["Services", "child_main"]
+__all__ = ["Services", "RestartBudget", "child_main", "exit_reason"]
+
+
+def exit_reason(exitcode: int | None) -> str:
+    """``killed by SIGKILL``, ``exit code 1``, ... for a process's exit code."""
+    if exitcode is None:
+        return "still running"
+    if exitcode < 0:
+        try:
+            return f"killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
+
+
+class RestartBudget:
+    """At most ``per_minute`` restarts of one service in any 60 s (0: none); :meth:`take` says whether one is left."""
+
+    WINDOW_S = 60.0
+
+    def __init__(self, per_minute: int):
+        if per_minute < 0:
+            raise MntesError(f"restarts per minute must be >= 0, got {per_minute}")
+        self.per_minute = int(per_minute)
+        self._times: dict[str, collections.deque] = {}
+
+    def take(self, label: str, now_s: float | None = None) -> bool:
+        now_s = time.monotonic() if now_s is None else now_s
+        times = self._times.setdefault(label, collections.deque())
+        while times and now_s - times[0] >= self.WINDOW_S:
+            times.popleft()
+        if len(times) >= self.per_minute:
+            return False
+        times.append(now_s)
+        return True
 
 
 class _ParentWatch(StopFlag):
@@ -83,6 +123,10 @@ class Services:
         self._stops: dict = {}
         self._readies: dict = {}  # held while the child lives: a collected Event unlinks what the child still needs
         self._collected: dict = {}
+        self._specs: dict = {}  # label -> (service, config, timeout_s): what a restart starts again
+        self._stopped: set = set()  # stopped on purpose: not dead
+        self.restarts: collections.Counter = collections.Counter()
+        self.deaths: dict[str, list[str]] = {}  # label -> why each earlier process of it ended
 
     def start(self, label: str, service, config, timeout_s: float = 180.0, abort=None) -> None:
         """Start ``service`` (a registry name, or a Service class such as a benchmark's) on ``config`` as
@@ -94,6 +138,8 @@ class Services:
             It exited, did not get ready within ``timeout_s``, or ``abort`` was set meanwhile;
             the message carries the child's own error when it sent one.
         """
+        self._specs[label] = (service, config, timeout_s)
+        self._stopped.discard(label)
         stop, ready = self._ctx.Event(), self._ctx.Event()
         proc = self._ctx.Process(target=child_main, name=label, args=(label, service, config, stop, ready, self.results))
         # The child starts with SIGINT blocked (the mask is inherited) until it has its own process
@@ -131,11 +177,41 @@ class Services:
     def alive(self) -> bool:
         return all(p.is_alive() for p in self.procs.values())
 
+    def dead(self) -> list[str]:
+        """Labels whose process ended without being stopped (in start order)."""
+        return [label for label, p in self.procs.items() if label not in self._stopped and not p.is_alive()]
+
+    def pid(self, label: str) -> int | None:
+        proc = self.procs.get(label)
+        return None if proc is None else proc.pid
+
+    def restart(self, label: str, abort=None) -> str:
+        """Start the dead service ``label`` again on its config; returns why the old process ended.
+
+        Raises
+        ------
+        MntesError
+            The new process did not start (as :meth:`start`).
+        """
+        old = self.procs[label]
+        old.join(1.0)
+        why = exit_reason(old.exitcode)
+        error = self._error_of(label)
+        if error:
+            why += f": {error}"
+        self._collected.pop(label, None)  # the new process reports for the label
+        self.deaths.setdefault(label, []).append(why)
+        self.restarts[label] += 1
+        service, config, timeout_s = self._specs[label]
+        self.start(label, service, config, timeout_s=timeout_s, abort=abort)
+        return why
+
     def stop(self, label: str, timeout_s: float = 30.0) -> bool:
         """Stop one service; False if it had to be terminated or ended badly."""
         proc = self.procs.get(label)
         if proc is None:
             return True
+        self._stopped.add(label)
         self._stops[label].set()
         proc.join(timeout_s)
         if proc.is_alive():
