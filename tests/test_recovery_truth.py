@@ -244,6 +244,12 @@ def test_recorder_writer_on_a_full_disk_says_what_the_file_holds(small_disk):
     assert "No space left on device" in msg and "\n" not in msg
     said = w.messages
     assert f"In all: {said} messages" in msg and said > 0 and said % 50 == 0
+    # Later writes (a recorder draining its queue) are counted, not written, and raise nothing: the caller
+    # can close its sessions in order.
+    w.write("mntes/t/counts/0/0", counts_payload(0), T0)
+    w.flush()
+    w.tick()
+    assert w.messages == said and w.unwritten >= 1
     w.close()  # after the failure: closes the handle, raises nothing
     with contextlib.suppress(FileNotFoundError):
         (small_disk / "filler").unlink()  # room for recover's output

@@ -11,7 +11,7 @@ from pathlib import Path
 from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, TransportError
 from mntes_stream.io import keys
-from mntes_stream.io.mcap.envelope import RECORDING_METADATA, Envelope, writer_description
+from mntes_stream.io.mcap.envelope import RECORDING_METADATA, Envelope, peek_envelope, writer_description
 from mntes_stream.io.mcap.writer import McapFileWriter
 
 
@@ -141,7 +141,7 @@ class RotatingMcapWriter:
 
     def _close_file(self, file: McapFileWriter) -> None:
         """Finish one file: the closing metadata first (``closing_metadata``), then summary and footer."""
-        if self.closing_metadata is not None:
+        if self.closing_metadata is not None and not file.failed:  # after a failed write: nothing more to write
             for name, data in self.closing_metadata(file.path).items():
                 file.add_metadata(name, data)
         file.close()
@@ -152,11 +152,21 @@ class RotatingMcapWriter:
 
     def write_json(self, topic: str, schema_name: str, schema: Mapping, message: Mapping, log_time_ns: int) -> None:
         """:meth:`McapFileWriter.write_json` on the current file (schemas and channels are per file)."""
+        if self.failed:
+            return
         self._guard(self._current.write_json, topic, schema_name, schema, message, log_time_ns)
 
     def write(self, key: str, payload: bytes, log_time_ns: int) -> Envelope:
+        """Store one message; the first failed write raises, later ones are only counted in ``unwritten``.
+
+        Raising once lets the caller stop; not raising again lets it drain its queue and close its
+        sessions in order (every message it hands over after the failure is counted, none written).
+        """
+        if self.failed:
+            self.unwritten += 1
+            return peek_envelope(bytes(payload))
         if self._current is None:
-            raise TransportError(f"recording stopped: {self.failed or 'the writer is closed'}")
+            raise TransportError("the writer is closed")
         self.messages += 1
         env = self._guard(self._current.write, key, payload, log_time_ns)
         self.payload_bytes += len(payload)
@@ -167,7 +177,7 @@ class RotatingMcapWriter:
 
     def tick(self) -> None:
         """Flush if the cadence is due; rotate if the file is old enough."""
-        if self._current is None:
+        if self._current is None or self.failed:
             return
         now = time.monotonic()
         if self.rotate_s and now - self._opened >= self.rotate_s:
@@ -180,7 +190,7 @@ class RotatingMcapWriter:
         return max(0.0, self._last_flush + self.flush_interval_s - time.monotonic())
 
     def flush(self) -> None:
-        if self._current is None:
+        if self._current is None or self.failed:
             return
         self._guard(self._current.flush)
         self.flushes += 1
