@@ -59,7 +59,9 @@ def test_up_runs_until_ctrl_c_and_leaves_a_finished_recording(tmp_path):
     assert proc.returncode == 130, err  # Ctrl-C: stopped cleanly, summary printed, the shell sees the interrupt
     assert "Traceback" not in err
     done = [line for line in out.splitlines() if line.startswith("done")]
-    assert done and "lost 0" in done[0], out
+    # The last line is the converter's ledger: every chunk received was converted, and it says so.
+    assert done and out.strip().splitlines()[-1].strip().startswith("converter: received"), out
+    assert " lost 0 of " in out.strip().splitlines()[-1], out
     session = Session(tmp_path / "up" / "recordings")
     assert session.complete  # the recorder finished its file (summary and footer written)
     counts = session.message_counts()

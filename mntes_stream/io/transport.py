@@ -28,7 +28,7 @@ from dataclasses import dataclass, fields
 
 from mntes_stream.core.settings import setting
 from mntes_stream.errors import ConfigError, TransportError
-from mntes_stream.io import reconnect
+from mntes_stream.io import history, reconnect
 from mntes_stream.io.presence import announce
 from mntes_stream.io.zenoh_file import named_paths as _named_paths
 from mntes_stream.io.zenoh_file import names_listen_endpoints as _names_listen_endpoints
@@ -73,6 +73,10 @@ class ZenohSettings:
     gossip: bool | None = setting(
         None, "gossip scouting: peers learn of each other through the peers they are connected to (default off)")
     cfg: tuple[str, ...] = setting((), "zenoh config changes KEY:VALUE (VALUE in JSON5), applied last")
+    history_s: float | None = setting(
+        None, "sources keep this much of each counts and housekeeping key for subscribers that start late or miss "
+              "samples (a recorder or router restarting; io/history.py); memory: about this times the data rate "
+              "(default 10 s; 0: none)", unit="s", ge=0)
     # zenoh retries peers' and routers' connections itself; a client does not open without its router
     # (io/reconnect.py): a service waits for it with this backoff.
     reconnect_min_s: float | None = setting(
@@ -93,6 +97,11 @@ class ZenohSettings:
         """This layer on top of ``base``: what this one names wins; ``cfg`` entries add up."""
         named = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "cfg" and getattr(self, f.name) is not None}
         return dataclasses.replace(base, **named, cfg=base.cfg + self.cfg)
+
+    @property
+    def history_seconds(self) -> float:
+        """``history_s`` in force (10 s unless named)."""
+        return 10.0 if self.history_s is None else float(self.history_s)
 
     @property
     def file(self) -> str | None:
@@ -226,14 +235,18 @@ class Publishers:
     session : zenoh.Session
     block : bool
         BLOCK congestion control (default): never drop, slow down instead.
+    history_chunks : int
+        Counts and housekeeping keys keep this many samples for late or recovering
+        subscribers (``io/history.py``: zenoh's AdvancedPublisher); 0: plain publishers.
     """
 
-    def __init__(self, session, block: bool = True):
+    def __init__(self, session, block: bool = True, history_chunks: int = 0):
         import zenoh
 
         self._session = session
         self._cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self._pubs: dict[str, object] = {}
+        self._history = int(history_chunks)
         self.messages = 0
         self.bytes = 0
         self._observe = getattr(_PUBLISH_OBSERVER, "fn", None)
@@ -246,8 +259,12 @@ class Publishers:
             from mntes_stream.io.describe import zenoh_encoding
 
             try:
-                pub = self._session.declare_publisher(key, congestion_control=self._cc,
-                                                      encoding=zenoh.Encoding(zenoh_encoding(key)))
+                if self._history and history.wants_history(key):
+                    pub = history.declare_history_publisher(self._session, key, zenoh.Encoding(zenoh_encoding(key)),
+                                                            self._cc, self._history)
+                else:
+                    pub = self._session.declare_publisher(key, congestion_control=self._cc,
+                                                          encoding=zenoh.Encoding(zenoh_encoding(key)))
             except Exception as exc:
                 raise TransportError(f"cannot declare publisher on {key!r}: {exc}") from None
             self._pubs[key] = pub
@@ -262,15 +279,23 @@ class Publishers:
 
     def wait_matching(self, keys: Iterable[str], timeout_s: float, stop=None) -> bool:
         """Wait until every key has a matching subscriber (True) or the timeout passes."""
+        # An AdvancedPublisher has no matching status: a plain publisher on its key asks for it.
         pubs = [self.publisher(k) for k in keys]
+        probes = [self._session.declare_publisher(k) for k, p in zip(keys, pubs) if not hasattr(p, "matching_status")]
+        pubs = [p for p in pubs if hasattr(p, "matching_status")] + probes
         deadline = time.monotonic() + timeout_s
-        while True:
-            # matching_status is a MatchingStatus object (always truthy): read .matching.
-            if all(p.matching_status.matching for p in pubs):
-                return True
-            if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
-                return False
-            time.sleep(0.005)
+        try:
+            while True:
+                # matching_status is a MatchingStatus object (always truthy): read .matching.
+                if all(p.matching_status.matching for p in pubs):
+                    return True
+                if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+                    return False
+                time.sleep(0.005)
+        finally:
+            for p in probes:
+                with contextlib.suppress(Exception):
+                    p.undeclare()
 
     def close(self) -> None:
         for pub in self._pubs.values():
@@ -299,7 +324,7 @@ class QueueSubscriber:
     """
 
     def __init__(self, session, key_exprs: Iterable[str], maxsize: int = 4096, stop=None, mode: str = "callback",
-                 max_bytes: int = 0):
+                 max_bytes: int = 0, recover: str = ""):
         if mode not in ("callback", "channel"):
             raise ConfigError(f"QueueSubscriber mode must be 'callback' or 'channel', got {mode!r}")
         if max_bytes and mode != "callback":
@@ -319,14 +344,17 @@ class QueueSubscriber:
         self.high_water = 0
         self._subs = []
         self._leftover: collections.deque = collections.deque()
+        if recover not in ("", "recovery", "history"):
+            raise ConfigError(f"QueueSubscriber recover must be '', 'recovery' or 'history', got {recover!r}")
         for expr in key_exprs:
             try:
-                if mode == "callback":
-                    self._subs.append(session.declare_subscriber(expr, self._on_sample))
-                else:
-                    import zenoh
+                import zenoh
 
-                    self._subs.append(session.declare_subscriber(expr, zenoh.handlers.FifoChannel(maxsize)))
+                handler = self._on_sample if mode == "callback" else zenoh.handlers.FifoChannel(maxsize)
+                if recover:  # samples missed (or, with history, published before we came) from the publishers' caches
+                    self._subs.append(history.declare_recovering_subscriber(session, expr, handler, recover == "history"))
+                else:
+                    self._subs.append(session.declare_subscriber(expr, handler))
             except Exception as exc:
                 raise TransportError(f"cannot subscribe to {expr!r}: {exc}") from None
 

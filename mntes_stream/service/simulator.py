@@ -243,6 +243,7 @@ def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, durat
     message is queued, so closing at once would drop what is still in flight.
     Returns the counters of :func:`mntes_stream.service.source.publish`.
     """
+    from mntes_stream.io.history import cache_chunks
     from mntes_stream.io.transport import Publishers, open_session
     from mntes_stream.service.source import publish
 
@@ -257,7 +258,9 @@ def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, durat
                 pubs.close()
         start = time.time_ns()
         result = publish(session, source.batches(start, duration_s, truth=truth), speed=speed, stop=stop,
-                         progress=progress, t_ref_ns=start)
+                         progress=progress, t_ref_ns=start,
+                         history_chunks=cache_chunks(settings.history_seconds,
+                                                     source.chunk_samples / source.config.sample_rate_hz))
         if stop is not None:
             stop.wait(linger_s)
         else:

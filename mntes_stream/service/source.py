@@ -240,7 +240,7 @@ def default_params(cfg: SourceConfig) -> list[DetectorParams]:
 
 
 def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None, wait_keys: Iterable[str] = (),
-            wait_s: float = 10.0, progress=None, t_ref_ns: int | None = None) -> dict:
+            wait_s: float = 10.0, progress=None, t_ref_ns: int | None = None, history_chunks: int = 0) -> dict:
     """Publish batches on ``session`` paced by their ``t_pub_ns`` (``speed`` x real time; 0: flat out).
 
     Parameters
@@ -258,6 +258,9 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
         the first batch's time). With the data clock started now, a batch then
         goes out when its ``t_pub_ns`` comes, so latencies measured from
         ``t_pub_ns`` are honest.
+    history_chunks : int
+        Samples each counts and housekeeping key keeps for late or recovering
+        subscribers (``io/history.py``; 0: none).
 
     Returns
     -------
@@ -267,7 +270,7 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
     """
     from mntes_stream.io.transport import Publishers
 
-    pubs = Publishers(session)
+    pubs = Publishers(session, history_chunks=history_chunks)
     matched = True
     if wait_keys:
         matched = pubs.wait_matching(wait_keys, wait_s, stop)
@@ -325,6 +328,7 @@ class SourceServiceConfig(Settings):
 
 def run_source(svc: SourceServiceConfig, stop=None, ready=None, t_start_ns: int | None = None) -> dict:
     """Publish :class:`MinimalSource` batches until done or stopped; returns :func:`publish`'s counters."""
+    from mntes_stream.io.history import cache_chunks
     from mntes_stream.io.transport import Publishers, open_session
     from mntes_stream.service.base import stop_on_signals
 
@@ -349,7 +353,8 @@ def run_source(svc: SourceServiceConfig, stop=None, ready=None, t_start_ns: int 
         src.prepare()
         start = t_start_ns if t_start_ns is not None else time.time_ns()
         log.info("source: %d detectors, %d modules, %.2f Hz, publishing", cfg.n_detectors, cfg.boards * cfg.modules, cfg.sample_rate_hz)
-        result = publish(session, src.batches(start, svc.duration_s), speed=svc.speed, stop=stopping, t_ref_ns=start)
+        result = publish(session, src.batches(start, svc.duration_s), speed=svc.speed, stop=stopping, t_ref_ns=start,
+                         history_chunks=cache_chunks(svc.zenoh.history_seconds, cfg.chunk_s))
         stopping.wait(svc.linger_s)
     log.info("source stopped: %s", result)
     return result
