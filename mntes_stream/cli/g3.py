@@ -80,7 +80,7 @@ def run_g3_convert(args, pipeline) -> int:
 
 def run_bridge(args) -> int:
     from mntes_stream.cli._common import zenoh_layer
-    from mntes_stream.g3.bridge import G3BridgeService, bridge_config
+    from mntes_stream.g3.bridge import G3BridgeService, bridge_config, ledger_line
     from mntes_stream.service.base import stop_on_signals
     from mntes_stream.service.config import with_zenoh
 
@@ -89,6 +89,8 @@ def run_bridge(args) -> int:
     with stop_on_signals() as stop:
         result = G3BridgeService(cfg).start(stop=stop)
     print_mapping(result, args.json)
+    if not args.json:
+        print(ledger_line(result))  # the last line: what was published, missed and rejected
     return 0
 
 

@@ -8,11 +8,21 @@ BLOCK publishers, so the converter, recorder, monitor and every other
 service run unchanged on real readout.
 
 When the DAQ goes away (connection refused, stream ended, no frame for
-``timeout_s``), the bridge reconnects every ``reconnect_s``; the sender
-resends its cached metadata (wiring, housekeeping) to a new client, and
-samples the bridge never saw are counted (``gap_samples``) from the DfMux
-clock. Sequence numbers run on across reconnects, so the converter sees a
-gap in time, not a restart.
+``timeout_s``), the bridge reconnects, backing off from ``reconnect_s`` to
+``reconnect_max_s``, forever unless ``max_reconnects`` says otherwise; the
+sender resends its cached metadata (wiring, housekeeping) to a new client,
+and samples the bridge never saw are counted (``gap_samples``) from the
+DfMux clock. Sequence numbers run on across reconnects, so the converter
+sees a gap in time, not a restart.
+
+No input stops it: the byte stream is split into frames by
+:mod:`~mntes_stream.g3.wire` with every length claim bounded by
+``max_frame_mb`` before anything is allocated, and every frame it cannot
+use (wrong class, empty map, undecodable, CRC, before any wiring beyond
+``max_held_frames``) is counted by reason in ``rejected`` and skipped. The
+heartbeat and the final result carry the bridge's ledger: per stream the
+counts chunks published and the samples never received, the frames
+rejected by reason (:func:`ledger_line` is its one line).
 """
 
 from __future__ import annotations
@@ -49,7 +59,13 @@ class BridgeSettings(Settings):
     duration_s: float = setting(0.0, "stop after this long (0: until stopped or, for a file, its end)", unit="s", ge=0)
     reconnect_s: float = setting(1.0, "wait between connection attempts", unit="s", gt=0)
     timeout_s: float = setting(10.0, "a connection silent this long is dead: reconnect", unit="s", gt=0)
+    reconnect_max_s: float = setting(10.0, "failed attempts back off, doubling from reconnect_s up to this",
+                                     unit="s", gt=0)
     max_reconnects: int = setting(0, "give up after this many failed attempts in a row (0: never)", ge=0)
+    max_frame_mb: float = setting(512.0, "the largest G3 frame accepted: a frame claiming more is refused (and "
+                                  "the connection made again) before anything is allocated for it", unit="MB", gt=0)
+    max_held_frames: int = setting(256, "Scan/Timepoint frames kept while no Wiring frame has come; beyond, the "
+                                   "oldest are counted (before_wiring) and dropped", ge=0)
     bath_wait_s: float = setting(30.0, "data time without any bath reading (and no default) before it is an error",
                                  unit="s", gt=0)
     wait_subscribers_s: float = setting(5.0, "wait this long for subscribers to the first keys", unit="s", ge=0)
@@ -70,74 +86,161 @@ class G3BridgeConfig(Settings):
 
 
 class G3Source:
-    """Frames from a network tee or a file, one list at a time; reconnects a network source.
+    """Frames from a network tee or a file, a few at a time; reconnects a network source, forever by default.
 
-    ``next()`` returns a list of frames, ``[]`` when a file has ended, or
-    None while (re)connecting; ``reconnects`` and ``connected`` say how it went.
+    The bytes go through :class:`~mntes_stream.g3.wire.FrameSplitter`: every
+    length a frame claims is checked against ``max_frame_bytes`` before it is
+    kept, and spt3g decodes only complete, sound frames. A stream that
+    breaks its framing (big-endian flag, unknown version, a claim over the
+    budget, a cut-off frame) is counted in :attr:`rejected` by reason and the
+    connection dropped and made again; a frame spt3g cannot decode (CRC) is
+    counted and skipped.
+
+    ``next()`` returns a list of frames (empty when nothing arrived within
+    ``poll_s``, or at a file's end, then :attr:`finished`), or None while
+    (re)connecting. Failed attempts back off from ``reconnect_s`` to
+    ``reconnect_max_s``; ``max_reconnects`` failed attempts in a row (0:
+    never) raise ConfigError.
     """
 
-    def __init__(self, source: str, timeout_s: float = 10.0, reconnect_s: float = 1.0, max_reconnects: int = 0):
-        from mntes_stream.g3 import spt3g
-
-        self.core, _ = spt3g()
+    def __init__(self, source: str, timeout_s: float = 10.0, reconnect_s: float = 1.0, max_reconnects: int = 0,
+                 max_frame_bytes: int = 512 << 20, reconnect_max_s: float = 10.0, poll_s: float = 0.1):
         self.source = source
         self.network = source.startswith("tcp://")
         self.timeout_s, self.reconnect_s, self.max_reconnects = timeout_s, reconnect_s, max_reconnects
-        self._reader = None
+        self.reconnect_max_s, self.poll_s = max(reconnect_max_s, reconnect_s), poll_s
+        self.max_frame_bytes = int(max_frame_bytes)
+        self.rejected: dict[str, int] = {}
+        self.state = "connecting"
+        self.last_error = ""
+        self._sock = None
+        self._split = None
         self._failures = 0
         self._t_retry = 0.0
+        self._t_data = 0.0
+        self._t_logged = -1e9
         self.connections = 0
         self.reconnects = 0
+        self.connect_failures = 0
         self.finished = False
-        if not self.network:
+        if self.network:
+            host, _, port = source[len("tcp://"):].rpartition(":")
+            if not host or not port.isdigit() or not 0 < int(port) < 65536:
+                raise ConfigError(f"g3-bridge: source {source!r}: expected tcp://HOST:PORT")
+            self._addr = (host.strip("[]"), int(port))
+        else:
+            import itertools
+
             from mntes_stream.g3.files import expand_inputs
+            from mntes_stream.g3.wire import iter_file_frames
 
-            self._files = expand_inputs(source)
+            files = expand_inputs(source)
+            self._frames = itertools.chain.from_iterable(
+                iter_file_frames(f, self.max_frame_bytes, self.rejected) for f in files)
 
-    def _open(self):
-        if not self.network:
-            self._reader = self.core.G3Reader(filename=self._files)
-            return
+    def _count(self, reason: str) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+
+    def _open(self) -> None:
+        import socket
+
+        from mntes_stream.g3.wire import FrameSplitter
+
         now = time.monotonic()
         if now < self._t_retry:
             return
         try:
-            self._reader = self.core.G3Reader(filename=self.source, timeout=float(self.timeout_s))
-        except RuntimeError as exc:
+            sock = socket.create_connection(self._addr, timeout=min(self.timeout_s, 5.0))
+        except OSError as exc:
             self._failures += 1
-            self._t_retry = now + self.reconnect_s
+            self.connect_failures += 1
+            delay = min(self.reconnect_s * 2 ** min(self._failures - 1, 30), self.reconnect_max_s)
+            self._t_retry = now + delay
+            self.state = "connecting"
+            self.last_error = f"cannot connect: {exc.strerror or exc}"
             if self.max_reconnects and self._failures > self.max_reconnects:
-                raise ConfigError(f"g3-bridge: {self.source}: {exc} ({self._failures} attempts)") from None
-            if self._failures == 1:
-                log.warning("g3-bridge: cannot connect to %s (%s); retrying every %g s", self.source, exc,
-                            self.reconnect_s)
+                raise ConfigError(f"g3-bridge: {self.source}: {self.last_error} ({self._failures} attempts)") from None
+            if now - self._t_logged >= 60 or self._failures == 1:  # one line a minute while the DAQ is away
+                self._t_logged = now
+                log.warning("g3-bridge: %s: %s (%d attempts); retrying, every %g s at most", self.source,
+                            self.last_error, self._failures, delay)
             return
+        sock.settimeout(self.poll_s)
+        self._sock, self._split = sock, FrameSplitter(self.max_frame_bytes)
+        self._t_data = now
         self.connections += 1
         self.reconnects += self.connections > 1
         self._failures = 0
+        self.state = "connected"
         log.info("g3-bridge: connected to %s", self.source)
 
-    def next(self):
-        if self._reader is None:
-            self._open()
-            if self._reader is None:
-                return None
-        try:
-            frames = self._reader(None)
-        except RuntimeError as exc:  # timeout or a broken connection
-            log.warning("g3-bridge: %s: %s; reconnecting", self.source, exc)
-            frames = []
-        if frames:
-            return list(frames)
-        self._reader = None
-        if not self.network:
-            self.finished = True
-            return []
+    def _drop(self, why: str) -> None:
+        if self._sock is not None:
+            self._sock.close()
+        self._sock = self._split = None
+        self.state = "connecting"
+        self.last_error = why
         self._t_retry = time.monotonic() + self.reconnect_s
-        return None
+        log.warning("g3-bridge: %s: %s; reconnecting", self.source, why)
+
+    def next(self):
+        if not self.network:
+            return self._next_file()
+        if self._sock is None:
+            self._open()
+            if self._sock is None:
+                return None
+        from mntes_stream.g3.wire import BadFrame, decode_frame
+
+        try:
+            data = self._sock.recv(1 << 20)
+        except TimeoutError:
+            if time.monotonic() - self._t_data > self.timeout_s:
+                self._drop(f"no data for {self.timeout_s:g} s")
+                return None
+            return []
+        except OSError as exc:
+            self._drop(f"connection lost ({exc.strerror or exc})")
+            return None
+        if not data:
+            if self._split.pending():
+                self._count("truncated")
+                self._drop(f"closed by the sender in the middle of a frame ({self._split.pending()} bytes)")
+            else:
+                self._drop("closed by the sender")
+            return None
+        self._t_data = time.monotonic()
+        self._split.feed(data)
+        frames = []
+        while True:
+            try:
+                raw = self._split.next()
+            except BadFrame as exc:
+                self._count(exc.reason)
+                self._drop(f"{exc} ({exc.reason}): the stream has lost its framing")
+                return frames
+            if raw is None:
+                return frames
+            try:
+                frames.append(decode_frame(raw))
+            except BadFrame as exc:
+                self._count(exc.reason)
+                log.warning("g3-bridge: %s: %s; frame skipped", self.source, exc)
+
+    def _next_file(self):
+        frames = []
+        for frame in self._frames:
+            frames.append(frame)
+            if len(frames) >= 64:
+                return frames
+        self.finished = True
+        self.state = "finished"
+        return frames
 
     def close(self) -> None:
-        self._reader = None
+        if self.network and self._sock is not None:
+            self._sock.close()
+        self._sock = None
 
 
 def bridge_config(args) -> G3BridgeConfig:
@@ -190,8 +293,10 @@ class G3BridgeService(Service):
             from mntes_stream.io.paramfile import load_params
 
             gref = {d: abs(p.gain_a_per_count) for d, p in load_params(b.params).items()}
-        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards, gain_reference=gref)
-        src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects)
+        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards, gain_reference=gref,
+                             max_held=b.max_held_frames)
+        src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects, max_frame_bytes=int(b.max_frame_mb * 2**20),
+                       reconnect_max_s=b.reconnect_max_s)
         t_start = time.monotonic()
         first_data_ns = None
         waited = False
@@ -214,7 +319,7 @@ class G3BridgeService(Service):
                         break
                     out = []
                     for frame in frames:
-                        out += tr.handle(frame)
+                        out += tr.accept(frame)
                     counts = [k for k, _ in out if keys.kind_of(k) == "counts"]
                     if counts:
                         t_last = tr._t_last_ns
@@ -235,6 +340,7 @@ class G3BridgeService(Service):
                     self._beat(tr, src, pubs)
                 for key, payload in tr.flush():
                     pubs.put(key, payload)
+                tr.drop_held()
             finally:
                 src.close()
                 pubs.close()
@@ -244,11 +350,34 @@ class G3BridgeService(Service):
 
     def _beat(self, tr, src, pubs) -> dict:
         c = tr.counters
+        rejected = dict(src.rejected)
+        for reason, n in c.rejected.items():
+            rejected[reason] = rejected.get(reason, 0) + n
         counters = {"frames": c.frames, "timepoints": c.timepoints, "scans": c.scans, "samples": c.samples,
                     "invalid_samples": c.invalid_samples, "gap_samples": c.gap_samples,
                     "housekeeping": c.housekeeping, "gain_changes": c.gain_changes, "bias_changes": c.bias_changes,
                     "bath_readings": c.bath_readings,
                     "messages": pubs.messages, "bytes": pubs.bytes, "connections": src.connections,
-                    "reconnects": src.reconnects}
+                    "reconnects": src.reconnects, "connect_failures": src.connect_failures,
+                    "source_state": src.state, "source_error": src.last_error,
+                    "rejected_frames": sum(rejected.values()), "rejected": rejected, "held_frames": tr.held,
+                    "published": dict(sorted(tr.published().items())), "stream_gaps": dict(c.stream_gaps)}
         self.heartbeat.beat(**counters)
         return counters
+
+
+def ledger_line(result: dict) -> str:
+    """The bridge's ledger in one line, from its result (or heartbeat).
+
+    Per stream (board/module) the counts chunks published and the samples
+    the DfMux clock says never arrived; the frames rejected, by reason;
+    the connections. Nothing rejected or missed is left out.
+    """
+    pub, gaps = result.get("published", {}), result.get("stream_gaps", {})
+    streams = ", ".join(f"{k} {n}" + (f" (-{gaps[k]} samples)" if gaps.get(k) else "") for k, n in pub.items())
+    rej = result.get("rejected", {})
+    rejected = ", ".join(f"{r} {n}" for r, n in sorted(rej.items()) if n) or "none"
+    return (f"g3-bridge done: {sum(pub.values())} counts chunks published over {len(pub)} streams"
+            f"{' (' + streams + ')' if streams else ''}; {result.get('gap_samples', 0)} samples never received; "
+            f"{result.get('rejected_frames', 0)} frames rejected ({rejected}); {result.get('connections', 0)} "
+            f"connections, {result.get('connect_failures', 0)} failed attempts")

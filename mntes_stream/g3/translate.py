@@ -11,6 +11,14 @@ gives them, and returns ``(key, payload)`` messages:
 - Timepoint: collected, one counts chunk per module every ``chunk_samples``;
 - Scan with ``RawTimestreams_I``/``_Q``: one counts chunk per module.
 
+Frames come from outside and are checked here, at the boundary: an entry of
+the wrong class, an empty map, a blob spt3g cannot decode is a
+:class:`~mntes_stream.g3.wire.BadFrame`; :meth:`FrameTranslator.accept`
+counts it by reason (``counters.rejected``) and skips it. Scan and Timepoint
+frames before the first Wiring frame are held (at most ``max_held`` frames,
+the oldest counted ``before_wiring`` beyond that) and translated when it
+arrives.
+
 Counts chunks carry the G3 sample times (ticks x 10 ns) explicitly. A counts
 value that is not a reading (NaN, or at/beyond the 24-bit range FLAC keeps)
 travels as the int32 rail ``2**31 - 1`` (sign kept), which every converter
@@ -21,12 +29,14 @@ flags ``INVALID_INPUT``: never a silent number. Gaps in the Timepoint clock
 from __future__ import annotations
 
 import logging
+import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS
-from mntes_stream.errors import ConfigError
+from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.g3 import spt3g
 from mntes_stream.g3.counts import TimepointBuffer, scan_block
 from mntes_stream.g3.mapping import (
@@ -39,6 +49,7 @@ from mntes_stream.g3.mapping import (
     hk_snapshot,
     invalid_counts,
 )
+from mntes_stream.g3.wire import BadFrame
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 
@@ -76,6 +87,11 @@ class TranslatorCounters:
     bias_changes: int = 0       # housekeeping that changed a bias
     bath_readings: int = 0
     by_type: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)       # frames skipped, by reason (wire.FRAME_REASONS)
+    stream_gaps: dict = field(default_factory=dict)    # "board/module" -> samples missing from its clock
+
+    def reject(self, reason: str, n: int = 1) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + n
 
 
 class FrameTranslator:
@@ -95,10 +111,15 @@ class FrameTranslator:
         with ``a(t)`` the housekeeping's amps per count in force, so a converter with fixed parameters follows
         a gain change from its sample on (rounding to whole reference counts aside). Without it the counts
         are the DfMux's own and a gain change is only reported.
+    max_held : int
+        Scan/Timepoint frames kept while no Wiring frame has come (then translated); beyond, the oldest are
+        counted ``before_wiring`` and dropped.
     """
 
+    LOG_EVERY_S = 10.0
+
     def __init__(self, setup: str = keys.DEFAULT_SETUP, config: G3InputConfig | None = None, chunk_samples: int = 16,
-                 boards=(), gain_reference=None):
+                 boards=(), gain_reference=None, max_held: int = 256):
         keys.counts_key(setup)
         if chunk_samples < 1:
             raise ConfigError("chunk_samples must be >= 1")
@@ -119,6 +140,10 @@ class FrameTranslator:
         self._groups: list = []
         self.gain_changed_at: list[int] = []
         self._times: list[int] = []  # data time of each message made, in order (see timed)
+        self.max_held = int(max_held)
+        self._held: deque = deque()
+        self._logged: dict[str, float] = {}
+        self.last_error: dict[str, str] = {}
 
     # -- helpers ------------------------------------------------------------------------------
     def _next_seq(self, name: str) -> int:
@@ -147,6 +172,9 @@ class FrameTranslator:
         for hkmap in self._pending:
             out += self._housekeeping(hkmap)
         self._pending = []
+        held, self._held = list(self._held), deque()
+        for frame in held:
+            out += self.accept(frame)
         return out
 
     def _housekeeping(self, hkmap) -> list:
@@ -189,8 +217,10 @@ class FrameTranslator:
         t = blk.t_ns if not self._t_last_ns else np.concatenate([[self._t_last_ns], blk.t_ns])
         step = np.diff(t)
         late = step > 1.5 * _SAMPLE_NS
+        n_gap = 0
         if late.any():  # samples the DfMux clock says were taken but never reached us
-            self.counters.gap_samples += int(np.sum(np.rint(step[late] / _SAMPLE_NS) - 1))
+            n_gap = int(np.sum(np.rint(step[late] / _SAMPLE_NS) - 1))
+            self.counters.gap_samples += n_gap
         have = np.full(len(self.wiring), -1, dtype=np.int64)
         have[blk.rows] = np.arange(blk.rows.size)
         # The whole block at once: validity and int32 (the rail where not a reading).
@@ -214,6 +244,8 @@ class FrameTranslator:
             else:
                 ci, cq = ci_all[src], cq_all[src]
             stream = f"{b}/{m}"
+            if n_gap:
+                self.counters.stream_gaps[stream] = self.counters.stream_gaps.get(stream, 0) + n_gap
             chunk = CountsChunk(setup=self.setup, board=int(b), module=int(m),
                                 channels=self.wiring.channel[rows].astype(np.int32), seq=self._next_seq(stream),
                                 t0_ns=None, sample_rate_hz=None, counts_i=ci, counts_q=cq,
@@ -232,37 +264,58 @@ class FrameTranslator:
         return self._counts(blk, int(blk.t_ns[-1]) if t_pub_ns is None else t_pub_ns)
 
     def handle(self, frame, t_pub_ns: int | None = None) -> list:
-        """Messages for one frame (``t_pub_ns``: publication time of counts; default their last sample time)."""
-        core, _ = spt3g()
+        """Messages for one frame (``t_pub_ns``: publication time of counts; default their last sample time).
+
+        Raises :class:`~mntes_stream.g3.wire.BadFrame` for a frame it cannot use (see :meth:`accept`).
+        """
+        core, dfmux = spt3g()
         ft = frame.type
         c = self.counters
         c.frames += 1
         c.by_type[str(ft)] = c.by_type.get(str(ft), 0) + 1
         if ft == core.G3FrameType.Wiring:
-            wiring = Wiring.from_frame(frame, self.config, self.boards)
+            wm = _entry(frame, "WiringMap", dfmux.DfMuxWiringMap, "Wiring")
+            if wm is None:
+                raise BadFrame("G3 Wiring frame without a WiringMap", "wrong_type")
+            if not len(wm):
+                raise BadFrame("G3 Wiring frame with an empty WiringMap", "empty_map")
+            try:
+                wiring = Wiring.from_frame(frame, self.config, self.boards)
+            except SchemaError as exc:
+                raise BadFrame(str(exc), "empty_map" if "empty" in str(exc) else "bad_content") from None
             if self.wiring is not None and wiring.names == self.wiring.names and \
                     wiring.detector_ids == self.wiring.detector_ids:
                 return []
             return self._set_wiring(wiring)
         if ft == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in frame:
+            hkmap = _entry(frame, "DfMuxHousekeeping", dfmux.DfMuxHousekeepingMap, "Housekeeping")
+            if not len(hkmap):
+                raise BadFrame("G3 Housekeeping frame with an empty DfMuxHousekeeping map", "empty_map")
             if self.wiring is None:
-                self._pending.append(frame["DfMuxHousekeeping"])
+                self._pending = self._pending[-(self.max_held - 1):] + [hkmap] if self.max_held > 1 else [hkmap]
                 return []
-            return self._housekeeping(frame["DfMuxHousekeeping"])
+            return self._housekeeping(hkmap)
         if ft == core.G3FrameType.GcpSlow:
             r = bath_reading(frame, self.config, self._t_last_ns)
             return self._bath(*r) if r is not None else []
         if ft == core.G3FrameType.Timepoint and "DfMux" in frame:
+            meta = _entry(frame, "DfMux", dfmux.DfMuxMetaSample, "Timepoint")
+            _entry(frame, "EventHeader", core.G3Time, "Timepoint", required=True)
+            if not len(meta):
+                raise BadFrame("G3 Timepoint frame with an empty DfMux map", "empty_map")
             if self.wiring is None:
-                raise ConfigError("G3 Timepoint frame before any Wiring frame: cannot tell which bolometer is which")
+                return self._hold(frame)
             c.timepoints += 1
             self._buffer.add(frame)
             if len(self._buffer) >= self.chunk_samples:
                 return self.flush(t_pub_ns)
             return []
         if ft == core.G3FrameType.Scan:
+            for name in ("RawTimestreams_I", "RawTimestreams_Q"):
+                _entry(frame, name, core.G3TimestreamMap, "Scan")
+            _entry(frame, "DetectorSampleTimes", core.G3VectorTime, "Scan")
             if self.wiring is None:
-                raise ConfigError("G3 Scan frame before any Wiring frame: cannot tell which bolometer is which")
+                return self._hold(frame)
             blk = scan_block(frame, self.wiring)
             if blk is None:  # an empty Scan frame: a scan boundary in a raw stream
                 return self.flush(t_pub_ns)
@@ -271,6 +324,55 @@ class FrameTranslator:
         if ft == core.G3FrameType.EndProcessing:
             return self.flush(t_pub_ns)
         return []
+
+    def _hold(self, frame) -> list:
+        # A Scan/Timepoint before the first Wiring frame: kept (bounded) until the wiring arrives.
+        self._held.append(frame)
+        self.counters.frames -= 1  # counted again when translated
+        self.counters.by_type[str(frame.type)] -= 1
+        if len(self._held) > self.max_held:
+            self._held.popleft()
+            self.counters.reject("before_wiring")
+        return []
+
+    @property
+    def held(self) -> int:
+        """Frames waiting for a Wiring frame."""
+        return len(self._held)
+
+    def drop_held(self) -> int:
+        """Count what still waits for a Wiring frame as ``before_wiring`` (end of a run); how many."""
+        n = len(self._held)
+        if n:
+            self.counters.reject("before_wiring", n)
+            self._held.clear()
+        return n
+
+    def accept(self, frame, t_pub_ns: int | None = None) -> list:
+        """:meth:`handle`, with a frame it cannot use counted by reason (``counters.rejected``) and skipped.
+
+        spt3g decodes entries lazily, so a damaged blob or a wrong class
+        shows here; what it raises is the frame's fault, never the bridge's.
+        """
+        try:
+            return self.handle(frame, t_pub_ns)
+        except BadFrame as exc:
+            reason, text = exc.reason, str(exc)
+        except (RuntimeError, MemoryError) as exc:  # spt3g could not decode an entry
+            reason, text = "undecodable", str(exc).split(" (in ", 1)[0]
+        except (SchemaError, TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as exc:
+            reason, text = "bad_content", f"{type(exc).__name__}: {exc}"
+        self.counters.reject(reason)
+        self.last_error[reason] = text
+        now = time.monotonic()
+        if now - self._logged.get(reason, -1e9) >= self.LOG_EVERY_S:  # one line per reason per interval
+            self._logged[reason] = now
+            log.warning("G3 frame skipped (%s, %d so far): %s", reason, self.counters.rejected[reason], text)
+        return []
+
+    def published(self) -> dict:
+        """Counts chunks made per stream (``"board/module"`` -> n)."""
+        return {k: v for k, v in self._seq.items() if k.partition("/")[0].isdigit()}  # hk keys are named
 
     def timed(self, method, *args) -> list:
         """``(t_ns, key, payload)`` of what ``method(*args)`` (handle, flush, default_bath) gives: ``t_ns`` is
@@ -284,3 +386,15 @@ class FrameTranslator:
         if self.config.t_bath_default_k is None:
             self.bath.require()
         return self._bath(int(t_ns), float(self.config.t_bath_default_k))
+
+
+def _entry(frame, name: str, cls, kind: str, required: bool = False):
+    """``frame[name]`` if it is a ``cls`` (None if absent and not required); BadFrame otherwise."""
+    if name not in frame:
+        if required:
+            raise BadFrame(f"G3 {kind} frame without {name}", "wrong_type")
+        return None
+    value = frame[name]  # decodes the blob: RuntimeError if spt3g cannot
+    if not isinstance(value, cls):
+        raise BadFrame(f"G3 {kind} frame: {name} is a {type(value).__name__}, not a {cls.__name__}", "wrong_type")
+    return value

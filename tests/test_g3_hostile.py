@@ -1,0 +1,238 @@
+"""g3-bridge against malformed G3 streams (issue 22): it stays up, counts each by reason, publishes what follows.
+
+A loopback TCP server plays the DAQ's G3NetworkSender: each connection the
+bridge makes is served one byte stream, then closed. The good frames are
+spt3g's own serialization (``wire.encode_frame``, the bytes G3NetworkSender
+sends); the bad ones are those bytes with a field broken, or frames built
+with spt3g whose entries have the wrong class. 19 streams, in one bridge
+run: after every one, good Timepoints follow (on the same connection when
+only a frame is bad, on the next when the stream lost its framing) and a
+real zenoh subscriber on 127.0.0.1 must see every one of their samples.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("spt3g.core")
+psutil = pytest.importorskip("psutil")
+
+from test_g3 import BOARD, LAYOUT, MODULES, N_CH, SAMPLE_NS, T0_NS, raw_frames, true_counts, write  # noqa: E402
+
+from mntes_stream.g3 import frames as F  # noqa: E402
+from mntes_stream.g3 import spt3g  # noqa: E402
+from mntes_stream.g3.wire import BadFrame, FrameSplitter, encode_frame  # noqa: E402
+from mntes_stream.io.messages import decode  # noqa: E402
+from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session  # noqa: E402
+
+TP = 4            # good Timepoints after each case (= the bridge's chunk_samples)
+FIRST_TP = 60     # sample index of the first Timepoint case (the scans of case 0 cover 0..59)
+
+
+def tp_bytes(k: int) -> bytes:
+    c = true_counts(k)
+    return encode_frame(F.timepoint_frame(T0_NS + k * SAMPLE_NS, {(BOARD, m): c[m] for m in MODULES}, N_CH))
+
+
+def good(case: int) -> bytes:
+    k0 = FIRST_TP + TP * case
+    return b"".join(tp_bytes(k) for k in range(k0, k0 + TP))
+
+
+def with_u64(frame: bytes, at: int, value: int) -> bytes:
+    return frame[:at] + struct.pack("<Q", value) + frame[at + 8:]
+
+
+def frame_of(ftype, **entries) -> bytes:
+    core, _ = spt3g()
+    f = core.G3Frame(ftype)
+    for k, v in entries.items():
+        f[k] = v
+    return encode_frame(f)
+
+
+def cases(meta: bytes, scans: list[bytes]):
+    """(name, bytes of one connection, reason counted or None) for the 19 streams, in order."""
+    core, dfmux = spt3g()
+    T = core.G3FrameType
+    tp = tp_bytes(0)
+    blob_len_at = 13 + 8 + len(b"DfMux")  # first entry of a Timepoint frame: u64 name length, name, u64 blob length
+    names = sorted(F.timepoint_frame(T0_NS, {(BOARD, MODULES[0]): true_counts(0)[MODULES[0]]}, N_CH).keys())
+    assert names[0] == "DfMux"  # spt3g writes entries in name order: the patched length is DfMux's blob
+    frame_level = [
+        ("wrong type in Wiring", frame_of(T.Wiring, WiringMap=core.G3Int(3)), "wrong_type"),
+        ("wrong type in Scan", frame_of(T.Scan, RawTimestreams_I=core.G3String("x"),
+                                        RawTimestreams_Q=core.G3String("y")), "wrong_type"),
+        ("wrong type of Scan sample times", frame_of(T.Scan, DetectorSampleTimes=core.G3Int(7)), "wrong_type"),
+        ("wrong type in Housekeeping", frame_of(T.Housekeeping, DfMuxHousekeeping=core.G3VectorDouble([1.0])),
+         "wrong_type"),
+        ("wrong type in Timepoint", frame_of(T.Timepoint, DfMux=core.G3Int(1), EventHeader=core.G3Time(1)),
+         "wrong_type"),
+        ("empty wiring map", frame_of(T.Wiring, WiringMap=dfmux.DfMuxWiringMap()), "empty_map"),
+        ("empty housekeeping map", frame_of(T.Housekeeping, DfMuxHousekeeping=dfmux.DfMuxHousekeepingMap()),
+         "empty_map"),
+        ("empty DfMux map", frame_of(T.Timepoint, DfMux=dfmux.DfMuxMetaSample(), EventHeader=core.G3Time(1)),
+         "empty_map"),
+        ("CRC mismatch", tp[:-1] + bytes([tp[-1] ^ 0xFF]), "crc"),
+    ]
+    stream_level = [
+        ("big-endian flag", b"\x00" + tp[1:], "big_endian"),
+        ("garbage bytes", b"GET / HTTP/1.1\r\nHost: daq\r\n\r\n" + bytes(range(256)) * 4, "bad_header"),
+        ("frame version 2", tp[:1] + struct.pack("<I", 2) + tp[5:], "frame_version"),
+        ("2**20 entries", tp[:5] + struct.pack("<I", 1 << 20) + tp[9:], "too_many_entries"),
+        ("name of 1 TB", with_u64(tp, 13, 1 << 40), "name_too_long"),
+        ("blob of 1 TB", with_u64(tp, blob_len_at, 1 << 40), "frame_too_large"),
+        ("blob of 2**63", with_u64(tp, blob_len_at, 1 << 63), "frame_too_large"),
+        ("blob of 2 GB", with_u64(tp, blob_len_at, 2 << 30), "frame_too_large"),
+        ("truncated frame", tp[: len(tp) // 2], "truncated"),
+    ]
+    out = [("Scan before the Wiring frame", b"".join(scans) + meta + good(0), None)]
+    for k, (name, bad, reason) in enumerate(frame_level, start=1):
+        out.append((name, meta + bad + good(k), reason))
+    for k, (name, bad, reason) in enumerate(stream_level, start=1 + len(frame_level)):
+        out.append((name, meta + good(k) + bad, reason))  # what follows the break is never read
+    return out
+
+
+class Daq:
+    """Loopback server: connection i is served payloads[i] and closed; the bridge reconnects for the next."""
+
+    def __init__(self, payloads):
+        self.payloads = list(payloads)
+        self.srv = socket.create_server(("127.0.0.1", 0))
+        self.srv.settimeout(30)
+        self.port = self.srv.getsockname()[1]
+        self.served = 0
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        for data in self.payloads:
+            try:
+                conn, _ = self.srv.accept()
+            except OSError:
+                return
+            with conn:
+                try:
+                    conn.sendall(data)
+                    conn.shutdown(socket.SHUT_WR)
+                    conn.settimeout(5)
+                    while conn.recv(1 << 16):  # until the bridge hangs up (it reads everything first)
+                        pass
+                except OSError:
+                    pass
+            self.served += 1
+        self.srv.close()
+
+
+@pytest.fixture(scope="module")
+def scan_frames(tmp_path_factory):
+    """The collated Scan frames of a 60-sample run (three of 25, 25, 10 samples), as bytes."""
+    from mntes_stream.g3.wire import iter_file_frames
+
+    core, _ = spt3g()
+    path = write(raw_frames(), tmp_path_factory.mktemp("scans") / "scans.g3", collate=True)
+    frames = [f for f in iter_file_frames(path, 1 << 30) if f.type == core.G3FrameType.Scan and
+              "RawTimestreams_I" in f]
+    assert len(frames) == 3
+    return [encode_frame(f) for f in frames]
+
+
+def test_splitter_refuses_claims_before_allocating():
+    tp = tp_bytes(0)
+    s = FrameSplitter(1 << 20)
+    s.feed(tp + tp[:10])
+    assert s.next() == tp and s.next() is None and s.pending() == 10
+    s = FrameSplitter(1 << 20)
+    s.feed(with_u64(tp, 13 + 8 + 5, 1 << 63)[:40])  # only the header and the claim have arrived
+    with pytest.raises(BadFrame) as e:
+        s.next()
+    assert e.value.reason == "frame_too_large"
+
+
+def test_bridge_survives_19_malformed_streams(scan_frames):
+    from mntes_stream.g3.bridge import BridgeSettings, G3BridgeConfig, G3BridgeService, ledger_line
+    from mntes_stream.service.base import StopFlag
+
+    meta = b"".join(encode_frame(f) for f in raw_frames(n=0))  # Wiring, Housekeeping, GcpSlow
+    todo = cases(meta, scan_frames)
+    assert len(todo) == 19
+    daq = Daq([data for _, data, _ in todo])
+    port = free_tcp_port()
+    cfg = G3BridgeConfig(bridge=BridgeSettings(source=f"tcp://127.0.0.1:{daq.port}", setup="lab", chunk_samples=TP,
+                                               reconnect_s=0.05, reconnect_max_s=0.2, timeout_s=5.0,
+                                               max_frame_mb=64, max_held_frames=2, wait_subscribers_s=5.0),
+                         zenoh=loopback(connect_ports=[port]))
+    svc = G3BridgeService(cfg)
+    stop = StopFlag()
+    result: dict = {}
+    live: dict = {}
+    proc = psutil.Process()
+    rss0 = peak = proc.memory_info().rss
+    with open_session(loopback(port)) as z:
+        sub = QueueSubscriber(z, ["mntes/lab/counts/**"])
+        th = threading.Thread(target=lambda: result.update(svc.start(stop=stop)), daemon=True)
+        th.start()
+        try:
+            want = len(LAYOUT) * (35 + TP * len(todo))  # Scans 2 and 3 (25 + 10 samples; the first dropped) + every case
+            deadline = time.monotonic() + 60
+            while (len(live) < want or daq.served < len(todo)) and time.monotonic() < deadline:
+                peak = max(peak, proc.memory_info().rss)
+                item = sub.get(timeout_s=0.1)
+                if item is None:
+                    continue
+                msg = decode(item[1])
+                for row, ch in enumerate(msg.channels):
+                    for t, i, q in zip(msg.times_ns(), msg.counts_i[row], msg.counts_q[row]):
+                        live[(msg.module, int(ch), int(t))] = (int(i), int(q))
+            alive = th.is_alive()
+        finally:
+            stop.set()
+            th.join(30)
+            sub.close()
+    assert alive, "the bridge stopped on its own"
+    assert svc.status()["state"] == "stopped"
+    want_reasons: dict = {}
+    for _, _, reason in todo:
+        if reason:
+            want_reasons[reason] = want_reasons.get(reason, 0) + 1
+    want_reasons["before_wiring"] = 1  # three Scans held with room for two: the oldest is counted
+    assert result["rejected"] == want_reasons
+    assert result["rejected_frames"] == sum(want_reasons.values()) == 19
+    assert result["connections"] == len(todo)
+    # Every sample after every bad frame reached a real subscriber, with the counts the DAQ sent.
+    for k in range(FIRST_TP, FIRST_TP + TP * len(todo)):
+        c = true_counts(k)
+        for m in MODULES:
+            for ch in range(N_CH):
+                assert live[(m, ch, T0_NS + k * SAMPLE_NS)] == (int(c[m][0][ch]), int(c[m][1][ch]))
+    held = {t for (_, _, t) in live if t < T0_NS + FIRST_TP * SAMPLE_NS}
+    assert held == {T0_NS + k * SAMPLE_NS for k in range(25, 60)}  # the held Scans 2 and 3, after the wiring
+    assert len(live) == want
+    assert peak - rss0 < 150 * 2**20, f"RSS grew by {(peak - rss0) / 2**20:.0f} MB"
+    # per module: the two held Scans, then one chunk of TP Timepoints per case
+    assert result["published"] == {f"{BOARD}/{m}": 2 + len(todo) for m in MODULES}
+    line = ledger_line(result)
+    assert "19 frames rejected" in line and "frame_too_large 3" in line and "before_wiring 1" in line
+
+
+def test_empty_and_wrong_frames_do_not_reach_the_history():
+    """A rejected housekeeping frame leaves the bias history as it was (what the converter later sees)."""
+    from mntes_stream.g3.translate import FrameTranslator
+    from mntes_stream.g3.wire import decode_frame
+
+    core, dfmux = spt3g()
+    tr = FrameTranslator("lab", chunk_samples=TP)
+    for f in raw_frames(n=0):
+        tr.accept(f)
+    before = tr.hk.latest()
+    bad = decode_frame(frame_of(core.G3FrameType.Housekeeping, DfMuxHousekeeping=dfmux.DfMuxHousekeepingMap()))
+    assert tr.accept(bad) == [] and tr.counters.rejected == {"empty_map": 1}
+    assert tr.hk.latest() is before
+    assert np.isfinite(before.v_bias_rms_v).all()
