@@ -118,9 +118,28 @@ class _Files:
         self.directory = directory
         self._before = set(directory.glob("*.mcap"))
 
+    def paths(self) -> list[Path]:
+        return sorted(f for f in self.directory.glob("*.mcap") if f not in self._before)
+
     def now(self) -> tuple[int, int]:
-        files = [f for f in self.directory.glob("*.mcap") if f not in self._before]
+        files = self.paths()
         return len(files), sum(f.stat().st_size for f in files)
+
+
+def _recorded_ledger(files: _Files, processes: int) -> dict:
+    """The recorder's ledger over every file of this run, recomputed from the messages: a killed recorder's
+    file has no ledger metadata, and each recorder process books only what it saw (not the gap between them)."""
+    import warnings
+
+    from mntes_stream.io.mcap import Session
+    from mntes_stream.io.mcap.ledger import recompute_ledger
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # an unfinished file is expected here: its recorder was killed
+        session = Session(files.paths(), warn=False)
+        led = recompute_ledger(session).recorder
+    return {"messages": sum(f.messages for f in session.files), "ledger": led.as_dict(),
+            "ledger_line": f"{led.line()} (over {processes} recorder processes, recomputed from the files)"}
 
 
 def _restart_dead(services, budget, stopping, say) -> str | None:
@@ -267,6 +286,8 @@ def run_up(args) -> int:
         say("restarted " + "; ".join(f"{label} {services.restarts[label]} time(s) ({', '.join(why)})"
                                      for label, why in services.deaths.items()))
     summary, ok = services.collect()
+    if services.restarts["recorder"] and isinstance(summary.get("recorder"), dict):
+        summary["recorder"] = {**summary["recorder"], **_recorded_ledger(files, services.restarts["recorder"] + 1)}
     if before.streams and isinstance(summary.get("converter"), dict):  # the ledger of every converter process
         whole = Ledger.from_dict(summary["converter"].get("ledger") or {})
         whole.merge(before)
