@@ -229,3 +229,39 @@ def test_up_restarts_a_killed_recorder_and_its_ledger_shows_the_gap(tmp_path):
     assert recorded.done + recorded.missing == converted.received + converted.missing, (rec["ledger"], conv["ledger"])
     assert recorded.pending == 0 and (recorded.missing > 0 or recorded.duplicate > 0)
     assert f"  recorder counts: {rec['ledger_line']}" in err_text.splitlines()
+
+
+def test_a_recorder_keeps_recording_across_a_router_killed_and_restarted(tmp_path):
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    shutil.copytree(ROOT / "services", tmp_path / "services", ignore=shutil.ignore_patterns("recordings", "*-params.toml"))
+    procs: list[Proc] = []
+    try:
+        procs.append(router := Proc(f"mntes-stream router -l {endpoint}", tmp_path))
+        router.wait_for(r"router router: zenoh id")
+        procs.append(rec := Proc(f"mntes-stream record --dir rec --json -m client -e {endpoint}", tmp_path))
+        rec.wait_for(r"recording mntes/lab/\*\* into", 60)
+        router.p.kill()  # kill -9: no goodbye to the recorder
+        router.p.wait(10)
+        time.sleep(1.0)
+        procs.append(router := Proc(f"mntes-stream router -l {endpoint}", tmp_path))
+        router.wait_for(r"router router: zenoh id")
+        # zenoh's client re-dials (connect/retry: 1 s, growing to 4 s): the recorder is seen through the new router.
+        with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as s:
+            deadline = time.monotonic() + 20
+            while not any(b["service"] == "recorder" for b in list_services(s, "lab", 0.5)):
+                assert time.monotonic() < deadline, "the recorder did not come back through the new router"
+        src = Proc(f"mntes-stream serve --config services/source.toml --duration 2 --json -m client -e {endpoint}",
+                   tmp_path)
+        procs.append(src)
+        assert src.p.wait(timeout=60) == 0, "".join(src.seen)
+        _finish(src)
+        time.sleep(1.0)
+        rc, rec_out = _finish(rec)
+        assert rc == 0, rec_out
+    finally:
+        for p in reversed(procs):
+            p.interrupt(30)
+    published, by_kind = _json_in("".join(src.seen)), _json_in(rec_out)["by_kind"]
+    assert by_kind.get("counts", 0) >= 2 * 19 and by_kind["counts"] + by_kind.get("hk", 0) == published["messages"], \
+        (published, by_kind)
