@@ -236,3 +236,70 @@ def test_empty_and_wrong_frames_do_not_reach_the_history():
     assert tr.accept(bad) == [] and tr.counters.rejected == {"empty_map": 1}
     assert tr.hk.latest() is before
     assert np.isfinite(before.v_bias_rms_v).all()
+
+
+def _with_bad_frames(src, dst, bad_at: dict):
+    """``src`` rewritten to ``dst`` with the frame at each index of ``bad_at`` replaced by its bytes."""
+    from mntes_stream.g3.wire import AtomicG3Writer, decode_frame, iter_file_frames
+
+    with AtomicG3Writer(dst) as w:
+        for k, f in enumerate(iter_file_frames(src, 1 << 30)):
+            w(decode_frame(bad_at[k]) if k in bad_at else f)
+    return dst
+
+
+@pytest.mark.parametrize("layout", ["scans", "timepoints"])
+def test_convert_skips_a_wrong_typed_frame_and_marks_the_output(tmp_path, layout, capsys):
+    """RUN.g3 -> OUT.g3 with one frame of the wrong class: counted, skipped, said, and marked in OUT.g3."""
+    import json
+
+    from mntes_stream.cli import main
+    from mntes_stream.g3.wire import iter_file_frames
+
+    core, _ = spt3g()
+    T = core.G3FrameType
+    collate = layout == "scans"
+    run = write(raw_frames(), tmp_path / "run.g3", collate=collate)
+    frames = list(iter_file_frames(run, 1 << 30))
+    data = [k for k, f in enumerate(frames) if f.type == (T.Scan if collate else T.Timepoint)
+            and ("RawTimestreams_I" in f or not collate)]
+    bad = frame_of(T.Scan, RawTimestreams_I=core.G3Int(1), RawTimestreams_Q=core.G3Int(2)) if collate else \
+        frame_of(T.Timepoint, DfMux=core.G3String("x"), EventHeader=core.G3Time(1))
+    damaged = _with_bad_frames(run, tmp_path / "damaged.g3", {data[1]: bad})
+    out = tmp_path / "out.g3"
+    assert main(["convert", str(damaged), str(out), "--kind", "electrical", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["rejected_frames"] == {"wrong_type": 1}
+    written = list(core.G3File(str(out)))
+    marks = [dict(f["MntesRejectedFrames"]) for f in written if f.type == T.PipelineInfo and
+             "MntesRejectedFrames" in f]
+    assert marks == [{"wrong_type": 1}]
+    samples = sum(f["MntesOpticalPower"].n_samples for f in written if "MntesOpticalPower" in f)
+    assert samples == (60 - 25 if collate else 60 - 1)  # the skipped frame's samples, and no others, are missing
+    assert not (tmp_path / "out.g3.partial").exists()
+
+
+DISK_FULL = r"""
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG, as a full disk does
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), int(sys.argv[1])))
+from mntes_stream.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_convert_on_a_full_disk_is_one_line_and_leaves_nothing(tmp_path):
+    """A G3 output that cannot be written whole: rc 2, one line, neither OUT.g3 nor OUT.g3.partial."""
+    import subprocess
+    import sys
+
+    run = write(raw_frames(), tmp_path / "run.g3", collate=True)
+    out = tmp_path / "out.g3"
+    p = subprocess.run([sys.executable, "-c", DISK_FULL, "4096", "convert", str(run), str(out), "--kind",
+                        "electrical"], capture_output=True, text=True, timeout=120)
+    err = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(err) == 1 and "out.g3" in err[0] and "write failed" in err[0], p.stderr
+    assert not out.exists() and not (tmp_path / "out.g3.partial").exists()
+    p = subprocess.run([sys.executable, "-c", DISK_FULL, str(1 << 30), "convert", str(run), str(out), "--kind",
+                        "electrical"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and out.exists(), p.stderr  # the same command with room for it

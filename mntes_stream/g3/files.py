@@ -11,6 +11,15 @@
 - MCAP -> G3: the recorded (or, with parameters or tables, re-converted)
   power as Scan frames with ``MntesOpticalPower``/``MntesFlags``, keyed by
   bolometer name when a wiring map is given (a G3 file holding one).
+
+Every G3 file is read through :mod:`~mntes_stream.g3.wire` (length claims
+bounded, a frame spt3g cannot decode counted and skipped, a cut-off tail
+counted) and every G3 file written appears under its name only when
+complete (``OUT.g3.partial`` until then; a full disk is a one-line error
+and leaves nothing). Frames skipped on the way are counted by reason in the
+result (``rejected_frames``), said on the log, and marked in the output: a
+``PipelineInfo`` frame with ``MntesRejectedFrames`` (reason -> count)
+before the end.
 """
 
 from __future__ import annotations
@@ -25,6 +34,9 @@ import numpy as np
 from mntes_stream.errors import ConfigError
 from mntes_stream.g3 import spt3g
 from mntes_stream.g3.mapping import G3InputConfig, Wiring
+from mntes_stream.g3.wire import AtomicG3Writer
+
+MAX_FRAME_BYTES = 512 << 20  # a frame of a G3 file claiming more is not read (the bridge's max_frame_mb)
 
 __all__ = ["is_g3", "expand_inputs", "read_frames", "preload", "g3_to_g3", "g3_to_mcap", "mcap_to_g3",
            "g3_messages", "converter_params"]
@@ -57,31 +69,66 @@ def expand_inputs(paths) -> list[str]:
     return out
 
 
-def read_frames(paths):
-    """Every frame of the files, in order (spt3g's G3File)."""
-    core, _ = spt3g()
+def read_frames(paths, bad: dict | None = None, max_frame_bytes: int = MAX_FRAME_BYTES):
+    """Every frame of the files, in order; frames that cannot be read are counted in ``bad`` (reason -> n).
+
+    A file that is not G3 at all is a ConfigError.
+    """
+    from mntes_stream.g3.wire import iter_file_frames
+
     for path in expand_inputs(paths):
-        try:
-            yield from core.G3File(path)
-        except RuntimeError as exc:
-            raise ConfigError(f"{path}: not a readable G3 file ({exc})") from None
+        yield from iter_file_frames(path, max_frame_bytes, bad)
+
+
+def _report(bad: dict, what) -> None:
+    if any(bad.values()):
+        log.warning("%s: %d G3 frame(s) skipped (%s)", what, sum(bad.values()),
+                    ", ".join(f"{r} {n}" for r, n in sorted(bad.items())))
+
+
+def _merge(*counts: dict) -> dict:
+    out: dict = {}
+    for c in counts:
+        for r, n in c.items():
+            out[r] = out.get(r, 0) + n
+    return out
+
+
+def _rejected_frame(bad: dict):
+    """The output's mark of what is missing from it: PipelineInfo with MntesRejectedFrames (reason -> count)."""
+    core, _ = spt3g()
+    f = core.G3Frame(core.G3FrameType.PipelineInfo)
+    f["MntesRejectedFrames"] = core.G3MapInt({str(r): int(n) for r, n in bad.items()})
+    return f
 
 
 def preload(paths) -> tuple[list, dict]:
     """Wiring, Housekeeping and GcpSlow frames of a run, and how many frames of each type it has."""
     core, _ = spt3g()
+    from mntes_stream.g3.translate import check_frame
+    from mntes_stream.g3.wire import BadFrame
+
     keep = (core.G3FrameType.Wiring, core.G3FrameType.Housekeeping, core.G3FrameType.GcpSlow)
-    frames, counts = [], {}
-    for f in read_frames(paths):
+    frames, counts, bad = [], {}, {}
+    for f in read_frames(paths, bad):  # what is bad is counted again by the pass that converts
         counts[str(f.type)] = counts.get(str(f.type), 0) + 1
         if f.type in keep:
+            try:
+                check_frame(f)
+            except (BadFrame, RuntimeError):
+                continue
             frames.append(f)
         elif f.type == core.G3FrameType.Scan and "RawTimestreams_I" in f:
             counts["ScanData"] = counts.get("ScanData", 0) + 1
+    files = expand_inputs(paths)
+    where = f"{files[0]}{f' (+{len(files) - 1} files)' if len(files) > 1 else ''}: "
+    damaged = f" (frames unreadable: {', '.join(f'{r} {n}' for r, n in sorted(bad.items()))})" if bad else ""
     if not counts.get("Wiring"):
-        raise ConfigError("the G3 input has no Wiring frame (WiringMap): cannot tell which bolometer is which")
+        raise ConfigError(f"{where}the G3 input has no Wiring frame (WiringMap): cannot tell which bolometer is "
+                          f"which{damaged}")
     if not counts.get("ScanData") and not counts.get("Timepoint"):
-        raise ConfigError("the G3 input has neither Timepoint frames nor Scan frames with RawTimestreams_I/Q")
+        raise ConfigError(f"{where}the G3 input has neither Timepoint frames nor Scan frames with "
+                          f"RawTimestreams_I/Q{damaged}")
     return frames, counts
 
 
@@ -98,22 +145,60 @@ def g3_to_g3(inputs, output, *, params=None, kind: str = "table", config: G3Inpu
     module = OpticalPower(params=params, kind=kind, config=config, preload=metadata, **converter_options)
     if module.needs_bath:
         module.bath.require()
-    pipe = core.G3Pipeline()
-    pipe.Add(core.G3Reader, filename=files)
-    if counts.get("Timepoint"):
-        if not counts.get("Scan"):
-            pipe.Add(dfmux.FixedLengthScans, N=int(scan_samples))
-        pipe.Add(dfmux.DfMuxCollator, flac_compress=True)
-    pipe.Add(module)
-    pipe.Add(core.G3Writer, filename=str(output))
-    pipe.Run()
+    bad: dict = {}
+    frames = read_frames(files, bad)
+
+    def source(_frame):
+        if writer.error is None:  # a failed write ends the run
+            for f in frames:
+                return [f]
+        return []
+
+    with AtomicG3Writer(output, defer_errors=True) as writer:
+        pipe = core.G3Pipeline()
+        pipe.Add(source)
+        if counts.get("Timepoint"):
+            pipe.Add(_screen(bad))  # the collator must not meet a malformed Timepoint
+            if not counts.get("Scan"):
+                pipe.Add(dfmux.FixedLengthScans, N=int(scan_samples))
+            pipe.Add(dfmux.DfMuxCollator, flac_compress=True)
+        pipe.Add(module)
+        pipe.Add(writer)
+        try:
+            pipe.Run()
+        except RuntimeError as exc:
+            raise ConfigError(f"{files[0]}: G3 conversion failed ({str(exc).split(' (in ', 1)[0]}); nothing "
+                              "written") from None
+        rejected = _merge(bad, module.rejected)
+        if rejected:
+            writer(_rejected_frame(rejected))
+    _report(rejected, f"convert {files[0]} -> {output}")
     return {"output": str(output), "layout": "timepoints" if counts.get("Timepoint") else "scans",
             "scans": module.scans, "detector_samples": module.samples, "skipped_bolometers": len(module.skipped),
-            "housekeeping_changes": module.gain_changes, "kind": kind}
+            "housekeeping_changes": module.gain_changes, "kind": kind, "rejected_frames": rejected}
+
+
+def _screen(bad: dict):
+    """A pipeline module dropping (and counting) frames whose DfMux entries have the wrong class or none."""
+    from mntes_stream.g3.translate import check_frame
+    from mntes_stream.g3.wire import BadFrame
+
+    def screen(frame):
+        try:
+            check_frame(frame)
+        except BadFrame as exc:
+            bad[exc.reason] = bad.get(exc.reason, 0) + 1
+            return []
+        except RuntimeError:
+            bad["undecodable"] = bad.get("undecodable", 0) + 1
+            return []
+        return None
+
+    return screen
 
 
 def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_samples: int = 16,
-                gain_reference=None):
+                gain_reference=None, bad: dict | None = None):
     """``(t_ns, key, payload)`` of every message a G3 run gives (the bridge's translation).
 
     ``t_ns`` is the data time the message stands for (last sample of a
@@ -143,9 +228,13 @@ def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_s
                 yield from tr.timed(tr.default_bath, t_ns)
             yield t_ns, key, payload
 
-    for frame in read_frames(inputs):
-        yield from with_default(tr.timed(tr.handle, frame))
+    read_bad: dict = {}
+    for frame in read_frames(inputs, read_bad):
+        yield from with_default(tr.timed(tr.accept, frame))
     yield from with_default(tr.timed(tr.flush))
+    tr.drop_held()
+    if bad is not None:
+        bad.update(_merge(read_bad, tr.counters.rejected))
 
 
 def converter_params(inputs, params, config: G3InputConfig | None = None) -> dict:
@@ -202,8 +291,10 @@ def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, s
         rec = Path(tmp) / "g3.mcap"
         with McapFileWriter(rec, metadata={"mntes.recording": writer_description(
                 mode="G3 translation", input=[str(f) for f in files])}) as w:
-            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples, gain_reference=gref):
+            bad: dict = {}
+            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples, gain_reference=gref, bad=bad):
                 w.write(key, payload, t_ns)
+        _report(bad, f"convert {files[0]} -> {output}")  # their samples are missing from the output
         return convert_recording(rec, output, params=pfile, tables=tables, pipeline_config=pipeline_config,
                                  progress=progress)
 
@@ -238,24 +329,23 @@ def mcap_to_g3(inputs, output, *, params=None, tables=None, wiring=None, pipelin
             chunk = PowerChunk.from_bytes(msg.payload)
             t = chunk.times_ns()
             groups.setdefault((int(t[0]), t.size), []).append(chunk)
-    writer = core.G3Writer(filename=str(output))
-    if wiring_frame is not None:
-        writer(wiring_frame)
-    n_scans = n_samples = 0
-    for (_, _), chunks in sorted(groups.items()):
-        t = chunks[0].times_ns()
-        ids = [d for c in chunks for d in c.detector_ids]
-        p = np.concatenate([c.p_opt_w for c in chunks])
-        f = np.concatenate([c.flags for c in chunks]).astype(np.int32)
-        keys_ = [names.get(d, d) for d in ids]
-        start, stop = core.G3Time(int(t[0]) // 10), core.G3Time(int(t[-1]) // 10)
-        frame = core.G3Frame(core.G3FrameType.Scan)
-        frame["MntesOpticalPower"] = core.G3TimestreamMap(keys_, p, start, stop, core.G3TimestreamUnits.Power)
-        frame["MntesFlags"] = core.G3TimestreamMap(keys_, f, start, stop)
-        frame["DetectorSampleTimes"] = core.G3VectorTime([core.G3Time(int(x) // 10) for x in t])
-        writer(frame)
-        n_scans += 1
-        n_samples += p.size
-    writer(core.G3Frame(core.G3FrameType.EndProcessing))
+    with AtomicG3Writer(output) as writer:
+        if wiring_frame is not None:
+            writer(wiring_frame)
+        n_scans = n_samples = 0
+        for (_, _), chunks in sorted(groups.items()):
+            t = chunks[0].times_ns()
+            ids = [d for c in chunks for d in c.detector_ids]
+            p = np.concatenate([c.p_opt_w for c in chunks])
+            f = np.concatenate([c.flags for c in chunks]).astype(np.int32)
+            keys_ = [names.get(d, d) for d in ids]
+            start, stop = core.G3Time(int(t[0]) // 10), core.G3Time(int(t[-1]) // 10)
+            frame = core.G3Frame(core.G3FrameType.Scan)
+            frame["MntesOpticalPower"] = core.G3TimestreamMap(keys_, p, start, stop, core.G3TimestreamUnits.Power)
+            frame["MntesFlags"] = core.G3TimestreamMap(keys_, f, start, stop)
+            frame["DetectorSampleTimes"] = core.G3VectorTime([core.G3Time(int(x) // 10) for x in t])
+            writer(frame)
+            n_scans += 1
+            n_samples += p.size
     return {"output": str(output), "scans": n_scans, "detector_samples": n_samples,
             "named_by": "bolometer name" if names else "detector id"}

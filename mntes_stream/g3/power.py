@@ -111,8 +111,30 @@ class OpticalPower:
         self.scans = 0
         self.samples = 0
         self.gain_changes = 0
+        self.rejected: dict[str, int] = {}  # frames it could not use, by reason (dropped from the output)
         for frame in preload:
-            self._metadata(frame)
+            self._guarded(self._metadata, frame)
+
+    def _guarded(self, method, frame) -> bool:
+        """``method(frame)``; a frame it cannot use (wrong class, empty map, undecodable) counted, False."""
+        from mntes_stream.g3.translate import check_frame
+        from mntes_stream.g3.wire import BadFrame
+
+        try:
+            check_frame(frame)
+            method(frame)
+            return True
+        except BadFrame as exc:
+            reason, text = exc.reason, str(exc)
+        except (RuntimeError, MemoryError) as exc:
+            reason, text = "undecodable", str(exc).split(" (in ", 1)[0]
+        except (TypeError, ValueError, KeyError, AttributeError, IndexError) as exc:
+            if isinstance(exc, ConfigError):
+                raise  # ours: no parameters, no bath temperature ... is the run's problem, not a frame's
+            reason, text = "bad_content", f"{type(exc).__name__}: {exc}"
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        log.warning("G3 %s frame dropped (%s): %s", frame.type, reason, text)
+        return False
 
     # -- frames -------------------------------------------------------------------------------
     def _metadata(self, frame) -> bool:
@@ -147,6 +169,12 @@ class OpticalPower:
             self.gain_changes += 1
 
     def __call__(self, frame):
+        """Append the power to a Scan frame; a frame it cannot use is dropped and counted (``rejected``)."""
+        if not self._guarded(self._process, frame):
+            return []
+        return None
+
+    def _process(self, frame) -> None:
         core, _ = spt3g()
         if self._metadata(frame) or frame.type != core.G3FrameType.Scan:
             return

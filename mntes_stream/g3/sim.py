@@ -192,7 +192,7 @@ def write_g3(config: SimConfig, path, duration_s: float, *, layout: str = "scans
     state = {"done": False}
 
     def source(_frame):
-        if state["done"]:
+        if state["done"] or writer.error is not None:
             return []
         try:
             return [next(gen)]
@@ -200,11 +200,14 @@ def write_g3(config: SimConfig, path, duration_s: float, *, layout: str = "scans
             state["done"] = True
             return []
 
-    pipe = core.G3Pipeline()
-    pipe.Add(source)
-    if layout == "scans" and not exact_counts:
-        pipe.Add(dfmux.DfMuxCollator, flac_compress=True)
-    pipe.Add(core.G3Writer, filename=str(path))
-    pipe.Run()
+    from mntes_stream.g3.wire import AtomicG3Writer
+
+    with AtomicG3Writer(path, defer_errors=True) as writer:  # under its name only when complete
+        pipe = core.G3Pipeline()
+        pipe.Add(source)
+        if layout == "scans" and not exact_counts:
+            pipe.Add(dfmux.DfMuxCollator, flac_compress=True)
+        pipe.Add(writer)
+        pipe.Run()
     return {"output": str(path), "layout": layout, "samples": n_total, "detectors": config.n_detectors,
             "exact_counts": exact_counts, "first_sample_ns": t0}

@@ -53,7 +53,7 @@ from mntes_stream.g3.wire import BadFrame
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 
-__all__ = ["FrameTranslator", "TranslatorCounters", "RAIL", "to_int32_counts"]
+__all__ = ["FrameTranslator", "TranslatorCounters", "RAIL", "to_int32_counts", "check_frame"]
 
 log = logging.getLogger("mntes_stream.g3")
 
@@ -268,17 +268,13 @@ class FrameTranslator:
 
         Raises :class:`~mntes_stream.g3.wire.BadFrame` for a frame it cannot use (see :meth:`accept`).
         """
-        core, dfmux = spt3g()
+        core, _ = spt3g()
         ft = frame.type
         c = self.counters
         c.frames += 1
         c.by_type[str(ft)] = c.by_type.get(str(ft), 0) + 1
+        check_frame(frame)
         if ft == core.G3FrameType.Wiring:
-            wm = _entry(frame, "WiringMap", dfmux.DfMuxWiringMap, "Wiring")
-            if wm is None:
-                raise BadFrame("G3 Wiring frame without a WiringMap", "wrong_type")
-            if not len(wm):
-                raise BadFrame("G3 Wiring frame with an empty WiringMap", "empty_map")
             try:
                 wiring = Wiring.from_frame(frame, self.config, self.boards)
             except SchemaError as exc:
@@ -288,9 +284,7 @@ class FrameTranslator:
                 return []
             return self._set_wiring(wiring)
         if ft == core.G3FrameType.Housekeeping and "DfMuxHousekeeping" in frame:
-            hkmap = _entry(frame, "DfMuxHousekeeping", dfmux.DfMuxHousekeepingMap, "Housekeeping")
-            if not len(hkmap):
-                raise BadFrame("G3 Housekeeping frame with an empty DfMuxHousekeeping map", "empty_map")
+            hkmap = frame["DfMuxHousekeeping"]
             if self.wiring is None:
                 self._pending = self._pending[-(self.max_held - 1):] + [hkmap] if self.max_held > 1 else [hkmap]
                 return []
@@ -299,10 +293,6 @@ class FrameTranslator:
             r = bath_reading(frame, self.config, self._t_last_ns)
             return self._bath(*r) if r is not None else []
         if ft == core.G3FrameType.Timepoint and "DfMux" in frame:
-            meta = _entry(frame, "DfMux", dfmux.DfMuxMetaSample, "Timepoint")
-            _entry(frame, "EventHeader", core.G3Time, "Timepoint", required=True)
-            if not len(meta):
-                raise BadFrame("G3 Timepoint frame with an empty DfMux map", "empty_map")
             if self.wiring is None:
                 return self._hold(frame)
             c.timepoints += 1
@@ -311,9 +301,6 @@ class FrameTranslator:
                 return self.flush(t_pub_ns)
             return []
         if ft == core.G3FrameType.Scan:
-            for name in ("RawTimestreams_I", "RawTimestreams_Q"):
-                _entry(frame, name, core.G3TimestreamMap, "Scan")
-            _entry(frame, "DetectorSampleTimes", core.G3VectorTime, "Scan")
             if self.wiring is None:
                 return self._hold(frame)
             blk = scan_block(frame, self.wiring)
@@ -354,6 +341,7 @@ class FrameTranslator:
         spt3g decodes entries lazily, so a damaged blob or a wrong class
         shows here; what it raises is the frame's fault, never the bridge's.
         """
+        n_times = len(self._times)
         try:
             return self.handle(frame, t_pub_ns)
         except BadFrame as exc:
@@ -362,6 +350,7 @@ class FrameTranslator:
             reason, text = "undecodable", str(exc).split(" (in ", 1)[0]
         except (SchemaError, TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as exc:
             reason, text = "bad_content", f"{type(exc).__name__}: {exc}"
+        del self._times[n_times:]  # nothing of the frame goes out: nor its times (timed)
         self.counters.reject(reason)
         self.last_error[reason] = text
         now = time.monotonic()
@@ -386,6 +375,32 @@ class FrameTranslator:
         if self.config.t_bath_default_k is None:
             self.bath.require()
         return self._bath(int(t_ns), float(self.config.t_bath_default_k))
+
+
+def check_frame(frame) -> None:
+    """BadFrame (``wrong_type``, ``empty_map``) unless the entries the DfMux frames are read by have spt3g's
+    classes and hold something; other frames pass. Reading an entry decodes it: RuntimeError if spt3g cannot."""
+    core, dfmux = spt3g()
+    T = core.G3FrameType
+    ft = frame.type
+    if ft == T.Wiring:
+        wm = _entry(frame, "WiringMap", dfmux.DfMuxWiringMap, "Wiring", required=True)
+        if not len(wm):
+            raise BadFrame("G3 Wiring frame with an empty WiringMap", "empty_map")
+    elif ft == T.Housekeeping:
+        hk = _entry(frame, "DfMuxHousekeeping", dfmux.DfMuxHousekeepingMap, "Housekeeping")
+        if hk is not None and not len(hk):
+            raise BadFrame("G3 Housekeeping frame with an empty DfMuxHousekeeping map", "empty_map")
+    elif ft == T.Timepoint:
+        meta = _entry(frame, "DfMux", dfmux.DfMuxMetaSample, "Timepoint")
+        if meta is not None:
+            _entry(frame, "EventHeader", core.G3Time, "Timepoint", required=True)
+            if not len(meta):
+                raise BadFrame("G3 Timepoint frame with an empty DfMux map", "empty_map")
+    elif ft == T.Scan:
+        for name in ("RawTimestreams_I", "RawTimestreams_Q"):
+            _entry(frame, name, core.G3TimestreamMap, "Scan")
+        _entry(frame, "DetectorSampleTimes", core.G3VectorTime, "Scan")
 
 
 def _entry(frame, name: str, cls, kind: str, required: bool = False):

@@ -230,11 +230,16 @@ class AtomicG3Writer:
     Frames go to ``<path>.partial`` (compressed as the name says: ``.gz``,
     ``.bz2``, ``.zst``); :meth:`close` flushes, syncs and renames. Leaving the
     ``with`` block on an exception removes the partial file, and a failed
-    write (a full disk) is a one-line :class:`ConfigError`.
+    write (a full disk) is a one-line :class:`ConfigError`: at once, or, with
+    ``defer_errors`` (the writer as a G3Pipeline module, where spt3g would log
+    an exception as a warning of its own), from :meth:`close`; :attr:`error`
+    says so meanwhile and later frames are ignored.
     """
 
-    def __init__(self, path):
+    def __init__(self, path, defer_errors: bool = False):
         self.path = Path(path)
+        self.defer_errors = defer_errors
+        self.error: str | None = None
         if self.path.exists():
             raise ConfigError(f"{self.path} exists: not overwritten")
         self.tmp = self.path.with_name(self.path.name + ".partial")
@@ -259,16 +264,23 @@ class AtomicG3Writer:
             raise ConfigError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
 
     def __call__(self, frame) -> None:
-        """Write one frame (usable as the last module of a G3Pipeline)."""
+        """Write one frame (usable as the last module of a G3Pipeline; EndProcessing is not written,
+        as spt3g's G3Writer does not)."""
+        if self.error is not None or str(frame.type) == "EndProcessing":
+            return
         try:
             self._f.write(encode_frame(frame))
         except OSError as exc:
             self.abort()
-            raise ConfigError(f"{self.path}: write failed after {self.frames} frames ({exc.strerror or exc}); "
-                              "nothing written") from None
+            self.error = f"{self.path}: write failed after {self.frames} frames ({exc.strerror or exc}); nothing written"
+            if not self.defer_errors:
+                raise ConfigError(self.error) from None
+            return
         self.frames += 1
 
     def close(self) -> None:
+        if self.error is not None:
+            raise ConfigError(self.error)
         try:
             if self._f is not self._raw:
                 self._f.close()
