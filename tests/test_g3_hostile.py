@@ -218,8 +218,11 @@ def test_bridge_survives_19_malformed_streams(scan_frames):
     assert peak - rss0 < 150 * 2**20, f"RSS grew by {(peak - rss0) / 2**20:.0f} MB"
     # per module: the two held Scans, then one chunk of TP Timepoints per case
     assert result["published"] == {f"{BOARD}/{m}": 2 + len(todo) for m in MODULES}
+    assert result["ledger"]["other"]["rejected"] == want_reasons
+    assert {k: v["done"] for k, v in result["ledger"].items() if k != "other"} == result["published"]
+    assert result["lost"] == 19 and result["gap_samples"] == 0
     line = ledger_line(result)
-    assert "19 frames rejected" in line and "frame_too_large 3" in line and "before_wiring 1" in line
+    assert line.count("\n") == 0 and "rejected 19 (" in line and "frame_too_large 3" in line and "lost 19 of" in line
 
 
 def test_empty_and_wrong_frames_do_not_reach_the_history():

@@ -122,3 +122,6 @@ def test_live_bridge_equals_file_ingest_and_counts_the_gap(tmp_path):
     assert all(file_counts[k] == v for k, v in live.items())
     assert result["connections"] == 2 and result["reconnects"] == 1
     assert result["gap_samples"] == len(skipped)
+    # the ledger: the gap is never received in each module's stream (5 samples, one chunk of 16), nothing rejected
+    assert {k: v.get("missing", 0) for k, v in result["ledger"].items()} == {"1234/2": 1, "1234/5": 1}
+    assert result["lost"] == 2 and result["rejected_frames"] == 0

@@ -353,6 +353,7 @@ class G3BridgeService(Service):
         rejected = dict(src.rejected)
         for reason, n in c.rejected.items():
             rejected[reason] = rejected.get(reason, 0) + n
+        led = bridge_ledger(tr.published(), c.stream_gaps, rejected, self.config.bridge.chunk_samples)
         counters = {"frames": c.frames, "timepoints": c.timepoints, "scans": c.scans, "samples": c.samples,
                     "invalid_samples": c.invalid_samples, "gap_samples": c.gap_samples,
                     "housekeeping": c.housekeeping, "gain_changes": c.gain_changes, "bias_changes": c.bias_changes,
@@ -361,23 +362,46 @@ class G3BridgeService(Service):
                     "reconnects": src.reconnects, "connect_failures": src.connect_failures,
                     "source_state": src.state, "source_error": src.last_error,
                     "rejected_frames": sum(rejected.values()), "rejected": rejected, "held_frames": tr.held,
-                    "published": dict(sorted(tr.published().items())), "stream_gaps": dict(c.stream_gaps)}
+                    "published": dict(sorted(tr.published().items())), "stream_gaps": dict(c.stream_gaps),
+                    "ledger": led.as_dict(), "lost": led.lost}
         self.heartbeat.beat(**counters)
         return counters
 
 
-def ledger_line(result: dict) -> str:
-    """The bridge's ledger in one line, from its result (or heartbeat).
+def bridge_ledger(published: dict, stream_gaps: dict, rejected: dict, chunk_samples: int):
+    """The bridge's :class:`~mntes_stream.core.ledger.Ledger` (verb ``published``).
 
-    Per stream (board/module) the counts chunks published and the samples
-    the DfMux clock says never arrived; the frames rejected, by reason;
-    the connections. Nothing rejected or missed is left out.
+    Per stream (``board/module``): the counts chunks published, and as never
+    received the samples the DfMux clock says never arrived, in chunks of
+    ``chunk_samples`` (rounded up). A rejected G3 frame cannot be told to a
+    stream: each is a rejected chunk of the stream ``other``, by reason, so
+    ``lost`` counts it.
     """
-    pub, gaps = result.get("published", {}), result.get("stream_gaps", {})
-    streams = ", ".join(f"{k} {n}" + (f" (-{gaps[k]} samples)" if gaps.get(k) else "") for k, n in pub.items())
-    rej = result.get("rejected", {})
-    rejected = ", ".join(f"{r} {n}" for r, n in sorted(rej.items()) if n) or "none"
-    return (f"g3-bridge done: {sum(pub.values())} counts chunks published over {len(pub)} streams"
-            f"{' (' + streams + ')' if streams else ''}; {result.get('gap_samples', 0)} samples never received; "
-            f"{result.get('rejected_frames', 0)} frames rejected ({rejected}); {result.get('connections', 0)} "
-            f"connections, {result.get('connect_failures', 0)} failed attempts")
+    from mntes_stream.core.ledger import OTHER, Ledger
+
+    led = Ledger("published")
+    for stream, n in published.items():
+        led.received(stream, n)
+        led.done(stream, n)
+    for stream, n in stream_gaps.items():
+        led.set_missing(stream, -(-int(n) // max(int(chunk_samples), 1)))
+    for reason, n in rejected.items():
+        if n:
+            led.received(OTHER, n)
+            led.rejected(OTHER, reason, n)
+    return led
+
+
+def ledger_line(result: dict) -> str:
+    """The bridge's ledger in one line, from its result (or heartbeat): chunks published, never received,
+    frames rejected by reason, lost; samples never received; connections. Nothing missed is left out."""
+    from mntes_stream.core.ledger import Ledger
+
+    led = Ledger.from_dict(result.get("ledger", {}), "published")
+    text = f"g3-bridge done: {led.line()}"
+    if result.get("rejected_frames"):
+        text += " (rejected: G3 frames, in stream 'other')"
+    text += f"; {result.get('gap_samples', 0)} samples never received"
+    if result.get("connections") or result.get("connect_failures"):
+        text += f"; {result.get('connections', 0)} connections, {result.get('connect_failures', 0)} failed attempts"
+    return text
