@@ -4,8 +4,9 @@ A loopback TCP server plays the DAQ's G3NetworkSender: each connection the
 bridge makes is served one byte stream, then closed. The good frames are
 spt3g's own serialization (``wire.encode_frame``, the bytes G3NetworkSender
 sends); the bad ones are those bytes with a field broken, or frames built
-with spt3g whose entries have the wrong class. 19 streams, in one bridge
-run: after every one, good Timepoints follow (on the same connection when
+with spt3g whose entries have the wrong class. The issue's 19 streams and two
+more (blobs spt3g cannot decode under a correct CRC), in one bridge run:
+after every one, good Timepoints follow (on the same connection when
 only a frame is bad, on the next when the stream lost its framing) and a
 real zenoh subscriber on 127.0.0.1 must see every one of their samples.
 """
@@ -49,6 +50,26 @@ def with_u64(frame: bytes, at: int, value: int) -> bytes:
     return frame[:at] + struct.pack("<Q", value) + frame[at + 8:]
 
 
+_CRC32C = []
+for _n in range(256):
+    _c = _n
+    for _ in range(8):
+        _c = (_c >> 1) ^ (0x82F63B78 if _c & 1 else 0)
+    _CRC32C.append(_c)
+
+
+def with_crc(frame: bytes) -> bytes:
+    """``frame`` with the CRC spt3g computes (CRC-32C, no pre/post inversion, over each entry's name and blob)."""
+    n, pos, crc = struct.unpack_from("<I", frame, 5)[0], 13, 0
+    for _ in range(n):
+        n_name = struct.unpack_from("<Q", frame, pos)[0]
+        n_blob = struct.unpack_from("<Q", frame, pos + 8 + n_name)[0]
+        for b in frame[pos + 8:pos + 8 + n_name] + frame[pos + 16 + n_name:pos + 16 + n_name + n_blob]:
+            crc = _CRC32C[(crc ^ b) & 0xFF] ^ (crc >> 8)
+        pos += 16 + n_name + n_blob
+    return frame[:pos] + struct.pack("<I", crc)
+
+
 def frame_of(ftype, **entries) -> bytes:
     core, _ = spt3g()
     f = core.G3Frame(ftype)
@@ -58,10 +79,13 @@ def frame_of(ftype, **entries) -> bytes:
 
 
 def cases(meta: bytes, scans: list[bytes]):
-    """(name, bytes of one connection, reason counted or None) for the 19 streams, in order."""
+    """(name, bytes of one connection, reason counted or None): the issue's 19 streams and two more, in order."""
     core, dfmux = spt3g()
     T = core.G3FrameType
     tp = tp_bytes(0)
+    assert with_crc(tp) == tp
+    times = frame_of(T.Scan, DetectorSampleTimes=core.G3VectorTime([core.G3Time(t) for t in (5, 6, 7)]))
+    assert struct.pack("<IQ", 1, 3) in times  # the vector's version and its length
     blob_len_at = 13 + 8 + len(b"DfMux")  # first entry of a Timepoint frame: u64 name length, name, u64 blob length
     names = sorted(F.timepoint_frame(T0_NS, {(BOARD, MODULES[0]): true_counts(0)[MODULES[0]]}, N_CH).keys())
     assert names[0] == "DfMux"  # spt3g writes entries in name order: the patched length is DfMux's blob
@@ -80,6 +104,10 @@ def cases(meta: bytes, scans: list[bytes]):
         ("empty DfMux map", frame_of(T.Timepoint, DfMux=dfmux.DfMuxMetaSample(), EventHeader=core.G3Time(1)),
          "empty_map"),
         ("CRC mismatch", tp[:-1] + bytes([tp[-1] ^ 0xFF]), "crc"),
+        # beyond the issue's 19: blobs spt3g cannot decode although the frame's CRC is right
+        ("unknown class in a blob", with_crc(tp.replace(b"DfMuxMetaSample", b"XfMuxMetaSample", 1)), "undecodable"),
+        ("2**62 sample times claimed", with_crc(times.replace(struct.pack("<IQ", 1, 3), struct.pack("<IQ", 1, 1 << 62),
+                                                              1)), "undecodable"),
     ]
     stream_level = [
         ("big-endian flag", b"\x00" + tp[1:], "big_endian"),
@@ -156,13 +184,13 @@ def test_splitter_refuses_claims_before_allocating():
     assert e.value.reason == "frame_too_large"
 
 
-def test_bridge_survives_19_malformed_streams(scan_frames):
+def test_bridge_survives_malformed_streams(scan_frames):
     from mntes_stream.g3.bridge import BridgeSettings, G3BridgeConfig, G3BridgeService, ledger_line
     from mntes_stream.service.base import StopFlag
 
     meta = b"".join(encode_frame(f) for f in raw_frames(n=0))  # Wiring, Housekeeping, GcpSlow
     todo = cases(meta, scan_frames)
-    assert len(todo) == 19
+    assert len(todo) == 21
     daq = Daq([data for _, data, _ in todo])
     port = free_tcp_port()
     cfg = G3BridgeConfig(bridge=BridgeSettings(source=f"tcp://127.0.0.1:{daq.port}", setup="lab", chunk_samples=TP,
@@ -204,7 +232,7 @@ def test_bridge_survives_19_malformed_streams(scan_frames):
             want_reasons[reason] = want_reasons.get(reason, 0) + 1
     want_reasons["before_wiring"] = 1  # three Scans held with room for two: the oldest is counted
     assert result["rejected"] == want_reasons
-    assert result["rejected_frames"] == sum(want_reasons.values()) == 19
+    assert result["rejected_frames"] == sum(want_reasons.values()) == 21
     assert result["connections"] == len(todo)
     # Every sample after every bad frame reached a real subscriber, with the counts the DAQ sent.
     for k in range(FIRST_TP, FIRST_TP + TP * len(todo)):
@@ -220,9 +248,9 @@ def test_bridge_survives_19_malformed_streams(scan_frames):
     assert result["published"] == {f"{BOARD}/{m}": 2 + len(todo) for m in MODULES}
     assert result["ledger"]["other"]["rejected"] == want_reasons
     assert {k: v["done"] for k, v in result["ledger"].items() if k != "other"} == result["published"]
-    assert result["lost"] == 19 and result["gap_samples"] == 0
+    assert result["lost"] == 21 and result["gap_samples"] == 0
     line = ledger_line(result)
-    assert line.count("\n") == 0 and "rejected 19 (" in line and "frame_too_large 3" in line and "lost 19 of" in line
+    assert line.count("\n") == 0 and "rejected 21 (" in line and "frame_too_large 3" in line and "lost 21 of" in line
 
 
 def test_empty_and_wrong_frames_do_not_reach_the_history():
@@ -306,3 +334,30 @@ def test_convert_on_a_full_disk_is_one_line_and_leaves_nothing(tmp_path):
     p = subprocess.run([sys.executable, "-c", DISK_FULL, str(1 << 30), "convert", str(run), str(out), "--kind",
                         "electrical"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0 and out.exists(), p.stderr  # the same command with room for it
+
+
+def test_g3_to_mcap_counts_and_says_what_it_skipped(tmp_path, caplog):
+    """RUN.g3 -> messages (-> OUT.mcap): a wrong-typed Timepoint is counted and said; every other sample is there."""
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.g3.files import g3_messages, g3_to_mcap
+    from mntes_stream.g3.wire import iter_file_frames
+    from mntes_stream.io.mcap import Session
+
+    core, _ = spt3g()
+    T = core.G3FrameType
+    run = write(raw_frames(), tmp_path / "run.g3")
+    tps = [k for k, f in enumerate(iter_file_frames(run, 1 << 30)) if f.type == T.Timepoint]
+    damaged = _with_bad_frames(run, tmp_path / "damaged.g3",
+                               {tps[7]: frame_of(T.Timepoint, DfMux=core.G3Int(1), EventHeader=core.G3Time(1))})
+    bad: dict = {}
+    times = set()
+    for _, key, payload in g3_messages(damaged, "lab", bad=bad):
+        if "/counts/" in key:
+            times |= set(decode(payload).times_ns().tolist())
+    assert bad == {"wrong_type": 1}
+    assert times == {T0_NS + k * SAMPLE_NS for k in range(60) if k != 7}
+    params = {n: table1_params(n) for n in LAYOUT}
+    with caplog.at_level("WARNING", logger="mntes_stream.g3"):
+        g3_to_mcap(damaged, tmp_path / "out.mcap", params=params)
+    assert any("1 G3 frame(s) skipped (wrong_type 1)" in r.getMessage() for r in caplog.records)
+    assert Session(tmp_path / "out.mcap").message_counts()[f"mntes/lab/counts/{BOARD}/2"] == 4

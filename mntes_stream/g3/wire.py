@@ -15,7 +15,14 @@ disk and from ``G3NetworkSender``)::
     u32 CRC
 
 Memory is bounded by the budget: bytes are buffered only as they arrive,
-and a frame whose claims exceed it is refused at its header.
+and a frame whose claims exceed it is refused at its header. The CRC
+(CRC-32C without inversion over each entry's name and blob) is spt3g's to
+check. What is not bounded here: lengths *inside* a blob (a vector's
+element count), which spt3g decodes when an entry is read. A claim beyond
+memory fails at once (counted ``undecodable``); one that fits in memory is
+allocated before the read fails, so a sender that computes the CRC can
+still make the bridge allocate (not keep) that much: run it under a memory
+limit where the sender is not trusted.
 """
 
 from __future__ import annotations
