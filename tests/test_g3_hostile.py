@@ -5,7 +5,8 @@ bridge makes is served one byte stream, then closed. The good frames are
 spt3g's own serialization (``wire.encode_frame``, the bytes G3NetworkSender
 sends); the bad ones are those bytes with a field broken, or frames built
 with spt3g whose entries have the wrong class. The issue's 19 streams and two
-more (blobs spt3g cannot decode under a correct CRC), in one bridge run:
+more (a Timepoint going back in time, blobs spt3g cannot decode under a
+correct CRC), in one bridge run:
 after every one, good Timepoints follow (on the same connection when
 only a frame is bad, on the next when the stream lost its framing) and a
 real zenoh subscriber on 127.0.0.1 must see every one of their samples.
@@ -79,7 +80,7 @@ def frame_of(ftype, **entries) -> bytes:
 
 
 def cases(meta: bytes, scans: list[bytes]):
-    """(name, bytes of one connection, reason counted or None): the issue's 19 streams and two more, in order."""
+    """(name, bytes of one connection, reason counted or None): the issue's 19 streams and three more, in order."""
     core, dfmux = spt3g()
     T = core.G3FrameType
     tp = tp_bytes(0)
@@ -105,6 +106,7 @@ def cases(meta: bytes, scans: list[bytes]):
          "empty_map"),
         ("CRC mismatch", tp[:-1] + bytes([tp[-1] ^ 0xFF]), "crc"),
         # beyond the issue's 19: blobs spt3g cannot decode although the frame's CRC is right
+        ("a Timepoint back in time", tp, "out_of_order"),  # sample 0 again, long after it
         ("unknown class in a blob", with_crc(tp.replace(b"DfMuxMetaSample", b"XfMuxMetaSample", 1)), "undecodable"),
         ("2**62 sample times claimed", with_crc(times.replace(struct.pack("<IQ", 1, 3), struct.pack("<IQ", 1, 1 << 62),
                                                               1)), "undecodable"),
@@ -190,7 +192,7 @@ def test_bridge_survives_malformed_streams(scan_frames):
 
     meta = b"".join(encode_frame(f) for f in raw_frames(n=0))  # Wiring, Housekeeping, GcpSlow
     todo = cases(meta, scan_frames)
-    assert len(todo) == 21
+    assert len(todo) == 22
     daq = Daq([data for _, data, _ in todo])
     port = free_tcp_port()
     cfg = G3BridgeConfig(bridge=BridgeSettings(source=f"tcp://127.0.0.1:{daq.port}", setup="lab", chunk_samples=TP,
@@ -232,7 +234,7 @@ def test_bridge_survives_malformed_streams(scan_frames):
             want_reasons[reason] = want_reasons.get(reason, 0) + 1
     want_reasons["before_wiring"] = 1  # three Scans held with room for two: the oldest is counted
     assert result["rejected"] == want_reasons
-    assert result["rejected_frames"] == sum(want_reasons.values()) == 21
+    assert result["rejected_frames"] == sum(want_reasons.values()) == 22
     assert result["connections"] == len(todo)
     # Every sample after every bad frame reached a real subscriber, with the counts the DAQ sent.
     for k in range(FIRST_TP, FIRST_TP + TP * len(todo)):
@@ -248,9 +250,9 @@ def test_bridge_survives_malformed_streams(scan_frames):
     assert result["published"] == {f"{BOARD}/{m}": 2 + len(todo) for m in MODULES}
     assert result["ledger"]["other"]["rejected"] == want_reasons
     assert {k: v["done"] for k, v in result["ledger"].items() if k != "other"} == result["published"]
-    assert result["lost"] == 21 and result["gap_samples"] == 0
+    assert result["lost"] == 22 and result["gap_samples"] == 0
     line = ledger_line(result)
-    assert line.count("\n") == 0 and "rejected 21 (" in line and "frame_too_large 3" in line and "lost 21 of" in line
+    assert line.count("\n") == 0 and "rejected 22 (" in line and "frame_too_large 3" in line and "lost 22 of" in line
 
 
 def test_empty_and_wrong_frames_do_not_reach_the_history():

@@ -46,6 +46,7 @@ from mntes_stream.g3.mapping import (
     HkHistory,
     Wiring,
     bath_reading,
+    g3_time_ns,
     hk_snapshot,
     invalid_counts,
 )
@@ -295,6 +296,7 @@ class FrameTranslator:
         if ft == core.G3FrameType.Timepoint and "DfMux" in frame:
             if self.wiring is None:
                 return self._hold(frame)
+            self._check_after(np.array([g3_time_ns(frame["EventHeader"])]), "Timepoint")
             c.timepoints += 1
             self._buffer.add(frame)
             if len(self._buffer) >= self.chunk_samples:
@@ -306,11 +308,21 @@ class FrameTranslator:
             blk = scan_block(frame, self.wiring)
             if blk is None:  # an empty Scan frame: a scan boundary in a raw stream
                 return self.flush(t_pub_ns)
+            self._check_after(blk.t_ns, "Scan")
             c.scans += 1
             return self.flush(t_pub_ns) + self._counts(blk, int(blk.t_ns[-1]) if t_pub_ns is None else t_pub_ns)
         if ft == core.G3FrameType.EndProcessing:
             return self.flush(t_pub_ns)
         return []
+
+    def _check_after(self, t_ns: np.ndarray, kind: str) -> None:
+        # Samples go out in time order, each once: a frame going back in time (a DAQ resending, a clock
+        # jump) is refused whole, before it is collected, rather than break a chunk later.
+        last = self._buffer.last_t_ns if self._buffer is not None and len(self._buffer) else None
+        last = self._t_last_ns if last is None else last
+        if t_ns.size and (int(t_ns[0]) <= last or int(t_ns.min()) < 0 or np.any(np.diff(t_ns) <= 0)):
+            raise BadFrame(f"G3 {kind} frame at {int(t_ns[0])} ns: samples not after the last one ({last} ns) or "
+                           "not in time order", "out_of_order")
 
     def _hold(self, frame) -> list:
         # A Scan/Timepoint before the first Wiring frame: kept (bounded) until the wiring arrives.

@@ -48,7 +48,7 @@ MAX_NAME_BYTES = 1 << 12
 STREAM_REASONS = ("big_endian", "bad_header", "frame_version", "too_many_entries", "name_too_long",
                   "frame_too_large", "truncated")
 # A frame with one of these is skipped; the stream goes on.
-FRAME_REASONS = ("crc", "undecodable", "wrong_type", "empty_map", "before_wiring", "bad_content")
+FRAME_REASONS = ("crc", "undecodable", "wrong_type", "empty_map", "before_wiring", "out_of_order", "bad_content")
 
 
 class BadFrame(SchemaError):
