@@ -363,3 +363,28 @@ def test_g3_to_mcap_counts_and_says_what_it_skipped(tmp_path, caplog):
         g3_to_mcap(damaged, tmp_path / "out.mcap", params=params)
     assert any("1 G3 frame(s) skipped (wrong_type 1)" in r.getMessage() for r in caplog.records)
     assert Session(tmp_path / "out.mcap").message_counts()[f"mntes/lab/counts/{BOARD}/2"] == 4
+
+
+def test_g3_bridge_command_survives_and_ends_with_its_ledger(tmp_path):
+    """The `g3-bridge` command (its own process) on three bad streams: rc 0, no traceback, the ledger last."""
+    import subprocess
+    import sys
+
+    core, _ = spt3g()
+    T = core.G3FrameType
+    meta = b"".join(encode_frame(f) for f in raw_frames(n=0))
+    tp = tp_bytes(FIRST_TP)
+    daq = Daq([meta + b"\x00" + tp[1:],                                                    # big-endian flag
+               meta + frame_of(T.Scan, RawTimestreams_I=core.G3String("x"),
+                               RawTimestreams_Q=core.G3String("y")) + good(0),              # wrong type in Scan
+               meta + with_u64(tp, 13 + 8 + 5, 2 << 30)])                                  # a 2 GB claim
+    cfg = tmp_path / "bridge.toml"
+    cfg.write_text(f'[g3-bridge]\nsource = "tcp://127.0.0.1:{daq.port}"\nchunk_samples = {TP}\nreconnect_s = 0.05\n'
+                   'duration_s = 4.0\nwait_subscribers_s = 0\n\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:0"]\n')
+    p = subprocess.run([sys.executable, "-m", "mntes_stream", "g3-bridge", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    last = p.stdout.strip().splitlines()[-1]
+    assert last.startswith("g3-bridge done: received 5 chunks: published 2, rejected 3 ("), last
+    assert "big_endian 1" in last and "frame_too_large 1" in last and "wrong_type 1" in last and "lost 3 of 5" in last
+    assert daq.served == 3
