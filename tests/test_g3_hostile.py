@@ -227,7 +227,10 @@ def test_bridge_survives_malformed_streams(scan_frames):
             th.join(30)
             sub.close()
     assert alive, "the bridge stopped on its own"
-    assert svc.status()["state"] == "stopped"
+    status = svc.status()
+    assert status["state"] == "stopped"
+    assert any(w.startswith("G3 frames rejected (") for w in status["warnings"])  # each cause said once
+    assert len(set(status["warnings"])) == len(status["warnings"])  # once each, not every time
     want_reasons: dict = {}
     for _, _, reason in todo:
         if reason:

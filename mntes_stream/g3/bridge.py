@@ -113,6 +113,7 @@ class G3Source:
         self.rejected: dict[str, int] = {}
         self.state = "connecting"
         self.last_error = ""
+        self.cause = ""  # what last_error is, in a word or two (one status warning per cause)
         self._sock = None
         self._split = None
         self._failures = 0
@@ -158,6 +159,7 @@ class G3Source:
             self._t_retry = now + delay
             self.state = "connecting"
             self.last_error = f"cannot connect: {exc.strerror or exc}"
+            self.cause = "cannot connect"
             if self.max_reconnects and self._failures > self.max_reconnects:
                 raise ConfigError(f"g3-bridge: {self.source}: {self.last_error} ({self._failures} attempts)") from None
             if now - self._t_logged >= 60 or self._failures == 1:  # one line a minute while the DAQ is away
@@ -171,15 +173,15 @@ class G3Source:
         self.connections += 1
         self.reconnects += self.connections > 1
         self._failures = 0
-        self.state = "connected"
+        self.state, self.cause = "connected", ""
         log.info("g3-bridge: connected to %s", self.source)
 
-    def _drop(self, why: str) -> None:
+    def _drop(self, why: str, cause: str) -> None:
         if self._sock is not None:
             self._sock.close()
         self._sock = self._split = None
         self.state = "connecting"
-        self.last_error = why
+        self.last_error, self.cause = why, cause
         self._t_retry = time.monotonic() + self.reconnect_s
         log.warning("g3-bridge: %s: %s; reconnecting", self.source, why)
 
@@ -196,18 +198,19 @@ class G3Source:
             data = self._sock.recv(1 << 20)
         except TimeoutError:
             if time.monotonic() - self._t_data > self.timeout_s:
-                self._drop(f"no data for {self.timeout_s:g} s")
+                self._drop(f"no data for {self.timeout_s:g} s", "silent")
                 return None
             return []
         except OSError as exc:
-            self._drop(f"connection lost ({exc.strerror or exc})")
+            self._drop(f"connection lost ({exc.strerror or exc})", "connection lost")
             return None
         if not data:
             if self._split.pending():
                 self._count("truncated")
-                self._drop(f"closed by the sender in the middle of a frame ({self._split.pending()} bytes)")
+                self._drop(f"closed by the sender in the middle of a frame ({self._split.pending()} bytes)",
+                           "truncated")
             else:
-                self._drop("closed by the sender")
+                self._drop("closed by the sender", "")  # a DAQ stopping is no fault: reconnect quietly
             return None
         self._t_data = time.monotonic()
         self._split.feed(data)
@@ -217,7 +220,7 @@ class G3Source:
                 raw = self._split.next()
             except BadFrame as exc:
                 self._count(exc.reason)
-                self._drop(f"{exc} ({exc.reason}): the stream has lost its framing")
+                self._drop(f"{exc} ({exc.reason}): the stream has lost its framing", exc.reason)
                 return frames
             if raw is None:
                 return frames
@@ -288,6 +291,7 @@ class G3BridgeService(Service):
         from mntes_stream.service.base import stop_on_signals
 
         b = self.config.bridge
+        self._said: set = set()
         gref = None
         if b.params:
             from mntes_stream.io.paramfile import load_params
@@ -354,6 +358,14 @@ class G3BridgeService(Service):
         for reason, n in c.rejected.items():
             rejected[reason] = rejected.get(reason, 0) + n
         led = bridge_ledger(tr.published(), c.stream_gaps, rejected, self.config.bridge.chunk_samples)
+        # The status says so too: each cause once (the DAQ away, a kind of bad frame), not every time.
+        causes = [(f"daq:{src.cause}", f"DAQ {src.source}: {src.last_error}")] if src.cause else []
+        causes += [(f"frame:{r}", f"G3 frames rejected ({r}): {tr.last_error.get(r, 'see the log')}")
+                   for r in rejected]
+        for key, text in causes:
+            if key not in self._said:
+                self._said.add(key)
+                self.heartbeat.warn(text)
         counters = {"frames": c.frames, "timepoints": c.timepoints, "scans": c.scans, "samples": c.samples,
                     "invalid_samples": c.invalid_samples, "gap_samples": c.gap_samples,
                     "housekeeping": c.housekeeping, "gain_changes": c.gain_changes, "bias_changes": c.bias_changes,
