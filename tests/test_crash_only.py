@@ -149,7 +149,7 @@ def test_recorder_and_converter_wait_for_a_router_that_comes_up_later(tmp_path):
 
 def _json_in(text: str) -> dict:
     """The JSON document (``--json``) in a command's output, among its log lines."""
-    return json.loads(text[text.index("{\n"):text.rindex("}") + 1])
+    return json.JSONDecoder().raw_decode(text[text.index("{\n"):])[0]
 
 
 def _pid_of(service: str, port: int) -> int:
@@ -200,14 +200,15 @@ def test_up_restarts_a_killed_converter_and_power_flows_again(tmp_path):
     assert doc["restarts"] == {"converter": 1} and doc["deaths"] == {"converter": ["killed by SIGKILL"]}
     assert doc["ok"] is True
     conv = doc["services"]["converter"]
-    # The new converter continued from the checkpoint: what was published while none ran is counted, not hidden.
-    assert conv["chunks_converted"] > 20 and conv["chunks_lost"] > 0, conv
-    # The ledger covers both converter processes: every counts chunk the recorder has is in it exactly once
-    # (converted by the first or the second, or never received while none ran).
+    # The new converter continued from the checkpoint, and what was published while none ran came from the
+    # source's history (io/history.py): converted, nothing missed; what the first had converted (before its
+    # checkpoint) came again and was dropped as a duplicate.
+    assert conv["chunks_converted"] > 20 and conv["chunks_lost"] == 0, conv
+    # The ledger covers both converter processes: every counts chunk the recorder has was converted.
     whole = Ledger.from_dict(conv["ledger"]).totals()
     counts = doc["services"]["recorder"]["by_kind"]["counts"]
-    assert whole.received + whole.missing == counts and whole.pending == 0, (conv["ledger"], counts)
-    assert whole.done > conv["chunks_converted"] and whole.missing > 0
+    assert whole.missing == 0 and whole.pending == 0 and whole.done >= counts, (conv["ledger"], counts)
+    assert whole.done > conv["chunks_converted"]
     assert conv["ledger_line"].endswith("(over 2 converter processes)")
     assert err_text.rstrip().splitlines()[-1] == f"  converter: {conv['ledger_line']}"
 

@@ -239,4 +239,6 @@ def test_bench_restart_smoke():
     assert out["channels"] == 8 and out["warm_restarts"] == 1
     assert 0 < out["warm_ready_s"][0] <= out["warm_first_power_s"][0] <= out["warm_all_modules_s"][0]
     (measured,), (reported,) = out["missed_total"], out["restarted_chunks_lost"]
-    assert measured > 0 and (reported is None or reported >= 0)  # (agreement: the tests above, exactly)
+    # The source keeps 10 s of history (io/history.py): the restarted converter converts what was published while
+    # no converter ran (from its checkpoint on): nothing missed, nothing reported lost.
+    assert measured == 0 and reported in (0, None)

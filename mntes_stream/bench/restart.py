@@ -13,8 +13,10 @@ imports, parameters, table bank, compiled kernels, zenoh session):
 - ``all_modules_s``: every module has had a power chunk from it;
 - ``missed_per_module``: counts chunks of each module (median) published
   between the last power of the killed process and the first of the new one,
-  never converted live; ``restarted_chunks_lost``: what the restarted
-  converter itself reports (its ``checkpoint``), to compare.
+  never converted live (0 when the sources' history covers the restart: the
+  new converter starts where its checkpoint says, ``io/history.py``);
+  ``restarted_chunks_lost``: what the restarted converter itself reports (its
+  ``checkpoint``), to compare.
 
 ``imports_s`` is what a bare interpreter takes to import the converter's
 modules on this machine at this moment (measured alongside, three times,
@@ -161,7 +163,7 @@ def run(args) -> dict:
                     before = dict(last_power)
                     r = _one_start(config, sub, args.modules, args.run_s, last_power)
                     if i > 0:  # chunks of each module between the killed process's last power and the new first
-                        r["missed"] = [r["first_seq"][m] - before[m] - 1 for m in r["first_seq"] if m in before]
+                        r["missed"] = [max(r["first_seq"][m] - before[m] - 1, 0) for m in r["first_seq"] if m in before]
                     starts.append(r)
             finally:
                 services.stop("source", timeout_s=30)

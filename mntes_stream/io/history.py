@@ -13,7 +13,10 @@ sample shows the gap (``recovery``). What cannot be recovered (older than the
 cache) stays a sequence gap, counted as never received.
 
 The cache holds ``history_s`` of data per key (``[zenoh] history_s``): about
-``history_s`` x the array's data rate of memory in the publisher.
+``history_s`` x the array's data rate of memory in the publisher. The
+converter caches its power too (``history_s`` / ``POWER_CHUNK_S`` chunks per
+key), so a restarted recorder also records the power published while it was
+down.
 """
 
 from __future__ import annotations
@@ -22,9 +25,12 @@ import math
 
 from mntes_stream.io import keys
 
-__all__ = ["HISTORY_KINDS", "cache_chunks", "declare_history_publisher", "declare_recovering_subscriber"]
+__all__ = ["HISTORY_KINDS", "POWER_CHUNK_S", "cache_chunks", "declare_history_publisher", "declare_recovering_subscriber"]
 
-HISTORY_KINDS = ("counts", "hk")  # the data; power is made again from counts, status and provenance are periodic
+# The data, and the converter's power (a recorder restarted after a crash records the power published meanwhile);
+# status and provenance are periodic.
+HISTORY_KINDS = ("counts", "hk", "power")
+POWER_CHUNK_S = 0.1  # the converter does not know its streams' chunk length before they come: caches assume this
 _HEARTBEAT_S = 0.5  # how soon a subscriber learns of a sample it missed when no later sample comes
 
 

@@ -262,6 +262,7 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
         Given the :class:`~mntes_stream.service.ownership.Ownership` once the streams are claimed.
     """
     from mntes_stream.io.claims import StreamClaims
+    from mntes_stream.io.history import POWER_CHUNK_S, cache_chunks
     from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
     from mntes_stream.service.ownership import Ownership, owns_summary
     from mntes_stream.service.pipeline import ConverterPipeline
@@ -296,10 +297,14 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
     topics = subscriptions(cfg, streams)
     claims = owner = watch = None
     with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
-        pubs = Publishers(session)
+        pubs = Publishers(session, history_chunks=cache_chunks(cfg.zenoh.history_seconds, POWER_CHUNK_S))
         # Channel mode: samples are read on this thread, no callback thread competing for the GIL.
         # Housekeeping first (subscriptions() lists it first): a batch's readings before its counts.
-        sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=stopping, mode="channel")
+        # What the sources' caches hold (io/history.py) comes first, so a converter restarted after a crash
+        # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
+        # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
+        sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=stopping, mode="channel",
+                              recover="history")
         # Provenance on request too: a recorder started later asks instead of waiting for the next one.
         answer(session, prov_key, pipe.provenance_bytes())
         try:

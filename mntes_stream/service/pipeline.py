@@ -164,6 +164,8 @@ class ConverterPipeline(Overload, Conversion):
         self._rows: dict[tuple, tuple] = {}
         # Streams continued from a checkpoint, until their first chunk: (next number, checkpoint sample time).
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
+        # ... and for good: older chunks (history from the sources' caches) were converted before the restart.
+        self._floor: dict[tuple[int, int], tuple[int, int]] = {}
         self._provenance: bytes | None = None
         self._t_created_ns = time.time_ns()
         self._t_first_ns: int | None = None
@@ -327,7 +329,7 @@ class ConverterPipeline(Overload, Conversion):
                 continue
             s = self._streams[stream] = StreamSequence()
             s.observe(int(seq), int(t_ns))
-            self._resumed[stream] = (s.next, int(t_ns))
+            self._resumed[stream] = self._floor[stream] = (s.next, int(t_ns))
         return len(self._resumed)
 
     # ------------------------------------------------------------------ internals
@@ -423,6 +425,10 @@ class ConverterPipeline(Overload, Conversion):
         if s is None:
             s = self._streams[stream_id] = StreamSequence()
         expected = s.next
+        floor = self._floor.get(stream_id) if self._floor else None
+        if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
+            s.duplicated += 1  # converted by the converter that ran before this restart (its checkpoint says so)
+            return "duplicate"
         resumed = self._resumed.pop(stream_id, None) if self._resumed else None
         verdict = s.observe(seq, t_first_ns)
         if resumed is not None and seq > resumed[0] and t_first_ns > resumed[1]:  # newer data, later numbers

@@ -245,8 +245,10 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
             session = open_session(zenoh)
             # The callback only timestamps and queues; a full queue makes it wait,
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
+            # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
+            # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
             sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages,
-                                  max_bytes=int(config.queue_mb * 1e6))
+                                  max_bytes=int(config.queue_mb * 1e6), recover="history")
             # A converter's provenance, answered on request, is recorded from the start too (only that:
             # the heartbeat queryables under alive/ answer a wider query, and are not data).
             sub.query(session, keys.provenance_key(config.setup))
