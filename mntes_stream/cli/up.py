@@ -297,9 +297,13 @@ def run_up(args) -> int:
     n_files, size = files.now()
     conv = summary.get("converter", {}) if isinstance(summary.get("converter"), dict) else {}
     rec = summary.get("recorder", {}) if isinstance(summary.get("recorder"), dict) else {}
+    # A recorder that failed (a full disk) left no statistics: say so, not "recorded 0 messages".
+    recorded = (f"recorded {rec.get('messages', 0)} messages" if rec else
+                f"the recorder failed ({str(summary.get('recorder') or 'no statistics')[:300]}; `mntes-stream "
+                "inspect` tells what its files hold)")
     say(f"done{' (interrupted)' if interrupted else ''}: {conv.get('samples_converted', 0) / 1e6:.2f} Msamples "
-        f"converted; recorded {rec.get('messages', 0)} messages into {n_files} MCAP file(s), {size / 1e6:.2f} MB: "
-        f"{', '.join(rec.get('files', [])) or '-'}")
+        f"converted; {recorded} into {n_files} MCAP file(s), {size / 1e6:.2f} MB: "
+        f"{', '.join(rec.get('files', [])) or ', '.join(str(f) for f in files.paths()) or '-'}")
     if rec.get("ledger_line"):
         say(f"  recorder counts: {rec['ledger_line']}")
     # The last line is the converter's ledger: what happened to every chunk (lost = never received + shed + rejected).
