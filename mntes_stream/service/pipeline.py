@@ -29,7 +29,9 @@ A released chunk is converted with the housekeeping aligned to each sample
 (``core.align``): flags HK_STALE / HK_MISSING / ENV_OUT_OF_RANGE come from
 there; channels without detector parameters get UNKNOWN_CHANNEL and NaN; a
 converter failure flags that chunk INVALID_INPUT and is counted, never raised.
-Power is NaN wherever a flag in ``core.flags.UNUSABLE`` is set.
+Power is NaN wherever a flag in ``core.flags.UNUSABLE`` is set, and where
+HK_STALE is (``hk_stale_power = "nan"``). Every counts chunk is booked in
+``ledger`` (``core.ledger``); overload: ``service/pipeline_overload.py``.
 """
 
 from __future__ import annotations

@@ -62,8 +62,11 @@ class AlignmentConfig(Settings):
         unit="V", increasing=True)
     max_hk_readings: int = setting(10_000, "readings one housekeeping message may carry; more: rejected (too_large)",
                                    ge=1)
-    overload: str = setting("shed", "a chunk further behind its stream's own pace than max_lag_s: shed (counted "
-                            "'overload') or convert anyway (keep: latency grows without bound)", choices=("shed", "keep"))
+    overload: str = setting("shed", "in a real overload (the converter service behind for [converter] "
+                            "overload_after_s), a chunk further behind its stream's own pace than max_lag_s: set "
+                            "aside, converted late when there is time, shed beyond [converter] set_aside_mb (all in "
+                            "the ledger); keep: converted in turn (latency grows without bound). Offline convert "
+                            "never sheds", choices=("shed", "keep"))
     max_lag_s: float = setting(2.0, "how far behind its stream's pace a chunk may be before overload applies",
                                unit="s", gt=0)
     max_pending: int = setting(4096, "chunks held at most; beyond, the oldest is converted at once", ge=1)
