@@ -10,6 +10,11 @@ Speed is the median of repeated full conversions (wall clock, and CPU time
 of this process, which is less disturbed by other load on a shared machine),
 beside numpy's ``a * x + b`` over the same counts array in the same run.
 Accuracy is against the exact per-sample inverse on the same counts.
+
+The baselines (``linear``, ``electrical``) are timed the same way, with their
+ratio to ``a * x + b``: alone (``tolerance_w=None``), with the default
+``NONLINEAR`` check (from a table bank) and with the check by the exact
+inverse, on the whole block and on live-size chunks (128 x 20).
 """
 
 from __future__ import annotations
@@ -147,8 +152,8 @@ def run(args) -> dict:
     t0 = time.perf_counter()
     ref = exact.convert(ids, ci, cq, env)
     exact_s = time.perf_counter() - t0
-    lin = make_converter("linear", params).convert(ids, ci, cq, env)
-    ele = make_converter("electrical", params).convert(ids, ci, cq, env)
+    baselines, base_out = _baselines(make_converter, params, ids, ci, cq, env, args.repeats, n, axpy_wall)
+    lin, ele = base_out["linear"], base_out["electrical"]
 
     result = {
         "detectors": n_det,
@@ -171,6 +176,7 @@ def run(args) -> dict:
         "bank_mib_per_5000_detectors": bank.nbytes / n_det * 5000 / 2**20,
         "knots_per_detector_median": float(np.median(np.diff(bank.arrays["knot_offset"]))),
         "identity": bank.identity,
+        **baselines,
     }
     if not args.no_numpy:
         conv_np = make_converter("table", None, bank=bank, backend="numpy")
@@ -195,6 +201,61 @@ def run(args) -> dict:
                                         "electrical": ele.p_opt_w})
         result["figure"] = args.png
     return result
+
+
+def _baselines(make_converter, params, ids, ci, cq, env, repeats: int, n: int, axpy_wall: float):
+    """The baselines' speed: their arithmetic and flags alone (``tolerance_w=None``), beside
+    ``a * x + b``; as configured by default (the ``NONLINEAR`` check on, from a table bank,
+    the bank's build apart); and with the check by the exact inverse (timed once), whose
+    flags the default's must equal.
+
+    Returns the figures and each kind's default output (for the accuracy figures).
+    """
+    from mntes_stream.core.flags import NONLINEAR
+
+    res, outs = {}, {}
+    for kind in ("linear", "electrical"):
+        bare = make_converter(kind, params, tolerance_w=None)
+        bare.convert(ids, ci, cq, env)  # compile, warm
+        wall, cpu = _timed(lambda: bare.convert(ids, ci, cq, env), repeats)
+        t0 = time.perf_counter()
+        checked = make_converter(kind, params)
+        build_s = time.perf_counter() - t0
+        outs[kind] = checked.convert(ids, ci, cq, env)
+        c_wall, c_cpu = _timed(lambda: checked.convert(ids, ci, cq, env), max(1, min(repeats, 3)))
+        exact = make_converter(kind, params, nonlinear_check="exact")
+        w0 = time.perf_counter()
+        by_exact = exact.convert(ids, ci, cq, env)
+        e_wall = time.perf_counter() - w0
+        chunk_cpu = {label: _live_chunks(c, ids, ci, cq, env) for label, c in
+                     (("", bare), ("checked_", checked), ("exact_checked_", exact))}
+        res.update({f"{kind}_{label}chunks_cpu_msamples_per_s": v for label, v in chunk_cpu.items()})
+        res.update({
+            f"{kind}_check_build_s": build_s,
+            f"{kind}_exact_checked_msamples_per_s": n / e_wall / 1e6,
+            f"{kind}_check_flags_identical_to_exact": bool(np.array_equal(outs[kind].flags, by_exact.flags)),
+            f"{kind}_msamples_per_s": n / wall / 1e6,
+            f"{kind}_cpu_msamples_per_s": n / cpu / 1e6,
+            f"{kind}_ratio_to_axpy": axpy_wall / wall,
+            f"{kind}_checked_msamples_per_s": n / c_wall / 1e6,
+            f"{kind}_checked_cpu_msamples_per_s": n / c_cpu / 1e6,
+            f"{kind}_checked_ratio_to_axpy": axpy_wall / c_wall,
+            f"{kind}_nonlinear_frac": float(np.mean((outs[kind].flags & NONLINEAR) != 0)),
+        })
+    return res, outs
+
+
+def _live_chunks(conv, ids, ci, cq, env, n_det: int = 128, n_samp: int = 20, n_chunks: int = 50) -> float:
+    """M samples per CPU second over live-size chunks (128 detectors x 20 samples, as a stream
+    delivers them), where per-call and per-row costs count."""
+    n_det, width = min(n_det, ci.shape[0]), min(n_samp, ci.shape[1])
+    spans = [(s, s + width) for s in range(0, ci.shape[1] - width + 1, width)][:n_chunks]
+    blocks = [(ci[:n_det, a:b], cq[:n_det, a:b], env.__class__(env.t_bath_k[a:b], env.b_field_t[a:b],
+                                                                  env.v_thev_v[:n_det])) for a, b in spans]
+    c0 = time.process_time()
+    for i, q, e in blocks:
+        conv.convert(ids[:n_det], i, q, e)
+    return n_det * width * len(blocks) / (time.process_time() - c0) / 1e6
 
 
 def range_summary(n_samples: int, seed: int = 0) -> dict:
