@@ -8,7 +8,6 @@ processes on loopback: ``up`` with its source stopped for 4 s while every core i
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -17,15 +16,11 @@ import time
 import psutil
 import pytest
 
+from mntes_stream.bench.chaos import cpu_hog
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.service.offline import convert_recording
 
 pytestmark = pytest.mark.slow
-
-
-def _hogs(seconds: float) -> list[subprocess.Popen]:
-    code = f"import time\nt=time.monotonic()+{seconds}\nwhile time.monotonic()<t: pass"
-    return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(os.cpu_count() or 2)]
 
 
 def test_a_stalled_source_on_a_busy_machine_sheds_nothing_and_the_summary_says_lost_0(tmp_path):
@@ -38,7 +33,7 @@ def test_a_stalled_source_on_a_busy_machine_sheds_nothing_and_the_summary_says_l
         while not list((tmp_path / "recordings").glob("*.mcap")) and time.monotonic() < deadline:
             time.sleep(0.2)
         time.sleep(3.0)  # power flowing
-        hogs = _hogs(14.0)
+        hogs = cpu_hog(14.0)
         time.sleep(3.0)
         # The services are started in order recorder, converter, source: the source is the newest child.
         kids = [c for c in psutil.Process(p.pid).children() if "resource_tracker" not in " ".join(c.cmdline())]

@@ -27,7 +27,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -121,7 +120,7 @@ class _Proc:
         return out
 
 
-def _hog(seconds: float, stop: threading.Event) -> list[subprocess.Popen]:
+def cpu_hog(seconds: float) -> list[subprocess.Popen]:
     """A busy loop on every core for ``seconds`` (separate processes: the GIL must not hide the load)."""
     code = f"import time\nt=time.monotonic()+{seconds}\nwhile time.monotonic()<t: pass"
     return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(os.cpu_count() or 2)]
@@ -190,13 +189,12 @@ def run_chaos(work: Path, duration_s: float = 80.0, seed: int = 0, modules: int 
         t0 = time.monotonic()
         plan = _schedule(events, duration_s, seed)
         say(f"chaos: {len(plan)} events over {duration_s:g} s: " + ", ".join(f"{e}@{t:.0f}s" for t, e in plan))
-        stop = threading.Event()
         for t_event, event in plan:
             time.sleep(max(0.0, t0 + t_event - time.monotonic()))
             now = time.monotonic() - t0
             action, _, target = event.partition(":")
             if action == "hog":
-                hogs += _hog(8.0, stop)
+                hogs += cpu_hog(8.0)
                 log.append({"t_s": round(now, 2), "event": "hog", "seconds": 8.0})
             elif action == "stop":
                 pause = 4.0 if target == "source" else 3.0

@@ -60,8 +60,8 @@ def run_serve(args) -> int:
     if args.json:
         print(json.dumps(result, indent=2, default=str))
     if isinstance(result, dict) and result.get("ledger_line"):  # the last line: what happened to every chunk
-        print(f"{service.name} {getattr(config, 'name', '')}: {result['ledger_line']}".replace("  ", " "),
-              file=sys.stderr if args.json else sys.stdout)
+        label = " ".join(x for x in (service.name, getattr(config, "name", "")) if x)
+        print(f"{label}: {result['ledger_line']}", file=sys.stderr if args.json else sys.stdout)
     return 0
 
 

@@ -36,7 +36,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-__all__ = ["Ledger", "StreamLedger", "OTHER", "LOST_MEANS", "summary_line", "totals_of"]
+__all__ = ["Ledger", "StreamLedger", "OTHER", "LOST_MEANS", "stream_order", "summary_line", "totals_of"]
 
 OTHER = "other"  # chunks of streams a stage does not keep (unknown streams): one bounded entry
 LOST_MEANS = "lost = never received + shed + rejected (chunks the stage put out nothing for)"
@@ -156,7 +156,7 @@ class Ledger:
 
     def as_dict(self) -> dict[str, dict]:
         """``{stream: columns}`` (:meth:`StreamLedger.as_dict`), streams in order."""
-        return {k: self.streams[k].as_dict() for k in sorted(self.streams, key=_order)}
+        return {k: self.streams[k].as_dict() for k in sorted(self.streams, key=stream_order)}
 
     @classmethod
     def from_dict(cls, d: dict, verb: str = "converted") -> Ledger:
@@ -194,7 +194,8 @@ def summary_line(t: StreamLedger, verb: str = "converted") -> str:
     return f"{text}; lost {t.lost} of {t.received + t.missing}"
 
 
-def _order(key: str):
+def stream_order(key: str):
+    """Sort key of stream names: ``"<board>/<module>"`` numerically, then any other name."""
     parts = key.split("/")
     return (0, *map(int, parts)) if len(parts) == 2 and all(p.isdigit() for p in parts) else (1, key)
 

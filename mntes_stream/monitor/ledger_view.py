@@ -12,7 +12,7 @@ within the last ``shedding_recent_s``.
 
 from __future__ import annotations
 
-from mntes_stream.core.ledger import LOST_MEANS, StreamLedger, summary_line
+from mntes_stream.core.ledger import LOST_MEANS, StreamLedger, stream_order, summary_line
 
 __all__ = ["COLUMNS", "LOST_MEANS", "ShedWatch", "ledger_view", "row_of"]
 
@@ -62,14 +62,9 @@ def ledger_view(ledger: dict, max_streams: int) -> dict | None:
             continue
         total.add(s)
         rows.append({"stream": str(stream), **row_of(s)})
-    rows.sort(key=lambda r: (-(r["lost"] + r["shed"] > 0), _order(r["stream"])))
+    rows.sort(key=lambda r: (-(r["lost"] + r["shed"] > 0), stream_order(r["stream"])))
     return {"totals": row_of(total), "streams": rows[:max_streams], "streams_total": len(rows),
             "unreadable": unreadable, "line": summary_line(total, "converted"), "lost_means": LOST_MEANS}
-
-
-def _order(key: str):
-    parts = key.split("/")
-    return (0, *map(int, parts)) if len(parts) == 2 and all(p.isdigit() for p in parts) else (1, key)
 
 
 class ShedWatch:

@@ -417,7 +417,7 @@ class ConverterPipeline(Overload, Conversion):
         if self.overloaded and lag > self._max_lag_ns and self.config.overload == "shed":
             # A real overload (the service says so), and behind its own stream's pace: converting it now
             # would make every later chunk later too. Kept for when there is time (late power).
-            self._set_aside(p, stream, lag, key)
+            self._set_aside(p, lag, key)
             return
         self._pending.append(p)
 

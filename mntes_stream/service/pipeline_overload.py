@@ -23,6 +23,11 @@ __all__ = ["Overload"]
 log = logging.getLogger("mntes_stream.converter")
 
 
+def _nbytes(p) -> int:
+    """What a held chunk's counts take (I and Q)."""
+    return p.chunk.counts_i.nbytes + p.chunk.counts_q.nbytes
+
+
 class Overload:
     """Set-aside chunks and late conversion (see the module docstring)."""
 
@@ -36,7 +41,7 @@ class Overload:
         out: list[tuple[str, bytes]] = []
         for _ in range(min(int(max_chunks), len(self._aside))):
             p = self._aside.popleft()
-            self._aside_bytes -= p.chunk.counts_i.nbytes * 2
+            self._aside_bytes -= _nbytes(p)
             try:
                 self._ready.append(self._environment(p))
             except Exception as exc:
@@ -44,17 +49,17 @@ class Overload:
         self._guarded(self._convert_ready, "late", out)
         return out
 
-    def _set_aside(self, p, stream: tuple[int, int], lag_ns: int, key: str) -> None:
+    def _set_aside(self, p, lag_ns: int, key: str) -> None:
         """Under overload: keep the chunk for later (the oldest set-aside chunks shed beyond the budget)."""
         p.late = True
         self._aside.append(p)
-        self._aside_bytes += p.chunk.counts_i.nbytes * 2
+        self._aside_bytes += _nbytes(p)
         if len(self._aside) == 1 or len(self._aside) % 1000 == 0:
             log.warning("overload: %s seq %d %.3g s behind its stream set aside for late conversion (%d held)",
                         key, p.chunk.seq, lag_ns / 1e9, len(self._aside))
         while self._aside_bytes > self._aside_max and self._aside:
             old = self._aside.popleft()
-            self._aside_bytes -= old.chunk.counts_i.nbytes * 2
+            self._aside_bytes -= _nbytes(old)
             self.counters.chunks_shed += 1
             self.ledger.shed((old.chunk.board, old.chunk.module), "overload")
             self._bad("overload", f"chunk seq {old.chunk.seq} of {old.chunk.board}/{old.chunk.module} shed: the "

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import msgpack
 
-from mntes_stream.core.ledger import LOST_MEANS, OTHER, Ledger
+from mntes_stream.core.ledger import LOST_MEANS, OTHER, Ledger, stream_order
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.errors import MntesError
 from mntes_stream.io import keys
@@ -218,7 +218,7 @@ class RecordingLedger:
         conv = {}
         for c in self.converters.values():
             conv = _merge_dicts(conv, c.get("ledger") or {})
-        streams = sorted(set(self.recorder.streams) | set(self.power) | set(conv), key=_order)
+        streams = sorted(set(self.recorder.streams) | set(self.power) | set(conv), key=stream_order)
         if streams:
             out.append(f"  {'stream':<12}{'recorded':>10}{'never rcvd':>11}{'dup':>6}{'power':>8}{'late':>6}"
                        f"{'conv shed':>10}{'conv rej':>9}")
@@ -230,11 +230,6 @@ class RecordingLedger:
                        f"{p[0]:>8}{p[1]:>6}{c.shed_total if c else 0:>10}{c.rejected_total if c else 0:>9}")
         out.append(f"  ({self.lost_means})")
         return out
-
-
-def _order(key: str):
-    parts = key.split("/")
-    return (0, *map(int, parts)) if len(parts) == 2 and all(p.isdigit() for p in parts) else (1, key)
 
 
 def _merge_dicts(a: dict, b: dict) -> dict:
