@@ -205,3 +205,23 @@ def test_a_bias_reading_goes_stale_after_bias_staleness_s(source, converter):
             assert (stale[:, t > T0 + 3 * 10**8]).all() and not stale[:, t <= T0 + 3 * 10**8].any()
         else:  # no reading at all: the nominal bias, not stale
             assert not stale.any()
+
+
+def test_a_checkpoint_stops_below_the_chunks_still_held(source, converter):
+    """What is set aside (or waits for housekeeping) is not converted yet: a restart from the checkpoint must
+    convert it again, not take it as done (the checkpoint's number stops below the oldest held chunk)."""
+    late = _late_messages(source, 30)
+    pipe = ConverterPipeline(converter, PipelineConfig(max_lag_s=2.0), clock=None)
+    pipe.overloaded = True
+    for key, payload, t in late:
+        pipe.handle(key, payload, t)
+    assert pipe.set_aside
+    held = {}
+    for p in pipe._aside:
+        held[(p.chunk.board, p.chunk.module)] = min(held.get((p.chunk.board, p.chunk.module), p.chunk.seq), p.chunk.seq)
+    state = pipe.sequence_state()
+    assert set(held) <= set(state)
+    for stream, first_held in held.items():
+        assert state[stream][0] == first_held - 1
+    pipe.flush()  # converted now: the checkpoint moves to the newest
+    assert all(seq == 29 for seq, _ in pipe.sequence_state().values())

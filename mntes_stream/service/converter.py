@@ -343,10 +343,11 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
                 if owner is not None:
                     outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
                 for key, payload in outs:
+                    # The checkpoint before the status: what a status says converted is on disk when it is seen.
+                    if key == status_key and cfg.checkpoint:
+                        save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
                     pubs.put(key, payload)
                     if key == status_key:  # what the status says, in the heartbeat too (ps)
-                        if cfg.checkpoint:
-                            save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
                         st = decode(payload)
                         beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost, latency_p99_ms=st.latency_p99_ms,
                              bad_messages=sum(st.bad_messages.values()), samples_per_s=st.rate_msamples_per_s * 1e6)

@@ -313,11 +313,6 @@ class ConverterPipeline(Overload, Conversion):
             self._provenance = self.provenance().to_bytes()
         return self._provenance
 
-    def sequence_state(self) -> dict[tuple[int, int], tuple[int, int]]:
-        """A checkpoint: ``(board, module) -> (newest sequence number, newest first-sample time ns)`` per stream."""
-        return {k: (s.next - 1, s._last_t) for k, s in self._streams.items()
-                if s.next is not None and s._last_t is not None}
-
     def resume_sequences(self, state: dict) -> int:
         """Continue streams from a previous converter's :meth:`sequence_state` (before any chunk arrives).
 

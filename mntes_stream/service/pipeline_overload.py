@@ -1,8 +1,9 @@
-"""The converter pipeline under overload: chunks set aside, converted late or shed, and the ledger's missing column.
+"""The converter pipeline's held chunks: set aside under overload, converted late or shed; the ledger's missing
+column; the checkpoint's sequence state (a held chunk is not converted yet).
 
 A mixin of :class:`~mntes_stream.service.pipeline.ConverterPipeline` (its
 state: ``_aside``, ``_aside_bytes``, ``_aside_max``, ``_ready``, ``_streams``,
-``ledger``, ``counters``; its ``_environment``, ``_convert_ready``,
+``_pending``, ``ledger``, ``counters``; its ``_environment``, ``_convert_ready``,
 ``_dropped``, ``_bad``, ``_guarded``), kept apart so each module stays one concern.
 
 Shedding is the last resort: the live service sets ``overloaded`` only when it
@@ -70,3 +71,16 @@ class Overload:
         for (b, m), s in self._streams.items():
             self.ledger.set_missing((b, m), s.lost)
         return self.ledger
+
+    def sequence_state(self) -> dict[tuple[int, int], tuple[int, int]]:
+        """A checkpoint: ``(board, module) -> (newest sequence number converted, newest first-sample time ns)``.
+
+        Chunks still held (waiting for housekeeping, set aside) are not converted yet: the number stops below
+        the oldest of them, so a restart from here converts them again instead of taking them as done.
+        """
+        held: dict[tuple[int, int], int] = {}
+        for p in (*self._pending, *self._aside):
+            k = (p.chunk.board, p.chunk.module)
+            held[k] = min(held.get(k, p.chunk.seq), p.chunk.seq)
+        return {k: (min(s.next - 1, held.get(k, s.next) - 1), s._last_t) for k, s in self._streams.items()
+                if s.next is not None and s._last_t is not None}
