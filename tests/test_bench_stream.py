@@ -1,4 +1,5 @@
-"""``mntes-stream bench stream``: its per-process CPU accounting, and a run on a tiny array (real processes, loopback)."""
+"""``mntes-stream bench stream``: per-process CPU accounting, the real-time rate search, and a run on a tiny array
+(real processes, loopback)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import sys
 
 import pytest
 
-from mntes_stream.bench.stream import _cpu_in, _cpu_s
+from mntes_stream.bench._stream_rate import find_rate, next_rate, trial_passes
+from mntes_stream.bench.stream import _cpu_in, _cpu_s, _per_process
 
 
 def test_cores_come_from_the_samples_inside_the_window():
@@ -33,23 +35,93 @@ def test_cpu_of_a_process_is_read_from_proc():
     assert _cpu_s(2**22 + 12345) is None  # no such process
 
 
-def test_bench_stream_on_a_tiny_array():
-    """Every chunk converted and recorded, and each process's cores and the ratios reported and consistent."""
+def test_per_process_rates_are_samples_per_own_cpu_second():
+    s = 10**9
+    samples = [(0, {"conv": 0.0, "rec0": 0.0, "rec1": 0.0, "sink": 1.0}),
+               (2 * s, {"conv": 1.0, "rec0": 0.5, "rec1": 0.25, "sink": 1.0})]
+    # 10 M samples/s for 2 s = 20 M samples: the converter took them all in 1 CPU s, each shard half.
+    got = _per_process(samples, 0, 2 * s, 10.0, {"conv": 1.0, "rec0": 0.5, "rec1": 0.5})
+    assert got["conv"] == {"cpu_s": 1.0, "cores": 0.5, "msamples_per_cpu_s": 20.0}
+    assert got["rec0"]["msamples_per_cpu_s"] == 20.0 and got["rec1"]["msamples_per_cpu_s"] == 40.0
+    assert got["sink"] == {"cpu_s": 0.0, "cores": 0.0, "msamples_per_cpu_s": None}  # idle: no rate
+
+
+def test_a_trial_passes_only_with_nothing_lost_shed_or_late_and_a_low_p99():
+    good = {"all_services_ok": True, "lost": 0, "converter_shed": 0, "converter_late": 0, "latency_p99_ms": 40.0}
+    assert trial_passes(good, 100.0) == (True, "")
+    for change, why in (({"lost": 3}, "lost 3"), ({"converter_shed": 2}, "shed 2"), ({"converter_late": 1}, "late 1"),
+                        ({"latency_p99_ms": 100.0}, "p99 100.0 ms"), ({"latency_p99_ms": float("nan")}, "p99 nan ms"),
+                        ({"all_services_ok": False}, "a service failed")):
+        assert trial_passes({**good, **change}, 100.0) == (False, why)
+
+
+def test_bisection_halves_until_a_pass_then_closes_in():
+    assert next_rate(0.0, 10.0, 0.1) == 5.0
+    assert next_rate(5.0, 10.0, 0.1) == 7.5
+    assert next_rate(9.0, 10.0, 0.1) is None  # within 10 % of the lowest failing
+    assert next_rate(0.0, 0.0, 0.1) is None
+
+
+def test_the_search_finds_the_capacity_within_tolerance_and_budget():
+    """The search against a pipeline stand-in that sustains 6.3 M samples/s (the real one is the last test)."""
+    import argparse
+
+    capacity = 6.3
+    now = [0.0]
+
+    def one_trial(a):
+        now[0] += 70.0  # a trial's wall seconds
+        rate = a.sample_rate * a.modules * a.channels / 1e6
+        return {"all_services_ok": True, "lost": 0, "converter_shed": 0 if rate <= capacity else 5, "converter_late": 0,
+                "latency_p99_ms": 30.0 if rate <= capacity else 900.0, "msamples_per_s": rate}
+
+    args = argparse.Namespace(modules=40, channels=128, sustain=60.0, warmup=2.0, budget_s=3600.0, trials=8,
+                              tolerance=0.1, p99_ms=100.0, flat_out=True, find_rate=True, keep=None, passthrough_s=3.0,
+                              sample_rate=200.0, duration=None)
+    lines = []
+    res = find_rate(args, {"mode": "flat-out", "msamples_per_s": 9.0, "passthrough_msamples_per_s": 90.0},
+                    run_once=one_trial, clock=lambda: now[0], say=lines.append)
+    found, failing = res["msamples_per_s"], res["lowest_failing_msamples_per_s"]
+    assert found <= capacity < failing and (failing - found) / failing <= 0.1
+    assert res["ratio_to_passthrough"] == pytest.approx(found / 90.0, abs=1e-3)
+    assert all(t["passed"] == (t["offered_msamples_per_s"] <= capacity) for t in res["trials"])
+    assert len(lines) == 2 * len(res["trials"])  # one line as each trial starts, one as it ends
+    # A budget for two trials: two run, the search says why it stopped, the best so far is reported.
+    now[0], lines[:] = 0.0, []
+    res = find_rate(argparse.Namespace(**{**vars(args), "budget_s": 150.0}),
+                    {"mode": "flat-out", "msamples_per_s": 9.0, "passthrough_msamples_per_s": 90.0},
+                    run_once=one_trial, clock=lambda: now[0], say=lines.append)
+    assert len(res["trials"]) == 2 and "stopping" in lines[-1] and res["msamples_per_s"] <= capacity
+
+
+def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
+    """Flat out then one real-time trial: every chunk converted and recorded, per-process figures consistent."""
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "bench", "stream", "--modules", "2", "--channels", "8",
-                          "--duration", "3", "--warmup", "0.5", "--passthrough-s", "1", "--threads", "2",
-                          "--compression", "lz4", "--json"], capture_output=True, text=True, timeout=600)
+                          "--flat-out", "--duration", "120", "--warmup", "0.5", "--passthrough-s", "1", "--threads", "2",
+                          "--compression", "lz4", "--find-rate", "--sustain", "2", "--trials", "1", "--json"],
+                         capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
-    assert out["all_services_ok"] and out["converter_threads"] == 2
+    assert out["all_services_ok"] and out["converter_threads"] == 2 and out["mode"] == "flat-out"
     assert out["lost"] == 0 and out["chunks_recorded"] == out["chunks_sent"] > 0
-    assert out["msamples_per_s"] == pytest.approx(2 * 8 * out["sample_rate_hz"] / 1e6, rel=0.05)
     assert out["ratio_to_passthrough"] == pytest.approx(out["msamples_per_s"] / out["passthrough_msamples_per_s"],
                                                         abs=1e-3)
-    cores = out["cores_during_stream"]
-    assert set(cores) == {"recorder", "converter", "sink", "source"}
-    assert all(0 <= c <= os.cpu_count() + 0.1 for c in cores.values())
-    assert cores["converter"] > 0 and out["cores_during_passthrough"]["sink"] > 0
-    per_core = out["msamples_per_s"] / cores["converter"]
-    assert out["converter_msamples_per_core_s"] == pytest.approx(per_core, rel=0.01, abs=1e-3)
+    stream, passthrough = out["per_process"]["stream"], out["per_process"]["passthrough"]
+    assert set(stream) == set(passthrough) == {"recorder", "converter", "sink", "source"}
+    assert all(0 <= p["cores"] <= os.cpu_count() + 0.1 for p in stream.values())
+    assert stream["converter"]["cpu_s"] > 0 and passthrough["sink"]["cpu_s"] > 0
+    assert stream["sink"]["msamples_per_cpu_s"] is None and passthrough["converter"]["msamples_per_cpu_s"] is None
+    conv = stream["converter"]
+    assert out["converter_msamples_per_core_s"] == conv["msamples_per_cpu_s"] == pytest.approx(
+        out["msamples_per_s"] / conv["cores"], rel=0.02)
+    assert out["recorder_msamples_per_cpu_s"] == stream["recorder"]["msamples_per_cpu_s"]
     assert out["ratio_per_core"] == pytest.approx(
         out["converter_msamples_per_core_s"] / out["passthrough_msamples_per_core_s"], rel=0.01, abs=1e-3)
+    rt = out["real_time"]
+    (trial,) = rt["trials"]
+    assert trial["offered_msamples_per_s"] == pytest.approx(out["msamples_per_s"] * 1.05 / 2, rel=1e-3)
+    # Real time: what was offered is what came through, and the verdict follows the criterion.
+    assert trial["msamples_per_s"] == pytest.approx(trial["offered_msamples_per_s"], rel=0.05)
+    ok = trial["lost"] == 0 and not trial["converter_shed"] and trial["latency_p99_ms"] < 100
+    assert trial["passed"] == ok and (rt["msamples_per_s"] == trial["offered_msamples_per_s"]) == ok
+    assert "find-rate: trial 1:" in res.stderr

@@ -48,6 +48,20 @@ def add_arguments(p) -> None:
     p.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"),
                    help="recorder chunk compression (default zstd)")
     p.add_argument("--keep", metavar="DIR", help="keep the recording and parameters in DIR")
+    p.add_argument("--find-rate", action="store_true",
+                   help="then find the real-time rate: the highest offered rate (by sample rate) sustained for "
+                        "--sustain s with 0 lost, 0 shed, 0 late and p99 latency < --p99-ms, recorder on "
+                        "(a bisection, one fresh set of processes per trial; progress on stderr)")
+    p.add_argument("--sustain", type=float, default=60.0, metavar="S",
+                   help="--find-rate: seconds each trial rate must be sustained (default 60)")
+    p.add_argument("--p99-ms", type=float, default=100.0, metavar="MS", help="--find-rate: p99 latency limit (default 100)")
+    p.add_argument("--budget-s", type=float, default=900.0, metavar="S",
+                   help="--find-rate: wall-clock budget of the search; no trial starts that would not end within "
+                        "it (default 900)")
+    p.add_argument("--trials", type=int, default=8, metavar="N", help="--find-rate: at most N trials (default 8)")
+    p.add_argument("--tolerance", type=float, default=0.1, metavar="F",
+                   help="--find-rate: stop once the highest passing and lowest failing rates are within this "
+                        "fraction (default 0.1)")
     add_zenoh_args(p)
 
 
@@ -111,20 +125,22 @@ def _source(cfg: dict, stop, ready) -> dict:
     out: dict = {}
     with open_session(cfg["zenoh"]) as z:
         ready.set()
-        # Phase 1: the same counts messages, re-keyed to the plain subscriber, flat out.
-        pass_msgs = []
-        for _, batch in src.batches(time.time_ns(), duration_s=2.0):
-            pass_msgs += [(k.replace(f"/{sc.setup}/", f"/{cfg['pass_setup']}/", 1), p) for k, p in batch if "/counts/" in k]
         pubs = Publishers(z)
-        pass_keys = sorted({k for k, _ in pass_msgs})
-        pubs.wait_matching(pass_keys, 30.0, stop)
-        n = 0
-        t_end = time.monotonic() + cfg["passthrough_s"]
-        while time.monotonic() < t_end and not stop.is_set():
-            for k, p in pass_msgs:
-                pubs.put(k, p)
-            n += len(pass_msgs)
-        out["passthrough_sent"] = n
+        if cfg["passthrough_s"] > 0:
+            # Phase 1: the same counts messages, re-keyed to the plain subscriber, flat out.
+            pass_msgs = []
+            for _, batch in src.batches(time.time_ns(), duration_s=2.0):
+                pass_msgs += [(k.replace(f"/{sc.setup}/", f"/{cfg['pass_setup']}/", 1), p) for k, p in batch
+                              if "/counts/" in k]
+            pass_keys = sorted({k for k, _ in pass_msgs})
+            pubs.wait_matching(pass_keys, 30.0, stop)
+            n = 0
+            t_end = time.monotonic() + cfg["passthrough_s"]
+            while time.monotonic() < t_end and not stop.is_set():
+                for k, p in pass_msgs:
+                    pubs.put(k, p)
+                n += len(pass_msgs)
+            out["passthrough_sent"] = n
         # Phase 2: the array through the converter, into the recorder.
         if not pubs.wait_matching(counts_keys, 60.0, stop):
             raise TransportError("bench stream: the converter did not subscribe to the counts within 60 s")
@@ -174,20 +190,57 @@ def _cpu_s(pid: int) -> float | None:
         return None
 
 
-def _cpu_in(samples: list, t0_ns: int | None, t1_ns: int | None) -> dict:
-    """Cores each process used between two wall-clock times, from ``(t_ns, {name: cpu_s})`` samples."""
+def _cpu_used(samples: list, t0_ns: int | None, t1_ns: int | None) -> tuple[float, dict]:
+    """Wall seconds and each process's CPU seconds between two wall-clock times, from ``(t_ns, {name: cpu_s})``.
+
+    The first and last samples inside the window bound it (wall 0 and ``{}`` when fewer than two).
+    """
     if t0_ns is None or t1_ns is None:
-        return {}
+        return 0.0, {}
     inside = [s for s in samples if t0_ns <= s[0] <= t1_ns]
     if len(inside) < 2:
-        return {}
+        return 0.0, {}
     (ta, a), (tb, b) = inside[0], inside[-1]
-    wall = (tb - ta) / 1e9
-    return {k: round((b[k] - a[k]) / wall, 3) for k in a if a[k] is not None and b.get(k) is not None}
+    return (tb - ta) / 1e9, {k: b[k] - a[k] for k in a if a[k] is not None and b.get(k) is not None}
+
+
+def _cpu_in(samples: list, t0_ns: int | None, t1_ns: int | None) -> dict:
+    """Cores each process used between two wall-clock times (CPU seconds per wall second)."""
+    wall, used = _cpu_used(samples, t0_ns, t1_ns)
+    return {k: round(v / wall, 3) for k, v in used.items()} if wall > 0 else {}
+
+
+def _per_process(samples: list, t0_ns, t1_ns, msamples_per_s: float, handled: dict) -> dict:
+    """Per process over a window: CPU seconds, cores, and M samples per CPU second of what it handled.
+
+    ``handled`` maps a process name to the fraction of the window's samples that
+    went through it (a recorder shard records its share); a process not named
+    there (idle in this phase) gets no rate.
+    """
+    wall, used = _cpu_used(samples, t0_ns, t1_ns)
+    out = {}
+    for name, cpu in used.items():
+        share = handled.get(name)
+        # msamples_per_s x wall = the samples of the window; per CPU second of this process
+        rate = msamples_per_s * share * wall / cpu if share and cpu > 0 else None
+        out[name] = {"cpu_s": round(cpu, 3), "cores": round(cpu / wall, 3) if wall > 0 else None,
+                     "msamples_per_cpu_s": round(rate, 3) if rate else None}
+    return out
 
 
 def run(args) -> dict:
-    from mntes_stream.errors import TransportError
+    """One run (passthrough, then the stream phase); with ``--find-rate`` then the search for the real-time rate."""
+    out = run_once(args)
+    if args.find_rate:
+        from mntes_stream.bench._stream_rate import find_rate
+
+        out["real_time"] = find_rate(args, out)
+    return out
+
+
+def run_once(args) -> dict:
+    """Start the processes, run both phases (the passthrough only when ``args.passthrough_s`` > 0), measure."""
+    from mntes_stream.errors import ConfigError, TransportError
     from mntes_stream.io import keys
     from mntes_stream.io.messages import StatusMessage
     from mntes_stream.io.paramfile import dump_params
@@ -200,6 +253,9 @@ def run(args) -> dict:
     setup, pass_setup = "bench", "benchpass"
     if args.duration is None:
         args.duration = 60.0 if args.flat_out else 20.0
+    if args.recorder_shards < 1:
+        raise ConfigError("--recorder-shards takes a count >= 1")
+    with_pass = args.passthrough_s > 0
     n = max(1, round(args.chunk_s * args.sample_rate))
     sc = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
                       sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate,
@@ -214,10 +270,6 @@ def run(args) -> dict:
     rec_dir = work / "recordings"
     params_file = work / "params.toml"
     dump_params(MinimalSource(sc).params, params_file)
-    if args.recorder_shards < 1:
-        from mntes_stream.errors import ConfigError
-
-        raise ConfigError("--recorder-shards takes a count >= 1")
     p_recs = [free_tcp_port() for _ in range(args.recorder_shards)]
     p_conv, p_src, p_sink = (free_tcp_port() for _ in range(3))
     zenoh = zenoh_layer(args)
@@ -229,17 +281,20 @@ def run(args) -> dict:
     conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, provenance_interval_s=0,
                                threads=args.threads,
                                zenoh=zenoh.over(loopback(p_conv, p_recs)))
-    src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, [p_conv, *p_recs, p_sink])),
+    peers = [p_conv, *p_recs, *([p_sink] if with_pass else [])]
+    src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, peers)),
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
                "flat_out": args.flat_out}
     sink_cfg = {"zenoh": zenoh.over(loopback(p_sink)), "key": keys.counts_key(pass_setup, "*", "*")}
     load_before = os.getloadavg()[0]
     services = Services()
+    names = ("source", "converter", *rec_names, *(["sink"] if with_pass else []))
     try:
         for name, rec_cfg in zip(rec_names, rec_cfgs):
             services.start(name, "recorder", rec_cfg)
         services.start("converter", "converter", conv_cfg)
-        services.start("sink", _Sink, sink_cfg)
+        if with_pass:
+            services.start("sink", _Sink, sink_cfg)
         services.start("source", _Source, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
         pids = {name: proc.pid for name, proc in services.procs.items()}
@@ -252,7 +307,7 @@ def run(args) -> dict:
             received, pending, last_change = 0, 0, time.monotonic()
             while time.monotonic() - last_change < 4.5 and time.monotonic() < deadline and services.alive():
                 cpu_samples.append((time.time_ns(), {name: _cpu_s(pid) for name, pid in pids.items()}))
-                item = sub.get(timeout_s=0.25)
+                item = sub.get(timeout_s=0.1)
                 n_in = received
                 if item is not None:
                     st = StatusMessage.from_bytes(item[1])
@@ -261,12 +316,11 @@ def run(args) -> dict:
                     last_change = time.monotonic()
                 received = n_in
             sub.close()
-        ok_src = services.stop("source")
-        ok = services.stop("converter") & services.stop("sink") & ok_src
-        for name in rec_names:
+        ok = services.stop("source")
+        for name in names[1:]:
             ok &= services.stop(name)
     finally:
-        for name in ("source", "converter", *rec_names, "sink"):
+        for name in names:
             services.stop(name, timeout_s=10)
     results, ok_all = services.collect()
     src, conv, rec, sink = (results.get(k, {}) for k in ("source", "converter", "recorder", "sink"))
@@ -285,16 +339,27 @@ def run(args) -> dict:
     # Cores each process used while the stream was converted, and while the passthrough ran: flat out on
     # a small host they share the cores, so a rate alone does not say which process set it.
     stream_end = t_last if args.flat_out else src["t_end_ns"]
-    cores_stream = _cpu_in(cpu_samples, src["t_start_ns"], stream_end)
-    cores_pass = _cpu_in(cpu_samples, sink.get("t_first_ns"), sink.get("t_last_ns")) if isinstance(sink, dict) else {}
-    conv_cores = cores_stream.get("converter")
-    sink_cores = cores_pass.get("sink")
-    per_core = msps / conv_cores if conv_cores else None
-    pass_per_core = sink["msamples_per_s"] / sink_cores if sink_cores and isinstance(sink, dict) else None
+    sink = sink if isinstance(sink, dict) else {}
+    pass_msps = sink.get("msamples_per_s", 0.0)
+    # Every stream sample goes through the source, the converter and (its share) each recorder shard.
+    share = {"source": 1.0, "converter": 1.0, **{name: 1.0 / len(rec_names) for name in rec_names}}
+    procs_stream = _per_process(cpu_samples, src["t_start_ns"], stream_end, msps, share)
+    procs_pass = _per_process(cpu_samples, sink.get("t_first_ns"), sink.get("t_last_ns"), pass_msps,
+                              {"source": 1.0, "sink": 1.0}) if with_pass else {}
+    cores_stream = {k: v["cores"] for k, v in procs_stream.items()}
+    cores_pass = {k: v["cores"] for k, v in procs_pass.items()}
+    per_core = procs_stream.get("converter", {}).get("msamples_per_cpu_s")
+    pass_per_core = procs_pass.get("sink", {}).get("msamples_per_cpu_s")
+    rec_cpu = sum(procs_stream.get(name, {}).get("cpu_s", 0.0) for name in rec_names)
+    stream_cpu_wall = _cpu_used(cpu_samples, src["t_start_ns"], stream_end)[0]
+    rec_per_cpu = msps * stream_cpu_wall / rec_cpu if rec_cpu > 0 else None
     stream_wall = (src["t_end_ns"] - src["t_start_ns"]) / 1e9
 
     def cpu(r):
         return round(r.get("process_cpu_s", 0.0) / r.get("process_wall_s", 1.0), 3) if isinstance(r, dict) else None
+
+    def ratio(a, b):
+        return round(a / b, 3) if a and b else None
 
     out = {
         "channels": args.modules * args.channels,
@@ -323,16 +388,19 @@ def run(args) -> dict:
         "converter_ledger": conv.get("ledger_line") if isinstance(conv, dict) else None,
         "source_behind_max_ms": round(src.get("behind_max_ms", 0.0), 2),
         "stream_wall_s": round(stream_wall, 2),
-        "passthrough_msamples_per_s": round(sink.get("msamples_per_s", 0.0), 3) if isinstance(sink, dict) else None,
-        "ratio_to_passthrough": round(msps / sink["msamples_per_s"], 3) if isinstance(sink, dict)
-        and sink.get("msamples_per_s") else None,
-        # Per core of the process itself: the converter's rate per core it used, the plain subscriber's likewise.
+        "passthrough_msamples_per_s": round(pass_msps, 3) if with_pass else None,
+        "ratio_to_passthrough": ratio(msps, pass_msps),
+        # Per process and phase (from /proc, sampled about every 0.1 s): CPU seconds, cores, and M samples
+        # per CPU second of what went through it; a process idle in a phase has no rate there.
+        "per_process": {"stream": procs_stream, "passthrough": procs_pass},
         "cores_during_stream": cores_stream,
         "cores_during_passthrough": cores_pass,
-        "converter_msamples_per_core_s": round(per_core, 3) if per_core else None,
-        "passthrough_msamples_per_core_s": round(pass_per_core, 3) if pass_per_core else None,
-        "ratio_per_core": round(per_core / pass_per_core, 3) if per_core and pass_per_core else None,
-        "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), "sink": cpu(sink),
+        # Per core of the process itself: the converter's rate per core it used, the plain subscriber's likewise.
+        "converter_msamples_per_core_s": per_core,
+        "passthrough_msamples_per_core_s": pass_per_core,
+        "ratio_per_core": ratio(per_core, pass_per_core),
+        "recorder_msamples_per_cpu_s": round(rec_per_cpu, 3) if rec_per_cpu else None,
+        "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), **({"sink": cpu(sink)} if with_pass else {}),
                          **{name: cpu(results.get(name, {})) for name in rec_names}},
         "converter_threads": args.threads,
         "recorder_shards": args.recorder_shards,
