@@ -47,6 +47,8 @@ def import_extra(module: str, extra: str):
 
     try:
         return importlib.import_module(module)
+    except MissingExtraError:  # already says why (e.g. mntes_stream.g3: so3g refused after spt3g 1.0.2)
+        raise
     except ImportError as exc:
         raise MissingExtraError(
             f"{module} is not installed ({exc}); install the extra: pip install 'mntes-stream[{extra}]'"

@@ -46,10 +46,19 @@ def quiet_spt3g() -> None:
 
 
 def run_g3_convert(args, pipeline) -> int:
-    from mntes_stream.errors import ConfigError
-    from mntes_stream.g3 import files
+    from mntes_stream.errors import SchemaError
+    from mntes_stream.g3 import spt3g_in_use
 
     quiet_spt3g()
+    try:
+        return _run_g3_convert(args, pipeline)
+    except RuntimeError as exc:  # spt3g's own read errors (a frame it cannot decode): one line, with which spt3g
+        raise SchemaError(f"{args.input}: spt3g cannot read it: {exc} [G3 on {spt3g_in_use()}]", "g3_read") from None
+
+
+def _run_g3_convert(args, pipeline) -> int:
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3 import files, spt3g_in_use
 
     g3_in, g3_out = files.is_g3(args.input), files.is_g3(args.output)
     if g3_in and g3_out:
@@ -64,13 +73,16 @@ def run_g3_convert(args, pipeline) -> int:
         stats = files.g3_to_mcap(args.input, args.output, params=args.params, tables=args.tables,
                                  config=g3_input_config(args), setup=args.setup, pipeline_config=pipeline,
                                  progress=not (args.quiet or args.json))
-        result = dataclasses.asdict(stats)
+        result = dataclasses.asdict(stats) | {"spt3g": spt3g_in_use()}
         if not args.json:
             print(stats.summary())
+            if not args.quiet:
+                print(f"  G3 read with {result['spt3g']}")
             return 0
     else:
         result = files.mcap_to_g3(args.input, args.output, params=args.params, tables=args.tables,
                                   wiring=args.wiring, pipeline_config=pipeline)
+    result = dict(result) | {"spt3g": spt3g_in_use()}
     if args.json:
         print(json.dumps(result, indent=2, default=str))
     else:
@@ -183,11 +195,12 @@ def g3_sessions_as_mcap(args):
         raise ConfigError("export: give either G3 files or MCAP recordings, not both")
     if not args.g3_params:
         raise ConfigError("export of a G3 run: give --g3-params FILE (detector parameters to convert it with)")
-    from mntes_stream.g3.files import g3_to_mcap
+    from mntes_stream.g3 import isolated
 
-    quiet_spt3g()
+    # Read in a child process on spt3g 1.0.2: this process may load a framework (so3g, toast) next.
     with tempfile.TemporaryDirectory(prefix="mntes-export-g3-") as tmp:
         out = Path(tmp) / "converted.mcap"
-        g3_to_mcap(g3, out, params=args.g3_params, setup=args.setup or "lab")
+        isolated.run("g3_to_mcap", inputs=[str(g) for g in g3], output=str(out),
+                     params=str(Path(args.g3_params).resolve()), setup=args.setup or "lab")
         args.session = [str(out)]
         yield args

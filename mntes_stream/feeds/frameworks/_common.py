@@ -167,8 +167,15 @@ def read_positions(path) -> Positions:
     from mntes_stream.g3.files import is_g3
 
     if is_g3(path):
+        import sys
+
         from mntes_stream.feeds.frameworks.g3_focal_plane import G3_NOTE, positions_from_g3
 
+        if "so3g" in sys.modules:  # its bundled spt3g cannot read current G3: read on spt3g 1.0.2 in a child
+            from mntes_stream.g3 import isolated
+
+            got = isolated.run("positions", path=str(path))["positions"]
+            return Positions({d: tuple(v) for d, v in got.items()}, f"{G3_NOTE}; file {path}")
         return Positions(positions_from_g3(path), f"{G3_NOTE}; file {path}")
     want = ["detector", "xi_rad", "eta_rad", "gamma_rad"]
     with open(path, newline="") as f:
