@@ -23,6 +23,7 @@ GAP = 1 << 8                # sample lies in a gap (missing chunk) of the stream
 PHASE_RESIDUAL = 1 << 9     # quadrature the model does not explain beyond its noise: gain phase, pickup off
 LATCHED = 1 << 10           # with SUPERCONDUCTING: R above the bottom, the TES latched resistive (loop gain <= 0)
 NONLINEAR = 1 << 11         # baseline (linear, electrical) differs from the physics model by more than its tolerance
+LOW_RESPONSIVITY = 1 << 12  # sigma_P (readout noise through the local responsivity) above its tolerance (core.uncertainty)
 
 NAMES = {
     SATURATED: "saturated",
@@ -37,10 +38,13 @@ NAMES = {
     PHASE_RESIDUAL: "phase_residual",
     LATCHED: "latched",
     NONLINEAR: "nonlinear",
+    LOW_RESPONSIVITY: "low_responsivity",
 }
 
 # Flags after which the power value is not usable (NaN in the output). PHASE_RESIDUAL and
 # NONLINEAR are warnings: the value is kept (validate compares linear against MNTES with it).
+# LOW_RESPONSIVITY is a warning too; core.uncertainty drops the value where its settings say so
+# (low_responsivity_unusable), so the bit keeps one meaning in every file.
 UNUSABLE = (SATURATED | SUPERCONDUCTING | LATCHED | OUT_OF_TABLE | HK_MISSING | INVALID_INPUT | UNKNOWN_CHANNEL
             | GAP)
 

@@ -32,7 +32,8 @@ import numpy as np
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
 
-__all__ = ["REGIONS", "RangeResult", "range_detectors", "range_samples", "range_sweep"]
+__all__ = ["REGIONS", "RangeResult", "range_detectors", "range_samples", "range_sweep", "noise_sweep",
+           "NOISE_SWEEP_READOUT_A"]
 
 REGIONS = ("superconducting", "transition", "saturated", "latched", "boundary")
 
@@ -66,11 +67,12 @@ def range_detectors() -> dict:
     return out
 
 
-def range_samples(p, n: int, seed: int = 0):
+def range_samples(p, n: int, seed: int = 0, readout_noise_a: float = model.DEFAULT_READOUT_NOISE_A):
     """Environment, truth and counts of one detector's sweep (arrays of shape (n_total,)).
 
     Three segments: the main sweep (bias on 0.95/1.0/1.05 of nominal), an
     under-biased one (0.25) and a bistable one (0.5), each a triangle in P_opt.
+    ``readout_noise_a``: white noise per quadrature added to the current before quantisation.
     """
     rng = np.random.default_rng(seed)
     p_sat = float(p.p_sat_w)
@@ -95,7 +97,7 @@ def range_samples(p, n: int, seed: int = 0):
     r = np.concatenate([o.r_ohm for o in ops])
     state = np.concatenate([o.state for o in ops])
     i_tes = np.concatenate([o.i_a for o in ops])
-    sigma = model.DEFAULT_READOUT_NOISE_A
+    sigma = readout_noise_a
     i_meas = model.readout_current_a(p, i_tes, b) + sigma * (rng.standard_normal(r.size) + 1j * rng.standard_normal(r.size))
     c = i_meas / p.gain_a_per_count
     ci = np.rint(c.real).astype(np.int32)
@@ -190,3 +192,112 @@ def range_sweep(n_samples: int = 60_000, kinds=("table", "grid", "exact", "linea
                 }
             stats[name][kind] = per
     return RangeResult(stats=stats, samples=samples)
+
+
+# --- noise-aware trust (issue 26) ---------------------------------------------------------
+
+# The issue's readout: 2 counts rms on I and Q at 1e-12 A/count.
+NOISE_SWEEP_READOUT_A = 2e-12
+# Mid-transition band whose samples must stay unflagged (at most 0.1 %).
+MID_TRANSITION = (0.2, 0.8)
+
+
+def _noise_stats(p, s, out, unc, tol: float, reg, in_domain) -> dict:
+    """Figures of one model and kind against the TRUE power (see :func:`noise_sweep`)."""
+    f = unc.flags[0]
+    suspect = fl.UNUSABLE | fl.PHASE_RESIDUAL | fl.NONLINEAR
+    flagged_before = (out.flags[0] & suspect) != 0
+    flagged = (f & (suspect | fl.LOW_RESPONSIVITY)) != 0
+    p_true = s["p_opt_w"]
+    err = np.abs(unc.p_opt_w[0] - p_true)
+    sig = unc.sigma_p_w[0].astype(float)
+    bound = np.maximum(1e-17, model.K_SIGMA * sig)
+    ok = ~flagged
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = err / sig
+    r_frac = s["r_ohm"] / float(p.r_normal_ohm)
+    on = s["state"] == model.STATE_TRANSITION
+    mid = on & in_domain & (r_frac >= MID_TRANSITION[0]) & (r_frac <= MID_TRANSITION[1])
+    bad_before = ~flagged_before & ~(err <= 1e-17)
+    return {
+        "n": int(err.size),
+        "unflagged": int(ok.sum()),
+        "worst_unflagged_error_w": float(np.nanmax(err[ok])) if ok.any() else 0.0,
+        "worst_unflagged_error_over_sigma_p": float(np.nanmax(ratio[ok])) if ok.any() else 0.0,
+        "unflagged_beyond_bound": int(np.count_nonzero(ok & ~(err <= bound))),
+        "max_unflagged_sigma_p_w": float(np.nanmax(sig[ok])) if ok.any() else 0.0,
+        "tolerance_w": tol,
+        "unflagged_sigma_p_within_tolerance": bool(np.all(sig[ok] <= tol)) if ok.any() else True,
+        "transition_flagged_frac": float(flagged[reg == REGIONS.index("transition")].mean())
+        if np.any(reg == REGIONS.index("transition")) else 0.0,
+        "mid_transition_n": int(mid.sum()),
+        "mid_transition_flagged_frac": float(flagged[mid].mean()) if mid.any() else 0.0,
+        "low_responsivity": int(np.count_nonzero(f & fl.LOW_RESPONSIVITY)),
+        "without_low_responsivity": {
+            "unflagged_beyond_1e-17_w": int(bad_before.sum()),
+            "worst_unflagged_error_w": float(np.nanmax(err[~flagged_before])) if (~flagged_before).any() else 0.0,
+            "p_opt_range_w": ([float(p_true[bad_before].min()), float(p_true[bad_before].max())]
+                              if bad_before.any() else []),
+        },
+    }
+
+
+def noise_sweep(n_samples: int = 20_000, readout_noise_a: float = NOISE_SWEEP_READOUT_A,
+                kinds=("table", "grid", "exact", "linear", "electrical"), seed: int = 0, settings=None,
+                progress=None) -> dict:
+    """The operating-range sweep with realistic readout noise, declared to the converter.
+
+    Each transition model's detector (:func:`range_detectors`) through
+    :func:`range_samples` with ``readout_noise_a`` per quadrature; every kind
+    converts with the same noise declared (``readout_noise_a`` option) and
+    :func:`core.uncertainty.sigma_p_block` adds sigma_P and LOW_RESPONSIVITY.
+    Errors are against the TRUE optical power. Per model and kind:
+    ``worst_unflagged_error_w``, ``unflagged_beyond_bound`` (unflagged
+    samples further than ``max(1e-17 W, 7 sigma_P)``: must be 0),
+    ``unflagged_sigma_p_within_tolerance``, ``transition_flagged_frac``,
+    ``mid_transition_flagged_frac`` (true R in 0.2-0.8 R_n, bias in the
+    table domain: at most 0.1 %), and ``without_low_responsivity``: the same
+    samples judged by the other flags alone (the issue's measurement).
+
+    Parameters
+    ----------
+    settings : core.uncertainty.UncertaintySettings, optional
+        ``readout_noise_a`` is replaced by the sweep's.
+    """
+    import dataclasses
+
+    from mntes_stream.core import uncertainty as unc_mod
+    from mntes_stream.core.convert import EnvironmentBlock, make_converter
+    from mntes_stream.core.tables import TableDomain, build_bank
+
+    base = settings or unc_mod.UncertaintySettings()
+    cfg = dataclasses.replace(base, readout_noise_a=float(readout_noise_a))
+    out: dict = {"readout_noise_a": float(readout_noise_a), "samples_per_model": int(n_samples),
+                 "settings": {k: getattr(cfg, k) for k in ("sigma_p_factor", "sigma_p_tolerance_w",
+                                                           "low_responsivity_unusable")},
+                 "models": {}}
+    for k, (name, p) in enumerate(range_detectors().items()):
+        s = range_samples(p, n_samples, seed + k, readout_noise_a=readout_noise_a)
+        reg = _regions(p, s)
+        domain = TableDomain(p_opt_w=(0.0, 3.0 * float(p.p_sat_w)))
+        params = {p.detector_id: p}
+        env = EnvironmentBlock(s["t_bath_k"], s["b_field_t"], s["v_thev_v"][None, :])
+        v_frac = s["v_thev_v"] / p.v_thev_v
+        in_domain = (v_frac >= domain.v_frac[0]) & (v_frac <= domain.v_frac[1])
+        per_kind = out["models"][name] = {}
+        for kind in kinds:
+            if progress:
+                progress(f"noise {name}/{kind}")
+            opts: dict = {"readout_noise_a": float(readout_noise_a)}
+            if kind in ("table", "grid"):
+                opts["bank"] = build_bank(params, kind=kind, domain=domain)
+            elif kind in ("linear", "electrical"):
+                opts["domain"] = domain
+            conv = make_converter(kind, params, **opts)
+            ci, cq = s["counts_i"][None, :], s["counts_q"][None, :]
+            blk = conv.convert([p.detector_id], ci, cq, env)
+            nm = unc_mod.noise_model(conv.params, cfg)
+            unc = unc_mod.sigma_p_block(conv, [p.detector_id], ci, cq, env, blk, nm)
+            per_kind[kind] = _noise_stats(p, s, blk, unc, float(nm.tolerance_w[0]), reg, in_domain)
+            per_kind[kind]["nominal_sigma_p_w"] = float(nm.nominal_sigma_p_w[0])
+    return out

@@ -1,0 +1,323 @@
+"""Per-sample power uncertainty sigma_P and the LOW_RESPONSIVITY flag (pure, no I/O).
+
+Readout noise ``sigma_i`` per quadrature (white readout noise and the counts'
+quantisation ``|g| / sqrt(12)``, added in quadrature) moves the measured
+complex current ``i``; the converter reads ``P(i)`` through
+``R = Re(sqrt(2) V / i - z)`` and ``|i|``::
+
+    P = K (T_s(R) + delta - gamma |i|)^n - K T_bath^n - V^2 R / |R + z|^2
+
+so with isotropic noise on I and Q::
+
+    sigma_P = sigma_i |grad_i P|,
+    |grad_i P|^2 = A^2 (sqrt(2) V / |i|^2)^2 + B^2 - 2 A B (R + Re z) / |i|
+
+with ``A = dP/dR`` at fixed ``|i|`` and ``B = dP/d|i| = -K n T^(n-1) gamma``.
+Without a current shift this is ``sigma_i / |dI/dP|`` along the response
+curve (the responsivity); with one it is the inverse's own gradient (never
+below ``sigma_i / |dI/dP|``). Bath temperature does not enter.
+
+Where the responsivity falls (the top of the transition), sigma_P grows far
+above the detector's nominal ``sigma_P`` at its operating point: such a
+sample gets ``LOW_RESPONSIVITY`` (a warning bit; with
+``low_responsivity_unusable`` its value is dropped too) where sigma_P
+exceeds ``sigma_p_factor`` times the nominal, or ``sigma_p_tolerance_w``
+when that is set.
+
+Two routes give the same number: :func:`sigma_p_model` from the model
+(numpy, every kind: the detector's physics at the sample's measured state)
+and, for the ``"table"`` kind, a compiled kernel reading the converter's own
+table bank (``W = K T_s^n``, its slope and ``U = 1/T_s``), at kernel speed.
+Computed only when asked (:func:`sigma_p_block`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mntes_stream.core import _uncertainty_kernel as _uk
+from mntes_stream.core import flags as fl
+from mntes_stream.core import model
+from mntes_stream.core.ids import parse_detector_id
+from mntes_stream.core.params import DetectorParams
+from mntes_stream.core.settings import Settings, setting
+from mntes_stream.errors import ConfigError, SchemaError
+
+__all__ = [
+    "SIGMA_P_FACTOR",
+    "UncertaintySettings",
+    "NoiseModel",
+    "Uncertainty",
+    "noise_model",
+    "total_sigma_i_a",
+    "sigma_p_model",
+    "nominal_sigma_p_w",
+    "sigma_p_block",
+    "module_key",
+]
+
+SIGMA_P_FACTOR = 3.0
+SQRT2 = model.SQRT2
+
+
+@dataclass(frozen=True)
+class UncertaintySettings(Settings):
+    """The readout noise the converter assumes, and when a sample's noise is too large."""
+
+    readout_noise_a: float = setting(
+        model.DEFAULT_READOUT_NOISE_A,
+        "white readout noise per quadrature and sample (peak A rms, quantisation excluded); default: the DfMux's "
+        "10 pA/sqrt(Hz) over the Nyquist band at 152.6 Hz (2.76e-11 A)", unit="A", ge=0)
+    sigma_p_factor: float = setting(
+        SIGMA_P_FACTOR, "LOW_RESPONSIVITY where sigma_P exceeds this multiple of the detector's nominal sigma_P "
+        "(at its operating point)", gt=1)
+    sigma_p_tolerance_w: float | None = setting(
+        None, "LOW_RESPONSIVITY where sigma_P exceeds this absolute tolerance instead of the factor", unit="W", gt=0)
+    low_responsivity_unusable: bool = setting(
+        False, "a LOW_RESPONSIVITY sample loses its value (NaN) as an unusable flag would; default: a warning")
+
+
+def module_key(detector_id: str) -> str | None:
+    """``"b<board>m<module>"`` of a detector id of the readout's form, else None.
+
+    >>> module_key("b0m3c007"), module_key("pixel7")
+    ('b0m3', None)"""
+    try:
+        b, m, _ = parse_detector_id(detector_id)
+    except ConfigError:
+        return None
+    return f"b{b}m{m}"
+
+
+def total_sigma_i_a(readout_noise_a, gain_a_per_count) -> np.ndarray:
+    """Noise per quadrature and sample: readout noise and quantisation (``|g| / sqrt(12)``) in quadrature."""
+    return np.hypot(np.asarray(readout_noise_a, float), np.abs(np.asarray(gain_a_per_count)) / math.sqrt(12.0))
+
+
+def sigma_p_model(p: DetectorParams, i_meas_a, b_field_t, v_thev_v, sigma_i_a: float) -> np.ndarray:
+    """sigma_P (W) of samples of one detector from the model, at their measured current.
+
+    Parameters
+    ----------
+    p : DetectorParams
+    i_meas_a : array_like of complex
+        Measured peak current (counts times gain), pickup included.
+    b_field_t, v_thev_v : array_like, broadcast to ``i_meas_a``
+    sigma_i_a : float
+        Noise per quadrature (:func:`total_sigma_i_a`).
+
+    Returns
+    -------
+    ndarray of float64; NaN where R is off the operating branch.
+    """
+    v = np.asarray(v_thev_v, dtype=float)
+    b = np.asarray(b_field_t, dtype=float)
+    i = np.asarray(i_meas_a, dtype=complex) - p.pickup_a_per_t * b
+    z = complex(p.z_thev_ohm)
+    with np.errstate(all="ignore"):
+        m2 = i.real**2 + i.imag**2
+        i_abs = np.sqrt(m2)
+        r = SQRT2 * v * i.real / m2 - z.real
+        lo, hi = model.branch_bounds_ohm(p)
+        on = (r > lo) & (r < hi)
+        rs = np.where(on, r, 0.5 * (lo + hi))
+        t = model.effective_temperature_k(p, rs, i_abs, b)
+        ts1, _ = p.transition.dtemperature_dr(rs)
+        kn = p.k_w_per_k_n * p.n * np.maximum(t, 0.0) ** (p.n - 1.0)
+        j1 = v**2 * (abs(z) ** 2 - rs**2) / ((rs + z.real) ** 2 + z.imag**2) ** 2
+        a = kn * ts1 - j1
+        bb = -kn * p.current_shift_k_per_a
+        grad2 = (a * SQRT2 * v / m2) ** 2 + bb * bb - 2.0 * a * bb * (rs + z.real) / i_abs
+        return np.where(on, sigma_i_a * np.sqrt(np.maximum(grad2, 0.0)), np.nan)
+
+
+def nominal_sigma_p_w(p: DetectorParams, sigma_i_a: float) -> float:
+    """sigma_P at the detector's nominal operating point (its P_opt, bath and bias; B = 0).
+
+    Where that point is off the transition, at the middle of the operating branch.
+    """
+    op = model.solve_operating_point(p, p.p_opt_w, p.t_bath_k, 0.0, p.v_thev_v)
+    if int(op.state) == model.STATE_TRANSITION:
+        i = complex(op.i_a)
+    else:
+        lo, hi = (float(x) for x in model.branch_bounds_ohm(p))
+        i = complex(model.tes_current_a(p, 0.5 * (lo + hi)))
+    return float(sigma_p_model(p, i, 0.0, p.v_thev_v, sigma_i_a))
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Per detector (in a converter's order): the noise assumed and the LOW_RESPONSIVITY tolerance.
+
+    Attributes
+    ----------
+    detector_ids : tuple of str
+    readout_noise_a : ndarray (n_det,)
+        White readout noise per quadrature, as declared.
+    sigma_i_a : ndarray (n_det,)
+        With quantisation (:func:`total_sigma_i_a`).
+    nominal_sigma_p_w : ndarray (n_det,)
+    tolerance_w : ndarray (n_det,)
+        LOW_RESPONSIVITY above this sigma_P.
+    source : tuple of str
+        Where each detector's readout noise came from: ``"default"``,
+        ``"setting"``, ``"measured:detector"`` or ``"measured:module"``.
+    unusable : bool
+        LOW_RESPONSIVITY drops the value.
+    """
+
+    detector_ids: tuple
+    readout_noise_a: np.ndarray
+    sigma_i_a: np.ndarray
+    nominal_sigma_p_w: np.ndarray
+    tolerance_w: np.ndarray
+    source: tuple
+    unusable: bool = False
+    measured_from: str = ""
+    settings: UncertaintySettings = field(default_factory=UncertaintySettings)
+
+    def provenance(self) -> dict:
+        """What the converter's provenance records: which noise was used, and the tolerance rule."""
+        src, n = np.unique(np.array(self.source, dtype=object).astype(str), return_counts=True)
+        s = self.settings
+        return {
+            "readout_noise_a_default": model.DEFAULT_READOUT_NOISE_A,
+            "readout_noise_a_setting": s.readout_noise_a,
+            "readout_noise_sources": {str(a): int(b) for a, b in zip(src, n)},
+            "readout_noise_measured_from": self.measured_from,
+            "readout_noise_a_range": ([float(self.readout_noise_a.min()), float(self.readout_noise_a.max())]
+                                      if self.readout_noise_a.size else []),
+            "low_responsivity": (f"sigma_P > {s.sigma_p_tolerance_w:g} W" if s.sigma_p_tolerance_w else
+                                 f"sigma_P > {s.sigma_p_factor:g} x nominal sigma_P"),
+            "low_responsivity_unusable": self.unusable,
+        }
+
+
+def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings | None = None,
+                measured_a: Mapping[str, float] | None = None, measured_from: str = "") -> NoiseModel:
+    """The noise of each detector, from a measurement (per detector or per module) or the setting.
+
+    Parameters
+    ----------
+    params : sequence of DetectorParams
+        In the converter's order (``converter.params``).
+    settings : UncertaintySettings
+    measured_a : mapping, optional
+        Readout noise (A per quadrature) by detector id or by module (``"b0m3"``),
+        e.g. from ``mntes-stream noise RUN``; a detector's own entry wins over its module's.
+    measured_from : str
+        Where the measurement came from (for the provenance).
+    """
+    s = settings or UncertaintySettings()
+    measured = dict(measured_a or {})
+    for k, val in measured.items():
+        if not (isinstance(val, (int, float)) and math.isfinite(val) and val >= 0):
+            raise ConfigError(f"readout noise of {k!r}: expected a finite number >= 0 (A), got {val!r}")
+    default = s.readout_noise_a == model.DEFAULT_READOUT_NOISE_A
+    noise, source = [], []
+    for p in params:
+        mk = module_key(p.detector_id)
+        if p.detector_id in measured:
+            noise.append(float(measured[p.detector_id]))
+            source.append("measured:detector")
+        elif mk is not None and mk in measured:
+            noise.append(float(measured[mk]))
+            source.append("measured:module")
+        else:
+            noise.append(s.readout_noise_a)
+            source.append("default" if default else "setting")
+    noise_a = np.array(noise, dtype=float)
+    sig = total_sigma_i_a(noise_a, np.array([p.gain_a_per_count for p in params], dtype=complex))
+    nominal = np.array([nominal_sigma_p_w(p, float(x)) for p, x in zip(params, sig)], dtype=float)
+    tol = np.full(len(params), s.sigma_p_tolerance_w) if s.sigma_p_tolerance_w else s.sigma_p_factor * nominal
+    # A detector without a nominal sigma_P (never on its branch) has no LOW_RESPONSIVITY.
+    tol = np.where(np.isfinite(tol), tol, np.inf)
+    return NoiseModel(detector_ids=tuple(p.detector_id for p in params), readout_noise_a=noise_a, sigma_i_a=sig,
+                      nominal_sigma_p_w=nominal, tolerance_w=tol, source=tuple(source),
+                      unusable=bool(s.low_responsivity_unusable), measured_from=measured_from, settings=s)
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """A converted block with its uncertainty.
+
+    Attributes
+    ----------
+    p_opt_w : ndarray (n_det, n_samp)
+        The block's power (NaN where LOW_RESPONSIVITY when that is unusable).
+    flags : ndarray of uint16 (n_det, n_samp)
+        The block's flags with LOW_RESPONSIVITY.
+    sigma_p_w : ndarray of float32 (n_det, n_samp)
+        NaN where the power is NaN.
+    """
+
+    p_opt_w: np.ndarray
+    flags: np.ndarray
+    sigma_p_w: np.ndarray
+
+
+def sigma_p_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray, env,
+                  block, noise: NoiseModel, backend: str = "auto") -> Uncertainty:
+    """sigma_P and LOW_RESPONSIVITY for a block the converter has converted.
+
+    Parameters
+    ----------
+    converter : core.convert converter
+    detector_ids, counts_i, counts_q, env
+        What was given to ``converter.convert``.
+    block : PowerBlock
+        What it returned.
+    noise : NoiseModel
+        Built for ``converter.params`` (:func:`noise_model`).
+    backend : {"auto", "numba", "numpy"}
+        The ``"table"`` kind's compiled kernel or the model route.
+
+    Raises
+    ------
+    ConfigError
+        A noise model of other detectors.
+    SchemaError
+        Arrays that are not the block's.
+    """
+    from mntes_stream.core.convert import _measured_current, _prepare
+
+    if noise.detector_ids != converter.detector_ids:
+        raise ConfigError("the noise model was built for other detectors than the converter's")
+    inp = _prepare(converter._rows, converter._v_nominal, detector_ids, counts_i, counts_q, env)
+    shape = inp.counts_i.shape
+    if block.p_opt_w.shape != shape or block.flags.shape != shape:
+        raise SchemaError(f"power block {block.p_opt_w.shape} is not of the counts' shape {shape}")
+    sigma = np.empty(shape, dtype=np.float32)
+    flags = np.array(block.flags, dtype=np.uint16)
+    bank = getattr(converter, "bank", None)
+    use_kernel = (bank is not None and bank.kind == "table" and backend != "numpy" and _uk.available())
+    if backend == "numba" and not use_kernel:
+        raise ConfigError("backend 'numba' needs a 'table' converter and numba")
+    if use_kernel:
+        a = bank.arrays
+        _uk.run(inp.counts_i, inp.counts_q, inp.b_field_t, inp.v_thev_v, inp.rows, converter._phys,
+                _uk.row_constants(converter._phys, noise), a["knot_offset"], a["r_knot_ohm"], a["cell_offset"],
+                a["cell_interval"], a["cell_per_ohm"], a["coeffs"], sigma, flags)
+    else:
+        rows = np.maximum(inp.rows, 0)
+        usable = ((flags & fl.UNUSABLE) == 0) & (inp.rows >= 0)[:, None]
+        i_meas = _measured_current(converter._phys, rows, inp, 0, shape[0])
+        sigma[:] = np.nan
+        for k in np.flatnonzero(usable.any(axis=1)):
+            d = inp.rows[k]
+            idx = np.flatnonzero(usable[k])
+            sigma[k, idx] = sigma_p_model(converter.params[d], i_meas[k, idx], inp.b_field_t[k, idx],
+                                          inp.v_thev_v[k, idx], float(noise.sigma_i_a[d]))
+        with np.errstate(invalid="ignore"):
+            low = usable & (sigma > noise.tolerance_w[rows][:, None])
+        flags[low] |= fl.LOW_RESPONSIVITY
+    p = block.p_opt_w
+    if noise.unusable:
+        p = np.where((flags & fl.LOW_RESPONSIVITY) != 0, np.nan, p)
+        sigma[(flags & fl.LOW_RESPONSIVITY) != 0] = np.nan
+    return Uncertainty(p_opt_w=p, flags=flags, sigma_p_w=sigma)
+
