@@ -127,7 +127,7 @@ def test_a_missing_extra_names_it(tmp_path):
     (["serve", "--config", "services/recorder.toml", "--set", "nonsense"], "expected TABLE.KEY=VALUE"),
     (["record", "--flush-s", "0", "--duration", "1"], "flush_interval_s: expected a number (s) > 0"),
     (["serve", "--config", "services/converter.toml", "--cfg", "no-colon"], "expected KEY:VALUE"),
-    (["simulate", "--mcap", "x.mcap", "-e", "tcp/127.0.0.1:1"], "give either --mcap FILE or zenoh endpoints"),
+    (["simulate", "--out", "x.mcap", "-e", "tcp/127.0.0.1:1"], "give either --out FILE.mcap or zenoh endpoints"),
 ])
 def test_bad_arguments_are_one_line(args, expect):
     res = _run(*args)

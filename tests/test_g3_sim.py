@@ -207,8 +207,11 @@ def test_simulate_format_g3_cli_writes_run_truth_and_named_parameters(tmp_path, 
         kinds = {str(f.type) for f in frames}
         assert {"Wiring", "Housekeeping", "GcpSlow"} <= kinds
         assert ("Timepoint" in kinds) == (layout == "timepoints")
-        names = set(Wiring.from_frame(frames[0]).names)
-        assert len(names) == 8 and set(load_params(res["params"])) == names
+        wiring = Wiring.from_frame(frames[0])
+        names = set(wiring.names)
+        # The converter's file (detector ids, the run's gain) and the truth keyed by bolometer name.
+        assert len(names) == 8 and set(load_params(res["bolometer_params"])) == names
+        assert set(load_params(res["params"])) == set(wiring.detector_ids)
         truth = load_truth(res["truth"])
         assert set(truth["detector_ids"].tolist()) == names and truth["truth_p_opt_w"].shape == (8, 153)
         assert sum(str(f.type) == "Housekeeping" for f in frames) >= 2  # start + the gain step

@@ -55,7 +55,7 @@ def test_config_check_fails_with_one_line_per_bad_file(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[recorder]\nflush_interval_s = "1"\n')
     res = _cli("config", "check", SERVICES / "recorder.toml", bad, tmp_path / "missing.toml")
-    assert res.returncode == 1 and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "Traceback" not in res.stderr
     errors = res.stderr.strip().splitlines()
     assert len(errors) == 2, errors
     assert f"{bad} [recorder] flush_interval_s: expected a number (s) > 0, got '1'" in errors[0]
@@ -289,7 +289,7 @@ def test_params_file_errors_are_one_line(tmp_path):
     p.write_text('schema = "mntes-params"\nversion = 1\n[defaults]\npreset = "table1"\n'
                  '[detectors.b0m0c000]\nt_c_k = "0.18"\n')
     res = _cli("config", "check", p)
-    assert res.returncode == 1 and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "b0m0c000" in res.stderr and "t_c_k" in res.stderr and len(res.stderr.strip().splitlines()) == 1
     env = {**os.environ}
     res = _cli("tables", "build", "--params", p, "--out", tmp_path / "t.npz", env=env)

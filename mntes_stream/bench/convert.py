@@ -29,14 +29,14 @@ _BIAS_STATES = (0.95, 1.0, 1.05)
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--detectors", type=int, default=512)
-    p.add_argument("--samples", type=int, default=10_000)
+    p.add_argument("--detectors", type=int, default=512, help="detectors to convert (default 512)")
+    p.add_argument("--samples", type=int, default=10_000, help="samples per detector (default 10000)")
     p.add_argument("--repeats", type=int, default=7, help="timed conversions (median reported)")
     p.add_argument("--build-detectors", type=int, default=1000, help="detectors in the build-time measurement")
     p.add_argument("--quick", action="store_true", help="small sizes for a smoke run (64 x 2000, 3 repeats)")
     p.add_argument("--no-numpy", action="store_true", help="skip timing the numpy backend")
     p.add_argument("--png", metavar="FILE", help="write a figure of the errors against the exact inverse")
-    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--seed", type=int, default=3, help="random seed (default 3)")
     p.add_argument("--range", action="store_true",
                    help="also the operating-range sweep (core.sweep): per kind, worst unflagged error over every "
                         "region and transition model, and the transition's flagged fraction")

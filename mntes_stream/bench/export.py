@@ -34,14 +34,14 @@ HELP = "export throughput: MCAP session -> HDF5 (detector-samples per second)"
 
 def add_arguments(p) -> None:
     p.add_argument("--modules", type=int, default=8, help="128-channel modules (default 8 = 1024 detectors)")
-    p.add_argument("--rate-hz", type=float, default=200.0)
-    p.add_argument("--chunk-s", type=float, default=0.1)
+    p.add_argument("--rate-hz", type=float, default=200.0, help="sample rate (Hz; default 200)")
+    p.add_argument("--chunk-s", type=float, default=0.1, help="chunk length (s; default 0.1)")
     p.add_argument("--seconds", type=float, default=60.0, help="stream time in the session")
     p.add_argument("--compression", action="append", choices=("gzip", "lzf", "none"),
                    help="HDF5 compression(s) to time (repeatable; default gzip and lzf)")
     p.add_argument("--format", action="append", choices=("hdf5", "toast", "sotodlib", "litebird_sim"),
                    help="export format(s) to time (repeatable; default all four)")
-    p.add_argument("--block-samples", type=int, default=8192)
+    p.add_argument("--block-samples", type=int, default=8192, help="samples per HDF5 write (default 8192)")
     p.add_argument("--dir", help="where to write (default: a temporary directory, removed afterwards)")
 
 

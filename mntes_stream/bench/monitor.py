@@ -34,8 +34,8 @@ HELP = "quick-look monitor: aggregation cost and page latency for a full focal p
 
 def add_arguments(p) -> None:
     p.add_argument("--modules", type=int, default=40, help="128-channel modules (default 40 = 5120 channels)")
-    p.add_argument("--rate-hz", type=float, default=DFMUX_SAMPLE_RATE_HZ)
-    p.add_argument("--chunk-s", type=float, default=0.1)
+    p.add_argument("--rate-hz", type=float, default=DFMUX_SAMPLE_RATE_HZ, help="sample rate (Hz; default the DfMux rate)")
+    p.add_argument("--chunk-s", type=float, default=0.1, help="chunk length (s; default 0.1)")
     p.add_argument("--seconds", type=float, default=20.0, help="stream time")
     p.add_argument("--selected", type=int, default=4, help="channels plotted by the page")
     p.add_argument("--browser", action="store_true", help="also run publisher + monitor + headless Chromium live")

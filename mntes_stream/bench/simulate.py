@@ -24,12 +24,12 @@ HELP = "simulator throughput: detector-samples per second, core and with message
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--modules", type=int, default=8)
-    p.add_argument("--channels", type=int, default=128)
-    p.add_argument("--rate-hz", type=float, default=DFMUX_SAMPLE_RATE_HZ)
-    p.add_argument("--chunk-s", type=float, default=0.1)
+    p.add_argument("--modules", type=int, default=8, help="modules (default 8)")
+    p.add_argument("--channels", type=int, default=128, help="channels per module (default 128)")
+    p.add_argument("--rate-hz", type=float, default=DFMUX_SAMPLE_RATE_HZ, help="sample rate (Hz; default the DfMux rate)")
+    p.add_argument("--chunk-s", type=float, default=0.1, help="chunk length (s; default 0.1)")
     p.add_argument("--seconds", type=float, default=10.0, help="stream time per run")
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=int, default=3, help="timed repetitions (default 3)")
 
 
 def run(args) -> dict:

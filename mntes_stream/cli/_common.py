@@ -73,6 +73,9 @@ def zenoh_from_args(args, table=None):
     return zenoh_layer(args).over(table if table is not None else ZenohSettings())
 
 
+_CANONICAL = ("--duration", "--out")
+
+
 def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | None = None) -> None:
     """``--name`` flags for settings of ``cls``, typed and documented from their declarations.
 
@@ -89,11 +92,17 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
     g = p.add_argument_group(title) if title else p
     for name in names:
         s, hint = declared(fields[name]), hints[name]
-        flags = [f"--{name.replace('_', '-')}", *(aliases or {}).get(name, ())]
+        generated, extra = f"--{name.replace('_', '-')}", tuple((aliases or {}).get(name, ()))
+        # The grammar's spelling wins (--duration, not --duration-s); the generated one stays a hidden alias.
+        canonical = [a for a in extra if a in _CANONICAL]
+        flags = [*canonical, *(a for a in extra if a not in _CANONICAL)] if canonical else [generated, *extra]
         default = fields[name].default
+        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else hint
+        if canonical:
+            deprecated_alias(g, generated, canonical[0], dest=name, default=None,
+                             type=inner if inner in (int, float, str) else str)
         text = f"{s.doc} [{expected(hint, s)}; default {default!r}]" if default is not dataclasses.MISSING else s.doc
         text = text.replace("%", "%%")
-        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else hint
         if hint is bool:
             g.add_argument(*flags, dest=name, action=argparse.BooleanOptionalAction, default=None, help=text)
         elif typing.get_origin(hint) is tuple:
@@ -137,3 +146,64 @@ def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:
     for key, value in d.items():
         if value is not None:
             print(f"{key:>{width}s}: {value}")
+
+
+# ---------------------------------------------------------------------------- one grammar for every command
+# docs/cli.md: --duration (s), --out, --set TABLE.KEY=VALUE, -q/--quiet, --overwrite, --json; old spellings
+# stay as hidden aliases that say, in one line on stderr, what to write instead.
+
+
+def deprecated_alias(p, old: str, new: str, **kwargs) -> None:
+    """A hidden ``old`` flag doing what ``new`` does, with one line on stderr naming ``new``."""
+    import argparse
+    import sys
+
+    base = kwargs.pop("action", "store")
+
+    class _Deprecated(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            print(f"mntes-stream: warning: {option_string} is deprecated; use {new}", file=sys.stderr)
+            if base == "store_true":
+                setattr(namespace, self.dest, True)
+            elif base == "append":
+                setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+            else:
+                setattr(namespace, self.dest, values)
+
+    if base == "store_true":
+        kwargs["nargs"] = 0
+    p.add_argument(old, action=_Deprecated, help=argparse.SUPPRESS, **kwargs)
+
+
+def add_quiet(p, what: str = "warnings only, no progress") -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help=what)
+
+
+def add_json(p, what: str = "print the result as one JSON document") -> None:
+    p.add_argument("--json", action="store_true", help=what)
+
+
+def add_overwrite(p, what: str = "replace an existing output file") -> None:
+    p.add_argument("--overwrite", action="store_true", help=what)
+
+
+def claim_out(path, overwrite: bool, inputs=()) -> None:
+    """Refuse an existing output unless ``--overwrite`` (then remove it first); never an input.
+
+    Raises
+    ------
+    ConfigError
+        The output exists without ``--overwrite``, is one of the inputs, or is a directory.
+    """
+    from pathlib import Path
+
+    out = Path(path)
+    if not out.exists():
+        return
+    if any(Path(i).exists() and out.resolve() == Path(i).resolve() for i in inputs):
+        raise ConfigError(f"{out}: the output is one of the inputs")
+    if not overwrite:
+        raise ConfigError(f"{out} exists (--overwrite replaces it)")
+    if out.is_dir():
+        raise ConfigError(f"{out} is a directory: --overwrite replaces files only")
+    out.unlink()

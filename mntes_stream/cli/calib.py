@@ -19,7 +19,7 @@ def _simulate(args) -> int:
     if args.truth and Path(args.truth).resolve() == Path(args.out).resolve():
         raise ConfigError("--truth must be a different file from --out")
     if args.truth and Path(args.truth).exists() and not args.force:
-        raise ConfigError(f"{args.truth} exists (use --force)")
+        raise ConfigError(f"{args.truth} exists (--overwrite replaces it)")
     grid = FULL_GRID if args.grid == "full" else SMALL_GRID
     campaign, truth = simulate_campaign(args.detectors, seed=args.seed, grid=grid, noise_a=args.noise_a,
                                         board=args.board, module=args.module)
@@ -68,6 +68,7 @@ def _info(args) -> int:
 def _fit(args) -> int:
     from tqdm import tqdm
 
+    from mntes_stream.cli._common import claim_out
     from mntes_stream.core.calib.fit import FitOptions, tabulated_transition
     from mntes_stream.errors import ConfigError, MntesError
     from mntes_stream.io.calib_file import read_campaign, read_truth, write_covariance, write_fit_params
@@ -75,6 +76,7 @@ def _fit(args) -> int:
 
     out = Path(args.out)
     cov_path = Path(args.covariance) if args.covariance else out.with_suffix(".cov.json")
+    claim_out(out, args.overwrite, inputs=[args.file, *([args.truth] if args.truth else [])])
     campaign = read_campaign(args.file)
     truth = read_truth(args.truth) if args.truth else None
     if truth is not None:
@@ -138,20 +140,23 @@ def _fit(args) -> int:
 
 
 def register(sub) -> None:
+    from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, deprecated_alias
+
     p = sub.add_parser("calib", help="ground calibration: simulate a campaign, fit per-detector parameters")
     csub = p.add_subparsers(dest="calib_command", metavar="ACTION")
 
     s = csub.add_parser("simulate", help="write a simulated calibration campaign (MCAP) and its truth (TOML)")
     s.add_argument("--detectors", type=int, default=100, metavar="N", help="number of detectors (default 100)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--out", required=True, metavar="MCAP", help="campaign file to write")
     s.add_argument("--truth", metavar="TOML", help="write the true parameters here (marked as truth)")
     s.add_argument("--grid", choices=_GRIDS, default="full", help="points per sweep: full (default) or small")
     s.add_argument("--noise-a", type=float, default=1e-10, metavar="A",
                    help="noise of each of I and Q per point, in amperes (default 1e-10)")
-    s.add_argument("--board", type=int, default=0)
-    s.add_argument("--module", type=int, default=0)
-    s.add_argument("--force", action="store_true", help="overwrite existing files")
+    s.add_argument("--board", type=int, default=0, help="board of the simulated detectors (default 0)")
+    s.add_argument("--module", type=int, default=0, help="module of the simulated detectors (default 0)")
+    s.add_argument("--overwrite", dest="force", action="store_true", help="replace existing --out and --truth files")
+    deprecated_alias(s, "--force", "--overwrite", dest="force", action="store_true")
     s.set_defaults(func=_simulate)
 
     f = csub.add_parser("fit", help="fit every detector of a campaign; write a parameter file")
@@ -166,13 +171,14 @@ def register(sub) -> None:
                    help="converter for the end-to-end check (default table)")
     f.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
     f.add_argument("--max-nfev", type=int, default=200, help="model evaluations per fit before giving up")
-    f.add_argument("--json", action="store_true", help="print a JSON summary")
-    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite(f, "replace an existing --out file (and its covariance sidecar)")
+    add_json(f, "print a JSON summary")
+    add_quiet(f, "no progress bar")
     f.set_defaults(func=_fit)
 
     i = csub.add_parser("info", help="what a campaign file holds")
-    i.add_argument("file", metavar="FILE")
-    i.add_argument("--json", action="store_true")
+    i.add_argument("file", metavar="FILE", help="campaign file (MCAP)")
+    add_json(i, "print one JSON object")
     i.set_defaults(func=_info)
 
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])

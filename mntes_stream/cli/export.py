@@ -83,7 +83,7 @@ def _run_export(args) -> int:
         summary = _framework_export(fmt, args, selection)
     else:
         summary = export_hdf5(args.session, args.out, compression=args.compression, block_samples=args.block_samples,
-                              overwrite=args.overwrite, progress=not args.json, **selection)
+                              overwrite=args.overwrite, progress=not (args.json or args.quiet), **selection)
     result = {
         "format": fmt,
         "path": summary.path,
@@ -139,4 +139,5 @@ def register(sub) -> None:
                    "not a hole filled with NaN + GAP (default: feeds.blocks.DEFAULT_MAX_GAP_S, one hour)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_export)

@@ -31,6 +31,6 @@ def register(sub) -> None:
     p.add_argument("--config", metavar="FILE", help="a [foxglove] config (services/foxglove.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, FoxgloveConfig, _SERVICE, {"duration_s": ("--duration",)})
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (default: warnings only)")
     add_zenoh_args(p)
     p.set_defaults(func=run_foxglove)

@@ -12,21 +12,41 @@ from mntes_stream.cli._common import add_zenoh_args, print_mapping
 
 
 def add_g3_convert_args(p) -> None:
-    """``convert``'s options for G3 input or output."""
+    """``convert``'s options for G3 input or output (an error where they do not apply, never ignored)."""
     g = p.add_argument_group("G3 (SPT-3G)", "when IN or OUT is a .g3 file: RUN.g3 -> OUT.g3 appends MntesOpticalPower "
                                             "and MntesFlags to every Scan frame; RUN.g3 -> OUT.mcap converts through "
                                             "the live pipeline; REC.mcap -> OUT.g3 writes the power as Scan frames")
-    g.add_argument("--kind", default="table", choices=("table", "grid", "exact", "linear", "electrical"),
-                   help="converter kind of RUN.g3 -> OUT.g3 (electrical needs no --params: minus spt3g's electrical "
-                        "power)")
+    g.add_argument("--kind", default=None, choices=("table", "grid", "exact", "linear", "electrical"),
+                   help="RUN.g3 -> OUT.g3 only: converter kind (default table; electrical needs no --params: minus "
+                        "spt3g's electrical power). MCAP output converts with the recorded kind or that of --tables")
     g.add_argument("--wiring", metavar="RUN.g3", help="REC.mcap -> OUT.g3: a G3 file whose wiring map names the "
                                                       "bolometers (default: detector ids as names)")
-    g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
-    g.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="its unit (default G3Units)")
-    g.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a run without one")
-    g.add_argument("--b-field-t", type=float, metavar="T", help="constant field (spt3g has no field source; default 0)")
-    g.add_argument("--setup", default="lab", help="RUN.g3 -> OUT.mcap: the setup name of the messages")
-    g.add_argument("--scan-samples", type=int, default=1000, help="raw Timepoint input: samples per Scan frame")
+    g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="G3 input: GcpSlow bath thermometer "
+                                                               "(default CryoStatus.UC_Head)")
+    g.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="G3 input: its unit (default G3Units)")
+    g.add_argument("--t-bath-default-k", type=float, metavar="K", help="G3 input: bath temperature of a run "
+                                                                       "without one")
+    g.add_argument("--b-field-t", type=float, metavar="T", help="G3 input: constant field (spt3g has no field "
+                                                                "source; default 0)")
+    g.add_argument("--setup", default=None, help="RUN.g3 -> OUT.mcap: the setup name of the messages (default lab)")
+    g.add_argument("--scan-samples", type=int, default=None, help="RUN.g3 -> OUT.g3 of raw Timepoints: samples per "
+                                                                  "Scan frame (default 1000)")
+
+
+def refuse_inapplicable(args, g3_in: bool, g3_out: bool) -> None:
+    """Options given to a conversion they do not apply to: one ConfigError naming them."""
+    from mntes_stream.errors import ConfigError
+
+    applies = {"--kind": g3_in and g3_out, "--wiring": g3_out and not g3_in, "--t-bath-key": g3_in,
+               "--t-bath-unit": g3_in, "--t-bath-default-k": g3_in, "--b-field-t": g3_in,
+               "--setup": g3_in and not g3_out, "--scan-samples": g3_in and g3_out}
+    given = [flag for flag, ok in applies.items() if getattr(args, flag[2:].replace("-", "_")) is not None and not ok]
+    if given:
+        what = {(True, True): "RUN.g3 -> OUT.g3", (True, False): "RUN.g3 -> OUT.mcap",
+                (False, True): "REC.mcap -> OUT.g3", (False, False): "REC.mcap -> OUT.mcap"}[(g3_in, g3_out)]
+        hint = "; the recorded converter kind (or that of --tables) is used" if "--kind" in given and not g3_in else ""
+        raise ConfigError(f"{', '.join(given)} do{'es' if len(given) == 1 else ''} not apply to {what} "
+                          f"(convert --help says which conversion takes which option){hint}")
 
 
 def g3_input_config(args):
@@ -64,14 +84,11 @@ def _run_g3_convert(args, pipeline) -> int:
     if g3_in and g3_out:
         if args.tables:
             raise ConfigError("RUN.g3 -> OUT.g3 builds its converter from --params (and --kind); --tables is for MCAP")
-        result = files.g3_to_g3(args.input, args.output, params=args.params, kind=args.kind,
-                                config=g3_input_config(args), scan_samples=args.scan_samples)
+        result = files.g3_to_g3(args.input, args.output, params=args.params, kind=args.kind or "table",
+                                config=g3_input_config(args), scan_samples=args.scan_samples or 1000)
     elif g3_in:
-        if args.kind != "table":
-            raise ConfigError("RUN.g3 -> OUT.mcap converts like the live converter (table kind, or the kind of "
-                              "--tables); --kind is for G3 output")
         stats = files.g3_to_mcap(args.input, args.output, params=args.params, tables=args.tables,
-                                 config=g3_input_config(args), setup=args.setup, pipeline_config=pipeline,
+                                 config=g3_input_config(args), setup=args.setup or "lab", pipeline_config=pipeline,
                                  progress=not (args.quiet or args.json))
         result = dataclasses.asdict(stats) | {"spt3g": spt3g_in_use()}
         if not args.json:
@@ -125,19 +142,23 @@ def register(sub) -> None:
     p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="stop after this long (0: never)")
     p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
     p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a DAQ without one")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)
 
 
 def add_simulate_g3_args(p) -> None:
-    g = p.add_argument_group("G3 output (--format g3)")
-    g.add_argument("--out", metavar="RUN.g3", help="the G3 file (truth and bolometer-keyed parameters next to it)")
-    g.add_argument("--layout", choices=("scans", "timepoints"), default="scans",
-                   help="collated Scan frames (spt3g's DfMuxCollator) or raw DAQ Timepoint frames")
+    """``simulate``'s options for ``--format g3`` (an error with ``--format mcap``, never ignored)."""
+    g = p.add_argument_group("G3 output (--format g3)", "--out RUN.g3; beside it RUN.params.toml (keyed by detector "
+                                                        "id, the DfMux gain of the run: the converter, g3-bridge "
+                                                        "--params and convert take it as it is), "
+                                                        "RUN.bolometer-params.toml (the truth keyed by bolometer name) "
+                                                        "and RUN.truth.npz")
+    g.add_argument("--layout", choices=("scans", "timepoints"), default=None,
+                   help="collated Scan frames (spt3g's DfMuxCollator; default) or raw DAQ Timepoint frames")
     g.add_argument("--exact-counts", action="store_true",
                    help="scans: unrounded float64 counts (checks against the truth below DfMux count resolution)")
-    g.add_argument("--nuller-gain", type=int, default=2, help="DfMux nuller gain setting (0-15)")
+    g.add_argument("--nuller-gain", type=int, default=None, help="DfMux nuller gain setting (0-15; default 2)")
     g.add_argument("--gain-step", action="append", default=[], metavar="S:GAIN",
                    help="the operator sets the nuller gain to GAIN at S seconds (repeatable)")
 
@@ -145,7 +166,9 @@ def add_simulate_g3_args(p) -> None:
 def run_simulate_g3(args, svc) -> int:
     from pathlib import Path
 
+    from mntes_stream.cli._common import claim_out
     from mntes_stream.errors import ConfigError
+    from mntes_stream.g3.files import write_converter_params
     from mntes_stream.g3.sim import write_g3
     from mntes_stream.service.simulator import TruthRecorder
 
@@ -153,6 +176,8 @@ def run_simulate_g3(args, svc) -> int:
         raise ConfigError("simulate --format g3 needs --out RUN.g3")
     if not svc.duration_s:
         raise ConfigError("simulate --format g3 needs --duration > 0")
+    if args.perturbed_params_out:
+        raise ConfigError("--perturbed-params-out applies to --format mcap only")
     steps = []
     for item in args.gain_step:
         t, _, g = item.partition(":")
@@ -160,14 +185,19 @@ def run_simulate_g3(args, svc) -> int:
             steps.append((float(t), int(g)))
         except ValueError:
             raise ConfigError(f"--gain-step expects S:GAIN, e.g. 60:5, got {item!r}") from None
+    claim_out(args.out, args.overwrite)
     stem = Path(args.out)
     stem = stem.with_name(stem.name[:-3] if stem.name.endswith(".g3") else stem.name)
     params_out = args.params_out or f"{stem}.params.toml"
+    bolometer_params = f"{stem}.bolometer-params.toml"
     truth_out = None if args.no_truth else (args.truth or f"{stem}.truth.npz")
     truth = TruthRecorder([], svc.sim) if truth_out else None  # ids set below: bolometer names
-    result = write_g3(svc.sim, args.out, svc.duration_s, layout=args.layout, truth=truth,
-                      exact_counts=args.exact_counts, nuller_gain=args.nuller_gain, gain_steps=steps,
-                      params_out=params_out)
+    quiet_spt3g()
+    result = write_g3(svc.sim, args.out, svc.duration_s, layout=args.layout or "scans", truth=truth,
+                      exact_counts=args.exact_counts, nuller_gain=2 if args.nuller_gain is None else args.nuller_gain,
+                      gain_steps=steps, params_out=bolometer_params)
+    # The converter's file: keyed by detector id, the gain the run's housekeeping gives (no Python needed).
+    write_converter_params(args.out, bolometer_params, params_out)
     if truth is not None:
         from mntes_stream.core.ids import parse_detector_id
         from mntes_stream.core.sim import ArraySimulator
@@ -175,7 +205,7 @@ def run_simulate_g3(args, svc) -> int:
 
         truth.detector_ids = tuple(bolometer_name(*parse_detector_id(d)) for d in ArraySimulator(svc.sim).detector_ids)
         truth.save(truth_out)
-    result.update({"params": params_out, "truth": truth_out})
+    result.update({"params": params_out, "bolometer_params": bolometer_params, "truth": truth_out})
     print_mapping(result, args.json)
     return 0
 

@@ -76,6 +76,6 @@ def register(sub) -> None:
     add_settings_args(p, MonitorConfig, _VIEW)
     p.add_argument("--f-hwp", type=_f_hwp, default=None, metavar="HZ|auto",
                    help="HWP frequency whose 1f/2f/4f are marked (default 0.77 Hz, LFT); 'auto' estimates it")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (default: warnings only)")
     add_zenoh_args(p)
     p.set_defaults(func=run_monitor)

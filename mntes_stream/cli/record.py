@@ -7,6 +7,9 @@ import json
 import warnings
 
 from mntes_stream.cli._common import (
+    add_json,
+    add_overwrite,
+    add_quiet,
     add_settings_args,
     add_zenoh_args,
     service_config,
@@ -24,7 +27,7 @@ _RECORD_ALIASES = {"directory": ("--dir",), "flush_interval_s": ("--flush-s",), 
 
 
 def run_record(args) -> int:
-    from mntes_stream.service.recorder import RecorderService, final_line
+    from mntes_stream.service.recorder import RecorderService, cost_line, final_line
 
     cfg = service_config(RecorderService, args.config, args.set, settings_from_args(args, _RECORD), zenoh_layer(args))
     setup_logging(not args.quiet)
@@ -36,6 +39,7 @@ def run_record(args) -> int:
               f"{out['seq_gaps']} sequence gaps) in {out['duration_s']:.1f} s into {len(out['files'])} file(s):")
         for f in out["files"]:
             print(f"  {f}")
+        print(cost_line(out))
         for name, line in sorted((out.get("converters") or {}).items()):
             print(f"converter {name} (its last recorded status): {line}")
         print(final_line(out))  # the ledger, in one line, last
@@ -176,8 +180,10 @@ def _print_inspect(s, out, meta, checks) -> None:
 def run_recover(args) -> int:
     import sys
 
+    from mntes_stream.cli._common import claim_out
     from mntes_stream.io.mcap.repair import DAMAGE_METADATA, recover_file
 
+    claim_out(args.output, args.overwrite, inputs=[args.input])
     c = recover_file(args.input, args.output)
     if args.json:
         print(json.dumps(dataclasses.asdict(c) | {"ok": c.ok, "lost_messages": c.lost_messages}, indent=2))
@@ -204,7 +210,12 @@ def run_recover(args) -> int:
 
 
 def run_convert(args) -> int:
+    from mntes_stream.cli._common import claim_out
+    from mntes_stream.cli.g3 import refuse_inapplicable
     from mntes_stream.service.offline import convert_recording
+
+    refuse_inapplicable(args, _g3_name(args.input), _g3_name(args.output))
+    claim_out(args.output, args.overwrite, inputs=[args.input])
 
     pipeline = None
     if args.config:
@@ -240,8 +251,8 @@ def register(sub) -> None:
     p.add_argument("--config", metavar="FILE", help="recorder TOML (services/recorder.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, RecorderConfig, _RECORD, _RECORD_ALIASES, title="recorder (override the config file)")
-    p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
-    p.add_argument("-q", "--quiet", action="store_true")
+    add_json(p, "print the final statistics as JSON")
+    add_quiet(p, "warnings only")
     add_zenoh_args(p)
     p.set_defaults(func=run_record)
 
@@ -261,8 +272,8 @@ def register(sub) -> None:
     sel.add_argument("--all", action="store_true", help="replay every topic (power, status, provenance too)")
     sel.add_argument("--topics", nargs="+", metavar="KEYEXPR", help="topics or patterns such as mntes/lab/counts/**")
     p.add_argument("--wait-s", type=float, help="wait this long for subscribers before starting")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("-q", "--quiet", action="store_true")
+    add_json(p, "print the statistics as one JSON document")
+    add_quiet(p, "warnings only, no progress bar")
     add_zenoh_args(p)
     p.set_defaults(func=run_replay_cmd)
 
@@ -272,29 +283,31 @@ def register(sub) -> None:
                                    "the provenance stored in IN.")
     p.add_argument("input", metavar="IN.mcap", help="recording (file or directory of rotated files), or a G3 run "
                                                     "(RUN.g3, raw Timepoints or collated Scans; a quoted glob for several)")
-    p.add_argument("output", metavar="OUT.mcap")
+    p.add_argument("output", metavar="OUT.mcap", help="the converted recording to write (OUT.g3: SPT-3G Scan frames)")
     p.add_argument("--tables", metavar="FILE", help="response tables to use instead of the recorded ones")
     p.add_argument("--params", metavar="FILE", help="detector parameter TOML to use instead of the recorded one")
     p.add_argument("--config", metavar="FILE", help="converter TOML whose [alignment]/[status] settings to use "
                                                     "(default: the pipeline defaults for the recorded setup)")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_overwrite(p, "replace an existing OUT file")
+    add_json(p, "print the statistics as one JSON document")
+    add_quiet(p, "no progress bar")
     from mntes_stream.cli.g3 import add_g3_convert_args
 
     add_g3_convert_args(p)
     p.set_defaults(func=run_convert)
 
     p = sub.add_parser("inspect", help="summarise MCAP recordings (topics, counts, completeness, metadata)")
-    p.add_argument("files", nargs="+", metavar="FILE.mcap")
+    p.add_argument("files", nargs="+", metavar="FILE.mcap", help="recordings: files or directories of rotated files")
     p.add_argument("--full", action="store_true", help="include metadata values")
     p.add_argument("--verify", action="store_true",
                    help="read every chunk and check its CRC (a summary alone can call a damaged file complete)")
-    p.add_argument("--json", action="store_true")
+    add_json(p, "print the summary as one JSON document")
     p.set_defaults(func=run_inspect)
     p = sub.add_parser("recover", help="rewrite a recording whose writer was killed into a finished MCAP file",
                        description="Copy every readable record of IN (a file whose writer died: no index, no footer) "
                                    "into OUT with summary, index and footer, so any MCAP reader opens it.")
-    p.add_argument("input", metavar="IN.mcap")
-    p.add_argument("output", metavar="OUT.mcap")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("input", metavar="IN.mcap", help="the recording whose writer died")
+    p.add_argument("output", metavar="OUT.mcap", help="the finished MCAP file to write")
+    add_overwrite(p, "replace an existing OUT file")
+    add_json(p, "print the check as one JSON document")
     p.set_defaults(func=run_recover)

@@ -1,8 +1,8 @@
 """``mntes-stream serve --config FILE`` (one service) and ``mntes-stream config check|show|template``.
 
-``serve`` runs the service whose main table the config has (``[converter]``,
-``[source]``, ``[simulator]``, ``[recorder]``, ``[replay]``: the registry,
-``service/registry.py``) in this process, until it ends or SIGINT/SIGTERM.
+``serve`` runs the service whose main table the config has (the registry,
+``service/registry.py``, lists them; so does ``serve --help``) in this
+process, until it ends or SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -67,17 +67,19 @@ def run_serve(args) -> int:
 
 def run_config(args) -> int:
     from mntes_stream.errors import ConfigError
-    from mntes_stream.service.config import check_file, render, show_file
+    from mntes_stream.service.config import check_paths, render, show_file
 
-    if args.action == "check":
+    if args.set and args.action != "show":
+        raise ConfigError(f"--set applies to config show, not config {args.action}")
+    if args.action == "check":  # exit code 2 when any file is bad, as every command's bad input
         failed = 0
-        for path in args.files:
-            try:
-                print(check_file(path))
-            except ConfigError as exc:
-                print(f"mntes-stream: error: {exc}", file=sys.stderr)
+        for _path, line, ok in check_paths(args.files):
+            if ok:
+                print(line)
+            else:
+                print(f"mntes-stream: error: {line}", file=sys.stderr)
                 failed += 1
-        return 1 if failed else 0
+        return 2 if failed else 0
     if args.action == "show":
         if len(args.files) != 1:
             raise ConfigError("config show takes one file")
@@ -115,9 +117,13 @@ def _numbers(text: str | None, flag: str) -> tuple[int, ...] | None:
 
 
 def register(sub) -> None:
+    from mntes_stream.service.registry import SERVICES
+
+    listed = "; ".join(f"[{name}] {cls.summary}" for name, cls in SERVICES.items())
     p = sub.add_parser("serve", help="run one service from its config file (services/*.toml)",
-                       description="Run the service a config describes ([converter], [source], [simulator], "
-                                   "[recorder] or [replay]) until it ends or SIGINT/SIGTERM, which stop it cleanly.")
+                       description="Run the service a config describes until it ends or SIGINT/SIGTERM, which stop "
+                                   f"it cleanly. The config's main table names the service: {listed}. "
+                                   "`mntes-stream config template SERVICE` prints a service's settings.")
     p.add_argument("--config", required=True, metavar="FILE", help="e.g. services/converter.toml")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a setting, e.g. converter.kind=exact (repeatable; VALUE in TOML)")
@@ -134,10 +140,15 @@ def register(sub) -> None:
     p.set_defaults(func=run_serve)
 
     p = sub.add_parser("config", help="check or show config files (services, parameters, zenoh JSON5)",
-                       description="check: validate files (service configs, detector parameter files, zenoh JSON5); "
+                       description="check: validate files and directories (service configs, detector parameter "
+                                   "files, zenoh JSON5; in a directory its *.toml and *.json5 files, other files "
+                                   "named are skipped with a note; exit code 2 when any is bad); "
                                    "show: print the effective config with every default; "
                                    "template: print a service's defaults (e.g. `config template recorder`).")
-    p.add_argument("action", choices=("check", "show", "template"))
-    p.add_argument("files", nargs="+", metavar="FILE|SERVICE")
-    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override before showing")
+    p.add_argument("action", choices=("check", "show", "template"), help="what to do")
+    p.add_argument("files", nargs="+", metavar="FILE|DIR|SERVICE",
+                   help="check: config files or directories; show: one file; template: service names "
+                        f"({', '.join(SERVICES)})")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                   help="show: override a setting before showing (repeatable)")
     p.set_defaults(func=run_config)

@@ -9,21 +9,13 @@ from mntes_stream.cli._common import add_zenoh_args, print_mapping
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 
-def _value(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
 def _config(args):
-    """The ``[simulator]`` service config: ``--config``, then the command line (which wins)."""
+    """The ``[simulator]`` service config: ``--config``, then the flags, then ``--set`` (which wins)."""
     from pathlib import Path
 
     from mntes_stream.cli._common import zenoh_layer
     from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
-    from mntes_stream.errors import ConfigError
-    from mntes_stream.service.config import read_toml, with_zenoh
+    from mntes_stream.service.config import apply_overrides, read_toml, with_zenoh
     from mntes_stream.service.simulator import SimulatorService
 
     doc = read_toml(args.config) if args.config else {}
@@ -35,15 +27,32 @@ def _config(args):
             table[name] = getattr(args, attr)
     if args.telescope:
         table["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]
-    for item in args.set or []:
-        if "=" not in item:
-            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
-        key, text = item.split("=", 1)
-        table[key.strip()] = _value(text)
+    doc = apply_overrides({**doc, "simulator": table}, [_table_key(item) for item in args.set or []],
+                          SimulatorService)
     where = args.config or "command line"
     base = str(Path(args.config).resolve().parent) if args.config else None
-    cfg = SimulatorService.config_from_document({**doc, "simulator": table}, where, base_dir=base)
+    cfg = SimulatorService.config_from_document(doc, where, base_dir=base)
     return with_zenoh(cfg, zenoh_layer(args))
+
+
+def _table_key(item: str) -> str:
+    """``--set KEY=VALUE`` (the old spelling) as ``simulator.KEY=VALUE``, said once on stderr."""
+    name = item.partition("=")[0]
+    if "=" in item and "." not in name:
+        print(f"mntes-stream: warning: --set {item}: KEY=VALUE is deprecated; use simulator.{item}", file=sys.stderr)
+        return f"simulator.{item}"
+    return item
+
+
+def _refuse_g3_options(args) -> None:
+    """G3-only options given without ``--format g3`` are an error, not ignored."""
+    from mntes_stream.errors import ConfigError
+
+    given = [flag for flag, value in (("--layout", args.layout), ("--exact-counts", args.exact_counts or None),
+                                      ("--nuller-gain", args.nuller_gain), ("--gain-step", args.gain_step or None))
+             if value is not None]
+    if given:
+        raise ConfigError(f"{', '.join(given)} apply to --format g3 only")
 
 
 def run(args) -> int:
@@ -51,6 +60,7 @@ def run(args) -> int:
 
     from tqdm import tqdm
 
+    from mntes_stream.cli._common import claim_out
     from mntes_stream.errors import ConfigError
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.service.simulator import (
@@ -66,14 +76,17 @@ def run(args) -> int:
         from mntes_stream.cli.g3 import run_simulate_g3
 
         return run_simulate_g3(args, svc)
+    _refuse_g3_options(args)
     config, settings = svc.sim, svc.zenoh
     duration = svc.duration_s
     live = bool(settings.connect or settings.listen or settings.file)
-    if bool(args.mcap) == live:
-        raise ConfigError("simulate: give either --mcap FILE or zenoh endpoints (-e/--connect, -l/--listen, "
+    if bool(args.out) == live:
+        raise ConfigError("simulate: give either --out FILE.mcap or zenoh endpoints (-e/--connect, -l/--listen, "
                           "-c/--zenoh-config or a [zenoh] table)")
+    if args.out:
+        claim_out(args.out, args.overwrite)
     source = SimulatorSource(config, svc.setup, svc.chunk_s)
-    stem = Path(args.mcap).with_suffix("") if args.mcap else None
+    stem = Path(args.out).with_suffix("") if args.out else None
     params_out = args.params_out or (f"{stem}.params.toml" if stem else None)
     truth_out = None if args.no_truth else (args.truth or (f"{stem}.truth.npz" if stem else None))
     meta = {"source": "mntes-stream simulate (truth)", "sim_config": json.dumps(config.to_dict())}
@@ -85,18 +98,19 @@ def run(args) -> int:
                     metadata={"source": f"mntes-stream simulate: truth with calibration errors x{args.error_scale} "
                                         f"(seed {args.error_seed})"})
     truth = TruthRecorder(source.detector_ids, config) if truth_out else None
-    if args.mcap:
+    if args.out:
         n = source.n_chunks(duration)
         if n is None:
-            raise ConfigError("simulate --mcap needs --duration > 0")
-        with tqdm(total=n, desc="simulate", unit="chunk", disable=args.json or None) as bar:
-            result = write_mcap(source, args.mcap, duration, truth=truth, progress=bar.update)
+            raise ConfigError("simulate --out needs --duration > 0")
+        with tqdm(total=n, desc="simulate", unit="chunk", disable=args.json or args.quiet or None) as bar:
+            result = write_mcap(source, args.out, duration, truth=truth, progress=bar.update)
     else:
         from mntes_stream.service.base import stop_on_signals
 
-        print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect or ()) + list(settings.listen or ())}, "
-              f"setup {svc.setup!r}, {svc.speed:g}x real time" + (f", {duration:g} s" if duration else ", until Ctrl-C"),
-              file=sys.stderr)
+        if not args.quiet:
+            print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect or ()) + list(settings.listen or ())}, "
+                  f"setup {svc.setup!r}, {svc.speed:g}x real time" +
+                  (f", {duration:g} s" if duration else ", until Ctrl-C"), file=sys.stderr)
         with stop_on_signals() as stop:
             result = publish_live(source, settings, speed=svc.speed, duration_s=duration, stop=stop, truth=truth,
                                   linger_s=svc.linger_s)
@@ -109,38 +123,46 @@ def run(args) -> int:
 
 
 def register(sub) -> None:
+    from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, deprecated_alias
+
     p = sub.add_parser(
-        "simulate", help="simulate a DfMux array: publish over zenoh or write an MCAP file (truth alongside)",
-        description="Simulate a TES array read out by DfMux. Writes the truth parameters (TOML) and the "
+        "simulate", help="simulate a DfMux array: publish over zenoh or write an MCAP or G3 file (truth alongside)",
+        description="Simulate a TES array read out by DfMux: publish it over zenoh (give zenoh endpoints) or write "
+                    "--out FILE (MCAP, or a G3 run with --format g3). Writes the truth parameters (TOML) and the "
                     "per-sample truth (.npz, never read by a converter) next to the output.")
     p.add_argument("--config", metavar="TOML", help="service config with [simulator] and [zenoh] tables")
-    p.add_argument("--mcap", metavar="FILE", help="write an MCAP file instead of publishing")
+    p.add_argument("--out", metavar="FILE", help="write this file instead of publishing: an MCAP recording, or with "
+                                                 "--format g3 a G3 run (RUN.g3)")
+    deprecated_alias(p, "--mcap", "--out", dest="out")
     p.add_argument("--format", choices=("mcap", "g3"), default="mcap",
-                   help="g3: write what a DfMux DAQ would (SPT-3G G3 file --out, see --layout)")
+                   help="mcap (default); g3: write what a DfMux DAQ would (SPT-3G G3 file --out, see --layout)")
     from mntes_stream.cli.g3 import add_simulate_g3_args
 
     add_simulate_g3_args(p)
     p.add_argument("--setup", help="setup name in the keys (default lab, as every service)")
-    p.add_argument("--boards", type=int)
+    p.add_argument("--boards", type=int, help="DfMux boards (default 1)")
     p.add_argument("--modules", type=int, help="modules per board")
     p.add_argument("--channels", type=int, help="channels per module (DfMux: 64 or 128)")
     p.add_argument("--sample-rate", type=float, metavar="HZ", help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux, 20 MHz / 2**17; 19.1 is flight-like)")
     hwp = p.add_mutually_exclusive_group()
     hwp.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], help="HWP frequency of a LiteBIRD telescope")
     hwp.add_argument("--f-hwp", type=float, metavar="HZ", help="HWP rotation frequency")
-    p.add_argument("--seed", type=int)
+    p.add_argument("--seed", type=int, help="random seed of the simulation (default 0)")
     p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="seconds of data (live: 0 = forever)")
     p.add_argument("--chunk-s", type=float, metavar="S", help="chunk length (default 0.1 s)")
     p.add_argument("--speed", type=float, help="live: multiple of real time (0: as fast as possible)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="any simulator setting (repeatable), "
-                   "e.g. --set jupiter_peak_w=0.3e-12 --set latched_per_module=2")
-    p.add_argument("--params-out", metavar="TOML", help="truth parameter file (default next to --mcap)")
-    p.add_argument("--truth", metavar="NPZ", help="per-sample truth file (default next to --mcap)")
+    p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="any simulator or zenoh setting "
+                   "(repeatable; VALUE in TOML), e.g. --set simulator.jupiter_peak_w=0.3e-12 "
+                   "--set simulator.latched_per_module=2")
+    p.add_argument("--params-out", metavar="TOML", help="truth parameter file (default next to --out)")
+    p.add_argument("--truth", metavar="NPZ", help="per-sample truth file (default next to --out)")
     p.add_argument("--no-truth", action="store_true", help="do not keep the per-sample truth")
     p.add_argument("--perturbed-params-out", metavar="TOML",
                    help="also write the truth with random calibration errors (for robustness studies)")
     p.add_argument("--error-scale", type=float, default=1.0, help="calibration errors in units of the assumed 1-sigma")
-    p.add_argument("--error-seed", type=int, default=0)
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--error-seed", type=int, default=0, help="random seed of the calibration errors (default 0)")
+    add_overwrite(p, "replace an existing --out file")
+    add_json(p)
+    add_quiet(p, "no progress bar or start line")
     add_zenoh_args(p)
     p.set_defaults(func=run)

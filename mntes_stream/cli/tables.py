@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from mntes_stream.cli._common import print_mapping
+from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, print_mapping
 
 
 def _build(args) -> int:
     from tqdm import tqdm
 
+    from mntes_stream.cli._common import claim_out
     from mntes_stream.core.tables import TableDomain, build_bank
     from mntes_stream.io.paramfile import load_params
     from mntes_stream.io.tablefile import save_bank
 
+    claim_out(args.out, args.overwrite, inputs=[args.params])
     params = load_params(args.params)
     domain = TableDomain(
         p_opt_w=tuple(args.p_opt_w), t_bath_k=tuple(args.t_bath_k),
@@ -48,8 +50,10 @@ def register(sub) -> None:
                    help="table: structured, exact in environment (default); grid: the paper's route")
     b.add_argument("--p-opt-w", nargs=2, type=float, default=(0.0, 1.2e-12), metavar=("LO", "HI"),
                    help="optical power range to cover (W)")
-    b.add_argument("--t-bath-k", nargs=2, type=float, default=(0.090, 0.110), metavar=("LO", "HI"))
-    b.add_argument("--b-field-t", nargs=2, type=float, default=(-2e-4, 2e-4), metavar=("LO", "HI"))
+    b.add_argument("--t-bath-k", nargs=2, type=float, default=(0.090, 0.110), metavar=("LO", "HI"),
+                   help="bath temperature range to cover (K; default 0.090 0.110)")
+    b.add_argument("--b-field-t", nargs=2, type=float, default=(-2e-4, 2e-4), metavar=("LO", "HI"),
+                   help="magnetic field range to cover (T; default -2e-4 2e-4)")
     b.add_argument("--v-frac", nargs=2, type=float, default=(0.9, 1.1), metavar=("LO", "HI"),
                    help="bias range relative to each detector's nominal")
     b.add_argument("--p-tol-w", type=float, default=1e-20, help="table: interpolation tolerance in power (W)")
@@ -57,10 +61,11 @@ def register(sub) -> None:
                    help="grid: discrete bias states relative to nominal")
     b.add_argument("--n-b-nodes", type=int, default=7, help="grid: uniform B nodes across --b-field-t")
     b.add_argument("--n-power", type=int, default=256, help="grid: knots per detector")
-    b.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    add_overwrite(b, "replace an existing --out file")
+    add_quiet(b, "no progress bar or summary")
     b.set_defaults(func=_build)
     i = tsub.add_parser("info", help="describe a table file (verifies its hash)")
-    i.add_argument("file", metavar="FILE")
-    i.add_argument("--json", action="store_true", help="print one JSON object")
+    i.add_argument("file", metavar="FILE", help="table file (.npz)")
+    add_json(i, "print one JSON object")
     i.set_defaults(func=_info)
     p.set_defaults(func=lambda args: p.print_help() or 2)

@@ -39,7 +39,7 @@ from mntes_stream.g3.wire import AtomicG3Writer
 MAX_FRAME_BYTES = 512 << 20  # a frame of a G3 file claiming more is not read (the bridge's max_frame_mb)
 
 __all__ = ["is_g3", "expand_inputs", "read_frames", "preload", "g3_to_g3", "g3_to_mcap", "mcap_to_g3",
-           "g3_messages", "converter_params"]
+           "g3_messages", "converter_params", "write_converter_params"]
 
 log = logging.getLogger("mntes_stream.g3")
 
@@ -266,6 +266,23 @@ def converter_params(inputs, params, config: G3InputConfig | None = None) -> dic
     if not pdict:
         raise ConfigError("no wired bolometer has parameters: keyed by bolometer name or detector id?")
     return pdict
+
+
+def write_converter_params(inputs, params, output, config: G3InputConfig | None = None) -> int:
+    """Write the converter's parameter file for a G3 run (``mntes-stream params``); the number of detectors.
+
+    The file is keyed by detector id, with each detector's gain from the run's
+    first housekeeping: what the live converter, ``g3-bridge --params`` and
+    ``convert RUN.g3`` all take as it is.
+    """
+    from mntes_stream.io.paramfile import dump_params
+
+    files = expand_inputs(inputs)
+    pdict = converter_params(files, params, config)
+    dump_params(list(pdict.values()), output,
+                metadata={"source": f"mntes-stream params: {params} for the G3 run {files[0]} (keyed by detector id, "
+                                    "gain from its first housekeeping)"})
+    return len(pdict)
 
 
 def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, setup: str = "lab",

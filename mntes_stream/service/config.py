@@ -20,7 +20,10 @@ from mntes_stream.core.settings import declared, document_tables, to_table
 from mntes_stream.errors import ConfigError
 
 __all__ = ["read_toml", "service_of", "apply_overrides", "load_service_config", "with_zenoh", "file_kind",
-           "check_file", "show_file"]
+           "check_file", "check_paths", "show_file"]
+
+# What `config check` takes for a config file; anything else it is given is skipped, said in a note.
+CONFIG_SUFFIXES = (".toml", ".json5", ".json")
 
 
 def read_toml(path: str | Path) -> dict:
@@ -132,6 +135,37 @@ def check_file(path: str | Path) -> str:
         return f"{path}: detector parameters, {len(params)} detectors"
     service, config = load_service_config(path)
     return f"{path}: {service.name} service config, ok"
+
+
+def check_paths(paths: Iterable[str | Path]):
+    """``config check``: ``(path, line, ok)`` for each config among ``paths``.
+
+    A directory contributes its config files (``*.toml``, ``*.json5``; not
+    ``*.json``, which a directory may hold for other tools, nor its
+    subdirectories); a named file or directory that is not
+    a config (a README, ``grafana/``) is skipped with an ok line saying so, so
+    ``config check services/*`` checks exactly the configs. A missing path or a
+    bad config gives ``ok`` False and the one-line reason.
+    """
+    for given in paths:
+        path = Path(given)
+        if path.is_dir():
+            found = sorted(p for p in path.iterdir() if p.is_file() and p.suffix in (".toml", ".json5"))
+            if not found:
+                yield path, f"{path}: skipped (a directory without config files)", True
+            for p in found:
+                yield _checked(p)
+        elif path.exists() and path.suffix not in CONFIG_SUFFIXES:
+            yield path, f"{path}: skipped (not a config file: *.toml, *.json5)", True
+        else:
+            yield _checked(path)
+
+
+def _checked(path: Path):
+    try:
+        return path, check_file(path), True
+    except ConfigError as exc:
+        return path, str(exc), False
 
 
 def show_file(path: str | Path, overrides: Iterable[str] = ()) -> str:

@@ -1,0 +1,51 @@
+"""``mntes-stream params --from RUN.g3 --params BOLO.toml --out PARAMS.toml``: a G3 run's converter parameters.
+
+A DAQ's parameter list names bolometers; the converter, ``g3-bridge
+--params`` and the recorder's provenance name detectors by id, and the gain
+of each detector is the DfMux's amps per count in force. This command reads
+the run's Wiring and first Housekeeping frame and writes the file they take
+as it is (no Python needed; ``g3.files.write_converter_params``).
+"""
+
+from __future__ import annotations
+
+from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, claim_out, print_mapping
+
+
+def run(args) -> int:
+    from mntes_stream.cli.g3 import g3_input_config, quiet_spt3g
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3.files import expand_inputs, is_g3, write_converter_params
+
+    if not is_g3(args.source):
+        raise ConfigError(f"--from {args.source}: expected a G3 run (RUN.g3, .g3.gz, ...)")
+    files = expand_inputs(args.source)
+    claim_out(args.out, args.overwrite, inputs=[*files, args.params])
+    quiet_spt3g()
+    n = write_converter_params(files, args.params, args.out, g3_input_config(args))
+    if not args.quiet or args.json:
+        print_mapping({"params": args.out, "detectors": n, "run": files[0], "from": args.params}, args.json)
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("params", help="the converter's parameter file for a G3 run (detector ids, the run's gain)",
+                       description="Write the detector parameters of PARAMS (keyed by bolometer name or detector id) "
+                                   "for the bolometers wired in a G3 run, keyed by detector id, each gain the DfMux "
+                                   "amps per count of the run's first housekeeping: the file `serve` (converter), "
+                                   "`g3-bridge --params` and `convert` take as it is. Bolometers without parameters "
+                                   "are skipped with one warning.")
+    p.add_argument("--from", dest="source", required=True, metavar="RUN.g3",
+                   help="the G3 run (its Wiring and first DfMux Housekeeping frame are read)")
+    p.add_argument("--params", required=True, metavar="FILE",
+                   help="detector parameters (TOML) keyed by bolometer name or detector id, e.g. the "
+                        "RUN.bolometer-params.toml `simulate --format g3` writes")
+    p.add_argument("--out", required=True, metavar="PARAMS.toml", help="the parameter file to write")
+    p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
+    p.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="its unit (default G3Units)")
+    p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a run without one")
+    p.add_argument("--b-field-t", type=float, metavar="T", help="constant field (spt3g has no field source; default 0)")
+    add_overwrite(p, "replace an existing --out file")
+    add_json(p)
+    add_quiet(p, "print nothing (the file is the result)")
+    p.set_defaults(func=run)

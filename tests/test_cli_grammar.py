@@ -1,0 +1,157 @@
+"""One grammar for every command (docs/cli.md): grouped help, one spelling per flag, help on every flag,
+options that do not apply are errors, exit codes as documented. Each check runs the real parser or the real
+command in a subprocess; none needs zenoh, a network or an extra beyond the base install (G3 ones skip)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from mntes_stream.cli import GROUPS, build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
+SERVICES = ROOT / "services"
+
+# The grammar: a flag that means one of these is spelled this way (docs/cli.md). Each wrong spelling may
+# exist only as a hidden alias (help suppressed), which says the right one when used.
+WRONG = {"--duration-s": "--duration", "--mcap": "--out", "--force": "--overwrite", "--output": "--out",
+         "--quiet-mode": "-q"}
+
+
+def _walk(parser, path=()):
+    """``(command path, action)`` of every argument of every (sub)command."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _walk(sub, (*path, name))
+        else:
+            yield path, action
+
+
+def test_every_flag_has_help_and_wrong_spellings_are_hidden_aliases():
+    missing, visible = [], []
+    for path, action in _walk(build_parser()):
+        if isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+            continue
+        where = f"{' '.join(path)} {'/'.join(action.option_strings) or action.dest}"
+        if not action.help:
+            missing.append(where)
+        if action.help is not argparse.SUPPRESS and set(action.option_strings) & set(WRONG):
+            visible.append(where)
+    assert not missing, f"flags without help: {missing}"
+    assert not visible, f"a wrong spelling shown in help (make it a hidden deprecated alias): {visible}"
+
+
+def test_quiet_is_dash_q_everywhere_and_writers_take_overwrite():
+    for path, action in _walk(build_parser()):
+        if "--quiet" in action.option_strings:
+            assert "-q" in action.option_strings, f"{' '.join(path)}: --quiet without -q"
+    writers = {("convert",), ("recover",), ("simulate",), ("export",), ("transcode",), ("params",),
+               ("tables", "build"), ("calib", "simulate"), ("calib", "fit")}
+    has = {path for path, action in _walk(build_parser()) if "--overwrite" in action.option_strings}
+    assert writers <= has, f"commands writing a file without --overwrite: {sorted(writers - has)}"
+
+
+def test_help_lists_every_command_in_a_group(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    placed = {c for cs in GROUPS.values() for c in cs}
+    assert set(sub.choices) <= placed, f"commands in no group (cli/__init__.py GROUPS): {set(sub.choices) - placed}"
+    titles = [line for line in text.splitlines() if line.endswith(":") and not line.startswith(" ")]
+    assert titles[:5] == ["operate:", "record and replay:", "export:", "calibrate and validate:", "develop:"]
+    assert "other:" not in titles
+    for name in sub.choices:
+        assert f"\n  {name} " in text, name
+
+
+def test_serve_help_lists_every_registered_service(capsys):
+    from mntes_stream.service.registry import SERVICES as REGISTRY
+
+    with pytest.raises(SystemExit):
+        main(["serve", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in REGISTRY:
+        assert f"[{name}]" in text, name
+
+
+def test_config_check_of_the_services_directory_as_documented(tmp_path, capsys):
+    """services/README.md: `mntes-stream config check services/*` (README, grafana/, secure/ included)."""
+    import glob
+
+    assert main(["config", "check", *sorted(glob.glob(str(SERVICES / "*")))]) == 0
+    res = capsys.readouterr()
+    assert not res.err and "README.md: skipped" in res.out and "grafana: skipped" in res.out
+    assert "secure/zenoh-router.json5: zenoh config" in res.out and "converter.toml: converter" in res.out
+    assert main(["config", "check", str(SERVICES)]) == 0  # a directory: its configs and nothing else
+    out = capsys.readouterr().out
+    assert "README" not in out and "recorder.toml: recorder" in out
+    (tmp_path / "bad.toml").write_text('[recorder]\nflush_interval_s = "1"\n')
+    (tmp_path / "notes.txt").write_text("not a config\n")
+    assert main(["config", "check", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"mntes-stream: error: {tmp_path / 'bad.toml'} [recorder] flush_interval_s: expected a number (s) > 0, "
+        "got '1'"]
+    assert main(["config", "check", str(tmp_path / "missing.toml")]) == 2
+    assert main(["config", "check", str(SERVICES / "recorder.toml"), "--set", "recorder.fsync=true"]) == 2
+    assert "--set applies to config show" in capsys.readouterr().err
+
+
+def test_an_option_that_does_not_apply_is_an_error(tmp_path, capsys):
+    rec = tmp_path / "rec.mcap"
+    rec.write_bytes(b"")  # never read: the options are refused first
+    for argv, says in (
+            (["convert", str(rec), str(tmp_path / "o.mcap"), "--kind", "linear"], "--kind does not apply to "
+                                                                                   "REC.mcap -> OUT.mcap"),
+            (["convert", str(rec), str(tmp_path / "o.mcap"), "--setup", "x", "--wiring", "w.g3"],
+             "--wiring, --setup do not apply"),
+            (["simulate", "--out", str(tmp_path / "s.mcap"), "--duration", "1", "--layout", "timepoints"],
+             "--layout apply to --format g3 only"),
+            (["config", "template", "recorder", "--set", "recorder.fsync=true"], "--set applies to config show")):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], (argv, err)
+
+
+def test_outputs_are_refused_without_overwrite_and_replaced_with_it(tmp_path, capsys):
+    out = tmp_path / "s.mcap"
+    argv = ["simulate", "--out", str(out), "--duration", "0.3", "--modules", "1", "--channels", "2", "-q", "--json"]
+    assert main(argv) == 0
+    size = out.stat().st_size
+    capsys.readouterr()
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip() == f"mntes-stream: error: {out} exists (--overwrite replaces it)"
+    assert out.stat().st_size == size
+    assert main([*argv, "--overwrite", "--seed", "3"]) == 0 and out.exists()
+    capsys.readouterr()
+    assert main(["convert", str(out), str(out), "--overwrite"]) == 2  # never the input
+    assert "the output is one of the inputs" in capsys.readouterr().err and out.stat().st_size > 0
+
+
+def test_old_spellings_still_work_with_one_line(tmp_path, capsys):
+    out = tmp_path / "old.mcap"
+    assert main(["simulate", "--mcap", str(out), "--duration", "0.3", "--modules", "1", "--channels", "2",
+                 "--set", "latched_per_module=0", "-q"]) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "deprecated" in line]
+    assert warnings == ["mntes-stream: warning: --mcap is deprecated; use --out",
+                        "mntes-stream: warning: --set latched_per_module=0: KEY=VALUE is deprecated; use "
+                        "simulator.latched_per_module=0"]
+    assert out.exists()
+    args = build_parser().parse_args(["record", "--duration-s", "3"])
+    assert args.duration_s == 3.0 and "--duration-s is deprecated; use --duration" in capsys.readouterr().err
+
+
+def test_simulate_set_takes_table_key_value(tmp_path, capsys):
+    out = tmp_path / "s.mcap"
+    assert main(["simulate", "--out", str(out), "--duration", "0.3", "--modules", "1", "--channels", "3",
+                 "--set", "simulator.latched_per_module=0", "--set", "simulator.saturated_per_module=0",
+                 "--set", "simulator.channels=2", "-q", "--json"]) == 0
+    import json
+
+    assert json.loads(capsys.readouterr().out)["detectors"] == 2  # --set wins over the flag
+    assert main(["simulate", "--out", str(tmp_path / "t.mcap"), "--duration", "0.3",
+                 "--set", "simulator.no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
