@@ -7,6 +7,7 @@ A new service is one module and one line here.
 
 from __future__ import annotations
 
+from mntes_stream.dfmux.bridge import DfMuxBridgeService
 from mntes_stream.errors import ConfigError
 from mntes_stream.foxglove.service import FoxgloveService
 from mntes_stream.g3.bridge import G3BridgeService
@@ -31,6 +32,7 @@ SERVICES: dict[str, type[Service]] = {cls.name: cls for cls in (
     FoxgloveService,
     RouterService,
     G3BridgeService,
+    DfMuxBridgeService,
 )}
 
 

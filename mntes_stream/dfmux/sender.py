@@ -1,0 +1,139 @@
+"""A synthetic IceBoard: UDP multicast packets as boards send them, for tests, ``bench dfmux`` and the lab recipe.
+
+Run it as its own process (``python -m mntes_stream.dfmux.sender``): spt3g's
+``DfMuxCollector.Stop()`` holds the GIL until one more datagram arrives, so
+a sender in the bridge's process could never wake it. Multicast leaves on
+``--interface`` only (``IP_MULTICAST_IF``) with TTL 0: it never crosses a
+router, and on 127.0.0.1 it stays on this machine. The counts are
+:func:`~mntes_stream.dfmux.packets.synthetic_counts` of (board, module,
+channel, sample number), so a receiver can check every value; the last line
+on stdout is a JSON summary (``t0_ns``, samples and packets sent per board).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import time
+
+from mntes_stream.dfmux.packets import GROUP, PORT, SAMPLE_NS, PacketBuilder
+
+__all__ = ["main", "parse_board", "multicast_socket"]
+
+
+def parse_board(text: str) -> dict:
+    """``VERSION:SERIAL:MODULES[:CHANNELS[:SOURCE_IP]]`` -> dict (SOURCE_IP names a V2 board to the collector)."""
+    parts = text.split(":")
+    try:
+        if not 3 <= len(parts) <= 5:
+            raise ValueError
+        spec = {"version": int(parts[0]), "serial": int(parts[1]), "modules": int(parts[2]),
+                "channels": int(parts[3]) if len(parts) > 3 and parts[3] else 64,
+                "source": parts[4] if len(parts) > 4 else ""}
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--board {text!r}: expected VERSION:SERIAL:MODULES[:CHANNELS[:SOURCE_IP]]") from None
+    return spec
+
+
+def parse_skip(text: str) -> tuple[int, int, int]:
+    """``SERIAL:FROM:TO`` -> (serial, first sample not sent, first sample sent again)."""
+    try:
+        serial, k0, k1 = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--skip {text!r}: expected SERIAL:FROM:TO (sample numbers)") from None
+    return serial, k0, k1
+
+
+def multicast_socket(interface: str, source: str = "") -> socket.socket:
+    """A UDP socket sending to the DfMux group on ``interface`` only, TTL 0, looped back to local listeners."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(interface))
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+    sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    if source:
+        sock.bind((source, 0))
+    return sock
+
+
+def wait_listener(timeout_s: float) -> bool:
+    """True once a UDP socket is bound to the DfMux port in this network namespace (read from /proc/net/udp)."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if udp_sockets():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def udp_sockets(port: int = PORT) -> list[dict]:
+    """UDP sockets bound to ``port`` in this network namespace: receive queue and drops (/proc/net/udp)."""
+    out = []
+    try:
+        with open("/proc/net/udp") as f:
+            lines = f.read().splitlines()[1:]
+    except OSError:
+        return out
+    for line in lines:
+        fields = line.split()
+        if len(fields) > 12 and fields[1].endswith(f":{port:04X}"):
+            out.append({"rx_queue": int(fields[4].split(":")[1], 16), "drops": int(fields[-1])})
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m mntes_stream.dfmux.sender", description=__doc__.split("\n")[0])
+    p.add_argument("--board", action="append", type=parse_board, required=True,
+                   help="VERSION:SERIAL:MODULES[:CHANNELS[:SOURCE_IP]] (repeatable)")
+    p.add_argument("--interface", default="127.0.0.1", help="address of the interface to send on")
+    p.add_argument("--duration", type=float, default=1.0, help="seconds of data to send")
+    p.add_argument("--flat-out", action="store_true", help="send as fast as possible, not at the DfMux rate")
+    p.add_argument("--start-ns", type=int, default=0, help="time of sample 0 (0: now, on a sample boundary)")
+    p.add_argument("--skip", action="append", type=parse_skip, default=[],
+                   help="SERIAL:FROM:TO: that board sends nothing for samples FROM..TO-1 (repeatable)")
+    p.add_argument("--restart", action="append", type=int, default=[], metavar="SERIAL",
+                   help="that board's sequence numbers start again at 0 after its first skip (a reboot)")
+    p.add_argument("--wait", type=float, default=0.0, help="seconds to wait before sending")
+    p.add_argument("--wait-listener", type=float, default=0.0, metavar="S",
+                   help="first wait up to S seconds for a UDP socket on port 9876 here (a collector listening)")
+    args = p.parse_args(argv)
+    time.sleep(args.wait)
+    if args.wait_listener and not wait_listener(args.wait_listener):
+        print(f"sender: nothing listens on UDP port {PORT} after {args.wait_listener:g} s", file=sys.stderr)
+        return 1
+    boards = [(PacketBuilder(b["version"], b["serial"], b["modules"], b["channels"]),
+               multicast_socket(args.interface, b["source"])) for b in args.board]
+    n = max(1, round(args.duration * 1e9 / SAMPLE_NS))
+    t0_ns = args.start_ns or (time.time_ns() // SAMPLE_NS + 1) * SAMPLE_NS
+    skips = {}
+    for serial, k0, k1 in args.skip:
+        skips.setdefault(serial, []).append((k0, k1))
+    sent = {b.serial: 0 for b, _ in boards}
+    packets = 0
+    dest = (GROUP, PORT)
+    t_wall0 = time.monotonic()
+    for k in range(n):
+        if not args.flat_out:
+            delay = t_wall0 + k * SAMPLE_NS / 1e9 - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        for b, sock in boards:
+            spans = skips.get(b.serial, ())
+            if any(k0 <= k < k1 for k0, k1 in spans):
+                continue
+            seq = k
+            if b.serial in args.restart and spans and k >= spans[0][1]:
+                seq = k - spans[0][1]
+            for raw in b.packets(k, t0_ns + k * SAMPLE_NS, seq):
+                sock.sendto(raw, dest)
+                packets += 1
+            sent[b.serial] += 1
+    wall = time.monotonic() - t_wall0
+    print(json.dumps({"t0_ns": t0_ns, "samples": n, "sent": sent, "packets": packets, "wall_s": round(wall, 3)}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

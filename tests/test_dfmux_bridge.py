@@ -1,0 +1,137 @@
+"""dfmux-bridge: IceBoard packets -> counts and housekeeping on zenoh (spt3g's DfMuxCollector + DfMuxBuilder).
+
+The end-to-end test runs the real bridge (``mntes-stream dfmux-bridge``, its
+own process), a synthetic sender (another process) and a zenoh subscriber in
+a private network namespace, V2, V3 and V4 packets at the DfMux rate, and
+checks every counts value against what was sent.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from mntes_stream.dfmux.assemble import RAIL, Assembler
+from mntes_stream.dfmux.packets import SAMPLE_NS, PacketBuilder, header_dtype, irig_words, synthetic_counts
+
+T0 = 1_790_000_000 * 10**9 // SAMPLE_NS * SAMPLE_NS
+
+
+def _iq(board, module, nch, k):
+    i, q = synthetic_counts(board, module, np.arange(nch), np.array([k]))
+    out = np.empty(2 * nch, dtype=np.int32)
+    out[0::2], out[1::2] = i[:, 0], q[:, 0]
+    return out
+
+
+def test_packets_are_what_the_collector_reads():
+    """Sizes as DfMuxCollector expects (header 16 + nchan x 8 + 32), counts x 256, V4 blocks of 128."""
+    for version, nch, n_pk in ((2, 64, 8), (3, 64, 8), (4, 128, 16)):
+        b = PacketBuilder(version, 7, 2 if version == 4 else 8, 64)
+        pk = b.packets(5, T0 + 5 * SAMPLE_NS)
+        assert len(pk) == n_pk and {len(p) for p in pk} == {16 + nch * 8 + 32}
+        rec = np.frombuffer(b"".join(pk), dtype=header_dtype(nch))
+        assert (rec["version"] == version).all() and (rec["seq"] == 5).all()
+        assert (rec["serial"] == (0 if version == 2 else 7)).all()
+        i, _ = synthetic_counts(7, int(rec["module"][-1]), np.arange(nch) + (7 * 128 if version == 4 else 0),
+                                np.array([5]))
+        np.testing.assert_array_equal(rec["s"][-1, 0::2], i[:, 0] * 256)
+    w = irig_words(np.array([T0]))[0]  # the collector adds the boards' missing second back
+    assert w[5] == (T0 - 10**9) % 10**9 // 10 and 1 <= w[1] <= 366
+
+
+def test_assembler_chunks_gaps_and_events():
+    asm = Assembler("lab", chunk_samples=4, late_s=0.05)
+    out = []
+    for k in range(10):
+        if 5 <= k < 7:  # board 1 skips two samples (a restart)
+            mods = [(2, 0, 0, 1, _iq(2, 0, 3, k))]
+        else:
+            mods = [(1, 0, 0, 1, _iq(1, 0, 3, k)), (2, 0, 0, 1, _iq(2, 0, 3, k))]
+        if k >= 8:  # module 2/1 starts late
+            mods.append((2, 1, 0, 1, _iq(2, 1, 3, k)))
+        out += asm.add(T0 + k * SAMPLE_NS, mods, 1)
+    out += asm.flush(2)
+    assert asm.stream_gaps == {"1/0": 2}
+    kinds = [e.kind for e in asm.events]
+    assert kinds == ["gap", "late"], asm.events
+    by = {}
+    for c in out:
+        by.setdefault((c.board, c.module), []).append(c)
+        k = (c.t_ns - T0) // SAMPLE_NS
+        i, q = synthetic_counts(c.board, c.module, c.channels, k)
+        np.testing.assert_array_equal(c.counts_i, i)
+        np.testing.assert_array_equal(c.counts_q, q)
+    assert [c.n_samples for c in by[(1, 0)]] == [4, 4]
+    assert [c.seq for c in by[(2, 0)]] == [0, 1, 2] and [c.n_samples for c in by[(2, 0)]] == [4, 4, 2]
+    assert asm.published == {"1/0": 2, "2/0": 3, "2/1": 1}
+    asm.add(T0 + 10 * SAMPLE_NS, [(2, 0, 0, 1, _iq(2, 0, 3, 10))])
+    asm.add(T0 + 10 * SAMPLE_NS, [(2, 0, 0, 1, _iq(2, 0, 3, 10))])  # the same time again: dropped, counted
+    assert asm.out_of_order == 1
+    asm.t_newest_ns = T0 + 400 * SAMPLE_NS
+    asm.check_silent(1.0)
+    assert {e.text for e in asm.events if e.kind == "silent"} == {"board 1 stopped sending (nothing for 1 s of data "
+                                                                  "time)", "board 2 stopped sending (nothing for 1 s "
+                                                                  "of data time)"}
+
+
+def test_assembler_v4_missing_block_is_rail():
+    asm = Assembler("lab", chunk_samples=1)
+    blocks = [(9, 0, blk, 8, np.full(256, blk, dtype=np.int32)) for blk in range(8) if blk != 3]
+    (c,) = asm.add(T0, blocks)
+    assert c.channels.size == 1024
+    assert (c.counts_i[3 * 128:4 * 128] == RAIL).all() and (c.counts_i[4 * 128:5 * 128] == 4).all()
+    assert asm.invalid_samples == 128
+
+
+def test_bad_settings_are_one_line_errors(capsys):
+    """Checked before spt3g is loaded: rc 2, one line, no traceback."""
+    from mntes_stream.cli import main
+
+    cases = [(["--interface", "127.0.0.1"], "name the boards"),
+             (["--board", "3"], "give --interface"),
+             (["--board", "3", "--interface", "10.255.255.1"], "cannot join 239.192.0.2"),
+             (["--board", "3", "--interface", "127.0.0.1", "--bias", "3/x=1"], "bias entry"),
+             (["--v2-board", "nohost=3", "--interface", "127.0.0.1"], "expected IP=SERIAL")]
+    for argv, text in cases:
+        assert main(["dfmux-bridge", *argv, "--duration", "1"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and text in err[0], (argv, err)
+
+
+@pytest.fixture(scope="module")
+def netns():
+    if importlib.util.find_spec("spt3g") is None:
+        pytest.skip("spt3g not installed (the g3 extra)")
+    from mntes_stream.bench.dfmux import netns_reason
+
+    reason = netns_reason()
+    if reason:
+        pytest.skip(reason)
+
+
+def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
+    """16 V3 modules x 64 channels, a V2 board (8 x 64, named by its IP) and a V4 board (1 module, 8 blocks of 128)
+    at the DfMux rate: every value as sent; a board restart in the ledger and the final line; a board that
+    stops is reported and nothing fails."""
+    from mntes_stream.bench.dfmux import run_netns
+
+    cfg = tmp_path / "bridge.toml"
+    cfg.write_text('[dfmux-bridge]\nsilent_s = 0.1\n')
+    spec = {"boards": ["3:10:8:64", "3:11:8:64", "4:20:1", "2:5:8:64:127.0.0.2"], "duration_s": 1.2,
+            "skip": ["11:40:60", "5:150:100000"], "restart": [11], "bridge_args": ["--config", str(cfg)]}
+    r = run_netns(spec, timeout_s=90)
+    assert r["bridge_rc"] == 0, r["bridge_stderr"]
+    assert r["samples_missing"] == 0 and r["samples_unexpected"] == 0 and r["wrong"] == 0, r
+    assert r["streams"] == 25 and r["values"] == (8 * 64 * (183 + 163) + 1024 * 183 + 8 * 64 * 150) * 1
+    assert r["sender"]["samples"] == 183
+    last = r["bridge_stdout"][-1]
+    # board 11: 20 samples on 8 modules never received = 2 chunks of 16 each; nothing published is lost
+    assert last.startswith("dfmux-bridge done: ") and "never received 16; lost 16 of" in last, last
+    assert "160 module samples never received" in last, last
+    text = "\n".join(r["bridge_stdout"])
+    assert "board 11: up to 20 samples missing" in text and "board 5 stopped sending" in text, text
+    assert "spt3g 1.0.2" in r["bridge_stdout"][0]
+    assert r["hk_messages"] > 0
