@@ -137,15 +137,15 @@ def test_live_hole_comes_in_bounded_blocks_and_a_corrupt_time_does_not_end_the_s
 
 
 def _readme_section_code(title: str) -> str:
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[1] / "docs" / "feeds.md").read_text()
     section = text.split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
     blocks = re.findall(r"```python\n(.*?)```", section, re.S)
-    assert blocks, f"no python example in README section {title!r}"
+    assert blocks, f"no python example in docs/feeds.md section {title!r}"
     return "\n".join(blocks)
 
 
 def test_readme_feeds_examples_run(tmp_path, monkeypatch):
-    """The README's feeds code, as written, on recordings it names and a live publisher."""
+    """docs/feeds.md's code, as written, on recordings it names and a live publisher."""
     monkeypatch.chdir(tmp_path)
     sent = [chunk(s, module=3, channels=(1, 2, 7), setup="lab") for s in range(12) if s != 5]
     half = len(sent) // 2
@@ -162,7 +162,7 @@ def test_readme_feeds_examples_run(tmp_path, monkeypatch):
     assert pub.ready.wait(20)
     ns = {"t0": T0 + 2 * STEP, "t1": T0 + 9 * STEP, "endpoint": f"tcp/127.0.0.1:{port}"}
     try:
-        exec(compile(_readme_section_code("Feeds for mapmaking"), "README.md", "exec"), ns)
+        exec(compile(_readme_section_code("Feeds for mapmaking"), "docs/feeds.md", "exec"), ns)
     finally:
         pub.done.set()
         pub.join(30)

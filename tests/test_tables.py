@@ -260,19 +260,19 @@ def test_bench_convert_smoke():
 
 
 def test_readme_example_runs(tmp_path, monkeypatch, capsys):
-    """The Python example of the README's "Response tables and conversion" section, as printed there."""
+    """The Python example of docs/physics.md's "Response tables and conversion" section, as printed there."""
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[1] / "docs" / "physics.md").read_text()
     section = text[text.index("## Response tables and conversion"):]
     code = section[section.index("```python") + len("```python"):]
     code = code[: code.index("```")]
     monkeypatch.chdir(tmp_path)
     ns: dict = {}
-    exec(compile(code, "README.md", "exec"), ns)
+    exec(compile(code, "docs/physics.md", "exec"), ns)
     printed = capsys.readouterr().out
     assert "0.29999" in printed and "0.69999" in printed
     assert (tmp_path / "tables.npz").exists()
-    # What the README's comments say the example prints.
+    # What the page's comments say the example prints.
     assert np.all(ns["out"].flags == 0) and ns["out"].identity == ns["bank"].identity
     np.testing.assert_allclose((ns["lin"].p_opt_w - ns["out"].p_opt_w)[0] * 1e12, [-0.023, -0.044], atol=0.0015)

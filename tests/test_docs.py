@@ -1,0 +1,115 @@
+"""The README stays a front door (at most 300 lines) and no relative link in it or docs/ is dead."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README_MAX_LINES = 300
+# [text](target) and ![alt](target); the target ends at whitespace or ')' (no titles used here).
+_LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
+_FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+def relative_links(md: Path) -> list[str]:
+    """Relative link targets of a Markdown file, outside code blocks, without their #anchor.
+
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.md"
+    >>> _ = p.write_text("[x](docs/a.md#b) [y](https://e.org) ![z](img.png)\\n```\\n[no](q.md)\\n```\\n[w](#top)")
+    >>> relative_links(p)
+    ['docs/a.md', 'img.png']
+    """
+    text = _FENCE.sub("", md.read_text())
+    out = []
+    for target in _LINK.findall(text):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target, re.I) or target.startswith("#"):
+            continue  # a URL (https:, mailto:) or an anchor in the same page
+        out.append(target.split("#", 1)[0])
+    return out
+
+
+def test_readme_is_at_most_300_lines():
+    n = len((ROOT / "README.md").read_text().splitlines())
+    assert n <= README_MAX_LINES, f"README.md has {n} lines; move detail to a docs/ topic page"
+
+
+def test_readme_starts_with_the_install_and_test_commands():
+    """The first code block: set up + `up`, then the full suite with every extra (what .ci/run runs)."""
+    text = (ROOT / "README.md").read_text()
+    block = text.split("```bash\n", 1)[1].split("```", 1)[0]
+    commands = [ln for ln in block.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    assert len(commands) == 2, commands
+    setup, tests = commands
+    assert "pip install" in setup and "-e ." in setup and "[" not in setup.split("-e ", 1)[1].split()[0]
+    assert setup.rstrip().endswith("mntes-stream up")
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert tests in ci.splitlines(), "the README's test command is not what .ci/run runs"
+    assert "[all,test]" in tests and "pytest" in tests
+
+
+def test_every_relative_link_in_readme_and_docs_resolves():
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "benchmarks" / "README.md"]
+    dead = [f"{md.relative_to(ROOT)}: {t}" for md in pages for t in relative_links(md)
+            if not (md.parent / t).exists()]
+    assert not dead, "dead links:\n" + "\n".join(dead)
+
+
+def _quick_start_commands() -> list[str]:
+    """The `$ mntes-stream ...` lines of the README's "Quick start", in order."""
+    text = (ROOT / "README.md").read_text()
+    section = text.split("\n## Quick start\n", 1)[1].split("\n## ", 1)[0]
+    return [ln[2:].split("  #", 1)[0].strip() for ln in section.splitlines() if ln.startswith("$ mntes-stream ")]
+
+
+@pytest.mark.slow
+def test_readme_quick_start_runs_as_written(tmp_path):
+    """`up`, the monitor attached with both of the ports `up` prints, then inspect and export of the recording."""
+    cmds = _quick_start_commands()
+    assert [c.split()[1] for c in cmds] == ["up", "monitor", "monitor", "inspect", "export"], cmds
+    exe = [sys.executable, "-m", "mntes_stream"]
+    up = subprocess.Popen(exe + cmds[0].split()[1:], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True)
+    try:
+        ports = None
+        deadline = time.monotonic() + 60
+        while ports is None and time.monotonic() < deadline:
+            line = up.stdout.readline()
+            assert line, "up ended before it printed its ports: " + up.stderr.read()[-2000:]
+            m = re.search(r"converter :(\d+), source :(\d+)", line)
+            ports = m and m.groups()
+        assert ports, "up printed no ports within 60 s"
+        while time.monotonic() < deadline:  # as a user would: attach once power flows
+            line = up.stdout.readline()
+            assert line, "up ended early: " + up.stderr.read()[-2000:]
+            if re.search(r"power chunks\s+[1-9]", line):
+                break
+        else:
+            raise AssertionError("no power within 60 s of up's start")
+        # The README's ports are an example: put in the ones this up printed.
+        monitor = cmds[2].replace("39175", ports[0]).replace("49485", ports[1]).split()[1:]
+        out = subprocess.run(exe + monitor, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr[-2000:]
+        # Power from the converter's port and housekeeping from the source's: both connections carried data.
+        assert re.search(r"^converter\s+\d", out.stdout, re.M), out.stdout[-2000:]
+        assert re.search(r"housekeeping: t_bath \d", out.stdout), out.stdout[-2000:]
+    finally:
+        up.send_signal(signal.SIGINT)
+        rest, err = up.communicate(timeout=60)
+    assert up.returncode == 130, err[-2000:]
+    assert re.search(r"converter: received (\d+) chunks: converted \1; lost 0 of \1", rest), rest
+    runs = [subprocess.run(exe + c.split()[1:], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+            for c in cmds[3:]]
+    assert [r.returncode for r in runs] == [0, 0], [r.stderr[-2000:] for r in runs]
+    assert re.search(r"received (\d+) chunks: converted \1; lost 0 of \1", runs[0].stdout), runs[0].stdout
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(tmp_path / "power.h5") as f:
+        assert sorted(k for k in f if k.startswith("lab_")) == [f"lab_b0m{m}" for m in range(4)]  # up's 4 modules
+        assert f["lab_b0m0"]["tod"].shape[0] == 64
