@@ -18,13 +18,26 @@ def run_range(args) -> int:
 
     res = range_sweep(n_samples=args.samples, seed=args.seed, progress=progress)
     paths = write_range_report(res, args.out)
+    noise = None
+    if args.readout_noise > 0:
+        from mntes_stream.core.sweep import noise_sweep
+
+        noise = noise_sweep(n_samples=args.samples, readout_noise_a=args.readout_noise, seed=args.seed,
+                            progress=progress)
     if args.json:
-        print(json.dumps({"stats": res.stats, "report": paths}, indent=2))
+        print(json.dumps({"stats": res.stats, "noise": noise, "report": paths}, indent=2))
         return 0
     rows = summary_rows(res)
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for r in rows:
         print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+    if noise:
+        print(f"\nwith {noise['readout_noise_a']:.3g} A readout noise declared, against the true power:")
+        for name, kinds in noise["models"].items():
+            for kind, d in kinds.items():
+                print(f"  {name}/{kind}: worst unflagged {d['worst_unflagged_error_w']:.2g} W, "
+                      f"{d['unflagged_beyond_bound']} beyond max(1e-17 W, 7 sigma_P), transition flagged "
+                      f"{d['transition_flagged_frac']:.1%} (R 0.2-0.8 R_n: {d['mid_transition_flagged_frac']:.2%})")
     print(f"wrote {paths['report']}, {paths['summary']} and {paths['figure']}")
     return 0
 
@@ -85,4 +98,8 @@ def register(sub) -> None:
                    help="instead: sweep P_opt 0-3 P_sat, bath, field and bias for every transition model and "
                         "conversion kind; flagged fraction and worst unflagged error per region, and a PNG")
     p.add_argument("--samples", type=int, default=60_000, help="--range: samples per transition model")
+    p.add_argument("--readout-noise", type=float, default=2e-12, metavar="A",
+                   help="--range: also sweep with this white readout noise per quadrature (A rms), declared to "
+                        "the converters, with sigma_P and LOW_RESPONSIVITY; errors against the true power "
+                        "(default 2e-12: 2 counts at 1e-12 A/count; 0 skips)")
     p.set_defaults(func=run)

@@ -58,7 +58,11 @@ __all__ = [
     "nominal_sigma_p_w",
     "sigma_p_block",
     "module_key",
+    "white_noise_counts",
+    "NOISE_FILE_FORMAT",
 ]
+
+NOISE_FILE_FORMAT = "mntes-noise"
 
 SIGMA_P_FACTOR = 3.0
 SQRT2 = model.SQRT2
@@ -79,6 +83,9 @@ class UncertaintySettings(Settings):
         None, "LOW_RESPONSIVITY where sigma_P exceeds this absolute tolerance instead of the factor", unit="W", gt=0)
     low_responsivity_unusable: bool = setting(
         False, "a LOW_RESPONSIVITY sample loses its value (NaN) as an unusable flag would; default: a warning")
+    noise_file: str | None = setting(
+        None, "measured readout noise per detector or module (mntes-stream noise RUN --out FILE); where it names "
+        "neither, readout_noise_a", path=True)
 
 
 def module_key(detector_id: str) -> str | None:
@@ -91,6 +98,47 @@ def module_key(detector_id: str) -> str | None:
     except ConfigError:
         return None
     return f"b{b}m{m}"
+
+
+def white_noise_counts(x: np.ndarray, clip: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+    """White noise per sample of each row of counts, quantisation removed: ``(sigma, n_used)``.
+
+    Second differences ``x[k+1] - 2 x[k] + x[k-1]`` remove offsets, drifts and
+    slow signals (an HWP line moves them by ``(2 pi f / f_s)^2`` of its
+    amplitude); their variance is ``6 sigma^2`` for white noise. Outliers
+    (glitches, steps) beyond ``clip`` robust sigma (from the median absolute
+    deviation) are left out. The counts' rounding (``1/12`` count^2 per
+    sample) is subtracted: what is left is the readout noise a converter is told.
+
+    Parameters
+    ----------
+    x : ndarray (n_rows, n_samp)
+        Counts of one contiguous stretch (no gaps inside).
+
+    Returns
+    -------
+    sigma : ndarray (n_rows,)
+        Counts rms per sample; NaN for a row with fewer than 3 finite samples.
+    n_used : ndarray of int (n_rows,)
+        Second differences used.
+    """
+    x = np.asarray(x, dtype=float)
+    if x.ndim != 2:
+        raise SchemaError(f"counts: expected shape (n_rows, n_samp), got {x.shape}")
+    d2 = x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2]
+    sigma = np.full(x.shape[0], np.nan)
+    used = np.zeros(x.shape[0], dtype=np.int64)
+    for k in range(x.shape[0]):
+        d = d2[k][np.isfinite(d2[k])]
+        if d.size < 1:
+            continue
+        med = float(np.median(d))
+        # At least one count: integer differences of a quiet channel have a MAD of 0.
+        s0 = max(1.4826 * float(np.median(np.abs(d - med))), 1.0)
+        kept = d[np.abs(d - med) <= clip * s0]
+        used[k] = kept.size
+        sigma[k] = math.sqrt(max(float(np.mean((kept - kept.mean()) ** 2)) / 6.0 - 1.0 / 12.0, 0.0))
+    return sigma, used
 
 
 def total_sigma_i_a(readout_noise_a, gain_a_per_count) -> np.ndarray:
