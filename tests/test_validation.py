@@ -217,3 +217,16 @@ def test_robustness_table_against_an_independent_inverse(study):
             assert r["margin"] == pytest.approx(r["largest_error_meeting_requirement"] / r["realistic_error"])
     a = res["robustness"]["all_together"]
     assert 0 <= a["fraction_meeting_requirement"] <= 1 and a["median_per_pw"] <= a["p95_per_pw"]
+    # Broken down by source (issue 26): shares from the one-at-a-time rows, largest first; removing
+    # the largest source lowers the measured median; the linear budget predicts the median within 30 %.
+    src = a["by_source"]
+    assert {e["parameter"] for e in src} == set(CALIBRATION_ERRORS)
+    assert sum(e["variance_share"] for e in src) == pytest.approx(1.0)
+    shares = [e["variance_share"] for e in src]
+    assert shares == sorted(shares, reverse=True)
+    top = src[0]
+    assert top["variance_share"] == pytest.approx(
+        rows[top["parameter"]]["nonlinearity_at_realistic_per_pw"] ** 2
+        / sum(r["nonlinearity_at_realistic_per_pw"] ** 2 for r in rows.values()))
+    assert top["median_without_per_pw"] < a["median_per_pw"] and top["median_drop_frac"] > 0.1
+    assert a["linear_prediction_median_per_pw"] == pytest.approx(a["median_per_pw"], rel=0.3)

@@ -94,7 +94,16 @@ def _robustness_markdown(rob: dict) -> str:
     rows.append(["all together (random draws)", "as above", f"median {_fmt(a['median_per_pw'])}, "
                  f"95% {_fmt(a['p95_per_pw'])}", "", f"{_fmt(a['largest_scale_p95_meeting_requirement'])} x assumed "
                  "(95% of draws)", _fmt(a["largest_scale_p95_meeting_requirement"])])
-    return _markdown_table(rows)
+    text = _markdown_table(rows)
+    if a.get("by_source"):
+        src = [["error source (largest first)", "share of the variance (linear)", "median without it [1/pW]",
+                "median drop"]]
+        src += [[e["label"], f"{100 * e['variance_share']:.2g} %", _fmt(e["median_without_per_pw"]),
+                 f"{100 * e['median_drop_frac']:.2g} %"] for e in a["by_source"]]
+        text += ("\n\nThe all-together median by error source (which measurement to improve first; linear "
+                 f"prediction of the median {_fmt(a['linear_prediction_median_per_pw'])} /pW):\n\n"
+                 + _markdown_table(src))
+    return text
 
 
 # --- figures ----------------------------------------------------------------------------------
