@@ -155,3 +155,34 @@ def test_noise_sweep_meets_the_acceptance():
             assert d["worst_unflagged_error_w"] <= max(1e-17, 7 * d["max_unflagged_sigma_p_w"]), where
             # What the issue measured: without the new flag, unflagged samples far off the truth.
             assert d["without_low_responsivity"]["unflagged_beyond_1e-17_w"] > 50, where
+
+
+def test_power_message_carries_sigma_p_optionally():
+    """The optional mntes.power field: absent when not computed, float32 of the power's shape, schema-valid."""
+    import schema_check
+
+    from mntes_stream.errors import SchemaError
+    from mntes_stream.io import messages as m
+
+    p = np.array([[1e-13, np.nan, 3e-13]])
+    f = np.array([[0, fl.SATURATED, fl.LOW_RESPONSIVITY]], dtype=np.uint16)
+    args = ("lab", 0, 1, [2], ["b0m1c002"], 7, 10**18, 152.5, p, f, "id", "table", 10**18, 10**18 + 5)
+    plain = m.PowerChunk(*args)
+    assert b"sigma_p_w" not in plain.to_bytes()
+    sig = np.array([[1e-18, np.nan, 9e-18]], dtype=np.float32)
+    msg = m.PowerChunk(*args, sigma_p_w=sig)
+    payload = msg.to_bytes()
+    schema_check.validate_payload(payload)
+    back = m.decode(payload)
+    np.testing.assert_array_equal(back.sigma_p_w, sig)
+    assert back.sigma_p_w.dtype == np.float32
+    # 4 bytes a sample beside the power's 10 (float64 and uint16 flags).
+    assert len(payload) - len(plain.to_bytes()) == pytest.approx(len("sigma_p_w") + 4 * sig.size + 30, abs=20)
+    values = {k: getattr(plain, k) for k in ("setup", "board", "module", "channels", "detector_ids", "seq", "t0_ns",
+                                             "sample_rate_hz", "p_opt_w", "flags", "table_identity",
+                                             "converter_kind", "source_t_pub_ns", "t_pub_ns", "t_ns", "late")}
+    assert m.PowerChunk.unchecked(**values).to_bytes() == plain.to_bytes()  # callers from before the field
+    with pytest.raises(SchemaError, match="shape of p_opt_w"):
+        m.PowerChunk(*args, sigma_p_w=np.zeros((1, 2), np.float32))
+    with pytest.raises(SchemaError, match=">= 0"):
+        m.PowerChunk(*args, sigma_p_w=-sig)

@@ -191,10 +191,14 @@ class PowerChunk(_Message):
     late : bool or None
         True: converted late, after being set aside under overload (older than the
         stream's live power); None (absent on the wire): converted live.
+    sigma_p_w : ndarray of float32, shape (n_ch, n_samp), or None
+        Per-sample power uncertainty from the readout noise (``core.uncertainty``),
+        NaN where the power is NaN; None (absent on the wire): not computed.
     """
 
     SCHEMA: ClassVar[str] = "mntes.power"
-    _ARRAYS: ClassVar[dict] = {"channels": ("<i4", 1), "p_opt_w": ("<f8", 2), "flags": ("<u2", 2), "t_ns": ("<i8", 1)}
+    _ARRAYS: ClassVar[dict] = {"channels": ("<i4", 1), "p_opt_w": ("<f8", 2), "flags": ("<u2", 2), "t_ns": ("<i8", 1),
+                               "sigma_p_w": ("<f4", 2)}
     _OPTIONAL: ClassVar[tuple] = ("t0_ns", "sample_rate_hz")
 
     setup: str
@@ -213,11 +217,25 @@ class PowerChunk(_Message):
     t_pub_ns: int
     t_ns: np.ndarray | None = None
     late: bool | None = None
+    sigma_p_w: np.ndarray | None = None
+
+    @classmethod
+    def unchecked(cls, **values):
+        """As :meth:`_Message.unchecked`; ``sigma_p_w`` may be left out (optional: callers from before it stay valid)."""
+        values.setdefault("sigma_p_w", None)
+        return super().unchecked(**values)
 
     def __post_init__(self) -> None:
         fc.as_str(self.setup, "setup", NAME_PATTERN)
         if self.late is not None and not isinstance(self.late, bool):
             raise SchemaError("late must be true, or absent")
+        if self.sigma_p_w is not None:
+            sp = fc.as_array(self.sigma_p_w, "sigma_p_w", "<f4", 2)
+            if sp.shape != np.shape(self.p_opt_w):
+                raise SchemaError(f"sigma_p_w {sp.shape} must have the shape of p_opt_w {np.shape(self.p_opt_w)}")
+            if np.any(sp < 0) or np.any(np.isinf(sp)):
+                raise SchemaError("sigma_p_w must be finite and >= 0 (or NaN where there is no power)")
+            object.__setattr__(self, "sigma_p_w", sp)
         for name in ("board", "module", "seq", "source_t_pub_ns", "t_pub_ns"):
             object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
         fc.as_str(self.table_identity, "table_identity")
