@@ -27,6 +27,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+pytest.importorskip("aiohttp", reason="the monitor extra (aiohttp) is not installed")
+
 from test_monitor_server import Worker
 
 from mntes_stream.core.sim import ArraySimulator, SimConfig

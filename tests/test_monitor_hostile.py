@@ -14,9 +14,12 @@ import sys
 import threading
 import time
 
-import aiohttp
 import numpy as np
 import pytest
+
+pytest.importorskip("aiohttp", reason="the monitor extra (aiohttp) is not installed")
+
+import aiohttp  # noqa: E402
 
 from mntes_stream.io import keys
 from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage, detector_ids_for

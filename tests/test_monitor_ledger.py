@@ -17,6 +17,9 @@ import urllib.request
 import numpy as np
 import pytest
 
+pytest.importorskip("aiohttp", reason="the monitor extra (aiohttp) is not installed")
+
+
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.io import keys
 from mntes_stream.io.messages import PowerChunk, StatusMessage, detector_ids_for

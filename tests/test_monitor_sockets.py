@@ -22,8 +22,11 @@ import sys
 import threading
 import time
 
-import aiohttp
 import pytest
+
+pytest.importorskip("aiohttp", reason="the monitor extra (aiohttp) is not installed")
+
+import aiohttp  # noqa: E402
 
 from mntes_stream.io.transport import free_tcp_port, loopback
 from mntes_stream.monitor.aggregate import MonitorConfig
