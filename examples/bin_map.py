@@ -86,12 +86,22 @@ def sky_w(shape: tuple[int, int]) -> np.ndarray:
 # --- loading an export (h5py) ----------------------------------------------------------------
 
 
+class BinMapError(Exception):
+    """Bad input: said in one line, exit code 2."""
+
+
 def load_observation(path, obs: str | None = None) -> dict:
     """One observation of an exported file as numpy arrays (plus its attributes)."""
     import h5py
 
+    if not Path(path).is_file():
+        raise BinMapError(f"{path}: no such file (an `mntes-stream export` HDF5 file)")
     with h5py.File(path, "r") as f:
+        if "observations" not in f.attrs:
+            raise BinMapError(f"{path}: not an `mntes-stream export` HDF5 file (no observations attribute)")
         names = json.loads(f.attrs["observations"])
+        if not names or (obs is not None and obs not in names):
+            raise BinMapError(f"{path}: no observation {obs!r}; it has {', '.join(names) or 'none'}")
         name = obs or names[0]
         g = f[name]
         return {
@@ -215,8 +225,16 @@ def main(argv=None) -> int:
     ap.add_argument("--obs", help="observation (group) name; default the first")
     ap.add_argument("--demo", metavar="DIR", help="simulate, record, export and bin into DIR")
     ap.add_argument("--png", help="save the map as a PNG")
-    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--json", action="store_true", help="print the result as one JSON document")
     args = ap.parse_args(argv)
+    try:
+        return _run(ap, args)
+    except (BinMapError, OSError) as exc:
+        print(f"bin_map.py: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(ap, args) -> int:
     if args.demo:
         result = demo(Path(args.demo), args.png)
     elif args.file:

@@ -14,7 +14,8 @@ What litebird_sim cannot know from a readout, the example states:
 
 - the TOD is power in W; litebird_sim has no watt unit, so its loader reports
   K_CMB (with a warning): the map is in W whatever the label says;
-- its binner reads no flags: detectors with no usable sample are left out,
+- its binner reads no flags: detectors usable less than half the time are
+  left out,
   and each observation is cut to the longest span where the others are all
   usable (``local_flags & UNUSABLE == 0``; NaN power elsewhere);
 - it weights detectors by ``net_ukrts`` (a temperature NET, 0 in the export):
@@ -32,19 +33,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _record import arguments, record_and_export, report  # noqa: E402
+from _record import arguments, fail, longest_run, record_and_export, report, usable_detectors  # noqa: E402
 
 NSIDE = 64
-
-
-def longest_run(ok: np.ndarray) -> tuple[int, int]:
-    """``(start, stop)`` of the longest run of True in ``ok`` ((0, 0) if none)."""
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
-    if edges.size == 0:
-        return 0, 0
-    starts, stops = edges[0::2], edges[1::2]
-    k = int(np.argmax(stops - starts))
-    return int(starts[k]), int(stops[k])
 
 
 def scan(obs) -> np.ndarray:
@@ -71,7 +62,7 @@ def main() -> None:
     usable_obs, cut = [], 0
     for obs in loaded:
         bad = (obs.local_flags & UNUSABLE) != 0  # (det, samp): no usable power (NaN)
-        keep = np.flatnonzero(~bad.all(axis=1))
+        keep = np.flatnonzero(usable_detectors(bad))
         cut += obs.n_detectors - keep.size
         a, z = longest_run(~bad[keep].any(axis=0))  # the binner reads no flags: only all-usable samples
         if z - a < 2:
@@ -83,7 +74,7 @@ def main() -> None:
         sub.net_ukrts = np.ones(sub.n_detectors)
         usable_obs.append(sub)
     if not usable_obs:
-        sys.exit("no usable power in the recording: nothing to map")
+        fail(f"{out}: no detector usable at least half the time: no usable power to map")
     result = lbs.make_binned_map(nside=NSIDE, observations=usable_obs, pointings=[scan(o) for o in usable_obs],
                                  output_coordinate_system=lbs.CoordinateSystem.Ecliptic)
     i_map_w = result.binned_map[0]

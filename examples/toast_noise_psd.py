@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _record import arguments, record_and_export, report  # noqa: E402
+from _record import arguments, fail, record_and_export, report  # noqa: E402
 
 
 def main() -> None:
@@ -51,7 +51,7 @@ def main() -> None:
         if np.isfinite(white).all():  # NoiseEstim gives NaN where too few samples were valid
             levels[det] = float(np.sqrt(np.median(white)))
     if not levels:
-        sys.exit("no detector with a finite spectrum: no usable power in the recording?")
+        fail(f"{out}: no detector with a finite spectrum: no usable power in the recording?")
     report(args, {
         "observations": [ob.name for ob in data.obs],
         "detectors": sum(len(ob.all_detectors) for ob in data.obs),
