@@ -81,15 +81,21 @@ def _run_g3_convert(args, pipeline) -> int:
     from mntes_stream.g3 import files, spt3g_in_use
 
     g3_in, g3_out = files.is_g3(args.input), files.is_g3(args.output)
+    if g3_out and getattr(args, "hk", None):
+        raise ConfigError("--hk applies to MCAP output (RUN.g3 or REC.mcap -> OUT.mcap): OUT.g3 takes the bath "
+                          "from the run's GcpSlow frames")
     if g3_in and g3_out:
         if args.tables:
             raise ConfigError("RUN.g3 -> OUT.g3 builds its converter from --params (and --kind); --tables is for MCAP")
         result = files.g3_to_g3(args.input, args.output, params=args.params, kind=args.kind or "table",
                                 config=g3_input_config(args), scan_samples=args.scan_samples or 1000)
     elif g3_in:
+        from mntes_stream.cli.ocs import hk_messages_of
+
         stats = files.g3_to_mcap(args.input, args.output, params=args.params, tables=args.tables,
                                  config=g3_input_config(args), setup=args.setup or "lab", pipeline_config=pipeline,
-                                 progress=not (args.quiet or args.json))
+                                 progress=not (args.quiet or args.json),
+                                 hk=hk_messages_of(args, args.setup or "lab"))  # --hk: bath from OCS HK files
         result = dataclasses.asdict(stats) | {"spt3g": spt3g_in_use()}
         if not args.json:
             print(stats.summary())

@@ -226,8 +226,11 @@ def run_convert(args) -> int:
         from mntes_stream.cli.g3 import run_g3_convert
 
         return run_g3_convert(args, pipeline)
-    stats = convert_recording(args.input, args.output, tables=args.tables, params=args.params, pipeline_config=pipeline,
-                              progress=not args.quiet)
+    from mntes_stream.cli.ocs import recording_with_hk
+
+    with recording_with_hk(args, args.input) as source:  # --hk: bath temperature from OCS HK files
+        stats = convert_recording(source, args.output, tables=args.tables, params=args.params,
+                                  pipeline_config=pipeline, progress=not args.quiet)
     if stats.damaged:  # on stderr too: a convert in a script must not pass over it
         import sys
 
@@ -294,6 +297,9 @@ def register(sub) -> None:
     from mntes_stream.cli.g3 import add_g3_convert_args
 
     add_g3_convert_args(p)
+    from mntes_stream.cli.ocs import add_hk_args
+
+    add_hk_args(p)
     p.set_defaults(func=run_convert)
 
     p = sub.add_parser("inspect", help="summarise MCAP recordings (topics, counts, completeness, metadata)")

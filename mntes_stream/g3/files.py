@@ -24,6 +24,7 @@ before the end.
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import logging
 import tempfile
@@ -198,13 +199,28 @@ def _screen(bad: dict):
 
 
 def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_samples: int = 16,
-                gain_reference=None, bad: dict | None = None):
+                gain_reference=None, bad: dict | None = None, hk=None):
     """``(t_ns, key, payload)`` of every message a G3 run gives (the bridge's translation).
 
     ``t_ns`` is the data time the message stands for (last sample of a
     chunk, time of a reading); bath readings of a configured default come
-    with every counts batch when the run has no thermometer.
+    with every counts batch when the run has no thermometer. ``hk``:
+    housekeeping messages from elsewhere (OCS HK files, ``--hk``) in time
+    order, merged by time; the run's own readings of their sensors are left out.
     """
+    if hk:
+        from mntes_stream.ocs.hk import merge_by_time
+
+        hk = list(hk)
+        replaced = {key for _, key, _ in hk}
+        has_t_bath = any(key.endswith("/hk/t_bath") for key in replaced)
+        # With the bath from elsewhere the run needs no thermometer: a placeholder default, whose
+        # readings are left out with the run's own.
+        own = g3_messages(inputs, setup, config if not has_t_bath else
+                          dataclasses.replace(config or G3InputConfig(), t_bath_default_k=1.0),
+                          chunk_samples, gain_reference, bad)
+        yield from merge_by_time((m for m in own if m[1] not in replaced), hk)
+        return
     from mntes_stream.g3.mapping import bath_reading
     from mntes_stream.g3.translate import FrameTranslator
     from mntes_stream.io import keys
@@ -286,8 +302,11 @@ def write_converter_params(inputs, params, output, config: G3InputConfig | None 
 
 
 def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, setup: str = "lab",
-               chunk_samples: int = 16, tables=None, pipeline_config=None, progress: bool = False):
-    """Convert a G3 run to an MCAP recording through the live converter's pipeline."""
+               chunk_samples: int = 16, tables=None, pipeline_config=None, progress: bool = False, hk=None):
+    """Convert a G3 run to an MCAP recording through the live converter's pipeline.
+
+    ``hk``: housekeeping messages replacing the run's own (OCS HK files, see :func:`g3_messages`).
+    """
     from mntes_stream.io.mcap import McapFileWriter, writer_description
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.service.offline import convert_recording
@@ -309,7 +328,8 @@ def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, s
         with McapFileWriter(rec, metadata={"mntes.recording": writer_description(
                 mode="G3 translation", input=[str(f) for f in files])}) as w:
             bad: dict = {}
-            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples, gain_reference=gref, bad=bad):
+            for t_ns, key, payload in g3_messages(files, setup, config, chunk_samples, gain_reference=gref, bad=bad,
+                                                  hk=hk):
                 w.write(key, payload, t_ns)
         _report(bad, f"convert {files[0]} -> {output}")  # their samples are missing from the output
         return convert_recording(rec, output, params=pfile, tables=tables, pipeline_config=pipeline_config,
