@@ -298,12 +298,13 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
     claims = owner = watch = None
     with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
         pubs = Publishers(session, history_chunks=cache_chunks(cfg.zenoh.history_seconds, POWER_CHUNK_S))
-        # Channel mode: samples are read on this thread, no callback thread competing for the GIL.
-        # Housekeeping first (subscriptions() lists it first): a batch's readings before its counts.
+        # A blocking receive: zenoh's thread only queues each sample (bounded: a full queue makes it wait, which
+        # pushes back on the publishers), and this thread sleeps until one is there instead of polling.
+        # Samples come in arrival order: a step's housekeeping (published first) before its counts.
         # What the sources' caches hold (io/history.py) comes first, so a converter restarted after a crash
         # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
         # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
-        sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=stopping, mode="channel",
+        sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=stopping, mode="callback",
                               recover="history")
         # Provenance on request too: a recorder started later asks instead of waiting for the next one.
         answer(session, prov_key, pipe.provenance_bytes())

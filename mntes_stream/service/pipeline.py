@@ -51,6 +51,7 @@ from mntes_stream.core.ledger import OTHER, Ledger
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
+from mntes_stream.io.lean import CountsDecoder, PowerEncoder
 from mntes_stream.io.messages import (
     CountsChunk,
     HousekeepingChunk,
@@ -163,6 +164,9 @@ class ConverterPipeline(Overload, Conversion):
         self._pending: collections.deque[_Pending] = collections.deque()
         self._ready: list[_Ready] = []
         self._table_identity, self._kind = str(converter.identity), str(converter.kind)
+        self._decoder = CountsDecoder()
+        self._step_times: dict[tuple, np.ndarray] = {}
+        self._encoder = PowerEncoder(self.config.setup, self._table_identity, self._kind)
         self._rows: dict[tuple, tuple] = {}
         # Streams continued from a checkpoint, until their first chunk: (next number, checkpoint sample time).
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
@@ -362,7 +366,7 @@ class ConverterPipeline(Overload, Conversion):
         try:
             if kind == "counts":
                 try:
-                    chunk = CountsChunk.from_bytes(payload)
+                    chunk = self._decoder.decode(key, payload)
                 except SchemaError as exc:  # the key names its stream: booked there as received and rejected
                     self._reject(info, exc.reason)
                     raise
@@ -396,7 +400,7 @@ class ConverterPipeline(Overload, Conversion):
             return
         self.counters.chunks_received += 1
         self.ledger.received(stream)
-        t = chunk.times_ns()
+        t = self._times(chunk)
         t_first = int(t[0]) if t.size else chunk.t_pub_ns
         verdict = self._sequence(stream, chunk.seq, t_first, key)
         if verdict == "duplicate":
@@ -415,6 +419,19 @@ class ConverterPipeline(Overload, Conversion):
             self._set_aside(p, lag, key)
             return
         self._pending.append(p)
+
+    def _times(self, chunk: CountsChunk) -> np.ndarray:
+        """A chunk's sample times, computed once per readout step (the modules of a step share them; read-only)."""
+        if chunk.t_ns is not None:
+            return chunk.t_ns
+        key = (chunk.t0_ns, chunk.sample_rate_hz, chunk.counts_i.shape[1])
+        t = self._step_times.get(key)
+        if t is None:
+            if len(self._step_times) >= 256:
+                self._step_times.clear()
+            t = self._step_times[key] = chunk.times_ns()
+            t.setflags(write=False)
+        return t
 
     def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> str:
         """Book-keep a sequence number; the tracker's verdict (``duplicate``: drop it)."""

@@ -15,7 +15,7 @@ import numpy as np
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.io import keys
-from mntes_stream.io.messages import CountsChunk, PowerChunk, detector_ids_for
+from mntes_stream.io.messages import CountsChunk, detector_ids_for
 
 __all__ = ["Conversion"]
 
@@ -239,24 +239,7 @@ class Conversion:
             p_opt, flags = self._finish(p_opt, flags, r.env_flags, r.known if r.n_unknown else None)
         t_pub = self._stamp()
         # Made here from checked inputs (ids from the channels, arrays of the wire dtypes): not checked again.
-        power = PowerChunk.unchecked(
-            setup=cfg.setup,
-            board=chunk.board,
-            module=chunk.module,
-            channels=chunk.channels,
-            detector_ids=r.ids,
-            seq=chunk.seq,
-            t0_ns=chunk.t0_ns,
-            sample_rate_hz=chunk.sample_rate_hz,
-            p_opt_w=p_opt,
-            flags=flags,
-            table_identity=self._table_identity,
-            converter_kind=self._kind,
-            source_t_pub_ns=chunk.t_pub_ns,
-            t_pub_ns=t_pub,
-            t_ns=chunk.t_ns,
-            late=True if r.late else None,
-        )
+        payload = self._encoder.encode(chunk, p_opt, flags, t_pub, r.late)
         self.ledger.done((chunk.board, chunk.module), late=r.late)
         c = self.counters
         c.chunks_converted += 1
@@ -267,5 +250,5 @@ class Conversion:
         self._interval_chunks += 1
         self._interval_samples += n_ch * n
         self._interval_latency_ms.append((t_pub - chunk.t_pub_ns) / 1e6)
-        return keys.power_key(cfg.setup, chunk.board, chunk.module), power.to_bytes()
+        return keys.power_key(cfg.setup, chunk.board, chunk.module), payload
 
