@@ -139,6 +139,51 @@ def _fit(args) -> int:
     return 0
 
 
+def _lab(args) -> int:
+    """The lab's IV/bias-step results (sotodlib det_cal) against the parameters: disagreement, optionally seeded."""
+    from mntes_stream.cli._common import claim_out
+    from mntes_stream.core.calib.lab import compare, seed, table
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.io.paramfile import dump_params, load_params
+    from mntes_stream.io.sotodlib_cal import load_det_cal
+
+    id_map = None
+    if args.id_map:
+        try:
+            id_map = json.loads(Path(args.id_map).read_text())
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{args.id_map}: cannot read the id map (JSON readout_id -> detector id): {exc}") from None
+        if not isinstance(id_map, dict):
+            raise ConfigError(f"{args.id_map}: expected a JSON object readout_id -> detector id")
+    if args.seed_out:
+        claim_out(args.seed_out, args.overwrite, inputs=(args.params, args.file))
+    params = load_params(args.params)
+    labs = load_det_cal(args.file, args.dataset, id_map)
+    both = sorted(set(params) & set(labs))
+    if not both:
+        raise ConfigError(f"{args.file} [{args.dataset}] names none of the {len(params)} detectors of {args.params}")
+    per = {d: compare(params[d], labs[d]) for d in both}
+    out = {"source": f"{args.file} [{args.dataset}]", "detectors": len(both),
+           "lab_only": len(set(labs) - set(params)), "params_only": len(set(params) - set(labs)),
+           "summary": table(per), "per_detector": per if args.json else None}
+    if args.seed_out:
+        seeded = {d: seed(params[d], labs[d]) if d in labs else params[d] for d in params}
+        dump_params(list(seeded.values()), args.seed_out,
+                    metadata={"source": f"{args.params} seeded from the lab's {out['source']} (R_n, K from P_sat)"})
+        out["seeded"] = args.seed_out
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    print(f"{out['source']}: {len(both)} detectors compared ({out['lab_only']} only in the lab's file, "
+          f"{out['params_only']} only in {args.params})")
+    for k, v in out["summary"].items():
+        print(f"  {k:10s} median (MNTES - lab)/lab {v['median_rel_diff']:+.3g}, largest |.| "
+              f"{v['max_abs_rel_diff']:.3g} ({v['n']} detectors)")
+    if args.seed_out:
+        print(f"wrote {args.seed_out}")
+    return 0
+
+
 def register(sub) -> None:
     from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, deprecated_alias
 
@@ -175,6 +220,17 @@ def register(sub) -> None:
     add_json(f, "print a JSON summary")
     add_quiet(f, "no progress bar")
     f.set_defaults(func=_fit)
+
+    lab = csub.add_parser("lab", help="the lab's IV and bias-step results (sotodlib det_cal HDF5) against the "
+                                      "parameters: disagreement per quantity; --seed-out seeds R_n and K from them")
+    lab.add_argument("file", metavar="DET_CAL.h5", help="sotodlib det_cal HDF5 (update_det_cal's output)")
+    lab.add_argument("--dataset", required=True, metavar="OBS_ID", help="the dataset (observation id) in it")
+    lab.add_argument("--params", required=True, metavar="PARAMS.toml", help="detector parameters to check")
+    lab.add_argument("--id-map", metavar="JSON", help="readout_id -> detector id (default: the ids are ours)")
+    lab.add_argument("--seed-out", metavar="PARAMS.toml", help="write the parameters seeded from the lab here")
+    add_overwrite(lab, "replace an existing --seed-out file")
+    add_json(lab, "print the comparison (per detector too) as JSON")
+    lab.set_defaults(func=_lab)
 
     i = csub.add_parser("info", help="what a campaign file holds")
     i.add_argument("file", metavar="FILE", help="campaign file (MCAP)")
