@@ -29,7 +29,8 @@ def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks (speed, memory, accuracy)")
     bsub = p.add_subparsers(dest="bench", metavar="NAME")
     for name, module in _benches():
-        bp = bsub.add_parser(name, help=getattr(module, "HELP", ""))
+        # a module convert_offline is the bench convert-offline (flags are spelled with hyphens too)
+        bp = bsub.add_parser(name.replace("_", "-"), help=getattr(module, "HELP", ""))
         bp.add_argument("--json", action="store_true", help="print one JSON object")
         module.add_arguments(bp)
         bp.set_defaults(func=_run, bench_module=module)

@@ -164,7 +164,46 @@ def recorded_calibrations(session) -> list:
     return [(t_ns, _merged(parts)) for t_ns, _, parts in epochs]
 
 
-def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None):
+def _cache_dir(table_cache) -> str:
+    """The table cache to use: ``...`` is the converter service's default, None or "" none."""
+    if table_cache is ...:
+        from dataclasses import fields
+
+        from mntes_stream.service.converter import ConverterConfig
+
+        return next(f.default for f in fields(ConverterConfig) if f.name == "table_cache")
+    return str(table_cache) if table_cache else ""
+
+
+def _snapshot_cfg(cache: str, kind: str, params_path: str):
+    """What :mod:`service.snapshot` reads of a converter config, for a whole-focal-plane offline converter."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(params=params_path, tables="", kind=kind, boards=(), modules=(), shard="", table_cache=cache)
+
+
+def _load_snapshot(cache: str, kind: str, params, text: str | None):
+    """``(key, (params dict, converter) or None)`` from the live converter's snapshot cache.
+
+    Keyed as the live converter keys it: by the parameters' bytes (a file given, else
+    the recorded parameter text), kind and software. Building the converter (parsing and
+    checking every detector's parameters, its table bank, its flag thresholds) is most of
+    an offline conversion of a short recording; a snapshot loads in a fraction of it.
+    """
+    import tempfile
+
+    from mntes_stream.service.snapshot import load_snapshot
+
+    with tempfile.TemporaryDirectory(prefix="mntes-offline-") as tmp:
+        path = str(params) if params is not None else str(Path(tmp) / "params.toml")
+        if params is None:
+            Path(path).write_text(text)
+        key, snap = load_snapshot(_snapshot_cfg(cache, kind, path))
+    return key, (None if snap is None else (snap[0], snap[2]))
+
+
+def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
+                    table_cache=...):
     """The converter (and its parameters) for a recording.
 
     Parameters
@@ -175,6 +214,12 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         Detector parameter TOML replacing the recorded parameters.
     tables : path, optional
         Table bank file; its kind becomes the converter kind.
+    table_cache : path, optional
+        Where banks built from parameters are kept, as the live converter
+        keeps them (``...``: its default, ``~/.cache/mntes-stream/tables``;
+        None: always build), and the converter as built (``service/snapshot.py``,
+        keyed by the parameters' bytes, kind and software). What comes from the
+        cache is what would be built (same identity), in a fraction of the time.
 
     Returns
     -------
@@ -183,7 +228,14 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
     from mntes_stream.core.convert import make_converter
     from mntes_stream.io.paramfile import load_params, parse_params
 
-    if params is not None:
+    kind = provenance.converter_kind if provenance is not None else "table"
+    cache = _cache_dir(table_cache) if tables is None and kind in ("table", "grid") else ""
+    text = provenance.params_toml if params is None and provenance is not None else None
+    key, snap = _load_snapshot(cache, kind, params, text) if cache and (params is not None or text) else (None, None)
+    if snap is not None:  # the converter as the last run with these parameters built it
+        pdict, conv = snap
+        psrc = str(params) if params is not None else "the recording's provenance"
+    elif params is not None:
         pdict, psrc = load_params(params), str(params)
     elif provenance is not None and provenance.params_toml:
         try:
@@ -202,8 +254,17 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         return conv, (pdict if params is not None else bank.params_by_id()), psrc or "the table file", str(tables)
     if pdict is None:
         raise ConfigError("the recording has no provenance with detector parameters: give --params (and --tables)")
-    kind = provenance.converter_kind if provenance is not None else "table"
-    conv = make_converter(kind, pdict)
+    if snap is None and cache:
+        from types import SimpleNamespace
+
+        from mntes_stream.service.converter import _cached_bank
+        from mntes_stream.service.snapshot import save_snapshot
+
+        # The live converter's own bank cache (same keys, same checks); it reads only these two settings.
+        conv = make_converter(kind, pdict, _cached_bank(SimpleNamespace(kind=kind, table_cache=cache), pdict))
+        save_snapshot(_snapshot_cfg(cache, kind, ""), key, pdict, None, conv)
+    elif snap is None:
+        conv = make_converter(kind, pdict)
     tsrc = f"rebuilt from the parameters ({kind})" if kind in ("table", "grid") else "none (analytic)"
     if (provenance is not None and params is None and kind in ("table", "grid") and provenance.table_identity
             and str(conv.identity) != provenance.table_identity):
@@ -215,7 +276,7 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
 
 
 def convert_recording(source, output: str | Path, *, tables=None, params=None, pipeline_config=None,
-                      progress: bool = True) -> OfflineStats:
+                      progress: bool = True, table_cache=...) -> OfflineStats:
     """Re-convert the recorded counts and housekeeping of ``source`` into ``output`` (MCAP).
 
     Parameters
@@ -233,6 +294,8 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         the recording's setup.
     progress : bool
         tqdm progress bar over the input messages.
+    table_cache : path, optional
+        See :func:`build_converter` (default: the live converter's cache).
     """
     from collections import Counter
 
@@ -261,13 +324,13 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         if len(calibrations) > 1:
             log.warning("the recording holds %d calibrations (changed at log times %s); the given %s replace all of them",
                         len(calibrations), [t for t, _ in calibrations[1:]], "tables" if tables is not None else "parameters")
-        plan = [(None, build_converter(prov, params=params, tables=tables))]
+        plan = [(None, build_converter(prov, params=params, tables=tables, table_cache=table_cache))]
     else:
         built: dict[tuple, tuple] = {}  # a calibration that comes back is not rebuilt
         plan = []
         for k, (t_ns, p) in enumerate(calibrations):
             if _calibration(p) not in built:
-                built[_calibration(p)] = build_converter(p)
+                built[_calibration(p)] = build_converter(p, table_cache=table_cache)
             plan.append((t_ns if k else None, built[_calibration(p)]))
         log.info("the calibration changed %d time(s) during the recording: each part converted with its own", len(plan) - 1)
     converter, pdict, psrc, tsrc = plan[-1][1]
