@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+pytestmark = pytest.mark.slow  # processes end to end (CI runs it; the fast subset does not)
 
 
 def _run(script: str, *args: str, rc: int = 0) -> subprocess.CompletedProcess:
