@@ -155,3 +155,24 @@ def test_simulate_set_takes_table_key_value(tmp_path, capsys):
     assert main(["simulate", "--out", str(tmp_path / "t.mcap"), "--duration", "0.3",
                  "--set", "simulator.no_such_key=1"]) == 2
     assert "no_such_key" in capsys.readouterr().err
+
+
+def test_a_misspelt_setup_gets_the_live_one_suggested(capsys):
+    """`--setup Lab` while `lab` is live: one line naming it (ps, monitor), over a real loopback zenoh session."""
+    from mntes_stream.io.transport import free_tcp_port, loopback, open_session
+
+    port = free_tcp_port()
+    with open_session(loopback(port)) as session:
+        token = session.liveliness().declare_token("mntes/lab/alive/converter/test")
+        try:
+            assert main(["ps", "--setup", "Lab", "-e", f"tcp/127.0.0.1:{port}", "--interval", "0"]) == 0
+            err = capsys.readouterr().err.strip().splitlines()
+            assert err == ["mntes-stream: warning: no service is live on setup 'Lab'; did you mean --setup lab? "
+                           "(live setups: lab)"], err
+            assert main(["monitor", "--setup", "Lab", "--text", "--duration", "0.5", "--update-s", "0.2",
+                         "-e", f"tcp/127.0.0.1:{port}"]) == 0
+            assert "did you mean --setup lab?" in capsys.readouterr().err
+            assert main(["ps", "--setup", "lab", "-e", f"tcp/127.0.0.1:{port}", "--interval", "0"]) == 0
+            assert "did you mean" not in capsys.readouterr().err
+        finally:
+            token.undeclare()

@@ -207,3 +207,34 @@ def claim_out(path, overwrite: bool, inputs=()) -> None:
     if out.is_dir():
         raise ConfigError(f"{out} is a directory: --overwrite replaces files only")
     out.unlink()
+
+
+def setup_hint(zenoh, setup: str, timeout_s: float = 1.0) -> str | None:
+    """One line naming a live setup close to ``setup`` (``--setup Lab`` when ``lab`` is live), else None.
+
+    Asks zenoh for the setups' liveliness tokens (``mntes/<setup>/alive/**``)
+    through a session that listens on nothing, so it never takes a port the
+    command itself is about to listen on.
+    """
+    import dataclasses
+    import difflib
+
+    from mntes_stream.io import keys
+    from mntes_stream.io.transport import open_session
+
+    probe = dataclasses.replace(zenoh, listen=())
+    setups: set[str] = set()
+    try:
+        with open_session(probe) as session:
+            for reply in session.liveliness().get(f"{keys.PREFIX}/*/alive/**", timeout=timeout_s):
+                if reply.ok is not None:
+                    setups.add(str(reply.ok.key_expr).split("/")[1])
+    except Exception:  # a hint only: whatever zenoh says, the command goes on
+        return None
+    if not setups or setup in setups:
+        return None
+    near = [s for s in setups if s.lower() == setup.lower()] or difflib.get_close_matches(setup, sorted(setups), n=1)
+    live = ", ".join(sorted(setups))
+    if near:
+        return f"no service is live on setup {setup!r}; did you mean --setup {near[0]}? (live setups: {live})"
+    return None

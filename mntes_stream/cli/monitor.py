@@ -52,6 +52,13 @@ def run_monitor(args) -> int:
     if not cfg.text:
         import_extra("aiohttp", "monitor")  # the page's server; checked before anything starts
         import_extra("plotly", "monitor")
+    from mntes_stream.cli._common import setup_hint
+
+    hint = setup_hint(cfg.zenoh, cfg.setup)  # a misspelt setup would wait forever, silently
+    if hint:
+        import sys
+
+        print(f"mntes-stream: warning: {hint}", file=sys.stderr)
     MonitorService(cfg).start()
     return 0
 

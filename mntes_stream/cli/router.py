@@ -69,7 +69,14 @@ def run_ps(args) -> int:
         print(json.dumps({"setup": args.setup, "services": second}, indent=2, default=str))
         return 0
     if not second:
+        import sys
+
+        from mntes_stream.cli._common import setup_hint
+
         print(f"no live services on setup {args.setup!r}")
+        hint = setup_hint(zenoh, args.setup, args.timeout)
+        if hint:
+            print(f"mntes-stream: warning: {hint}", file=sys.stderr)
         return 0
     print(f"{'SERVICE':<11} {'NAME':<16} {'STATE':<9} {'UP':>7} {'RATE':>14} {'LAG':>8} {'LOST':>6}  HOST:PID  OWNS / WARNINGS")
     for b in second:
