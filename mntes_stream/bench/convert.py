@@ -41,6 +41,9 @@ def add_arguments(p) -> None:
                    help="also the operating-range sweep (core.sweep): per kind, worst unflagged error over every "
                         "region and transition model, and the transition's flagged fraction")
     p.add_argument("--range-samples", type=int, default=20_000, help="--range: samples per transition model")
+    p.add_argument("--uncertainty", action="store_true",
+                   help="also time sigma_P and LOW_RESPONSIVITY (core.uncertainty, its compiled pass) on the same "
+                        "block, and the conversion with it")
 
 
 def synthetic_params(n_det: int, seed: int = 0, start: int = 0) -> dict:
@@ -194,6 +197,8 @@ def run(args) -> dict:
         "grid_max_abs_error_w": _max_err(g_out.p_opt_w, ref.p_opt_w),
         "grid_bank_mib_per_5000_detectors": grid_bank.nbytes / n_det * 5000 / 2**20,
     })
+    if getattr(args, "uncertainty", False):
+        result["uncertainty"] = _uncertainty(conv, ids, ci, cq, env, out, args.repeats, n, cpu)
     if getattr(args, "range", False):
         result["range"] = range_summary(args.range_samples, seed=args.seed)
     if args.png:
@@ -201,6 +206,25 @@ def run(args) -> dict:
                                         "electrical": ele.p_opt_w})
         result["figure"] = args.png
     return result
+
+
+def _uncertainty(conv, ids, ci, cq, env, block, repeats: int, n: int, convert_cpu: float) -> dict:
+    """sigma_P's own cost (core.uncertainty.sigma_p_block after the conversion), CPU seconds."""
+    from mntes_stream.core import flags as fl
+    from mntes_stream.core.uncertainty import noise_model, sigma_p_block
+
+    t0 = time.perf_counter()
+    noise = noise_model(conv.params)
+    build_s = time.perf_counter() - t0
+    unc = sigma_p_block(conv, ids, ci, cq, env, block, noise)
+    _, cpu = _timed(lambda: sigma_p_block(conv, ids, ci, cq, env, block, noise), repeats)
+    return {
+        "sigma_p_cpu_msamples_per_s": n / cpu / 1e6,
+        "convert_with_sigma_p_cpu_msamples_per_s": n / (convert_cpu + cpu) / 1e6,
+        "sigma_p_cost_over_convert": cpu / convert_cpu,
+        "noise_model_build_s": build_s,
+        "low_responsivity_samples": int(np.count_nonzero(unc.flags & fl.LOW_RESPONSIVITY)),
+    }
 
 
 def _baselines(make_converter, params, ids, ci, cq, env, repeats: int, n: int, axpy_wall: float):
