@@ -3,11 +3,15 @@
 The zenoh callback only timestamps the sample and puts it on a bounded queue
 (:class:`~mntes_stream.io.transport.QueueSubscriber`); the calling thread of
 :func:`run_recorder` drains it into a
-:class:`~mntes_stream.io.mcap.RotatingMcapWriter`, flushing every
-``flush_interval_s`` so a killed recorder loses at most that span (plus what
-was still queued). Nothing is dropped: a full queue makes the callback wait,
-which BLOCK publishers feel as back-pressure; the high-water mark is reported
-so a recorder that cannot keep up shows it.
+:class:`~mntes_stream.service.recorder_sink.RecorderSink`, which reads each
+payload's header (never decoding its arrays), books it and hands the bytes to
+a writer thread (:class:`~mntes_stream.io.mcap.background.BackgroundMcapWriter`:
+framing, compression, disk), which flushes every ``flush_interval_s`` so a
+killed recorder loses at most that span (plus what was still queued). Nothing
+is dropped: a full queue makes the callback (or the hand-over) wait, which
+BLOCK publishers feel as back-pressure; high-water marks and waits are
+reported so a recorder that cannot keep up shows it, and so is its CPU per
+million samples.
 
 Every counts chunk is in the recorder's ledger (``io.mcap.ledger.RecordingBook``:
 recorded, duplicate, malformed, never received), beside the power it saw (live,
@@ -22,24 +26,19 @@ comes without its counts is warned about (log, heartbeat ``power_only``, stats).
 from __future__ import annotations
 
 import logging
-import os
-import socket
 import time
 from dataclasses import asdict, dataclass
 
 from mntes_stream.core.ids import NAME_PATTERN
-from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.core.shards import Shard
 from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
-from mntes_stream.io.mcap.ledger import LEDGER_METADATA, RecordingBook, power_is_late
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
-from mntes_stream.service.coverage import Coverage
 from mntes_stream.service.metrics import MetricsSettings
 
-__all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "final_line", "run_recorder"]
+__all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "cost_line", "final_line", "run_recorder"]
 
 log = logging.getLogger("mntes_stream.recorder")
 
@@ -71,6 +70,9 @@ class RecorderConfig(Settings):
                                         "(BLOCK), never dropped", ge=1)
     queue_mb: float = setting(256.0, "... and at most this much payload: big messages cannot fill memory", unit="MB",
                               gt=0)
+    writer_queue_mb: float = setting(64.0, "buffer between the receive thread and the writer thread (framing, "
+                                     "compression, disk); when full, receiving waits (counted: writer_queue_full)",
+                                     unit="MB", gt=0)
     shard: str = setting("", "i/N: record the counts, power and bias of the streams (board, module) in bucket i "
                          "of N (as converter shards split them); shard 0 also records everything else, every shard "
                          "the provenance. '' = everything. Files: <prefix>-shard<i>of<N>-<seq>.mcap")
@@ -124,7 +126,12 @@ class RecorderStats:
     (``core.ledger``, verb ``recorded``) and ``ledger_line`` its one-line
     summary; ``converters`` each converter's ledger line from its last
     recorded status; ``power_only`` the streams whose power came while their
-    counts never did (this recorder does not receive their source).
+    counts never did (this recorder does not receive their source);
+    ``writer_queue_full`` the hand-overs to the writer thread that waited for
+    room (``writer_wait_s`` in all; nothing is dropped); ``cpu_s`` the
+    process's CPU (every thread), ``samples`` the counts samples recorded and
+    ``cpu_s_per_msamples`` the one per million of the other;
+    ``receive_cpu_s_per_msamples`` the same for the receive thread alone.
     """
 
     messages: int
@@ -147,6 +154,13 @@ class RecorderStats:
     ledger: dict | None = None
     ledger_line: str = ""
     converters: dict | None = None
+    writer_queue_full: int = 0
+    writer_wait_s: float = 0.0
+    writer_queue_high_water: int = 0
+    cpu_s: float = 0.0
+    samples: int = 0
+    cpu_s_per_msamples: float | None = None
+    receive_cpu_s_per_msamples: float | None = None
 
     def final_line(self) -> str:
         """The ledger in one line: what ``record`` prints last."""
@@ -160,6 +174,17 @@ def final_line(stats: dict) -> str:
     if only:
         line += (f"; WARNING power without its counts for {len(only)} stream(s) ({', '.join(only[:8])}"
                  f"{', ...' if len(only) > 8 else ''}): this recorder does not receive their source")
+    return line
+
+
+def cost_line(stats: dict) -> str:
+    """The recorder's cost in one line: CPU per million counts samples, and any waits for the writer thread."""
+    per = stats.get("cpu_s_per_msamples")
+    line = (f"CPU {stats.get('cpu_s', 0.0):.2f} s for {stats.get('samples', 0) / 1e6:.2f} M counts samples"
+            + (f" ({per:.4f} s per M samples)" if per is not None else ""))
+    if stats.get("writer_queue_full"):
+        line += (f"; the writer's queue was full {stats['writer_queue_full']} time(s): receiving waited "
+                 f"{stats.get('writer_wait_s', 0.0):.1f} s (back-pressure, nothing dropped)")
     return line
 
 
@@ -182,61 +207,15 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
     RecorderStats
         After the last file is finished (summary and footer written).
     """
-    from mntes_stream.io.mcap import RotatingMcapWriter
     from mntes_stream.io.transport import QueueSubscriber
+    from mntes_stream.service.recorder_sink import RecorderSink
 
     zenoh = _reach_the_source(config.zenoh)
-    writer = RotatingMcapWriter(
-        config.directory,
-        config.file_prefix,
-        flush_interval_s=config.flush_interval_s,
-        rotate_bytes=int(config.rotate_mb * (1 << 20)),
-        rotate_s=config.rotate_s,
-        compression=config.compression,
-        chunk_size_bytes=config.chunk_size_kb * 1024,
-        fsync=config.fsync,
-        metadata=config.to_metadata(),
-    )
-    json_channels = None
-    if config.foxglove_channels:
-        from mntes_stream.foxglove.transcode import JsonChannels
-
-        json_channels = JsonChannels(writer)
-    sequences: dict[str, StreamSequence] = {}  # topics other than counts (the book tracks those)
-    book = RecordingBook(None if config.key_expr else config.setup)
-    run = f"{socket.gethostname()}:{os.getpid()}:{time.time_ns()}"
-    # Every file gets the ledger of the run so far as it is finished (rotation or close).
-    writer.closing_metadata = lambda path: {LEDGER_METADATA: book.metadata(run, _index(writer.files, path))}
-    by_kind: dict[str, int] = {}
+    sink = RecorderSink(config)
+    writer, book, coverage = sink.writer, sink.book, sink.coverage
     t_start = time.monotonic()
     next_log = t_start + config.log_interval_s
-
-    mine = _shard_filter(Shard.parse(config.shard))
-    coverage = Coverage(config.unconverted_after_s)
     next_cover = 0.0
-
-    def write(item) -> None:
-        topic, payload, t_ns = item
-        if mine is not None and not mine(topic):
-            return
-        env = writer.write(topic, payload, t_ns)
-        kind = keys.kind_of(topic) or "other"
-        late = kind == "power" and not env.problem and power_is_late(payload)
-        coverage.add(topic, env.seq, time.monotonic(), late=late)
-        book.add(topic, payload, env, t_ns, late=late)
-        if kind == "status" and topic in book.status_topics:
-            service = book.status_topics[topic]
-            entry = book.converters.get(service)
-            if entry is not None:
-                coverage.converter_status(service, entry["ledger"], entry["chunks_set_aside"])
-        if json_channels is not None and not env.problem:
-            json_channels.add(env.schema, payload)
-        by_kind[kind] = by_kind.get(kind, 0) + 1
-        if env.seq is not None and kind != "counts":
-            seq = sequences.get(topic)
-            if seq is None:
-                seq = sequences[topic] = StreamSequence()
-            seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
 
     session = sub = None
     error: BaseException | None = None
@@ -260,13 +239,14 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
                     break
                 item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
                 if item is not None:
-                    write(item)
+                    sink.add(*item)
                     for item in sub.drain(10_000):  # then check the stop flags once per batch
-                        write(item)
+                        sink.add(*item)
                 writer.tick()
                 if heartbeat is not None:
                     heartbeat.beat(messages=writer.messages, payload_bytes=writer.payload_bytes, invalid=writer.invalid,
-                                   files=len(writer.files), queue_depth=sub.qsize())
+                                   files=len(writer.files), queue_depth=sub.qsize(), writer_queue_depth=writer.qsize(),
+                                   writer_queue_full=writer.queue_full)
                 if time.monotonic() >= next_cover:  # counts without power: said in the heartbeat (ps) and the log
                     now = time.monotonic()
                     next_cover = now + 0.25
@@ -275,7 +255,8 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
                         led = book.ledger_now()
                         t = led.totals()
                         heartbeat.beat(**cover, ledger_line=led.line(), chunks_recorded=t.done, chunks_missing=t.missing,
-                                       chunks_duplicate=t.duplicate, chunks_lost=t.lost)
+                                       chunks_duplicate=t.duplicate, chunks_lost=t.lost,
+                                       cpu_s_per_msamples=sink.cpu()["cpu_s_per_msamples"])
                 if time.monotonic() >= next_log:
                     next_log += config.log_interval_s
                     log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)
@@ -285,27 +266,30 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
             try:
                 if sub is not None:
                     for item in sub.drain():
-                        write(item)
+                        sink.add(*item)
                     sub.close()
                 if session is not None:
                     session.close()
                 if sub is not None:
                     for item in sub.drain():
-                        write(item)
+                        sink.add(*item)
             except BaseException as exc:  # a dead network or a full disk must not lose the file
                 error = error or exc
-            writer.close()
+            try:
+                writer.close()
+            except BaseException as exc:
+                error = error or exc
     if error is not None:
         if isinstance(error, (MntesError, KeyboardInterrupt)):
             raise error
         raise TransportError(f"recorder failed: {type(error).__name__}: {error}") from error
     led = book.ledger_now()
-    trackers = [*sequences.values(), *book.sequences.values()]
+    trackers = [*sink.sequences.values(), *book.sequences.values()]
     now = time.monotonic()
     stats = RecorderStats(
         messages=writer.messages,
         payload_bytes=writer.payload_bytes,
-        by_kind=by_kind,
+        by_kind=sink.by_kind,
         invalid=writer.invalid,
         seq_gaps=max(sum(q.lost for q in trackers), 0),
         seq_repeats=sum(q.duplicated + q.out_of_order + q.resets for q in trackers),
@@ -323,15 +307,15 @@ def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=
         ledger=led.as_dict(),
         ledger_line=led.line(),
         converters={name: book.converter_line(name) for name in sorted(book.converters)},
+        writer_queue_full=writer.queue_full,
+        writer_wait_s=round(writer.wait_s, 3),
+        writer_queue_high_water=writer.queue_high_water,
+        **sink.cpu(),
     )
     log.info("recorder stopped: %s", stats)
+    log.info("recorder %s", cost_line(asdict(stats)))
     log.info("recorder %s", stats.final_line())
     return stats
-
-
-def _index(files, path) -> int:
-    """1-based position of a file in the run's files (the ``file_seq`` of its ledger record)."""
-    return next((i for i, p in enumerate(files, 1) if p == path), len(files))
 
 
 def _reach_the_source(z: ZenohSettings) -> ZenohSettings:
@@ -356,28 +340,6 @@ def _reach_the_source(z: ZenohSettings) -> ZenohSettings:
     log.info("gossip scouting on: a peer connected to %s learns of the others (the source) and records them too",
              ", ".join(named["connect/endpoints"]))
     return ZenohSettings(gossip=True).over(z)
-
-
-def _shard_filter(shard: Shard):
-    """Whether a recorder shard keeps a topic (None: it keeps everything); cached per topic."""
-    if shard.whole:
-        return None
-    cache: dict[str, bool] = {}
-
-    def mine(topic: str) -> bool:
-        keep = cache.get(topic)
-        if keep is None:
-            parts = topic.split("/")
-            if len(parts) == 5 and parts[2] in ("counts", "power") or parts[2:4] == ["hk", "bias"] and len(parts) == 6:
-                b, m = parts[-2:]
-                keep = shard.owns(int(b), int(m)) if b.isdigit() and m.isdigit() else shard.index == 0
-            else:
-                keep = shard.index == 0 or keys.kind_of(topic) == "provenance"
-            if len(cache) < 100_000:
-                cache[topic] = keep
-        return keep
-
-    return mine
 
 
 class RecorderService(Service):

@@ -112,17 +112,21 @@ class RotatingMcapWriter:
                                  f"({names}) up to their last flush, {self.unwritten} received after it may be "
                                  "missing") from None
 
-    def _open_next(self) -> None:
-        self._guard(self._rotate)
+    def _open_next(self, closing: Mapping | None = None) -> None:
+        self._guard(self._rotate, closing)
 
-    def _rotate(self) -> None:
+    def rotate(self, closing: Mapping | None = None) -> None:
+        """Finish the current file now (with the metadata records ``closing``, if given) and start the next."""
+        self._open_next(closing)
+
+    def _rotate(self, closing: Mapping | None = None) -> None:
         if self.failed:
             raise TransportError(f"recording stopped: {self.failed}")
         previous = self._current
         if previous is not None:
             self._provenance = previous.provenance
             try:
-                self._close_file(previous)
+                self._close_file(previous, closing)
             finally:
                 self.messages_closed += previous.messages_flushed
                 self._current = None
@@ -139,10 +143,13 @@ class RotatingMcapWriter:
         self._opened = time.monotonic()
         self._last_flush = self._opened
 
-    def _close_file(self, file: McapFileWriter) -> None:
-        """Finish one file: the closing metadata first (``closing_metadata``), then summary and footer."""
-        if self.closing_metadata is not None and not file.failed:  # after a failed write: nothing more to write
-            for name, data in self.closing_metadata(file.path).items():
+    def _close_file(self, file: McapFileWriter, closing: Mapping | None = None) -> None:
+        """Finish one file: the closing metadata first (``closing``, else ``closing_metadata``), then summary and
+        footer."""
+        if closing is None and self.closing_metadata is not None:
+            closing = self.closing_metadata(file.path)
+        if closing and not file.failed:  # after a failed write: nothing more to write
+            for name, data in closing.items():
                 file.add_metadata(name, data)
         file.close()
 
@@ -156,19 +163,20 @@ class RotatingMcapWriter:
             return
         self._guard(self._current.write_json, topic, schema_name, schema, message, log_time_ns)
 
-    def write(self, key: str, payload: bytes, log_time_ns: int) -> Envelope:
+    def write(self, key: str, payload: bytes, log_time_ns: int, env: Envelope | None = None) -> Envelope:
         """Store one message; the first failed write raises, later ones are only counted in ``unwritten``.
 
         Raising once lets the caller stop; not raising again lets it drain its queue and close its
         sessions in order (every message it hands over after the failure is counted, none written).
+        ``env``: the payload's ``peek_envelope``, when the caller read it already.
         """
         if self.failed:
             self.unwritten += 1
-            return peek_envelope(bytes(payload))
+            return peek_envelope(bytes(payload)) if env is None else env
         if self._current is None:
             raise TransportError("the writer is closed")
         self.messages += 1
-        env = self._guard(self._current.write, key, payload, log_time_ns)
+        env = self._guard(self._current.write, key, payload, log_time_ns, env)
         self.payload_bytes += len(payload)
         self.invalid += bool(env.problem)
         if self.rotate_bytes and self._current.size_bytes >= self.rotate_bytes:
@@ -196,12 +204,18 @@ class RotatingMcapWriter:
         self.flushes += 1
         self._last_flush = time.monotonic()
 
-    def close(self) -> None:
-        """Finish the current file; after a failed write, only close it (its messages up to the last flush stay)."""
+    @property
+    def size_bytes(self) -> int:
+        """The current file's size so far (its unflushed payload counted uncompressed); 0 once closed."""
+        return self._current.size_bytes if self._current is not None else 0
+
+    def close(self, closing: Mapping | None = None) -> None:
+        """Finish the current file (with the metadata records ``closing``, if given); after a failed write, only
+        close it (its messages up to the last flush stay)."""
         current = self._current
         if current is not None:
             try:
-                self._guard(self._close_file, current)
+                self._guard(self._close_file, current, closing)
             finally:
                 self.messages_closed += current.messages_flushed
                 self._current = None

@@ -165,10 +165,13 @@ class McapFileWriter:
             self._channels[key] = cid
         return cid
 
-    def write(self, key: str, payload: bytes, log_time_ns: int) -> Envelope:
-        """Store one received message verbatim; returns what its envelope said."""
+    def write(self, key: str, payload: bytes, log_time_ns: int, env: Envelope | None = None) -> Envelope:
+        """Store one received message verbatim; returns what its envelope said.
+
+        ``env``: the payload's :func:`peek_envelope`, when the caller read it already (it is not read twice).
+        """
         payload = bytes(payload)
-        env = check_provenance(payload, peek_envelope(payload))
+        env = check_provenance(payload, peek_envelope(payload) if env is None else env)
         if env.problem:
             self.invalid += 1
         pub = env.publish_time_ns if env.publish_time_ns is not None and env.publish_time_ns >= 0 else log_time_ns
