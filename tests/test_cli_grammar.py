@@ -176,3 +176,24 @@ def test_a_misspelt_setup_gets_the_live_one_suggested(capsys):
             assert "did you mean" not in capsys.readouterr().err
         finally:
             token.undeclare()
+
+
+def test_docs_cli_lists_every_command_and_every_overwrite():
+    """docs/cli.md: the command table in --help's groups, and the commands taking --overwrite."""
+    text = (ROOT / "docs" / "cli.md").read_text()
+    table = text.split("## Commands", 1)[1].split("\n## ", 1)[0]
+    group = None
+    where = {}
+    for line in table.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 3 and cells[1].startswith("`"):
+            group = cells[0] or group
+            where[cells[1].strip("`")] = group
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name in sub.choices:
+        title = next(g for g, cs in GROUPS.items() if name in cs)
+        assert where.get(name) == title, f"docs/cli.md: {name} not listed under {title!r}"
+    row = next(line for line in text.splitlines() if line.startswith("| `--overwrite`"))
+    for path, action in _walk(build_parser()):
+        if "--overwrite" in action.option_strings:
+            assert f"`{' '.join(path)}`" in row, f"docs/cli.md: --overwrite row misses {' '.join(path)}"
