@@ -76,3 +76,71 @@ def recording_with_hk(args, source):
             for t_ns, key, payload in msgs:
                 w.write(key, payload, t_ns)
         yield [*files, side]
+
+
+def bridge_config(args):
+    """The ocs-bridge config from ``--config``/``--set`` and the command line (which wins)."""
+    import dataclasses
+
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.ocs.bridge import OcsBridgeConfig, OcsBridgeService
+    from mntes_stream.service.config import load_service_config
+
+    if args.config:
+        service, cfg = load_service_config(args.config, args.set)
+        if service is not OcsBridgeService:
+            raise ConfigError(f"{args.config}: a [{service.name}] config, not an [ocs-bridge] one")
+    elif args.set:
+        raise ConfigError("--set needs --config")
+    else:
+        cfg = OcsBridgeConfig()
+    flags = {k: getattr(args, k) for k in ("router", "realm", "setup", "duration_s", "stale_s", "t_bath_field",
+                                           "b_field_field") if getattr(args, k, None) is not None}
+    try:
+        cfg = dataclasses.replace(cfg, bridge=dataclasses.replace(cfg.bridge, **flags))
+    except ConfigError as exc:
+        raise ConfigError(f"command line: {exc}") from None
+    return cfg
+
+
+def run_bridge(args) -> int:
+    from mntes_stream.cli._common import print_mapping, zenoh_layer
+    from mntes_stream.ocs.bridge import OcsBridgeService, bridge_line
+    from mntes_stream.service.base import stop_on_signals
+    from mntes_stream.service.config import with_zenoh
+
+    cfg = with_zenoh(bridge_config(args), zenoh_layer(args))
+    svc = OcsBridgeService(cfg)
+    svc.owns()  # a config without any field is a one-line error before anything starts
+    with stop_on_signals() as stop:
+        result = svc.start(stop=stop)
+    print_mapping(result, args.json)
+    if not args.json:
+        print(bridge_line(result))
+    return 0
+
+
+def register(sub) -> None:
+    from mntes_stream.cli._common import add_json, add_zenoh_args
+
+    p = sub.add_parser("ocs-bridge", help="publish OCS housekeeping (bath temperature, field) from a crossbar router "
+                                          "on zenoh",
+                       description="Subscribe to the OCS feeds (WAMP topics through a crossbar router) of the fields "
+                                   "named, and publish their readings as t_bath / b_field housekeeping messages with "
+                                   "their own times, as the simulator does: the converter's staleness rules apply. "
+                                   "Needs the ocs extra (autobahn).")
+    p.add_argument("--config", metavar="FILE", help="bridge TOML ([ocs-bridge], [zenoh]); flags override it")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
+    p.add_argument("--router", metavar="ws://HOST:PORT/ws", help="the crossbar router (OCS hub.wamp_server; default "
+                                                                 "ws://127.0.0.1:8001/ws)")
+    p.add_argument("--realm", help="the WAMP realm (OCS hub.wamp_realm; default test_realm)")
+    p.add_argument("--t-bath-field", metavar="FULL.FIELD.NAME", help="bath temperature field (K), e.g. "
+                                                                     "observatory.LS372.feeds.temperatures.Channel_06_T")
+    p.add_argument("--b-field-field", metavar="FULL.FIELD.NAME", help="magnetic field at the array (T)")
+    p.add_argument("--setup", help="setup name in the keys (default lab)")
+    p.add_argument("--stale-s", type=float, metavar="S", help="report a sensor whose newest reading is older "
+                                                             "(default 10)")
+    p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="stop after this long (0: never)")
+    add_json(p, "print the final statistics as one JSON document")
+    add_zenoh_args(p)
+    p.set_defaults(func=run_bridge)

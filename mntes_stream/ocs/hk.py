@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,7 @@ from mntes_stream.core.settings import Settings, setting
 from mntes_stream.io import keys
 from mntes_stream.io.messages import SENSOR_UNITS, HousekeepingChunk
 
-__all__ = ["OcsFields", "UNIT_SCALE", "hk_messages", "merge_by_time", "within"]
+__all__ = ["OcsFields", "UNIT_SCALE", "feed_readings", "hk_messages", "merge_by_time", "within"]
 
 # unit of the OCS field -> factor to the message's SI unit (SENSOR_UNITS)
 UNIT_SCALE = {"K": 1.0, "mK": 1e-3, "T": 1.0, "mT": 1e-3, "G": 1e-4}
@@ -98,3 +99,46 @@ def _span(t_ns) -> str:
         return datetime.fromtimestamp(int(t) / 1e9, UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
     return f"{iso(t_ns[0])} .. {iso(t_ns[-1])}"
+
+
+def feed_readings(message, field: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(t_ns, values, bad)`` of ``field`` in one OCS feed publication, in time order.
+
+    ``message`` is what an agent's feed publishes on its WAMP topic: ``(data,
+    feed)`` where ``data`` is, for an aggregated feed, ``{block_name:
+    {"timestamps": [...], "data": {field: [...]}}}``, otherwise one message
+    ``{"timestamp" or "timestamps", "block_name", "data": {field: value(s)}}``.
+    A value that is not a number becomes NaN (a failed reading); ``bad``
+    counts those and entries whose shape does not fit (skipped).
+    """
+    data = message[0] if isinstance(message, (list, tuple)) and message else message
+    if not isinstance(data, dict):
+        return np.empty(0, np.int64), np.empty(0), 1
+    blocks = [data] if "data" in data and isinstance(data.get("data"), dict) else list(data.values())
+    ts, vs, bad = [], [], 0
+    for b in blocks:
+        if not isinstance(b, dict) or not isinstance(b.get("data"), dict) or field not in b["data"]:
+            continue
+        t, v = b.get("timestamps", b.get("timestamp")), b["data"][field]
+        t, v = (t, v) if isinstance(t, list) else ([t], [v])
+        if not isinstance(v, list) or len(v) != len(t):
+            bad += 1
+            continue
+        for ti, vi in zip(t, v):
+            try:
+                tf = float(ti)
+            except (TypeError, ValueError):
+                bad += 1
+                continue
+            try:
+                vf = float(vi)
+            except (TypeError, ValueError):
+                vf, bad = math.nan, bad + 1
+            if math.isfinite(tf) and tf > 0:
+                ts.append(round(tf * 1e9))
+                vs.append(vf)
+            else:
+                bad += 1
+    t_ns, val = np.asarray(ts, np.int64), np.asarray(vs, np.float64)
+    order = np.argsort(t_ns, kind="stable")
+    return t_ns[order], val[order], bad

@@ -12,6 +12,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.foxglove.service import FoxgloveService
 from mntes_stream.g3.bridge import G3BridgeService
 from mntes_stream.monitor.service import MonitorService
+from mntes_stream.ocs.bridge import OcsBridgeService
 from mntes_stream.service.base import Service
 from mntes_stream.service.converter import ConverterService
 from mntes_stream.service.recorder import RecorderService
@@ -33,6 +34,7 @@ SERVICES: dict[str, type[Service]] = {cls.name: cls for cls in (
     RouterService,
     G3BridgeService,
     DfMuxBridgeService,
+    OcsBridgeService,
 )}
 
 
