@@ -186,3 +186,71 @@ def test_power_message_carries_sigma_p_optionally():
         m.PowerChunk(*args, sigma_p_w=np.zeros((1, 2), np.float32))
     with pytest.raises(SchemaError, match=">= 0"):
         m.PowerChunk(*args, sigma_p_w=-sig)
+
+
+def test_sigma_p_is_carried_to_the_feeds_hdf5_and_frameworks(tmp_path):
+    """Power chunks with and without sigma_P, a missing chunk, a chunk with its rows reordered and one
+    missing: the feeds put sigma_P where it was given and NaN elsewhere, bit for bit, and the HDF5 export,
+    sotodlib's AxisManager and TOAST's observation carry it."""
+    from mntes_stream.core.ids import detector_id
+    from mntes_stream.feeds import RecordedPower, export_hdf5, read_hdf5
+    from mntes_stream.io import keys
+    from mntes_stream.io.mcap import McapFileWriter
+    from mntes_stream.io.messages import PowerChunk
+
+    t0, rate, n = 1_700_000_000_000_000_000, 100.0, 10
+    step = int(n * 1e9 / rate)
+    rng = np.random.default_rng(2)
+    sent = {}
+    with McapFileWriter(tmp_path / "p.mcap") as w:
+        for seq in range(12):
+            if seq == 4:
+                continue  # a gap
+            ch = np.array([2, 0, 1] if seq == 7 else [0, 1, 2, 3], dtype=np.int32)
+            p = rng.normal(1e-12, 1e-14, (ch.size, n))
+            sig = rng.uniform(1e-18, 3e-18, (ch.size, n)).astype(np.float32) if seq < 9 else None
+            c = PowerChunk(setup="t", board=0, module=0, channels=ch, detector_ids=[detector_id(0, 0, x) for x in ch],
+                           seq=seq, t0_ns=t0 + seq * step, sample_rate_hz=rate, p_opt_w=p,
+                           flags=np.zeros(p.shape, np.uint16), table_identity="tab", converter_kind="table",
+                           source_t_pub_ns=t0, t_pub_ns=t0, sigma_p_w=sig)
+            sent[seq] = c
+            w.write(keys.power_key("t", 0, 0), c.to_bytes(), t0 + (seq + 1) * step)
+    b = RecordedPower(tmp_path / "p.mcap").read()["t_b0m0"]
+    assert b.sigma_p_w is not None and b.sigma_p_w.dtype == np.float32 and b.sigma_p_w.shape == b.p_opt_w.shape
+    for seq in range(12):
+        cols = slice(seq * n, (seq + 1) * n)
+        if seq not in sent or sent[seq].sigma_p_w is None:
+            assert np.isnan(b.sigma_p_w[:, cols]).all(), seq
+            continue
+        c = sent[seq]
+        rows = [b.detectors.index(d) for d in c.detector_ids]
+        np.testing.assert_array_equal(b.sigma_p_w[rows, cols], c.sigma_p_w)
+        absent = [r for r in range(b.n_detectors) if r not in rows]
+        assert np.isnan(b.sigma_p_w[absent, cols]).all()
+    assert b.select(["b0m0c003"]).sigma_p_w.shape == (1, b.n_samples)
+    export_hdf5(tmp_path / "p.mcap", tmp_path / "p.h5", block_samples=32)
+    back = read_hdf5(tmp_path / "p.h5", "t_b0m0")
+    np.testing.assert_array_equal(back.sigma_p_w, b.sigma_p_w)
+    import h5py
+
+    with h5py.File(tmp_path / "p.h5") as f:
+        assert f["t_b0m0/sigma_p_w"].attrs["units"] == "W"
+    from mntes_stream.feeds.frameworks import _common
+
+    seg = _common.single_segment(b)
+    pytest.importorskip("sotodlib.core", reason="sotodlib extra not installed")
+    from mntes_stream.feeds.frameworks.sotodlib_io import to_axismanager
+
+    am = to_axismanager(seg, sample_rate_hz=rate)
+    np.testing.assert_array_equal(am.sigma_p_w, b.sigma_p_w)
+    pytest.importorskip("toast", reason="toast extra not installed")
+    from mntes_stream.feeds.frameworks.toast_io import to_toast
+
+    obs = to_toast(seg, sample_rate_hz=rate)
+    np.testing.assert_array_equal(obs.detdata["sigma_p_w"][:], b.sigma_p_w.astype(np.float64))
+    pytest.importorskip("litebird_sim", reason="litebird extra not installed")
+    from mntes_stream.feeds.frameworks.litebird_io import export_litebird, read_litebird
+
+    export_litebird(tmp_path / "p.mcap", tmp_path / "lbs")
+    (lobs,) = read_litebird(tmp_path / "lbs")
+    np.testing.assert_array_equal(lobs.mntes_sigma_p_w, b.sigma_p_w)

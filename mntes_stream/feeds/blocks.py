@@ -102,6 +102,9 @@ class TodBlock:
         Identities of the response tables (``PowerChunk.table_identity``) that
         produced the power in this block, in order of first appearance;
         empty for a block of gap fill only.
+    sigma_p_w : ndarray of float32, shape (n_det, n_samp), or None
+        Per-sample power uncertainty (``PowerChunk.sigma_p_w``) where the
+        converter gave it, NaN elsewhere; None when no chunk of the block had it.
 
     Arrays are read-only; ``np.array(block.p_opt_w)`` gives a writable copy.
     """
@@ -116,6 +119,7 @@ class TodBlock:
     flags: np.ndarray
     first_sample: int = 0
     table_identities: tuple = ()
+    sigma_p_w: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         dets = tuple(str(d) for d in self.detectors)
@@ -131,6 +135,11 @@ class TodBlock:
             )
         for name, value in (("detectors", dets), ("channels", ch), ("t_ns", t), ("p_opt_w", p), ("flags", f)):
             object.__setattr__(self, name, value if name == "detectors" else _readonly(value))
+        if self.sigma_p_w is not None:
+            sp = np.asarray(self.sigma_p_w, dtype=np.float32)
+            if sp.shape != shape:
+                raise ConfigError(f"TodBlock: sigma_p_w {sp.shape} is not (n_det, n_samp) = {shape}")
+            object.__setattr__(self, "sigma_p_w", _readonly(sp))
         object.__setattr__(self, "table_identities", tuple(str(s) for s in self.table_identities))
 
     @property
@@ -164,7 +173,8 @@ class TodBlock:
             raise ConfigError(f"{self.name}: no detector(s) {missing}")
         idx = np.array([row[d] for d in want], dtype=np.intp)
         return TodBlock(self.setup, self.board, self.module, tuple(want), self.channels[idx], self.t_ns,
-                        self.p_opt_w[idx], self.flags[idx], self.first_sample, self.table_identities)
+                        self.p_opt_w[idx], self.flags[idx], self.first_sample, self.table_identities,
+                        None if self.sigma_p_w is None else self.sigma_p_w[idx])
 
 
 def concat_blocks(blocks: list[TodBlock]) -> TodBlock:
@@ -180,7 +190,16 @@ def concat_blocks(blocks: list[TodBlock]) -> TodBlock:
     return TodBlock(b0.setup, b0.board, b0.module, b0.detectors, b0.channels,
                     np.concatenate([b.t_ns for b in blocks]), np.concatenate([b.p_opt_w for b in blocks], axis=1),
                     np.concatenate([b.flags for b in blocks], axis=1), b0.first_sample,
-                    _distinct(s for b in blocks for s in b.table_identities))
+                    _distinct(s for b in blocks for s in b.table_identities),
+                    _sigma_concat([b.sigma_p_w for b in blocks], [b.p_opt_w.shape for b in blocks]))
+
+
+def _sigma_concat(parts: list, shapes: list) -> np.ndarray | None:
+    """Per-sample sigma_P of consecutive parts side by side; NaN for parts without; None if none has it."""
+    if all(x is None for x in parts):
+        return None
+    return np.concatenate([np.full(sh, np.nan, dtype=np.float32) if x is None else np.asarray(x, np.float32)
+                           for x, sh in zip(parts, shapes)], axis=1)
 
 
 @dataclass
@@ -236,6 +255,7 @@ class Piece(NamedTuple):
     p_opt_w: np.ndarray  # (n_rows, n) float64
     flags: np.ndarray  # (n_rows, n) uint16
     table_identity: str | None  # None for gap fill
+    sigma_p_w: np.ndarray | None = None  # (n_rows, n) float32, where the converter gave it
 
 
 @dataclass(frozen=True)
@@ -339,7 +359,7 @@ class StreamAssembler:
 
     def push(self, seq: int, t_ns: np.ndarray, sample_rate_hz: float | None, detector_ids: tuple,
              p_opt_w: np.ndarray, flags: np.ndarray, table_identity: str = "",
-             converter_kind: str = "") -> list:
+             converter_kind: str = "", sigma_p_w: np.ndarray | None = None) -> list:
         """Add the next chunk (in sample-time order); returns what to append, in order.
 
         Parameters
@@ -353,6 +373,8 @@ class StreamAssembler:
         flags : ndarray of uint16, shape (n_ch, n)
         table_identity, converter_kind : str
             The chunk's, recorded in :attr:`stats` when its samples are used.
+        sigma_p_w : ndarray of float32, shape (n_ch, n), optional
+            The chunk's per-sample uncertainty, when it carries one.
 
         Returns
         -------
@@ -416,21 +438,29 @@ class StreamAssembler:
         src, dst, same_rows = self._map(tuple(detector_ids))
         p = p_opt_w[:, keep]
         f = flags[:, keep]
+        sp = None if sigma_p_w is None else sigma_p_w[:, keep]
         if cols is not None:
             p, f = p[:, cols], f[:, cols]
+            sp = None if sp is None else sp[:, cols]
+        s_out = None
         if same_rows:
             p_out, f_out = np.array(p, dtype=np.float64), np.array(f, dtype=fl.FLAG_DTYPE)
+            if sp is not None:
+                s_out = np.array(sp, dtype=np.float32)
         else:
             shape = (len(self.detectors), t.size)
             p_out = np.full(shape, np.nan)
             f_out = np.full(shape, fl.UNKNOWN_CHANNEL, dtype=fl.FLAG_DTYPE)
             p_out[dst] = p[src]
             f_out[dst] = f[src]
+            if sp is not None:
+                s_out = np.full(shape, np.nan, dtype=np.float32)
+                s_out[dst] = sp[src]
             st.absent_samples += (len(self.detectors) - dst.size) * int(t.size)  # rows the chunk lacks
         st.chunks += 1
         st.samples += int(t.size)
         self._note(table_identity, converter_kind)
-        out.append(Piece(np.array(t, dtype=np.int64), p_out, f_out, table_identity))
+        out.append(Piece(np.array(t, dtype=np.int64), p_out, f_out, table_identity, s_out))
         return out
 
     def _note(self, table_identity: str, converter_kind: str) -> None:
@@ -483,22 +513,23 @@ class BlockBuffer:
             if got >= n:
                 rest.append(piece)
                 continue
-            t, p, f, ident = piece
+            t, p, f, ident, sp = piece
             k = min(n - got, t.size)
-            take.append(Piece(t[:k], p[:, :k], f[:, :k], ident))
+            take.append(Piece(t[:k], p[:, :k], f[:, :k], ident, None if sp is None else sp[:, :k]))
             if k < t.size:
-                rest.append(Piece(t[k:], p[:, k:], f[:, k:], ident))
+                rest.append(Piece(t[k:], p[:, k:], f[:, k:], ident, None if sp is None else sp[:, k:]))
             got += k
         self._pieces = rest
         self._n -= n
         if len(take) == 1:
-            t, p, f, _ = take[0]
+            t, p, f, _, sig = take[0]
         else:
             t = np.concatenate([x.t_ns for x in take])
             p = np.concatenate([x.p_opt_w for x in take], axis=1)
             f = np.concatenate([x.flags for x in take], axis=1)
+            sig = _sigma_concat([x.sigma_p_w for x in take], [x.p_opt_w.shape for x in take])
         s = self.stream
         block = TodBlock(s.setup, s.board, s.module, self.detectors, self.channels, t, p, f, self.emitted,
-                         _distinct(x.table_identity for x in take))
+                         _distinct(x.table_identity for x in take), sig)
         self.emitted += n
         return block

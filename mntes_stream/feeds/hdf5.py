@@ -23,6 +23,9 @@ Layout (``FORMAT = "mntes-stream/power"``, ``FORMAT_VERSION = 2``)::
                                             attrs flag_bit<n> = "<name>: <meaning>", flag_bits_json
         time       float64 (n_samp,)        s since the Unix epoch (float64 s, as TOAST and sotodlib keep times)
         time_ns    int64   (n_samp,)        ns since the Unix epoch (exact)
+        sigma_p_w  float32 (n_det, n_samp)  W, per-sample power uncertainty from the readout noise, where the
+                                            converter gave it (NaN elsewhere); present only then
+                                            (noise weight = 1 / sigma_p_w**2)     [chunked, compressed]
         detectors  str     (n_det,)         detector ids b<board>m<module>c<channel>
         channels   int32   (n_det,)
 
@@ -125,11 +128,25 @@ def _create_observation(f, rec: RecordedPower, sid, block_samples: int, filters:
     return g
 
 
-def _write_block(ds: dict, b: TodBlock) -> None:
+def _sigma_dataset(g, tod, filters: dict):
+    """The observation's ``sigma_p_w``, made at its first block that carries one (NaN where none was given)."""
+    n_det = tod.shape[0]
+    d = g.create_dataset("sigma_p_w", (n_det, tod.shape[1]), maxshape=(n_det, None), dtype="<f4",
+                         chunks=tod.chunks, fillvalue=np.nan, **filters)
+    d.attrs.update({"units": "W", "description": "per-sample power uncertainty from the readout noise through the "
+                    "local responsivity (core.uncertainty); NaN where not given; noise weight = 1 / sigma_p_w**2"})
+    return d
+
+
+def _write_block(ds: dict, b: TodBlock, group=None, filters: dict | None = None) -> None:
     """One block into an observation's datasets (held open: a dataset object freed mid-write by h5py reports
     a failed write, a full disk, only as an ignored error in its deallocation, and HDF5 then goes on)."""
     a, z = b.first_sample, b.first_sample + b.n_samples
-    for name in ("tod", "flags"):
+    if b.sigma_p_w is not None and "sigma_p_w" not in ds and group is not None:
+        ds["sigma_p_w"] = _sigma_dataset(group, ds["tod"], filters or {})
+    for name in ("tod", "flags", "sigma_p_w"):
+        if name not in ds:
+            continue
         ds[name].resize(z, axis=1)
     for name in ("time", "time_ns"):
         ds[name].resize(z, axis=0)
@@ -137,6 +154,8 @@ def _write_block(ds: dict, b: TodBlock) -> None:
     ds["flags"][:, a:z] = b.flags
     ds["time"][a:z] = b.t_s
     ds["time_ns"][a:z] = b.t_ns
+    if b.sigma_p_w is not None and "sigma_p_w" in ds:
+        ds["sigma_p_w"][:, a:z] = b.sigma_p_w
 
 
 def export_hdf5(source, out, *, compression: str = "gzip", block_samples: int = DEFAULT_BLOCK_SAMPLES,
@@ -316,7 +335,7 @@ def _write_file(f, rec: RecordedPower, block_samples: int, filters: dict, disk: 
     groups = {sid: _create_observation(f, rec, sid, block_samples, filters) for sid in rec.streams}
     datasets = {sid: {name: g[name] for name in ("tod", "flags", "time", "time_ns")} for sid, g in groups.items()}
     for b in rec.iter_blocks(block_samples):
-        _write_block(datasets[b.stream], b)
+        _write_block(datasets[b.stream], b, groups[b.stream], filters)
         disk.check()  # stop at the first failed write: what follows would only fill memory
     summary_samples = gap = absent = dups = breaks = 0
     for sid, g in groups.items():
@@ -381,5 +400,6 @@ def read_hdf5(path, observation: str | None = None) -> TodBlock | dict[str, TodB
                 tuple(s.decode() if isinstance(s, bytes) else str(s) for s in g["detectors"][()]),
                 g["channels"][()], g["time_ns"][()], g["tod"][()], g["flags"][()],
                 table_identities=tuple(json.loads(g.attrs["table_identities"])),
+                sigma_p_w=g["sigma_p_w"][()] if "sigma_p_w" in g else None,
             )
     return out[observation] if observation is not None else out

@@ -163,11 +163,11 @@ class LivePowerFeed:
         if asm is None:
             return
         pieces = asm.push(chunk.seq, chunk.times_ns(), chunk.sample_rate_hz, chunk.detector_ids, chunk.p_opt_w,
-                          chunk.flags, chunk.table_identity, chunk.converter_kind)
+                          chunk.flags, chunk.table_identity, chunk.converter_kind, getattr(chunk, "sigma_p_w", None))
         rows, channels = asm.detectors, asm.channels
-        for t, p, f, ident in iter_pieces(pieces, self.gap_block_samples):
+        for t, p, f, ident, sig in iter_pieces(pieces, self.gap_block_samples):
             yield TodBlock(sid.setup, sid.board, sid.module, rows, channels, t, p, f, self._emitted[sid],
-                           (ident,) if ident else ())
+                           (ident,) if ident else (), sig)
             self._emitted[sid] += int(t.size)
 
     def collect(self) -> dict[str, TodBlock]:
@@ -235,8 +235,11 @@ def _widen(block: TodBlock, last: TodBlock) -> TodBlock:
     have = {d: r for r, d in enumerate(block.detectors)}
     p = np.full((len(rows), block.n_samples), np.nan)
     f = np.full((len(rows), block.n_samples), fl.UNKNOWN_CHANNEL, dtype=fl.FLAG_DTYPE)
+    s = None if block.sigma_p_w is None else np.full((len(rows), block.n_samples), np.nan, dtype=np.float32)
     for i, d in enumerate(rows):
         if d in have:
             p[i], f[i] = block.p_opt_w[have[d]], block.flags[have[d]]
+            if s is not None:
+                s[i] = block.sigma_p_w[have[d]]
     return TodBlock(block.setup, block.board, block.module, rows, last.channels, block.t_ns, p, f,
-                    block.first_sample, block.table_identities)
+                    block.first_sample, block.table_identities, s)

@@ -362,7 +362,7 @@ class _ReadState:
     def take(self, item) -> Iterator[TodBlock]:
         c, t = item
         pieces = self.asm.push(c.seq, t, c.sample_rate_hz, c.detector_ids, c.p_opt_w, c.flags,
-                               c.table_identity, c.converter_kind)
+                               c.table_identity, c.converter_kind, getattr(c, "sigma_p_w", None))
         yield from self.buf.add(pieces)
 
 

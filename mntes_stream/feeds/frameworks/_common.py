@@ -95,7 +95,8 @@ def segments(data) -> list[TodBlock]:
     out = []
     for a, z in zip(cuts[:-1], cuts[1:]):
         out.append(TodBlock(b.setup, b.board, b.module, b.detectors, b.channels, b.t_ns[a:z], b.p_opt_w[:, a:z],
-                            b.flags[:, a:z], b.first_sample + a, b.table_identities))
+                            b.flags[:, a:z], b.first_sample + a, b.table_identities,
+                            None if b.sigma_p_w is None else b.sigma_p_w[:, a:z]))
     return out
 
 

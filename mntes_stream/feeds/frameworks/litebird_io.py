@@ -128,6 +128,7 @@ def to_litebird(data, *, name: str | None = None, sample_rate_hz: float | None =
         bore2ecliptic_quats=lbs.RotQuaternion(np.array([[0.0, 0.0, 0.0, 1.0]])))
     obs.local_flags = np.array(b.flags)
     obs.mntes_t_ns = np.array(b.t_ns)
+    obs.mntes_sigma_p_w = None if b.sigma_p_w is None else np.array(b.sigma_p_w)
     obs.mntes_stream = c.metadata(
         b, name, rate, fp, segment, max_time_error_ns=err_ns,
         litebird_units="litebird_sim.Units has no watt: tod units are the string 'W'; read_list_of_observations "
@@ -174,6 +175,8 @@ def export_litebird(source, out, *, overwrite: bool = False, compression: str | 
             # Beside what litebird_sim writes: exact times and our metadata, which its loader leaves alone.
             with h5py.File(path, "a") as f:
                 f.create_dataset("mntes_t_ns", data=obs.mntes_t_ns)
+                if obs.mntes_sigma_p_w is not None:
+                    f.create_dataset("mntes_sigma_p_w", data=obs.mntes_sigma_p_w)
                 f.attrs["mntes_stream"] = json.dumps(obs.mntes_stream)
             names.append(name)
             n += block.p_opt_w.size
@@ -209,6 +212,7 @@ def read_litebird(paths) -> list:
                     tod.units = UNITS
             if "mntes_t_ns" in h:
                 obs.mntes_t_ns = h["mntes_t_ns"][:]
+            obs.mntes_sigma_p_w = h["mntes_sigma_p_w"][:] if "mntes_sigma_p_w" in h else None
             if "mntes_stream" in h.attrs:
                 obs.mntes_stream = json.loads(h.attrs["mntes_stream"])
     return obs_list

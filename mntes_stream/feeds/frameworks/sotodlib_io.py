@@ -68,6 +68,8 @@ def to_axismanager(data, *, name: str | None = None, sample_rate_hz: float | Non
     aman = core.AxisManager(dets, samps)
     aman.wrap("timestamps", b.t_s, [(0, "samps")])
     aman.wrap("signal", np.array(b.p_opt_w), [(0, "dets"), (1, "samps")])
+    if b.sigma_p_w is not None:  # per-sample noise (W): weight 1 / sigma_p_w**2
+        aman.wrap("sigma_p_w", np.array(b.sigma_p_w), [(0, "dets"), (1, "samps")])
     flags = core.FlagManager.for_tod(aman)
     for bit, flag_name in fl.NAMES.items():
         flags.wrap(flag_name, RangesMatrix.from_mask((b.flags & bit) != 0), [(0, "dets"), (1, "samps")])

@@ -111,6 +111,10 @@ def to_toast(data, *, name: str | None = None, sample_rate_hz: float | None = No
     obs.detdata["flags"][:] = np.where(bad, np.uint8(defaults.det_mask_invalid), np.uint8(0))
     obs.detdata.create("mntes_flags", dtype=np.uint16)
     obs.detdata["mntes_flags"][:] = b.flags
+    if b.sigma_p_w is not None:
+        # Per-sample noise (issue 26): a mapmaker's weight is 1 / sigma_p_w**2 (TOAST's noise models are per detector).
+        obs.detdata.create("sigma_p_w", dtype=np.float64, units=u.W)
+        obs.detdata["sigma_p_w"][:] = b.sigma_p_w
     # A detector with no usable sample at all is flagged as a whole, as TOAST's per-detector flags do.
     obs.update_local_detector_flags({d: defaults.det_mask_invalid for d, row in zip(b.detectors, bad) if row.all()})
     obs["mntes_stream"] = c.metadata(
