@@ -6,8 +6,16 @@ inverse. The compiled kernel does one pass over the samples with no
 transcendental call per sample in normal operation: ``K T^n`` comes from
 the table and a short binomial series (see ``core.tables``), and so does
 ``K T_bath^n`` around each detector's nominal bath (within 5%; beyond, the
-exact power). It runs far above numpy's many-temporaries speed; see
-``benchmarks/README.md``.
+exact power). See ``benchmarks/README.md`` for its speed.
+
+The "table" kind's sample loop vectorises (``_table_kernel``): a detector's
+samples run in blocks of ``LANES`` vector lanes with no branch (flags as
+bit arithmetic, the interval from an O(1) lookup cell and one branch-free
+step, tables read by gathers); a block where a lane needs a branch (the
+exact power beyond the series, a second lookup step) is done again by the
+scalar reference, so the values are the reference's bit for bit. Successive
+samples of a detector are not assumed close: a lookup costs the same
+wherever the sample lands.
 
 Per-detector scalars ``phys`` (n_bank, 21): gain re/im, pickup re/im, z re/im,
 K, n, c1, c2, gamma, nominal bias, R at |z| and the saturation cap, nominal
@@ -15,11 +23,13 @@ bath, R at the bottom, the phase-residual limit (A), R at the top, and the
 noise margins (Ohm V) at the top, at |z| and at the bottom; see
 ``core.model.FlagThresholds``.
 ``dom``: bath temperature lo/hi, field lo/hi, bias fraction lo/hi.
-Per-detector constants of the compiled kernel ``pre`` (n_bank, 10), from
-:func:`row_constants`: the binomials ``C(n, 1..8)``, ``1 / T0`` and ``K T0^n``
-with ``T0`` the bath the table refers to; computed once per converter, not
-once per row of every call (a row of a 20-sample chunk paid a ``pow`` and
-seven divisions for them).
+The compiled kernels read a compact per-detector record ``rec`` (n_bank,
+``REC_COLS``), from :func:`row_constants`, computed once per converter: the
+front end's constants, K, n, field and current coefficients, the binomials
+``C(n, 1..8)``, ``1 / T0`` and ``K T0^n`` (``T0`` the bath the table refers
+to) and the detector's table window (R range, knot and cell offsets). One
+320-byte row per detector instead of some forty values from seven arrays:
+a 20-sample row paid about a microsecond of cache misses to gather them.
 """
 
 from __future__ import annotations
@@ -32,7 +42,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core import model
 
 __all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy",
-           "row_constants", "compile_kernels"]
+           "row_constants", "compile_kernels", "REC_COLS", "LANES"]
 
 SQRT2 = model.SQRT2
 # Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
@@ -50,6 +60,16 @@ _ENV = int(fl.ENV_OUT_OF_RANGE)
 _UNKNOWN = int(fl.UNKNOWN_CHANNEL)
 _HK_MISSING = int(fl.HK_MISSING)
 _UNUSABLE = int(fl.UNUSABLE)
+# Samples of one detector computed side by side: 8 doubles fill an AVX-512 register.
+LANES = 8
+# Columns of the record ``rec`` (:func:`row_constants`). 0-15 are the front end's
+# constants in the order of ``_front``'s ``det``.
+_R_K, _R_N, _R_C1, _R_C2, _R_GAMMA = 16, 17, 18, 19, 20
+_R_A = 21                                     # 21-28: C(n, 1..8)
+_R_INV_T0, _R_K_T0_N = 29, 30
+_R_X_LO, _R_X_HI, _R_CPO = 31, 32, 33         # the table's R range, lookup cells per ohm
+_R_K0, _R_LAST, _R_C0, _R_NCELL = 34, 35, 36, 37  # first and last knot, first cell, cells (exact in float64)
+REC_COLS = 40                                 # padded to 320 bytes, five cache lines
 
 
 # --- numpy twins -------------------------------------------------------------------------
@@ -105,23 +125,39 @@ def binomial_series(x, a):
     return 1.0 + x * (lo + x4 * hi)
 
 
-def row_constants(phys, t0_k):
-    """The compiled kernel's per-detector constants ``pre`` (n_det, 10), C-contiguous float64.
+def row_constants(phys, t0_k, dom, ko, x, co, cpo):
+    """The compiled kernels' per-detector record ``rec`` (n_det, ``REC_COLS``), C-contiguous float64.
 
     Parameters
     ----------
     phys : ndarray, shape (n_det, 21)
-        The kernels' per-detector scalars (column 6 K, column 7 n).
+        The kernels' per-detector scalars.
     t0_k : ndarray, shape (n_det,)
         The bath temperature the detector's table refers to (nominal bath for
         "table", ``t_ref_k`` for "grid").
+    dom : ndarray, shape (6,)
+        The bank's domain (bias bounds become volts here, as the kernel formed them).
+    ko, x, co, cpo : the bank's ``knot_offset``, ``r_knot_ohm``, ``cell_offset``, ``cell_per_ohm``
     """
     phys = np.asarray(phys, dtype=np.float64)
     t0 = np.asarray(t0_k, dtype=np.float64)
+    rec = np.zeros((len(t0), REC_COLS))
+    if not len(t0):
+        return rec
+    ko, co = np.asarray(ko), np.asarray(co)
+    v_nom = phys[:, 11]
+    front = (0, 1, 2, 3, 4, None, 12, 13, None, 5, 15, 16, 17, 18, 19, 20)
+    for col, src in enumerate(front):
+        rec[:, col] = phys[:, src] if src is not None else 0.0
+    rec[:, 5], rec[:, 8], rec[:, 11] = dom[4] * v_nom, dom[5] * v_nom, phys[:, 16] * SQRT2
+    rec[:, _R_K:_R_GAMMA + 1] = phys[:, 6:11]
     k, n = phys[:, 6], phys[:, 7]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        cols = [*binomials(n), 1.0 / t0, k * t0**n]
-    return np.ascontiguousarray(np.stack(cols, axis=1)) if len(t0) else np.empty((0, 10))
+        rec[:, _R_A:_R_A + 8] = np.stack(binomials(n), axis=1)
+        rec[:, _R_INV_T0], rec[:, _R_K_T0_N] = 1.0 / t0, k * t0**n
+    rec[:, _R_X_LO], rec[:, _R_X_HI], rec[:, _R_CPO] = x[ko[:-1]], x[ko[1:] - 1], cpo
+    rec[:, _R_K0], rec[:, _R_LAST], rec[:, _R_C0], rec[:, _R_NCELL] = ko[:-1], ko[1:] - 1, co[:-1], np.diff(co)
+    return rec
 
 
 def hermite_basis(u, h):
@@ -273,10 +309,29 @@ except ImportError:  # the numpy twins above still work
     numba = None
 
 if numba is not None:
+    from numba.core import compiler as _numba_compiler
+
+    from mntes_stream.core._baselines import _compact
+
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     # Helpers are inlined in numba IR: a real call would incref/decref every
     # array argument (atomic operations) per sample and cost ~6x in speed.
     _inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+
+    class _NoAliasCompiler(_numba_compiler.Compiler):
+        """numba's compiler with every pointer argument ``noalias`` (C's ``restrict``).
+
+        Without it LLVM cannot vectorise a loop that reads the tables at computed
+        indices and stores results ("cannot identify array bounds"): an output
+        might alias a table. The kernels' outputs never alias an input (the
+        wrappers allocate them), so the promise holds.
+        """
+
+        def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
+            flags.noalias = True
+            super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
+
+    _jit_vector = numba.njit(cache=True, nogil=True, error_model="numpy", pipeline_class=_NoAliasCompiler)
 
     @_inline
     def _front(xi, xq, tb, b, v, hk, det, dom):
@@ -314,11 +369,23 @@ if numba is not None:
         return f, r, m2, True  # |i| only where a detector's current shift needs it: sqrt costs
 
     @_inline
-    def _det(phys, d, dom):
-        v_nom = phys[d, 11]
-        return (phys[d, 0], phys[d, 1], phys[d, 2], phys[d, 3], phys[d, 4], dom[4] * v_nom,
-                phys[d, 12], phys[d, 13], dom[5] * v_nom, phys[d, 5], phys[d, 15], phys[d, 16] * SQRT2,
-                phys[d, 17], phys[d, 18], phys[d, 19], phys[d, 20])
+    def _record(rec, d):
+        """Row ``d`` of the record (:func:`row_constants`) as a tuple of scalars, read once per row."""
+        return (rec[d, 0], rec[d, 1], rec[d, 2], rec[d, 3], rec[d, 4], rec[d, 5], rec[d, 6], rec[d, 7],
+                rec[d, 8], rec[d, 9], rec[d, 10], rec[d, 11], rec[d, 12], rec[d, 13], rec[d, 14], rec[d, 15],
+                rec[d, 16], rec[d, 17], rec[d, 18], rec[d, 19], rec[d, 20], rec[d, 21], rec[d, 22], rec[d, 23],
+                rec[d, 24], rec[d, 25], rec[d, 26], rec[d, 27], rec[d, 28], rec[d, 29], rec[d, 30], rec[d, 31],
+                rec[d, 32], rec[d, 33], rec[d, 34], rec[d, 35], rec[d, 36], rec[d, 37])
+
+    @_inline
+    def _det(q):
+        """The front end's constants of record ``q`` (``_front``'s ``det``)."""
+        return (q[0], q[1], q[2], q[3], q[4], q[5], q[6], q[7], q[8], q[9], q[10], q[11], q[12], q[13], q[14], q[15])
+
+    @_inline
+    def _binomials(q):
+        """``C(n, 1..8)`` of record ``q``."""
+        return (q[21], q[22], q[23], q[24], q[25], q[26], q[27], q[28])
 
     _series = _inline(binomial_series)
     _hermite = _inline(hermite_basis)
@@ -336,10 +403,192 @@ if numba is not None:
     def _dom(dom):
         return (dom[0], dom[1], dom[2], dom[3], dom[4], dom[5])
 
+    @_inline
+    def _cell(r, q):
+        """Index into ``cell_interval`` of the lookup cell of ``r`` (within detector record ``q``'s table)."""
+        cell = int((r - q[_R_X_LO]) * q[_R_CPO])
+        n1 = int(q[_R_NCELL]) - 1
+        return int(q[_R_C0]) + (cell if cell < n1 else n1)
+
+    @_inline
+    def find_interval(r, q, x, cidx):
+        """Global knot index ``j`` of the interval holding ``r``, ``x[j] <= r < x[j + 1]`` (the last
+        interval holds its right end), for ``r`` within detector record ``q``'s table.
+
+        The interval every kernel on a bank interpolates in: the O(1) lookup
+        cell, one branch-free step (a cell holds at most one knot,
+        :func:`core.tables.lookup_cells`, unless its cap on cells applies),
+        then the rare rest. Inlined where called (numba IR).
+        """
+        j = int(q[_R_K0]) + cidx[_cell(r, q)]
+        last = int(q[_R_LAST])
+        j += (j + 1 < last) & (r >= x[j + 1])
+        while j + 1 < last and r >= x[j + 1]:
+            j += 1
+        return j
+
+    @_inline
+    def _table_sample(xi, xq, tb, ltb, b, v, hk, q, dm, x, cidx, coef):
+        """One sample of the "table" kind, with every branch: the reference arithmetic.
+
+        Returns power (NaN where unusable) and flags. The vector lanes of
+        ``_table_kernel`` compute exactly this where no branch is taken.
+        """
+        f, r, i2, ok = _front(xi, xq, tb, b, v, hk, _det(q), dm)
+        p = math.nan
+        if ok:
+            j = -1
+            if q[_R_X_LO] <= r <= q[_R_X_HI]:
+                j = find_interval(r, q, x, cidx)
+            a = _binomials(q)
+            k, n = q[_R_K], q[_R_N]
+            kb = _bath(tb, ltb, q[_R_INV_T0], q[_R_K_T0_N], k, n, a)
+            if j < 0:
+                f |= _OOT
+            else:
+                u = r - x[j]
+                w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
+                inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
+                gamma = q[_R_GAMMA]
+                delta = q[_R_C1] * b + q[_R_C2] * b * b - (gamma * math.sqrt(i2) if gamma != 0.0 else 0.0)
+                xx = delta * inv_ts
+                if abs(xx) <= SERIES_LIMIT:
+                    kt = w * _series(xx, a)
+                else:
+                    t = 1.0 / inv_ts + delta
+                    kt = k * math.exp(n * math.log(t)) if t > 0.0 else 0.0
+                p = kt - kb - v * v * r / ((r + q[4]) ** 2 + q[9] * q[9])
+        if f & _UNUSABLE:
+            p = math.nan
+        return p, f
+
+    # The vector lane in two parts around the table reads, which stay in the kernel's own loop:
+    # a helper given an array leaves reference counting (calls) in the loop, and no vectorising.
+
+    @_inline
+    def _lane_front(xi, xq, tb, b, v, hk, q, dm):
+        """``_front`` without a branch: flags (all but ``OUT_OF_TABLE``), R, |i|^2, whether usable,
+        whether inside the table, and the R to look up (R inside, the table's start outside, so
+        every lane reads in bounds). Bitwise ``&``/``|`` on booleans: ``and``/``or`` would branch.
+        """
+        env_ok = (tb > 0.0) & (abs(b) < math.inf) & (v > 0.0) & (v < math.inf)
+        in_dom = (dm[0] <= tb) & (tb <= dm[1]) & (dm[2] <= b) & (b <= dm[3]) & (q[5] <= v) & (v <= q[8])
+        counts_ok = (abs(xi) < RAIL) & (abs(xq) < RAIL)
+        ire = q[0] * xi - q[1] * xq - q[2] * b
+        iim = q[0] * xq + q[1] * xi - q[3] * b
+        m2 = ire * ire + iim * iim
+        m2_ok = m2 > 0.0
+        valid = counts_ok & env_ok & m2_ok
+        bad = ~counts_ok | (env_ok & ~m2_ok) | (~env_ok & ((hk & _HK_MISSING) == 0))
+        r = SQRT2 * v * ire / m2 - q[4]
+        phase = valid & (abs(SQRT2 * v * iim + q[9] * m2) > q[11] * v)
+        sat = valid & ((r >= q[7]) | ((r - q[12]) * v >= -q[13]))
+        low = valid & ~sat & ((r - q[6]) * v <= q[14])
+        lat = low & ~((r - q[10]) * v <= q[15])
+        ok = valid & ~sat & ~low
+        x_lo = q[_R_X_LO]
+        inside = ok & (x_lo <= r) & (r <= q[_R_X_HI])
+        f = (hk | (_ENV * (env_ok & ~in_dom)) | (_INVALID * bad) | (_PHASE * phase) | (_SAT * sat) | (_SC * low)
+             | (_LAT * lat) | (_OOT * (ok & ~inside)))
+        return f, r, m2, inside, (r if inside else x_lo)
+
+    @_inline
+    def _lane_power(w, inv_ts, r, m2, tb, b, v, q):
+        """Power from the table's ``W`` and ``1 / T_s`` at R, by the series alone; and whether
+        the series does not hold (then ``_table_sample`` gives the sample)."""
+        a = _binomials(q)
+        y = tb * q[_R_INV_T0] - 1.0
+        kb = q[_R_K_T0_N] * _series(y, a)
+        gamma = q[_R_GAMMA]
+        delta = q[_R_C1] * b + q[_R_C2] * b * b - (gamma * math.sqrt(m2) if gamma != 0.0 else 0.0)
+        xx = delta * inv_ts
+        kt = w * _series(xx, a)
+        p = kt - kb - v * v * r / ((r + q[4]) ** 2 + q[9] * q[9])
+        return p, ~(abs(xx) <= SERIES_LIMIT) | ~(abs(y) <= SERIES_LIMIT)
+
+    @_inline
+    def _row(a, row, scratch):
+        """Row ``row`` of a compact environment array (``_baselines._compact``), unit stride."""
+        r = a[row if a.shape[0] > 1 else 0]
+        if a.shape[1] == scratch.size:
+            return r
+        scratch[:] = r[0]
+        return scratch
+
+    @_inline
+    def _fill(a, row, scratch):
+        """Row ``row`` of a compact environment array (``_baselines._compact``) into ``scratch``
+        (unit stride for the sample loop; no array view: each costs reference counting)."""
+        r = row if a.shape[0] > 1 else 0
+        if a.shape[1] > 1:
+            for s in range(scratch.size):
+                scratch[s] = a[r, s]
+        else:
+            value = a[r, 0]
+            for s in range(scratch.size):
+                scratch[s] = value
+
+    @_jit_vector
+    def _table_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx, coef, out_p, out_f):
+        """The "table" kind over (n_rows, n_samp) samples: ``out_p`` (NaN where unusable), ``out_f``.
+
+        A row runs as vector lanes in two spans, the largest multiple of
+        ``LANES`` samples and the last ``LANES`` (overlapping it; same values
+        written twice), so no scalar remainder loop runs. A lane that needs a
+        branch (a second lookup step, the exact power beyond the series) is
+        marked and done again by the reference (:func:`_table_sample`), as is
+        a row shorter than ``LANES``.
+        """
+        n_rows, n_samp = out_p.shape
+        dm = _dom(dom)
+        s_tb, s_ltb, s_b, s_v = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp)
+        s_hk = np.empty(n_samp, dtype=np.uint16)
+        marks = np.zeros(n_samp, dtype=np.uint8)
+        n_vec = n_samp - n_samp % LANES
+        shared = (tb.shape[0] == 1, ltb.shape[0] == 1, b.shape[0] == 1, v.shape[0] == 1, hk.shape[0] == 1)
+        _fill(tb, 0, s_tb), _fill(ltb, 0, s_ltb), _fill(b, 0, s_b), _fill(v, 0, s_v), _fill(hk, 0, s_hk)
+        for row in range(n_rows):
+            d = rows[row]
+            if not shared[4]:
+                _fill(hk, row, s_hk)
+            if d < 0:
+                for s in range(n_samp):
+                    out_f[row, s] = s_hk[s] | _UNKNOWN
+                    out_p[row, s] = math.nan
+                continue
+            for i, (a, scratch) in enumerate(((tb, s_tb), (ltb, s_ltb), (b, s_b), (v, s_v))):
+                if not shared[i]:
+                    _fill(a, row, scratch)
+            q = _record(rec, d)
+            k0, last = int(q[_R_K0]), int(q[_R_LAST])
+            n_slow = 0
+            for s in range(n_vec):
+                tbs, bs, vs = s_tb[s], s_b[s], s_v[s]
+                f, r, m2, inside, rc = _lane_front(float(ci_[row, s]), float(cq_[row, s]), tbs, bs, vs,
+                                                   int(s_hk[s]), q, dm)
+                # find_interval's lookup, one step, and whether it needed more.
+                j = k0 + cidx[_cell(rc, q)]
+                j += (j + 1 < last) & (rc >= x[j + 1])
+                more = (j + 1 < last) & (rc >= x[j + 1])
+                u = rc - x[j]
+                w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
+                inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
+                p, beyond = _lane_power(w, inv_ts, r, m2, tbs, bs, vs, q)
+                out_p[row, s] = p if inside & ((f & _UNUSABLE) == 0) else math.nan
+                out_f[row, s] = f
+                slow = inside & (more | beyond)
+                marks[s] = slow
+                n_slow += slow
+            for s in range(n_samp):
+                if s >= n_vec or (n_slow and marks[s]):
+                    out_p[row, s], out_f[row, s] = _table_sample(
+                        float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_ltb[s], s_b[s], s_v[s], int(s_hk[s]),
+                        q, dm, x, cidx, coef)
+
     @_jit
-    def _kernel(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo,
-                grid, coef, p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
-        """Both table kinds in one pass over (n_det, n_samp) samples (``grid`` picks the kind).
+    def _grid_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx,
+                     p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
+        """The "grid" kind over (n_det, n_samp) samples, one sample at a time.
 
         Writes ``out_p`` (float64, NaN where unusable) and ``out_f`` (uint16).
         One function rather than a shared helper: array arguments to a helper
@@ -349,57 +598,37 @@ if numba is not None:
         dm = _dom(dom)
         nb = b_nodes.size
         n_bias = bias_v.shape[1]
-        inv_db = 1.0 / (b_nodes[1] - b_nodes[0]) if grid else 0.0
+        inv_db = 1.0 / (b_nodes[1] - b_nodes[0])
+        s_tb, s_ltb, s_b, s_v = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp)
+        s_hk = np.empty(n_samp, dtype=np.uint16)
         for row in range(n_rows):
             d = rows[row]
+            hk_r = _row(hk, row, s_hk)
             if d < 0:
                 for s in range(n_samp):
-                    out_f[row, s] = hk[row, s] | _UNKNOWN
+                    out_f[row, s] = hk_r[s] | _UNKNOWN
                     out_p[row, s] = math.nan
                 continue
-            det = _det(phys, d, dom)
-            k0, last, c0 = ko[d], ko[d + 1] - 1, co[d]
-            x_lo, x_hi, n_cells, cells_per_ohm = x[k0], x[last], co[d + 1] - c0, cpo[d]
-            k, n, c1, c2, gamma = phys[d, 6], phys[d, 7], phys[d, 8], phys[d, 9], phys[d, 10]
-            zr, zi = phys[d, 4], phys[d, 5]
-            a = (pre[d, 0], pre[d, 1], pre[d, 2], pre[d, 3], pre[d, 4], pre[d, 5], pre[d, 6], pre[d, 7])
-            inv_t0, k_t0_n = pre[d, 8], pre[d, 9]  # of the table's bath (row_constants)
+            q = _record(rec, d)
+            tb_r, ltb_r, b_r, v_r = _row(tb, row, s_tb), _row(ltb, row, s_ltb), _row(b, row, s_b), _row(v, row, s_v)
+            x_lo, x_hi = q[_R_X_LO], q[_R_X_HI]
+            a = _binomials(q)
             for s in range(n_samp):
-                bs = b[row, s]
-                vs = v[row, s]
-                f, r, i2, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb[row, s], bs, vs,
-                                        int(hk[row, s]), det, dm)
+                bs = b_r[s]
+                vs = v_r[s]
+                f, r, i2, ok = _front(float(ci_[row, s]), float(cq_[row, s]), tb_r[s], bs, vs, int(hk_r[s]),
+                                      _det(q), dm)
                 p = math.nan
                 if ok:
-                    j = -1
-                    if x_lo <= r <= x_hi:
-                        # O(1) lookup cell; a cell holds at most one knot (lookup_cells),
-                        # so one branch-free step; the loop only guards rounding at cell edges.
-                        cell = min(int((r - x_lo) * cells_per_ohm), n_cells - 1)
-                        j = k0 + cidx[c0 + cell]
-                        j += (j + 1 < last) & (r >= x[j + 1])
-                        while j + 1 < last and r >= x[j + 1]:
-                            j += 1
-                    kb = _bath(tb[row, s], ltb[row, s], inv_t0, k_t0_n, k, n, a)
-                    if j < 0:
+                    kb = _bath(tb_r[s], ltb_r[s], q[_R_INV_T0], q[_R_K_T0_N], q[_R_K], q[_R_N], a)
+                    if not x_lo <= r <= x_hi:
                         f |= _OOT
-                    elif not grid:
-                        u = r - x[j]
-                        w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
-                        inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
-                        delta = c1 * bs + c2 * bs * bs - (gamma * math.sqrt(i2) if gamma != 0.0 else 0.0)
-                        xx = delta * inv_ts
-                        if abs(xx) <= SERIES_LIMIT:
-                            kt = w * _series(xx, a)
-                        else:
-                            t = 1.0 / inv_ts + delta
-                            kt = k * math.exp(n * math.log(t)) if t > 0.0 else 0.0
-                        p = kt - kb - vs * vs * r / ((r + zr) ** 2 + zi * zi)
                     else:
+                        j = find_interval(r, q, x, cidx)
                         state = -1
-                        for q in range(n_bias):
-                            if abs(vs - bias_v[d, q]) <= bias_rtol * bias_v[d, q]:
-                                state = q
+                        for k in range(n_bias):
+                            if abs(vs - bias_v[d, k]) <= bias_rtol * bias_v[d, k]:
+                                state = k
                                 break
                         if state < 0:
                             f |= _OOT | _ENV
@@ -412,70 +641,76 @@ if numba is not None:
                             h = x[j + 1] - x[j]
                             h00, h10, h01, h11 = _hermite((r - x[j]) / h, h)
                             acc = 0.0
-                            for q in range(4):
-                                jb = j0 + q
-                                acc += w4[q] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
+                            for k in range(4):
+                                jb = j0 + k
+                                acc += w4[k] * (h00 * p_w[j, state, jb] + h10 * dp_w[j, state, jb]
                                                 + h01 * p_w[j + 1, state, jb] + h11 * dp_w[j + 1, state, jb])
-                            p = acc + k_t0_n - kb
+                            p = acc + q[_R_K_T0_N] - kb
                 if f & _UNUSABLE:
                     p = math.nan
                 out_p[row, s] = p
                 out_f[row, s] = f
 
-    _NO_COEF = np.zeros((0, 8))
-    _NO_GRID = np.zeros((0, 1, 1))
+    def _signatures(*inner):
+        """The signatures of a kernel: counts int32 or float64, then ``inner`` (numba types).
 
-    def _signatures():
-        """The kernel's only signatures: counts int32 or float64; read-only inputs.
-
-        Counts, tables and outputs C-contiguous (the wrappers make them so; unit
-        strides keep the sample loop ~5% faster than strided access), the
-        per-sample environment of any layout (it is usually a broadcast view).
-        Compiled once, before the first conversion (:func:`compile_kernels`), and
-        then no other: numba would otherwise compile a new specialisation
-        (seconds) for each new combination of layouts and read-only flags, the
-        first time a live stream's chunk happened to bring one.
+        Every input read-only and C-contiguous (the wrappers make them so;
+        writable arrays pass as read-only), outputs writable. Compiled once,
+        before the first conversion (:func:`compile_kernels`), and then no
+        other: numba would otherwise compile a new specialisation (seconds)
+        for each new combination of layouts and read-only flags, the first
+        time a live stream's chunk happened to bring one.
         """
         from numba import types as t
 
         def c(dtype, ndim, readonly=True):
             return t.Array(dtype, ndim, "C", readonly=readonly)
 
-        def a(dtype, ndim):
-            return t.Array(dtype, ndim, "A", readonly=True)
-
         f8 = t.float64
-        rest = (a(f8, 2), a(f8, 2), a(f8, 2), a(f8, 2), a(t.uint16, 2), c(t.int64, 1), c(f8, 2), c(f8, 2),
-                c(f8, 1), c(t.int64, 1), c(f8, 1), c(t.int64, 1), c(t.int32, 1), c(f8, 1), t.boolean, c(f8, 2),
-                c(f8, 3), c(f8, 3), c(f8, 2), c(f8, 1), c(f8, 1), f8, c(f8, 2, False), c(t.uint16, 2, False))
-        return [t.void(c(k, 2), c(k, 2), *rest) for k in (t.int32, f8)]
+        env = (c(f8, 2), c(f8, 2), c(f8, 2), c(f8, 2), c(t.uint16, 2), c(t.int64, 1), c(f8, 2), c(f8, 1))
+        out = (c(f8, 2, False), c(t.uint16, 2, False))
+        return [t.void(c(k, 2), c(k, 2), *env, *(c(*a) if isinstance(a, tuple) else a for a in inner), *out)
+                for k in (t.int32, f8)]
 
-    def _c(*arrays):
-        return [np.ascontiguousarray(x) for x in arrays]
+    def _kernel_signatures():
+        from numba import types as t
+
+        f8, i4 = t.float64, t.int32
+        table = _signatures((f8, 1), (i4, 1), (f8, 2))
+        grid = _signatures((f8, 1), (i4, 1), (f8, 3), (f8, 3), (f8, 2), (f8, 1), (f8, 1), f8)
+        return ((_table_kernel, table), (_grid_kernel, grid))
 
     _compiled = []
 
     def compile_kernels() -> None:
-        """Compile (or load from numba's cache) the kernel's signatures, once per process."""
+        """Compile (or load from numba's cache) the kernels' signatures, once per process."""
         if not _compiled:
-            for sig in _signatures():
-                _kernel.compile(sig)
-            _kernel.disable_compile()
+            for kernel, sigs in _kernel_signatures():
+                for sig in sigs:
+                    kernel.compile(sig)
+                kernel.disable_compile()
             _compiled.append(True)
 
-    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
-        """Structured-table conversion (same contract as :func:`table_numpy`; ``pre``: :func:`row_constants`)."""
-        compile_kernels()
-        _kernel(*_c(ci_, cq_), tb, ltb, b, v, hk, *_c(rows, phys, pre, dom, ko, x, co, cidx, cpo), False,
-                np.ascontiguousarray(coef), _NO_GRID, _NO_GRID, np.ones((1, 1)), np.zeros(4), np.ones(1), 0.0,
-                out_p, out_f)
+    def _c(*arrays):
+        return [np.ascontiguousarray(x) for x in arrays]
 
-    def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, pre, dom, ko, x, co, cidx, cpo,
-                   p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
-        """Grid-table conversion (same contract as :func:`grid_numpy`; ``pre``: :func:`row_constants`)."""
+    def _env(tb, ltb, b, v, hk):
+        return [_compact(a) for a in (tb, ltb, b, v, hk)]
+
+    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
+        """Structured-table conversion (same contract as :func:`table_numpy`; ``rec``: :func:`row_constants`).
+
+        ``phys``, ``ko``, ``co`` and ``cpo`` are in ``rec`` and not read again.
+        """
         compile_kernels()
-        _kernel(*_c(ci_, cq_), tb, ltb, b, v, hk, *_c(rows, phys, pre, dom, ko, x, co, cidx, cpo), True, _NO_COEF,
-                *_c(p_w, dp_w, bias_v, b_nodes, t_ref), float(bias_rtol), out_p, out_f)
+        _table_kernel(*_c(ci_, cq_), *_env(tb, ltb, b, v, hk), *_c(rows, rec, dom, x, cidx, coef), out_p, out_f)
+
+    def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo,
+                   p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
+        """Grid-table conversion (same contract as :func:`grid_numpy`; ``rec``: :func:`row_constants`)."""
+        compile_kernels()
+        _grid_kernel(*_c(ci_, cq_), *_env(tb, ltb, b, v, hk), *_c(rows, rec, dom, x, cidx, p_w, dp_w, bias_v, b_nodes,
+                                                                  t_ref), float(bias_rtol), out_p, out_f)
 else:  # pragma: no cover - exercised only without numba
     table_numba = grid_numba = None
 

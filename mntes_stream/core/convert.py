@@ -629,12 +629,14 @@ class TableConverter(_Base):
         self._domain = np.array([*d.t_bath_k, *d.b_field_t, *d.v_frac], dtype=float)
 
     def _row_constants(self) -> np.ndarray:
-        """The compiled kernel's per-detector constants (``_kernels.row_constants``), made once."""
-        pre = self.__dict__.get("_pre")  # absent from converters pickled by older versions
-        if pre is None:
-            t0 = self.bank.arrays["t_ref_k"] if self.kind == "grid" else self._phys[:, 14]
-            pre = self._pre = _kernels.row_constants(self._phys, t0)
-        return pre
+        """The compiled kernels' per-detector record (``_kernels.row_constants``), made once."""
+        rec = self.__dict__.get("_rec")  # absent from converters pickled by older versions
+        if rec is None:
+            a = self.bank.arrays
+            t0 = a["t_ref_k"] if self.kind == "grid" else self._phys[:, 14]
+            rec = self._rec = _kernels.row_constants(self._phys, t0, self._domain, a["knot_offset"], a["r_knot_ohm"],
+                                                     a["cell_offset"], a["cell_per_ohm"])
+        return rec
 
     def _convert(self, inp, p, f):
         a = self.bank.arrays
