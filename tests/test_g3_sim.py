@@ -2,8 +2,8 @@
 
 - MNTES power (exact inverse) from a simulated G3 run, with a bias step, a
   nuller-gain change and a drifting bath, matches the simulator's truth to
-  1e-19 W, through spt3g's housekeeping conversions and a parameter file
-  keyed by bolometer name.
+  the power of half a count (the counts travel as whole counts), through
+  spt3g's housekeeping conversions and a parameter file keyed by bolometer name.
 - G3 in -> g3-bridge -> zenoh -> converter -> recorder -> ``convert REC OUT.g3``
   -> spt3g's G3Reader: bolometer names intact, every sample of the run there.
 """
@@ -68,7 +68,10 @@ def test_mntes_power_from_a_simulated_g3_run_matches_truth(tmp_path):
     for k, det in enumerate(ArraySimulator(cfg).detector_ids):
         name = bolometer_name(*parse_detector_id(det))
         assert not f[name].any()
-        assert np.max(np.abs(p[name] - want[k])) <= 1e-19
+        # The converter's wire carries whole counts (int32): the simulator's exact (fractional) counts are rounded
+        # there, so the power is the truth to within the power of half a count (1.8e-17 W here), not 1e-19 W.
+        # Conversion of the counts read is exact: tests/test_g3_one_path.py (the same as the MCAP path, bit for bit).
+        assert np.max(np.abs(p[name] - want[k])) <= 3e-17
 
 
 def _running(service):

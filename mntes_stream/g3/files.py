@@ -134,8 +134,12 @@ def preload(paths) -> tuple[list, dict]:
 
 
 def g3_to_g3(inputs, output, *, params=None, kind: str = "table", config: G3InputConfig | None = None,
-             scan_samples: int = 1000, **converter_options) -> dict:
-    """MNTES power appended to every Scan frame of a G3 run, written to ``output`` (G3)."""
+             scan_samples: int = 1000, pipeline_config=None, **converter_options) -> dict:
+    """MNTES power appended to every Scan frame of a G3 run, written to ``output`` (G3).
+
+    With parameters the power comes from the converter pipeline's stages (``pipeline_config``), as
+    :func:`g3_to_mcap`'s does: the same values and flags.
+    """
     from mntes_stream.g3.power import OpticalPower
 
     core, dfmux = spt3g()
@@ -143,7 +147,8 @@ def g3_to_g3(inputs, output, *, params=None, kind: str = "table", config: G3Inpu
         raise ConfigError(f"{output} exists: not overwritten")
     files = expand_inputs(inputs)
     metadata, counts = preload(files)
-    module = OpticalPower(params=params, kind=kind, config=config, preload=metadata, **converter_options)
+    module = OpticalPower(params=params, kind=kind, config=config, preload=metadata, pipeline_config=pipeline_config,
+                          **converter_options)
     if module.needs_bath:
         module.bath.require()
     bad: dict = {}

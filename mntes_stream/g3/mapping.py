@@ -55,6 +55,9 @@ class G3InputConfig(Settings):
     transfer_function: str = setting("spt3g_filtering_2017_full", "spt3g transfer function when the wiring frame "
                                      "names none (DfMuxTransferFunction)")
     readout_system: str = setting("ICE", "when the wiring frame has no ReadoutSystem", choices=("ICE", "DfMux"))
+    hk_retention_s: float = setting(600.0, "DfMux housekeeping and bath readings kept behind the newest data (older "
+                                    "ones but the one in force are dropped: bounded memory in a long run)",
+                                    unit="s", gt=0)
 
 
 def g3_time_ns(t) -> int:
@@ -238,9 +241,16 @@ class HkHistory:
     ``ConvertTimestreamUnits`` does with the first housekeeping it sees).
     """
 
-    def __init__(self):
+    def __init__(self, retention_ns: int = 600 * 10**9):
         self._t: list[int] = []
         self._snaps: list[HkSnapshot] = []
+        self.retention_ns = int(retention_ns)
+
+    def prune(self, now_ns: int) -> None:
+        """Drop snapshots older than ``retention_ns`` before ``now_ns`` but the one in force then."""
+        k = bisect.bisect_right(self._t, int(now_ns) - self.retention_ns) - 1
+        if k > 0:
+            del self._t[:k], self._snaps[:k]
 
     def __len__(self) -> int:
         return len(self._t)
@@ -316,12 +326,16 @@ def bath_reading(frame, config: G3InputConfig, t_fallback_ns: int) -> tuple[int,
 
 
 class BathHistory:
-    """Bath-temperature readings (linear between readings, held beyond the ends) or a configured default."""
+    """Bath-temperature readings (linear between readings, held beyond the ends) or a configured default.
+
+    Readings older than ``config.hk_retention_s`` behind the newest are dropped (the one before them kept).
+    """
 
     def __init__(self, config: G3InputConfig):
         self.config = config
         self._t: list[int] = []
         self._v: list[float] = []
+        self._retention_ns = int(config.hk_retention_s * 1e9)
 
     def __len__(self) -> int:
         return len(self._t)
@@ -333,6 +347,10 @@ class BathHistory:
         else:
             self._t.insert(k, t_ns)
             self._v.insert(k, t_bath_k)
+        # Bounded: readings older than the retention behind the newest go, but the one before them (interpolation).
+        cut = bisect.bisect_right(self._t, self._t[-1] - self._retention_ns) - 1
+        if cut > 0:
+            del self._t[:cut], self._v[:cut]
 
     @property
     def available(self) -> bool:

@@ -14,18 +14,26 @@ frame passes on. The readout gain and bias of each sample are the DfMux
 housekeeping in force at that sample (spt3g's own conversion functions), so
 a gain change mid-run applies from the sample at or after its timestamp.
 
-Conversion: the current of a sample is ``i = sqrt(2) a(t) e^{j phi} (I + jQ)``
-with ``a(t)`` spt3g's RMS amps per count and ``phi`` the demodulation phase of
-the detector's parameters (``arg(gain_a_per_count)``); the bias is spt3g's
-RMS bias voltage. Kind ``electrical`` without parameters is
-``P = -I * a(t) * V(t)``: minus spt3g's ``ConvertTimestreamUnits(..., Power)``
-(optical power = constant - electrical power; the constant is unknown without
-parameters and taken as 0).
+With detector parameters the module is the live converter's pipeline
+(``service.pipeline.ConverterPipeline``) behind the G3 translator the bridge
+uses (``g3.translate.FrameTranslator``): each Scan frame becomes one counts
+chunk per module, housekeeping (DfMux bias, the bath thermometer of GcpSlow
+frames) becomes the same housekeeping messages, and the power comes out of
+the same stages with the same flags (HK_STALE, HK_MISSING, ...) and bounded
+histories as ``convert RUN.g3 OUT.mcap``. A Scan frame waits in the module
+until its power is out (the pipeline waits for the housekeeping that
+brackets a chunk); frames leave in their order. A gain change in the DfMux
+housekeeping rescales the counts to the parameters' gain from its sample on.
+
+Kind ``electrical`` without parameters is ``P = -I * a(t) * V(t)``: minus
+spt3g's ``ConvertTimestreamUnits(..., Power)`` (optical power = constant -
+electrical power; the constant is unknown without parameters and taken as 0).
 """
 
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -47,6 +55,11 @@ from mntes_stream.g3.mapping import (
     invalid_counts,
     params_for_wiring,
 )
+from mntes_stream.g3.translate import FrameTranslator
+from mntes_stream.io import keys
+from mntes_stream.io.lean import CountsDecoder
+from mntes_stream.io.messages import PowerChunk
+from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
 
 __all__ = ["OpticalPower", "POWER_KEY", "FLAGS_KEY", "load_g3_params"]
 
@@ -84,12 +97,17 @@ class OpticalPower:
     preload : iterable of frames, optional
         Wiring, Housekeeping and GcpSlow frames of the whole run, read ahead
         (housekeeping is not in time order with the scans: a reading taken
-        during a scan may be written after it).
+        during a scan may be written after it). With parameters only its
+        bath readings are used: whether the run has a thermometer.
+    pipeline_config : PipelineConfig, optional
+        The converter pipeline's settings (housekeeping staleness, ...); default
+        as ``convert`` uses them.
     """
 
     def __init__(self, params=None, kind: str = "table", config: G3InputConfig | None = None, preload=(),
                  input_i: str = "RawTimestreams_I", input_q: str = "RawTimestreams_Q", output: str = POWER_KEY,
-                 flags_output: str = FLAGS_KEY, **converter_options):
+                 flags_output: str = FLAGS_KEY, pipeline_config: PipelineConfig | None = None,
+                 **converter_options):
         if kind not in CONVERTER_KINDS:
             raise ConfigError(f"unknown kind {kind!r} (known: {', '.join(CONVERTER_KINDS)})")
         self.params = load_g3_params(params)
@@ -100,7 +118,7 @@ class OpticalPower:
         self.input_i, self.input_q, self.output, self.flags_output = input_i, input_q, output, flags_output
         self.converter_options = converter_options
         self.wiring: Wiring | None = None
-        self.hk = HkHistory()
+        self.hk = HkHistory(int(self.config.hk_retention_s * 1e9))
         self.bath = BathHistory(self.config)
         self._pending_hk: list = []
         self._converter = None
@@ -112,8 +130,20 @@ class OpticalPower:
         self.samples = 0
         self.gain_changes = 0
         self.rejected: dict[str, int] = {}  # frames it could not use, by reason (dropped from the output)
+        self._pipe: ConverterPipeline | None = None
+        self._tr: FrameTranslator | None = None
+        if self.params is not None:
+            self.pipeline_config = pipeline_config or PipelineConfig()
+            self._tr = FrameTranslator(self.pipeline_config.setup, self.config)
+            self._early: deque = deque(maxlen=10_000)  # housekeeping before the first scan (the pipeline's input)
+            self._held: deque[list] = deque()  # [frame, wanted (board, module, seq), power chunks got]
+            self._wanted: dict[tuple, list] = {}
+            self._names: dict[str, str] = {}
+            self._keep: frozenset = frozenset()
+            self._decoder = CountsDecoder()
         for frame in preload:
-            self._guarded(self._metadata, frame)
+            if self._tr is None or frame.type == spt3g()[0].G3FrameType.GcpSlow:
+                self._guarded(self._metadata, frame)
 
     def _guarded(self, method, frame) -> bool:
         """``method(frame)``; a frame it cannot use (wrong class, empty map, undecodable) counted, False."""
@@ -145,7 +175,7 @@ class OpticalPower:
             if self.wiring is None or wiring.names != self.wiring.names or \
                     not np.array_equal(wiring.detector_ids, self.wiring.detector_ids):
                 self.wiring = wiring
-                self.hk = HkHistory()
+                self.hk = HkHistory(int(self.config.hk_retention_s * 1e9))
                 self._converter, self._rows = None, None
                 for hkmap, t in self._pending_hk:
                     self._add_hk(hkmap, t)
@@ -170,9 +200,122 @@ class OpticalPower:
 
     def __call__(self, frame):
         """Append the power to a Scan frame; a frame it cannot use is dropped and counted (``rejected``)."""
+        if self._tr is not None:
+            return self._through_pipeline(frame)
         if not self._guarded(self._process, frame):
             return []
         return None
+
+    # -- with parameters: the converter pipeline --------------------------------------------------
+    def _through_pipeline(self, frame):
+        core, _ = spt3g()
+        ft, tr = frame.type, self._tr
+        if ft == core.G3FrameType.EndProcessing:
+            self._route(self._pipe.flush() if self._pipe is not None else [])
+            return self._release(True) + [frame]
+        if ft == core.G3FrameType.Scan and self._pipe is None and self.input_i in frame:
+            if tr.wiring is None:
+                raise ConfigError("G3 Scan frame before any Wiring frame: cannot tell which bolometer is which")
+            self._build()
+        before = sum(tr.counters.rejected.values())
+        msgs = tr.timed(tr.accept, frame)
+        self._count_rejected()
+        if sum(tr.counters.rejected.values()) != before:
+            return []  # counted by reason; not passed on
+        if ft == core.G3FrameType.GcpSlow and msgs:
+            self.bath.add(msgs[0][0], 0.0)  # a thermometer: no default readings from here on
+        counts = [m for m in msgs if keys.kind_of(m[1]) == "counts"]
+        if counts and not len(self.bath) and self.config.t_bath_default_k is not None:
+            msgs = tr.timed(tr.default_bath, counts[0][0]) + msgs  # as convert RUN.g3 OUT.mcap does
+        if not counts and not self._held:
+            self._feed(msgs)
+            return None
+        entry = [frame, set(), {}]
+        for _, key, payload in counts:
+            c = self._decoder.decode(key, payload)
+            want = (c.board, c.module, c.seq)
+            entry[1].add(want)
+            self._wanted[want] = entry
+        self._held.append(entry)
+        self._feed(msgs)
+        return self._release(False)
+
+    def _build(self) -> None:
+        """The converter and its pipeline for the wired bolometers with parameters (at the first scan)."""
+        tr = self._tr
+        pdict, missing = params_for_wiring(self.params, tr.wiring, tr.hk.first(), gain_from_hk=True)
+        if missing:
+            log.warning("%d wired bolometer(s) without parameters or housekeeping, skipped: %s%s", len(missing),
+                        ", ".join(missing[:8]), " ..." if len(missing) > 8 else "")
+        self.skipped = tuple(missing)
+        if not pdict:
+            raise ConfigError("no wired bolometer has parameters: are they keyed by bolometer name or detector id?")
+        # Later gain changes rescale the counts to the parameters' gain (the translator does, as for the bridge).
+        tr.set_gain_reference({d: abs(p.gain_a_per_count) for d, p in pdict.items()})
+        self._converter = make_converter(self.kind, pdict, **self.converter_options)
+        self._pipe = ConverterPipeline(self._converter, self.pipeline_config, params=list(pdict.values()), clock=None)
+        self._names = dict(zip(tr.wiring.detector_ids, tr.wiring.names))
+        self._keep = frozenset(pdict)
+        early, self._early = list(self._early), deque(maxlen=10_000)
+        self._feed(early)
+
+    def _feed(self, msgs) -> None:
+        """Messages ``(t_ns, key, payload)`` into the pipeline, received at their data time (as offline)."""
+        if self._pipe is None:
+            self._early.extend(msgs)
+            return
+        if msgs:
+            self._route(self._pipe.handle_many([(k, p, t) for t, k, p in msgs]))
+
+    def _route(self, outs) -> None:
+        for key, payload in outs:
+            if keys.kind_of(key) != "power":
+                continue
+            chunk = PowerChunk.from_bytes(payload)
+            entry = self._wanted.pop((chunk.board, chunk.module, chunk.seq), None)
+            if entry is not None:
+                entry[2][(chunk.board, chunk.module)] = chunk
+
+    def _release(self, final: bool) -> list:
+        """Held frames whose power is out, in their order (all of them when nothing is held in the pipeline)."""
+        idle = final or (self._pipe is not None and self._pipe.pending == 0 and not self._pipe.set_aside)
+        out = []
+        while self._held and (idle or len(self._held[0][2]) == len(self._held[0][1])):
+            frame, wanted, got = self._held.popleft()
+            for w in wanted:
+                self._wanted.pop(w, None)  # not converted (the pipeline's ledger says why): rows absent
+            if wanted:
+                self._attach(frame, got)
+            out.append(frame)
+        self.gain_changes = self._tr.counters.gain_changes + self._tr.counters.bias_changes
+        return out
+
+    def _attach(self, frame, got: dict) -> None:
+        core, _ = spt3g()
+        names, p, f = [], [], []
+        for stream in sorted(got):
+            chunk = got[stream]
+            rows = [r for r, d in enumerate(chunk.detector_ids) if d in self._keep]
+            names += [self._names[chunk.detector_ids[r]] for r in rows]
+            p.append(chunk.p_opt_w[rows])
+            f.append(chunk.flags[rows])
+        if not names:
+            return
+        p, f = np.concatenate(p), np.concatenate(f)
+        start, stop = frame[self.input_i].start, frame[self.input_i].stop
+        frame[self.output] = core.G3TimestreamMap(names, np.ascontiguousarray(p), start, stop,
+                                                  core.G3TimestreamUnits.Power)
+        frame[self.flags_output] = core.G3TimestreamMap(names, f.astype(np.int32), start, stop)
+        self.scans += 1
+        self.samples += p.size
+
+    def _count_rejected(self) -> None:
+        self.rejected = dict(self._tr.counters.rejected)
+
+    @property
+    def ledger(self):
+        """The pipeline's ledger of the counts chunks (None before the first scan)."""
+        return self._pipe.ledger_now() if self._pipe is not None else None
 
     def _process(self, frame) -> None:
         core, _ = spt3g()
@@ -185,6 +328,7 @@ class OpticalPower:
             return
         self._t_last_ns = int(blk.t_ns[-1]) if blk.n_samples else self._t_last_ns
         names, p, f = self.convert_block(blk)
+        self.hk.prune(int(blk.t_ns[0]))  # bounded: the snapshot in force now and the retention before it
         start, stop = frame[self.input_i].start, frame[self.input_i].stop  # the input's span, as spt3g keeps it
         frame[self.output] = core.G3TimestreamMap(list(names), p, start, stop, core.G3TimestreamUnits.Power)
         frame[self.flags_output] = core.G3TimestreamMap(list(names), f.astype(np.int32), start, stop)

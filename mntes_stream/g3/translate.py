@@ -131,7 +131,7 @@ class FrameTranslator:
         self.gain_reference = dict(gain_reference) if gain_reference else None
         self._gref: np.ndarray | None = None
         self.wiring: Wiring | None = None
-        self.hk = HkHistory()
+        self.hk = HkHistory(int(self.config.hk_retention_s * 1e9))
         self.bath = BathHistory(self.config)
         self.counters = TranslatorCounters()
         self._buffer: TimepointBuffer | None = None
@@ -145,6 +145,14 @@ class FrameTranslator:
         self._held: deque = deque()
         self._logged: dict[str, float] = {}
         self.last_error: dict[str, str] = {}
+
+    def set_gain_reference(self, gain_reference) -> None:
+        """Publish counts in units of this reference gain from now on (see the class parameters)."""
+        self.gain_reference = dict(gain_reference) if gain_reference else None
+        self._gref = None
+        if self.gain_reference is not None and self.wiring is not None:
+            g, w = self.gain_reference, self.wiring
+            self._gref = np.array([float(g.get(n, g.get(d, np.nan))) for n, d in zip(w.names, w.detector_ids)])
 
     # -- helpers ------------------------------------------------------------------------------
     def _next_seq(self, name: str) -> int:
@@ -164,12 +172,10 @@ class FrameTranslator:
     def _set_wiring(self, wiring: Wiring) -> list:
         out = self.flush()
         self.wiring = wiring
-        self.hk = HkHistory()
+        self.hk = HkHistory(int(self.config.hk_retention_s * 1e9))
         self._buffer = TimepointBuffer(wiring)
         self._groups = [(b, m, rows) for (b, m), rows in wiring.modules().items()]
-        if self.gain_reference is not None:
-            g = self.gain_reference
-            self._gref = np.array([float(g.get(n, g.get(d, np.nan))) for n, d in zip(wiring.names, wiring.detector_ids)])
+        self.set_gain_reference(self.gain_reference)
         for hkmap in self._pending:
             out += self._housekeeping(hkmap)
         self._pending = []
@@ -254,6 +260,7 @@ class FrameTranslator:
             out.append((keys.counts_key(self.setup, int(b), int(m)), chunk.to_bytes()))
             self._times.append(int(blk.t_ns[-1]))
         self._t_last_ns = int(blk.t_ns[-1])
+        self.hk.prune(self._t_last_ns)  # bounded in a long run: what is in force now and the retention before it
         return out
 
     # -- the interface ------------------------------------------------------------------------
