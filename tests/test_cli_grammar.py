@@ -142,6 +142,9 @@ def test_old_spellings_still_work_with_one_line(tmp_path, capsys):
     assert out.exists()
     args = build_parser().parse_args(["record", "--duration-s", "3"])
     assert args.duration_s == 3.0 and "--duration-s is deprecated; use --duration" in capsys.readouterr().err
+    args = build_parser().parse_args(["record", "--directory", "d"])
+    assert args.directory == "d" and "--directory is deprecated; use --out" in capsys.readouterr().err
+    assert build_parser().parse_args(["record", "--out", "o"]).directory == "o"
 
 
 def test_simulate_set_takes_table_key_value(tmp_path, capsys):

@@ -22,7 +22,7 @@ from mntes_stream.cli._common import (
 
 _RECORD = ("setup", "key_expr", "directory", "prefix", "flush_interval_s", "rotate_mb", "rotate_s", "compression",
            "chunk_size_kb", "fsync", "duration_s", "queue_messages")
-_RECORD_ALIASES = {"directory": ("--dir",), "flush_interval_s": ("--flush-s",), "chunk_size_kb": ("--chunk-kb",),
+_RECORD_ALIASES = {"directory": ("--out", "--dir"), "flush_interval_s": ("--flush-s",), "chunk_size_kb": ("--chunk-kb",),
                    "duration_s": ("--duration",)}
 
 
