@@ -123,7 +123,8 @@ def run_bridge(args) -> int:
     quiet_spt3g()
     with stop_on_signals() as stop:
         result = G3BridgeService(cfg).start(stop=stop)
-    print_mapping(result, args.json)
+    if not args.quiet or args.json:
+        print_mapping(result, args.json)
     if not args.json:
         print(ledger_line(result))  # the last line: what was published, missed and rejected
     return 0
@@ -149,6 +150,7 @@ def register(sub) -> None:
     p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
     p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a DAQ without one")
     p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
+    p.add_argument("-q", "--quiet", action="store_true", help="only the last line (the ledger)")
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)
 
