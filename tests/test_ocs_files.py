@@ -133,14 +133,20 @@ def test_convert_takes_the_bath_from_ocs_hk_files(run, converted, tmp_path):
         np.testing.assert_array_equal(ma.flags, mb.flags)
 
 
-def test_a_recording_without_a_thermometer_takes_ocs_hk_too(converted, tmp_path):
+def without_bath(d: Path, out: Path) -> Path:
+    """The inputs of the conversion in ``d`` (counts, bias), without the bath: a recording without a thermometer."""
     from mntes_stream.io.mcap import McapFileWriter, Session
 
-    d, _ = converted
-    with McapFileWriter(tmp_path / "rec.mcap") as w:  # the inputs of that conversion, without the bath
+    with McapFileWriter(out) as w:
         for m in Session(d / "ocs.mcap").iter_messages():
             if "/t_bath" not in m.topic and "/power/" not in m.topic and "/status/" not in m.topic:
                 w.write(m.topic, m.payload, m.log_time_ns)
+    return out
+
+
+def test_a_recording_without_a_thermometer_takes_ocs_hk_too(converted, tmp_path):
+    d, _ = converted
+    without_bath(d, tmp_path / "rec.mcap")
     p = cli(["convert", tmp_path / "rec.mcap", tmp_path / "again.mcap", "-q", "--json", "--hk", d / "hk",
              "--t-bath-field", FIELD])
     assert p.returncode == 0, p.stderr[-2000:]
@@ -164,3 +170,33 @@ def test_a_field_not_in_the_files_is_one_line_with_the_closest_names(run, conver
     p = cli(["convert", run / "raw.g3", tmp_path / "o.mcap", "--params", run / "names.toml", "-q",
              "--hk", run / "raw.g3", "--t-bath-field", FIELD])  # not an HK file
     assert p.returncode == 2 and "not an OCS HK file" in p.stderr and p.stderr.count("\n") == 1, p.stderr
+
+
+def test_replay_publishes_the_ocs_readings_with_the_recording(converted, tmp_path):
+    from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
+
+    d, _ = converted
+    rec = without_bath(d, tmp_path / "rec.mcap")
+    port = free_tcp_port()
+    got = []
+    with open_session(loopback(port)) as z:
+        sub = QueueSubscriber(z, ["mntes/lab/**"])
+        p = cli(["replay", rec, "--afap", "--wait-s", "10", "--json", "-q", "--hk", d / "hk", "--t-bath-field", FIELD,
+                 "-e", f"tcp/127.0.0.1:{port}"])
+        assert p.returncode == 0, p.stderr[-2000:]
+        for _ in range(200):
+            item = sub.get(timeout_s=0.1)
+            if item is None and got:
+                break
+            if item is not None:
+                got.append(item[0])
+        sub.close()
+    from mntes_stream.io.mcap import Session
+
+    session = Session(rec)
+    t = np.array([round(x * 1e8) * 10 for x in T0_S - 2 + np.arange(41) * 0.1])  # as written (10 ns ticks)
+    inside = int(((t >= session.start_ns) & (t <= session.end_ns)).sum())
+    # the readings within the recording's span and one on each side of it; the counts as recorded
+    sides = int((t < session.start_ns).any()) + int((t > session.end_ns).any())
+    assert sum(k.endswith("/hk/t_bath") for k in got) == inside + sides and inside > 4, got
+    assert sum("/counts/" in k for k in got) == 8

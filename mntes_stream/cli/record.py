@@ -77,7 +77,11 @@ def run_replay_cmd(args) -> int:
             times["end_ns"] = parse_time(args.end, t0)
         cfg = dataclasses.replace(cfg, **times)
     setup_logging(not args.quiet)
-    stats = run_replay(cfg, progress=not args.quiet and not args.json)
+    from mntes_stream.cli.ocs import recording_with_hk
+
+    with recording_with_hk(args, list(cfg.source)) as source:  # --hk: bath temperature from OCS HK files
+        cfg = dataclasses.replace(cfg, source=tuple(str(s) for s in source))
+        stats = run_replay(cfg, progress=not args.quiet and not args.json)
     if args.json:
         print(json.dumps(dataclasses.asdict(stats), indent=2))
     else:
@@ -275,6 +279,9 @@ def register(sub) -> None:
     sel.add_argument("--all", action="store_true", help="replay every topic (power, status, provenance too)")
     sel.add_argument("--topics", nargs="+", metavar="KEYEXPR", help="topics or patterns such as mntes/lab/counts/**")
     p.add_argument("--wait-s", type=float, help="wait this long for subscribers before starting")
+    from mntes_stream.cli.ocs import add_hk_args
+
+    add_hk_args(p)
     add_json(p, "print the statistics as one JSON document")
     add_quiet(p, "warnings only, no progress bar")
     add_zenoh_args(p)
