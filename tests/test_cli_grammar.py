@@ -110,7 +110,13 @@ def test_an_option_that_does_not_apply_is_an_error(tmp_path, capsys):
              "--wiring, --setup do not apply"),
             (["simulate", "--out", str(tmp_path / "s.mcap"), "--duration", "1", "--layout", "timepoints"],
              "--layout apply to --format g3 only"),
-            (["config", "template", "recorder", "--set", "recorder.fsync=true"], "--set applies to config show")):
+            (["config", "template", "recorder", "--set", "recorder.fsync=true"], "--set applies to config show"),
+            (["tables", "build", "--params", "p.toml", "--out", "t.npz", "--n-power", "64"],
+             "--n-power: not for --kind table"),
+            (["export", str(rec), "--out", str(tmp_path / "e"), "--format", "toast", "--compression", "lzf"],
+             "--compression is not for --format toast"),
+            (["export", str(rec), "--out", str(tmp_path / "e"), "--format", "sotodlib", "--block-samples", "64"],
+             "--block-samples is for --format hdf5")):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0], (argv, err)

@@ -50,7 +50,8 @@ def _framework_export(fmt: str, args, selection: dict):
     import_extra(module, extra)
     import mntes_stream.feeds.frameworks as fw
 
-    kwargs = {} if fmt == "toast" else {"compression": None if args.compression == "none" else args.compression}
+    compression = args.compression or "gzip"
+    kwargs = {} if fmt == "toast" else {"compression": None if compression == "none" else compression}
     if args.focal_plane:
         kwargs["positions"] = fw.read_positions(args.focal_plane)
     return getattr(fw, func)(args.session, args.out, overwrite=args.overwrite, **kwargs, **selection)
@@ -69,6 +70,10 @@ def _run_export(args) -> int:
     fmt = getattr(args, "format", "hdf5")
     if fmt == "hdf5" and getattr(args, "focal_plane", None):
         raise ConfigError("--focal-plane is for --format toast, sotodlib or litebird_sim (hdf5 carries no focal plane)")
+    if fmt != "hdf5" and getattr(args, "block_samples", None) is not None:
+        raise ConfigError(f"--block-samples is for --format hdf5 (the {fmt} writer chunks its own files)")
+    if fmt == "toast" and getattr(args, "compression", None) is not None:
+        raise ConfigError("--compression is not for --format toast (toast.io.save_hdf5 writes uncompressed)")
     selection = {
         "setup": args.setup,
         "detectors": _detectors(args.detectors),
@@ -82,7 +87,8 @@ def _run_export(args) -> int:
     if fmt != "hdf5":
         summary = _framework_export(fmt, args, selection)
     else:
-        summary = export_hdf5(args.session, args.out, compression=args.compression, block_samples=args.block_samples,
+        summary = export_hdf5(args.session, args.out, compression=args.compression or "gzip",
+                              block_samples=args.block_samples or 8192,
                               overwrite=args.overwrite, progress=not (args.json or args.quiet), **selection)
     result = {
         "format": fmt,
@@ -131,9 +137,10 @@ def register(sub) -> None:
     p.add_argument("--setup", help="only this setup's streams")
     p.add_argument("--board", type=int, help="only this board")
     p.add_argument("--module", type=int, help="only this module")
-    p.add_argument("--compression", default="gzip", choices=("gzip", "lzf", "none"),
-                   help="gzip (default) is readable everywhere; lzf is faster but h5py-only")
-    p.add_argument("--block-samples", type=int, default=8192, help="samples per write and per HDF5 chunk")
+    p.add_argument("--compression", choices=("gzip", "lzf", "none"),
+                   help="hdf5, sotodlib, litebird_sim: gzip (default) is readable everywhere; lzf is faster but "
+                        "h5py-only")
+    p.add_argument("--block-samples", type=int, help="hdf5: samples per write and per HDF5 chunk (default 8192)")
     p.add_argument("--max-gap-s", type=float, metavar="S",
                    help="a longer step in time is a segment break (counted, listed in the group's segment_starts), "
                    "not a hole filled with NaN + GAP (default: feeds.blocks.DEFAULT_MAX_GAP_S, one hour)")

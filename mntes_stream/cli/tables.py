@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, print_mapping
 
+# Options of one table kind only: given with the other kind they are an error (docs/cli.md).
+_KIND_OPTIONS = {"table": ("p_tol_w",), "grid": ("bias_frac", "n_b_nodes", "n_power")}
+
 
 def _build(args) -> int:
     from tqdm import tqdm
@@ -13,6 +16,12 @@ def _build(args) -> int:
     from mntes_stream.io.paramfile import load_params
     from mntes_stream.io.tablefile import save_bank
 
+    other = [f"--{n.replace('_', '-')}" for k, names in _KIND_OPTIONS.items() if k != args.kind for n in names
+             if getattr(args, n) is not None]
+    if other:
+        from mntes_stream.errors import ConfigError
+
+        raise ConfigError(f"{', '.join(other)}: not for --kind {args.kind}")
     claim_out(args.out, args.overwrite, inputs=[args.params])
     params = load_params(args.params)
     domain = TableDomain(
@@ -20,10 +29,11 @@ def _build(args) -> int:
         b_field_t=tuple(args.b_field_t), v_frac=tuple(args.v_frac),
     )
     options = {}
-    if args.kind == "table":
-        options["p_tol_w"] = args.p_tol_w
-    else:
-        options.update(bias_frac=tuple(args.bias_frac), n_b_nodes=args.n_b_nodes, n_power=args.n_power)
+    own = _KIND_OPTIONS[args.kind]
+    for name in own:  # given, else the default of the kind's builder
+        if getattr(args, name) is not None:
+            value = getattr(args, name)
+            options[name] = tuple(value) if isinstance(value, list) else value
     with tqdm(total=len(params), unit="det", desc=f"tables ({args.kind})", disable=args.quiet) as bar:
         bank = build_bank(params, kind=args.kind, domain=domain, progress=bar.update, **options)
     save_bank(bank, args.out)
@@ -56,11 +66,11 @@ def register(sub) -> None:
                    help="magnetic field range to cover (T; default -2e-4 2e-4)")
     b.add_argument("--v-frac", nargs=2, type=float, default=(0.9, 1.1), metavar=("LO", "HI"),
                    help="bias range relative to each detector's nominal")
-    b.add_argument("--p-tol-w", type=float, default=1e-20, help="table: interpolation tolerance in power (W)")
-    b.add_argument("--bias-frac", nargs="+", type=float, default=(0.95, 1.0, 1.05),
-                   help="grid: discrete bias states relative to nominal")
-    b.add_argument("--n-b-nodes", type=int, default=7, help="grid: uniform B nodes across --b-field-t")
-    b.add_argument("--n-power", type=int, default=256, help="grid: knots per detector")
+    b.add_argument("--p-tol-w", type=float, help="table: interpolation tolerance in power (W; default 1e-20)")
+    b.add_argument("--bias-frac", nargs="+", type=float,
+                   help="grid: discrete bias states relative to nominal (default 0.95 1.0 1.05)")
+    b.add_argument("--n-b-nodes", type=int, help="grid: uniform B nodes across --b-field-t (default 7)")
+    b.add_argument("--n-power", type=int, help="grid: knots per detector (default 256)")
     add_overwrite(b, "replace an existing --out file")
     add_quiet(b, "no progress bar or summary")
     b.set_defaults(func=_build)
