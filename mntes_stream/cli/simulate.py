@@ -44,6 +44,21 @@ def _table_key(item: str) -> str:
     return item
 
 
+def _refuse_inapplicable(args) -> None:
+    """Options that would be ignored by this run: one ConfigError naming them."""
+    from mntes_stream.errors import ConfigError
+
+    wrong = []
+    if args.out and args.speed is not None:
+        wrong.append("--speed is for live publication (a file is written as fast as possible)")
+    if not args.perturbed_params_out and (args.error_scale is not None or args.error_seed is not None):
+        wrong.append("--error-scale/--error-seed need --perturbed-params-out")
+    if args.no_truth and args.truth:
+        wrong.append("--truth and --no-truth contradict each other")
+    if wrong:
+        raise ConfigError("; ".join(wrong))
+
+
 def _refuse_g3_options(args) -> None:
     """G3-only options given without ``--format g3`` are an error, not ignored."""
     from mntes_stream.errors import ConfigError
@@ -71,6 +86,7 @@ def run(args) -> int:
         write_mcap,
     )
 
+    _refuse_inapplicable(args)
     svc = _config(args)
     if args.format == "g3":  # SPT-3G G3 file instead of MCAP/zenoh (mntes_stream.g3.sim)
         from mntes_stream.cli.g3 import run_simulate_g3
@@ -93,10 +109,11 @@ def run(args) -> int:
     if params_out:
         dump_params(source.params, params_out, metadata=meta)
     if args.perturbed_params_out:
-        wrong = perturbed_params(source.params, args.error_scale, args.error_seed)
+        scale, seed = 1.0 if args.error_scale is None else args.error_scale, args.error_seed or 0
+        wrong = perturbed_params(source.params, scale, seed)
         dump_params(wrong, args.perturbed_params_out,
-                    metadata={"source": f"mntes-stream simulate: truth with calibration errors x{args.error_scale} "
-                                        f"(seed {args.error_seed})"})
+                    metadata={"source": f"mntes-stream simulate: truth with calibration errors x{scale} "
+                                        f"(seed {seed})"})
     truth = TruthRecorder(source.detector_ids, config) if truth_out else None
     if args.out:
         n = source.n_chunks(duration)
@@ -159,8 +176,10 @@ def register(sub) -> None:
     p.add_argument("--no-truth", action="store_true", help="do not keep the per-sample truth")
     p.add_argument("--perturbed-params-out", metavar="TOML",
                    help="also write the truth with random calibration errors (for robustness studies)")
-    p.add_argument("--error-scale", type=float, default=1.0, help="calibration errors in units of the assumed 1-sigma")
-    p.add_argument("--error-seed", type=int, default=0, help="random seed of the calibration errors (default 0)")
+    p.add_argument("--error-scale", type=float, help="--perturbed-params-out: calibration errors in units of the "
+                                                     "assumed 1-sigma (default 1)")
+    p.add_argument("--error-seed", type=int, help="--perturbed-params-out: random seed of the calibration errors "
+                                                  "(default 0)")
     add_overwrite(p, "replace an existing --out file")
     add_json(p)
     add_quiet(p, "no progress bar or start line")
