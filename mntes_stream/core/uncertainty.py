@@ -228,6 +228,16 @@ class NoiseModel:
     measured_from: str = ""
     settings: UncertaintySettings = field(default_factory=UncertaintySettings)
 
+    def kernel_record(self, converter) -> np.ndarray:
+        """The compiled kernel's per-detector record for ``converter``'s bank (made once, kept)."""
+        key = (id(converter), converter.identity)
+        cache = self.__dict__.setdefault("_records", {})
+        rec = cache.get(key)
+        if rec is None:
+            cache.clear()
+            rec = cache[key] = _uk.row_constants(converter._phys, self, converter.bank.arrays)
+        return rec
+
     def provenance(self) -> dict:
         """What the converter's provenance records: which noise was used, and the tolerance rule."""
         src, n = np.unique(np.array(self.source, dtype=object).astype(str), return_counts=True)
@@ -347,9 +357,8 @@ def sigma_p_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, 
         raise ConfigError("backend 'numba' needs a 'table' converter and numba")
     if use_kernel:
         a = bank.arrays
-        _uk.run(inp.counts_i, inp.counts_q, inp.b_field_t, inp.v_thev_v, inp.rows, converter._phys,
-                _uk.row_constants(converter._phys, noise), a["knot_offset"], a["r_knot_ohm"], a["cell_offset"],
-                a["cell_interval"], a["cell_per_ohm"], a["coeffs"], sigma, flags)
+        _uk.run(inp.counts_i, inp.counts_q, inp.b_field_t, inp.v_thev_v, inp.rows, noise.kernel_record(converter),
+                a["r_knot_ohm"], a["cell_interval"], a["coeffs"], sigma, flags)
     else:
         rows = np.maximum(inp.rows, 0)
         usable = ((flags & fl.UNUSABLE) == 0) & (inp.rows >= 0)[:, None]
