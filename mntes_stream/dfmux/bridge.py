@@ -335,6 +335,8 @@ class DfMuxBridgeService(Service):
                     waited = self._step(readout, asm, hk, pubs, stopping, waited)
                 if self.released and not self._marker_seen:
                     self.released = False
+                while not readout.frames.empty():  # only the marker packets' own frames are left
+                    readout.frames.get_nowait()
                 asm.check_silent(b.silent_s)
                 chunks = asm.flush(time.time_ns())
                 for key, payload in hk.messages(chunks, asm.t_newest_ns) + [
