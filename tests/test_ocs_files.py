@@ -200,3 +200,31 @@ def test_replay_publishes_the_ocs_readings_with_the_recording(converted, tmp_pat
     sides = int((t < session.start_ns).any()) + int((t > session.end_ns).any())
     assert sum(k.endswith("/hk/t_bath") for k in got) == inside + sides and inside > 4, got
     assert sum("/counts/" in k for k in got) == 8
+
+
+def test_g3_bridge_publishes_the_ocs_bath_with_the_run(run, converted):
+    from mntes_stream.io.messages import decode
+    from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
+
+    d, _ = converted
+    port = free_tcp_port()
+    got = []
+    with open_session(loopback(port)) as z:
+        sub = QueueSubscriber(z, ["mntes/lab/**"])
+        p = cli(["g3-bridge", "--from", run / "raw.g3", "--json", "--hk", d / "hk", "--t-bath-field", FIELD,
+                 "-e", f"tcp/127.0.0.1:{port}"])  # the run has no thermometer: without --hk it could not start
+        assert p.returncode == 0, p.stderr[-2000:]
+        for _ in range(200):
+            item = sub.get(timeout_s=0.1)
+            if item is None and got:
+                break
+            if item is not None:
+                got.append((item[0], decode(item[1])))
+        sub.close()
+    bath = [m for k, m in got if k.endswith("/hk/t_bath")]
+    counts_end = max(int(m.times_ns()[-1]) for k, m in got if "/counts/" in k)
+    t = np.concatenate([m.t_ns for m in bath])
+    # every reading up to the run's last sample and the first one after it, in order, as written
+    assert np.all(np.diff(t) > 0) and t[-1] > counts_end and t[-2] <= counts_end and t[0] < T0_S * 1e9
+    assert [float(m.value[0]) for m in bath] == [0.1] * len(bath)
+    assert json.loads(p.stdout)["lost"] == 0

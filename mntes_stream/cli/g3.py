@@ -151,6 +151,9 @@ def register(sub) -> None:
     p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a DAQ without one")
     p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
     p.add_argument("-q", "--quiet", action="store_true", help="only the last line (the ledger)")
+    from mntes_stream.cli.ocs import add_hk_args
+
+    add_hk_args(p)  # --hk, --t-bath-field: the bath from OCS HK files instead of the DAQ's
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)
 

@@ -69,6 +69,10 @@ class BridgeSettings(Settings):
     bath_wait_s: float = setting(30.0, "data time without any bath reading (and no default) before it is an error",
                                  unit="s", gt=0)
     wait_subscribers_s: float = setting(5.0, "wait this long for subscribers to the first keys", unit="s", ge=0)
+    hk: str = setting("", "OCS HK G3 file or directory: the bath temperature comes from its t_bath_field, aligned "
+                      "by time, instead of the DAQ's ('': the DAQ's GcpSlow frames)", path=True)
+    t_bath_field: str = setting("", "with hk: the thermometer's full field name, e.g. observatory.LS372.feeds."
+                                "temperatures.Channel_06_T (K)")
 
 
 @dataclass(frozen=True)
@@ -246,6 +250,34 @@ class G3Source:
         self._sock = None
 
 
+class _OcsBath:
+    """``hk``: the OCS thermometer's readings as t_bath messages, handed out as the data's time passes them."""
+
+    def __init__(self, b: BridgeSettings):
+        from mntes_stream.ocs.hk import OcsFields, hk_from_files
+
+        if not b.t_bath_field:
+            raise ConfigError("g3-bridge: hk needs t_bath_field (the thermometer's full OCS field name)")
+        self.key = keys.hk_key(b.setup, "t_bath")
+        self._msgs = hk_from_files(b.hk, OcsFields(t_bath_field=b.t_bath_field), b.setup)
+        self._next = 0
+
+    def up_to(self, t_ns: int | None) -> list[tuple[str, bytes]]:
+        """The readings not yet handed out up to ``t_ns`` and the first one after it (so samples are bracketed)."""
+        if t_ns is None:
+            return []
+        out, msgs = [], self._msgs
+        while self._next < len(msgs):
+            t = msgs[self._next][0]
+            if t > t_ns and self._next and msgs[self._next - 1][0] > t_ns:
+                break  # the reading beyond t_ns went out already
+            out.append(msgs[self._next])
+            self._next += 1
+            if t > t_ns:
+                break
+        return [(key, payload) for _, key, payload in out]
+
+
 def bridge_config(args) -> G3BridgeConfig:
     """The config from ``--config``/``--set`` and the command line (which wins)."""
     import dataclasses
@@ -261,7 +293,7 @@ def bridge_config(args) -> G3BridgeConfig:
     else:
         cfg = G3BridgeConfig()
     flags = {k: getattr(args, a) for k, a in (("source", "source"), ("setup", "setup"), ("boards", "boards"),
-                                              ("params", "params"),
+                                              ("params", "params"), ("hk", "hk"), ("t_bath_field", "t_bath_field"),
                                               ("chunk_samples", "chunk_samples"), ("duration_s", "duration_s"))
              if getattr(args, a, None) is not None}
     g3 = {k: getattr(args, k) for k in ("t_bath_key", "t_bath_default_k") if getattr(args, k) is not None}
@@ -301,6 +333,7 @@ class G3BridgeService(Service):
                              max_held=b.max_held_frames)
         src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects, max_frame_bytes=int(b.max_frame_mb * 2**20),
                        reconnect_max_s=b.reconnect_max_s)
+        hk = _OcsBath(b) if b.hk else None
         t_start = time.monotonic()
         first_data_ns = None
         waited = False
@@ -325,7 +358,9 @@ class G3BridgeService(Service):
                     for frame in frames:
                         out += tr.accept(frame)
                     counts = [k for k, _ in out if keys.kind_of(k) == "counts"]
-                    if counts:
+                    if hk is not None:  # the bath from OCS HK files, up to the data's time (and one beyond)
+                        out = hk.up_to(tr._t_last_ns if counts else None) + [m for m in out if m[0] != hk.key]
+                    if counts and hk is None:
                         t_last = tr._t_last_ns
                         first_data_ns = first_data_ns or t_last
                         if not len(tr.bath):
