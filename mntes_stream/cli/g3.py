@@ -123,6 +123,9 @@ def run_bridge(args) -> int:
     quiet_spt3g()
     with stop_on_signals() as stop:
         result = G3BridgeService(cfg).start(stop=stop)
+    from mntes_stream.g3 import spt3g_in_use
+
+    result = dict(result) | {"spt3g": spt3g_in_use()}  # which spt3g read the frames
     if not args.quiet or args.json:
         print_mapping(result, args.json)
     if not args.json:
