@@ -249,7 +249,7 @@ def test_monitor_shows_a_replayed_recording(tmp_path):
     from mntes_stream.io.mcap import Session
 
     with contextlib.redirect_stdout(None):
-        assert main(["simulate", "--mcap", str(tmp_path / "in.mcap"), "--duration", "4", "--modules", "1",
+        assert main(["simulate", "--out", str(tmp_path / "in.mcap"), "--duration", "4", "--modules", "1",
                      "--channels", "8", "--setup", "lab", "--no-truth", "--json"]) == 0
         assert main(["convert", str(tmp_path / "in.mcap"), str(tmp_path / "out.mcap"), "--params",
                      str(tmp_path / "in.params.toml"), "-q", "--json"]) == 0

@@ -73,7 +73,7 @@ def test_mcap_truth_and_params_files(tmp_path):
     out = tmp_path / "run.mcap"
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        assert main(["simulate", "--mcap", str(out), "--duration", "2", "--channels", "8", "--modules", "2",
+        assert main(["simulate", "--out", str(out), "--duration", "2", "--channels", "8", "--modules", "2",
                      "--set", "jupiter_peak_w=0", "--perturbed-params-out", str(tmp_path / "wrong.toml"),
                      "--json"]) == 0
     res = json.loads(buf.getvalue())
@@ -96,7 +96,7 @@ def test_mcap_truth_and_params_files(tmp_path):
     assert truth["truth_p_opt_w"].shape == (16, 21 * 15)
     t_counts = np.concatenate([c.times_ns() for c in counts if (c.board, c.module) == (0, 0)])
     assert np.array_equal(t_counts, truth["t_ns"])
-    assert main(["simulate", "--duration", "1"]) == 2  # neither --mcap nor zenoh endpoints: a clear error
+    assert main(["simulate", "--duration", "1"]) == 2  # neither --out nor zenoh endpoints: a clear error
 
 
 def test_recorded_session_converts_back_to_the_truth(tmp_path):
