@@ -216,7 +216,7 @@ def write_mcap(source: SimulatorSource, path: str | Path, duration_s: float, t_s
     from mntes_stream.io.mcap import McapFileWriter
 
     if not duration_s > 0:
-        raise ConfigError("simulate --mcap needs a duration > 0")
+        raise ConfigError("simulate --out FILE.mcap needs a duration > 0")
     t_start = time.time_ns() if t_start_ns is None else int(t_start_ns)
     wall = time.perf_counter()
     n = 0
