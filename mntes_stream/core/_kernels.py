@@ -8,14 +8,15 @@ the table and a short binomial series (see ``core.tables``), and so does
 ``K T_bath^n`` around each detector's nominal bath (within 5%; beyond, the
 exact power). See ``benchmarks/README.md`` for its speed.
 
-The "table" kind's sample loop vectorises (``_table_kernel``): a detector's
-samples run in blocks of ``LANES`` vector lanes with no branch (flags as
-bit arithmetic, the interval from an O(1) lookup cell and one branch-free
-step, tables read by gathers); a block where a lane needs a branch (the
-exact power beyond the series, a second lookup step) is done again by the
-scalar reference, so the values are the reference's bit for bit. Successive
-samples of a detector are not assumed close: a lookup costs the same
-wherever the sample lands.
+The "table" kind's sample loop vectorises (``_table_kernel``; 8 doubles
+to a register on AVX-512): a detector's samples run as vector lanes with no
+branch (flags as bit arithmetic, the interval from an O(1) lookup cell and
+one branch-free step, tables read by gathers); a lane that needs a branch
+(the exact power beyond the series, a second lookup step: 0.03% of the
+bench's samples) is done again by the scalar reference, so the values are
+the reference's bit for bit. The previous sample's interval is not reused:
+that would chain each lane to the one before and stop the vectorising;
+close samples find their table lines in cache anyway.
 
 Per-detector scalars ``phys`` (n_bank, 21): gain re/im, pickup re/im, z re/im,
 K, n, c1, c2, gamma, nominal bias, R at |z| and the saturation cap, nominal
@@ -28,8 +29,8 @@ The compiled kernels read a compact per-detector record ``rec`` (n_bank,
 front end's constants, K, n, field and current coefficients, the binomials
 ``C(n, 1..8)``, ``1 / T0`` and ``K T0^n`` (``T0`` the bath the table refers
 to) and the detector's table window (R range, knot and cell offsets). One
-320-byte row per detector instead of some forty values from seven arrays:
-a 20-sample row paid about a microsecond of cache misses to gather them.
+320-byte row per detector instead of some forty values from seven arrays,
+so a short row (a live chunk holds about 20 samples) is cheap to start.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core import model
 
 __all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy",
-           "row_constants", "compile_kernels", "REC_COLS", "LANES"]
+           "row_constants", "compile_kernels", "REC_COLS"]
 
 SQRT2 = model.SQRT2
 # Counts at or beyond the int32 rails are ADC saturation or "no data" sentinels.
@@ -60,8 +61,6 @@ _ENV = int(fl.ENV_OUT_OF_RANGE)
 _UNKNOWN = int(fl.UNKNOWN_CHANNEL)
 _HK_MISSING = int(fl.HK_MISSING)
 _UNUSABLE = int(fl.UNUSABLE)
-# Samples of one detector computed side by side: 8 doubles fill an AVX-512 register.
-LANES = 8
 # Columns of the record ``rec`` (:func:`row_constants`). 0-15 are the front end's
 # constants in the order of ``_front``'s ``det``.
 _R_K, _R_N, _R_C1, _R_C2, _R_GAMMA = 16, 17, 18, 19, 20
@@ -532,19 +531,18 @@ if numba is not None:
     def _table_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx, coef, out_p, out_f):
         """The "table" kind over (n_rows, n_samp) samples: ``out_p`` (NaN where unusable), ``out_f``.
 
-        A row runs as vector lanes in two spans, the largest multiple of
-        ``LANES`` samples and the last ``LANES`` (overlapping it; same values
-        written twice), so no scalar remainder loop runs. A lane that needs a
-        branch (a second lookup step, the exact power beyond the series) is
-        marked and done again by the reference (:func:`_table_sample`), as is
-        a row shorter than ``LANES``.
+        A row's samples run as vector lanes (the compiler's scalar remainder
+        runs the same branch-free code). A lane that needs a branch (a second
+        lookup step, the exact power beyond the series) is marked and done
+        again by the reference, :func:`_table_sample`, which is called only
+        there: it reads the tables as array arguments, whose reference
+        counting costs a call per sample.
         """
         n_rows, n_samp = out_p.shape
         dm = _dom(dom)
         s_tb, s_ltb, s_b, s_v = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp)
         s_hk = np.empty(n_samp, dtype=np.uint16)
         marks = np.zeros(n_samp, dtype=np.uint8)
-        n_vec = n_samp - n_samp % LANES
         shared = (tb.shape[0] == 1, ltb.shape[0] == 1, b.shape[0] == 1, v.shape[0] == 1, hk.shape[0] == 1)
         _fill(tb, 0, s_tb), _fill(ltb, 0, s_ltb), _fill(b, 0, s_b), _fill(v, 0, s_v), _fill(hk, 0, s_hk)
         for row in range(n_rows):
@@ -556,13 +554,18 @@ if numba is not None:
                     out_f[row, s] = s_hk[s] | _UNKNOWN
                     out_p[row, s] = math.nan
                 continue
-            for i, (a, scratch) in enumerate(((tb, s_tb), (ltb, s_ltb), (b, s_b), (v, s_v))):
-                if not shared[i]:
-                    _fill(a, row, scratch)
+            if not shared[0]:
+                _fill(tb, row, s_tb)
+            if not shared[1]:
+                _fill(ltb, row, s_ltb)
+            if not shared[2]:
+                _fill(b, row, s_b)
+            if not shared[3]:
+                _fill(v, row, s_v)
             q = _record(rec, d)
             k0, last = int(q[_R_K0]), int(q[_R_LAST])
             n_slow = 0
-            for s in range(n_vec):
+            for s in range(n_samp):
                 tbs, bs, vs = s_tb[s], s_b[s], s_v[s]
                 f, r, m2, inside, rc = _lane_front(float(ci_[row, s]), float(cq_[row, s]), tbs, bs, vs,
                                                    int(s_hk[s]), q, dm)
@@ -579,11 +582,12 @@ if numba is not None:
                 slow = inside & (more | beyond)
                 marks[s] = slow
                 n_slow += slow
-            for s in range(n_samp):
-                if s >= n_vec or (n_slow and marks[s]):
-                    out_p[row, s], out_f[row, s] = _table_sample(
-                        float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_ltb[s], s_b[s], s_v[s], int(s_hk[s]),
-                        q, dm, x, cidx, coef)
+            if n_slow:
+                for s in range(n_samp):
+                    if marks[s]:
+                        out_p[row, s], out_f[row, s] = _table_sample(
+                            float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_ltb[s], s_b[s], s_v[s],
+                            int(s_hk[s]), q, dm, x, cidx, coef)
 
     @_jit
     def _grid_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx,
