@@ -155,11 +155,11 @@ def test_lab_recipe_as_written(netns, tmp_path):
     proc = subprocess.Popen(["unshare", "-n", "bash", "recipe.sh"], cwd=tmp_path, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        out, _ = proc.communicate(timeout=150)
+        out, _ = proc.communicate(timeout=240)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)  # the recipe's background services go with it
         out, _ = proc.communicate()
-        pytest.fail(f"recipe did not finish in 150 s: {out[-2000:]}")
+        pytest.fail(f"recipe did not finish in 240 s: {out[-2000:]}")
     logs = {p.name: p.read_text() for p in tmp_path.glob("*.log")}
     where = f"{out[-3000:]}\n" + "\n".join(f"== {k}\n{v[-800:]}" for k, v in logs.items())
     assert "Traceback" not in out and not any("Traceback" in v for v in logs.values()), where

@@ -200,6 +200,7 @@ class Readout:
             _check_interface(b.interface)
         self._core = self._dfmux = None
         self.builder = None
+        self._waker = None
         self.collectors = []
         self.frames: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._pull, name="dfmux-builder", daemon=True)
@@ -254,18 +255,23 @@ class Readout:
             sock.close()
         return True
 
+    def start_waker(self) -> None:
+        """Start the process whose datagrams let ``Stop()`` return (early: its start overlaps the last work)."""
+        if self.interface and not self.sctp and self._waker is None:  # SCTP boards that stream wake it themselves
+            self._waker = subprocess.Popen([sys.executable, "-c", _WAKE, self.interface], stdin=subprocess.DEVNULL,
+                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
     def stop(self) -> None:
-        waker = None
-        if self.interface and not self.sctp:  # SCTP boards that stream wake it themselves
-            waker = subprocess.Popen([sys.executable, "-c", _WAKE, self.interface], stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        if self.collectors:
+            self.start_waker()
         try:
             for c in self.collectors:
                 c.Stop()
         finally:
-            if waker is not None:
-                waker.kill()
-                waker.wait()
+            if self._waker is not None:
+                self._waker.kill()
+                self._waker.wait()
+                self._waker = None
 
 
 def unpack(frame) -> tuple[int, list]:
@@ -329,6 +335,7 @@ class DfMuxBridgeService(Service):
                         asm.check_silent(b.silent_s)
                         self._beat(asm, readout, pubs)
                 # What the builder still holds comes out before the marker packets; then the last chunks.
+                readout.start_waker()
                 self.released = readout.release()
                 t_end = time.monotonic() + 3.0
                 while self.released and not self._marker_seen and time.monotonic() < t_end:
