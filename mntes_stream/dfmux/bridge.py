@@ -419,6 +419,8 @@ def ledger_line(result: dict) -> str:
 
     led = Ledger.from_dict(result.get("ledger", {}), "published")
     text = f"dfmux-bridge done: {led.line()}; {result.get('gap_samples', 0)} module samples never received"
+    if result.get("out_of_order"):
+        text += f"; {result['out_of_order']} module samples dropped (not after their stream's last one)"
     if result.get("invalid_samples"):
         text += f"; {result['invalid_samples']} samples invalid (V4 blocks missing)"
     if result.get("held_released") is False:
