@@ -5,7 +5,9 @@ a copy of services/. Two substitutions only: the converter's zenoh port 7447
 becomes a free one, and the DAQ's tee ``tcp://daq:5353`` becomes a loopback
 relay fed by a real spt3g G3NetworkSender in another process (its listen
 mode binds every interface, so it connects to the relay instead: the bytes
-the bridge reads are the sender's own). Loopback only; every wait bounded.
+the bridge reads are the sender's own). The one-shot commands run in this
+process through ``mntes_stream.cli.main`` (what the console script calls),
+the services in processes of their own. Loopback only; every wait bounded.
 """
 
 from __future__ import annotations
@@ -43,10 +45,23 @@ def _argv(command: str) -> list[str]:
     return [sys.executable, "-m", "mntes_stream", *argv[1:]]
 
 
-def _run(command: str, cwd: Path) -> subprocess.CompletedProcess:
-    res = subprocess.run(_argv(command), cwd=cwd, capture_output=True, text=True, timeout=240)
-    assert res.returncode == 0 and "Traceback" not in res.stderr, f"{command}: {res.stderr[-3000:]}"
-    return res
+def _run(command: str, cwd: Path, capsys) -> str:
+    """A one-shot command of the page, in this process (the real ``main``, as the console script calls it)."""
+    import os
+
+    from mntes_stream.cli import main
+
+    argv = shlex.split(command)
+    assert argv[0] == "mntes-stream", command
+    here = os.getcwd()
+    os.chdir(cwd)
+    try:
+        rc = main(argv[1:])
+    finally:
+        os.chdir(here)
+    out = capsys.readouterr()
+    assert rc == 0, f"{command}: {out.err[-3000:]}"
+    return out.out
 
 
 def _topic_counts(inspect_stdout: str) -> dict[str, int]:
@@ -82,7 +97,7 @@ class _Background:
             self.out.close()
 
 
-def test_g3_recipe_as_written(tmp_path):
+def test_g3_recipe_as_written(tmp_path, capsys):
     blocks = _blocks()
     assert [len(b) for b in blocks] == [1, 1, 3, 3, 1], blocks
     shutil.copytree(ROOT / "services", tmp_path / "services", ignore=shutil.ignore_patterns("recordings"))
@@ -92,23 +107,25 @@ def test_g3_recipe_as_written(tmp_path):
         f.write_text(f.read_text().replace("7447", str(port)))
 
     # 1-2: a run and the converter's parameter file.
-    _run(blocks[0][0], tmp_path)
+    _run(blocks[0][0], tmp_path, capsys)
     assert {"run.g3", "run.params.toml", "run.bolometer-params.toml"} <= {p.name for p in tmp_path.iterdir()}
-    _run(blocks[1][0], tmp_path)
+    _run(blocks[1][0], tmp_path, capsys)
     other = tmp_path / "other-names.toml"  # a list naming other bolometers: one line, exit code 2
     other.write_text((tmp_path / "run.bolometer-params.toml").read_text().replace('"Sim', '"Other'))
-    bad = subprocess.run(_argv(blocks[1][0].replace("run.bolometer-params.toml", other.name)
-                               .replace("converter-params.toml", "x.toml")), cwd=tmp_path, capture_output=True,
-                         text=True, timeout=120)
-    assert bad.returncode == 2 and "no wired bolometer has parameters" in bad.stderr.strip().splitlines()[-1]
+    from mntes_stream.cli import main
+
+    bad = shlex.split(blocks[1][0].replace("run.bolometer-params.toml", str(other))
+                      .replace("converter-params.toml", str(tmp_path / "x.toml")).replace("run.g3", str(tmp_path / "run.g3")))
+    assert main(bad[1:]) == 2
+    assert "no wired bolometer has parameters" in capsys.readouterr().err.strip().splitlines()[-1]
 
     # 3: offline.
     convert, inspect, export = blocks[2]
-    _run(convert, tmp_path)
-    counts = _topic_counts(_run(inspect, tmp_path).stdout)
+    _run(convert, tmp_path, capsys)
+    counts = _topic_counts(_run(inspect, tmp_path, capsys))
     n_counts = sum(n for t, n in counts.items() if "/counts/" in t)
     assert n_counts > 0 and sum(n for t, n in counts.items() if "/power/" in t) == n_counts, counts
-    _run(export, tmp_path)
+    _run(export, tmp_path, capsys)
     assert (tmp_path / "power.h5").stat().st_size > 0
 
     # 4: live, the DAQ's tee (a G3NetworkSender) -> bridge -> converter -> recorder.
@@ -143,7 +160,7 @@ def test_g3_recipe_as_written(tmp_path):
         relay.close()
     for p in procs:
         assert "Traceback" not in p.log.read_text(), p.log.read_text()[-3000:]
-    live = _topic_counts(_run(blocks[4][0], tmp_path).stdout)
+    live = _topic_counts(_run(blocks[4][0], tmp_path, capsys))
     live_counts = sum(n for t, n in live.items() if "/counts/" in t)
     assert live_counts == n_counts, (live, counts)  # every chunk of the run came through the tee
     assert sum(n for t, n in live.items() if "/power/" in t) == live_counts, live
