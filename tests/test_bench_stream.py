@@ -51,7 +51,7 @@ def test_a_trial_passes_only_with_nothing_lost_shed_or_late_and_a_low_p99():
     assert trial_passes(good, 100.0) == (True, "")
     for change, why in (({"lost": 3}, "lost 3"), ({"converter_shed": 2}, "shed 2"), ({"converter_late": 1}, "late 1"),
                         ({"latency_p99_ms": 100.0}, "p99 100.0 ms"), ({"latency_p99_ms": float("nan")}, "p99 nan ms"),
-                        ({"all_services_ok": False}, "a service failed")):
+                        ({"all_services_ok": False, "failed_services": ["source"]}, "a service failed (source)")):
         assert trial_passes({**good, **change}, 100.0) == (False, why)
 
 
@@ -102,7 +102,8 @@ def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
-    assert out["all_services_ok"] and out["converter_threads"] == 2 and out["mode"] == "flat-out"
+    assert out["all_services_ok"] and not out["failed_services"]
+    assert out["converter_threads"] == 2 and out["mode"] == "flat-out"
     assert out["lost"] == 0 and out["chunks_recorded"] == out["chunks_sent"] > 0
     assert out["ratio_to_passthrough"] == pytest.approx(out["msamples_per_s"] / out["passthrough_msamples_per_s"],
                                                         abs=1e-3)

@@ -22,7 +22,7 @@ def trial_passes(res: dict, p99_ms: float) -> tuple[bool, str]:
     """Whether one real-time run sustained its rate, and why not (one short phrase)."""
     why = []
     if not res.get("all_services_ok"):
-        why.append("a service failed")
+        why.append(f"a service failed ({', '.join(res.get('failed_services') or ['?'])})")
     if res.get("lost"):
         why.append(f"lost {res['lost']}")
     for key in ("converter_shed", "converter_late"):

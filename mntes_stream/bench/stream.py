@@ -316,9 +316,7 @@ def run_once(args) -> dict:
                     last_change = time.monotonic()
                 received = n_in
             sub.close()
-        ok = services.stop("source")
-        for name in names[1:]:
-            ok &= services.stop(name)
+        stopped = {name: services.stop(name) for name in names}  # source first: the others drain after it
     finally:
         for name in names:
             services.stop(name, timeout_s=10)
@@ -354,6 +352,8 @@ def run_once(args) -> dict:
     stream_cpu_wall = _cpu_used(cpu_samples, src["t_start_ns"], stream_end)[0]
     rec_per_cpu = msps * stream_cpu_wall / rec_cpu if rec_cpu > 0 else None
     stream_wall = (src["t_end_ns"] - src["t_start_ns"]) / 1e9
+    # A service that did not stop cleanly (exit code) or gave no result: named, so a failed trial says which.
+    failed = [name for name in names if not stopped.get(name) or not isinstance(results.get(name), dict)]
 
     def cpu(r):
         return round(r.get("process_cpu_s", 0.0) / r.get("process_wall_s", 1.0), 3) if isinstance(r, dict) else None
@@ -411,7 +411,8 @@ def run_once(args) -> dict:
         "kind": args.kind,
         # Other work on the machine shows in the latency tail: say how busy it was.
         "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
-        "all_services_ok": bool(ok and ok_all),
+        "all_services_ok": bool(not failed and ok_all),
+        "failed_services": failed,
     }
     if tmp is not None:
         tmp.cleanup()
