@@ -151,18 +151,20 @@ class PowerEncoder:
         return t
 
     def encode(self, chunk: CountsChunk, p_opt_w: np.ndarray, flags: np.ndarray, t_pub_ns: int,
-               late: bool = False) -> bytes:
-        """The power message of ``chunk`` (regularly sampled) with ``p_opt_w`` (float64) and ``flags`` (uint16).
+               late: bool = False, sigma_p_w: np.ndarray | None = None) -> bytes:
+        """The power message of ``chunk`` with ``p_opt_w`` (float64), ``flags`` (uint16), ``sigma_p_w`` (float32).
 
-        p_opt_w, flags : ndarray, shape (n_ch, n_samp), any layout (a view of a larger block is copied once)
+        p_opt_w, flags, sigma_p_w : ndarray, shape (n_ch, n_samp), any layout (a view of a larger block is copied
+        once); ``sigma_p_w`` None: not in the message.
         """
-        if chunk.t_ns is not None:  # explicit times: the general encoder
+        if chunk.t_ns is not None or sigma_p_w is not None:  # explicit times, or sigma_P: the general encoder
             return PowerChunk.unchecked(
                 setup=self._setup, board=chunk.board, module=chunk.module, channels=chunk.channels,
                 detector_ids=detector_ids_for(chunk.board, chunk.module, chunk.channels), seq=chunk.seq,
-                t0_ns=None, sample_rate_hz=None, p_opt_w=p_opt_w, flags=flags, table_identity=self._identity,
-                converter_kind=self._kind, source_t_pub_ns=chunk.t_pub_ns, t_pub_ns=t_pub_ns, t_ns=chunk.t_ns,
-                late=True if late else None).to_bytes()
+                t0_ns=chunk.t0_ns, sample_rate_hz=chunk.sample_rate_hz, p_opt_w=p_opt_w, flags=flags,
+                table_identity=self._identity, converter_kind=self._kind, source_t_pub_ns=chunk.t_pub_ns,
+                t_pub_ns=t_pub_ns, t_ns=chunk.t_ns, late=True if late else None,
+                sigma_p_w=sigma_p_w).to_bytes()
         head, k_t0, k_rate, k_p, k_f, mid, k_pub, tail = self._template(
             chunk.board, chunk.module, chunk.channels, p_opt_w.shape, bool(late))
         return b"".join((head, _pack(chunk.seq), k_t0, _pack(chunk.t0_ns), k_rate, _pack(chunk.sample_rate_hz),

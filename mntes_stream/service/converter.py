@@ -19,6 +19,7 @@ from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.core.shards import Shard, owned_streams
+from mntes_stream.core.uncertainty import UncertaintySettings
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import decode
@@ -79,7 +80,12 @@ class ConverterConfig(Settings):
                              "sample times are converted in one call)", ge=1)
     checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
                               "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
+    sigma_p: bool = setting(False, "publish each sample's power uncertainty sigma_P (readout noise through the "
+                            "local responsivity) and flag LOW_RESPONSIVITY, as [uncertainty] says (costs about as "
+                            "much as the conversion itself)")
     alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
+    uncertainty: UncertaintySettings = setting(default_factory=UncertaintySettings,
+                                               doc="readout noise and LOW_RESPONSIVITY ([uncertainty], with sigma_p)")
     status: StatusConfig = setting(default_factory=StatusConfig, doc="status cadence ([status])")
     metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
@@ -285,7 +291,8 @@ def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, h
     _warm_up(conv)
     summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
     pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None, threads=cfg.threads,
-                             set_aside_bytes=int(cfg.set_aside_mb * 1e6))
+                             set_aside_bytes=int(cfg.set_aside_mb * 1e6),
+                             uncertainty=cfg.uncertainty if cfg.sigma_p else None)
     if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
         n = pipe.resume_sequences(ckpt[0])
         log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "

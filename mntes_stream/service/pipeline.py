@@ -118,6 +118,9 @@ class ConverterPipeline(Overload, Conversion, Reporting):
     set_aside_bytes : int
         Counts held at most under overload for late conversion; beyond, the
         oldest set-aside chunk is shed (counted in the ledger).
+    uncertainty : core.uncertainty.UncertaintySettings, optional
+        Given: every power chunk carries each sample's sigma_P and LOW_RESPONSIVITY is
+        flagged (``core.uncertainty.sigma_p_block``); None: neither (the power is the same).
 
     Attribute ``overloaded`` (False unless the live service sets it, so offline
     runs never shed): while True, a chunk further behind its stream's pace than
@@ -131,7 +134,7 @@ class ConverterPipeline(Overload, Conversion, Reporting):
 
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
                  clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
-                 set_aside_bytes: int = 256 << 20):
+                 set_aside_bytes: int = 256 << 20, uncertainty=None):
         self.converter = converter
         self.ledger = Ledger("converted")
         self.overloaded = False
@@ -164,6 +167,11 @@ class ConverterPipeline(Overload, Conversion, Reporting):
         self._decoder = CountsDecoder()
         self._step_times: dict[tuple, np.ndarray] = {}
         self._encoder = PowerEncoder(self.config.setup, self._table_identity, self._kind)
+        self._noise = None
+        if uncertainty is not None:
+            from mntes_stream.io.noisefile import noise_model_for  # reads the measured-noise file, if one is named
+
+            self._noise = noise_model_for(list(converter.params), uncertainty)
         self._rows: dict[tuple, tuple] = {}
         # Streams continued from a checkpoint, until their first chunk: (next number, checkpoint sample time).
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}

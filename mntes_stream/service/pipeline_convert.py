@@ -14,6 +14,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock
+from mntes_stream.core.uncertainty import sigma_p_block
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, detector_ids_for
 
@@ -147,15 +148,16 @@ class Conversion:
         except Exception:  # find out which chunk it was: one by one, each failure counted
             return None
         out = [[None] * len(g) for g in run]
-        for (m0, m1), (p_opt, flags, env_flags, rows) in zip(parts, done):
+        for (m0, m1), (p_opt, flags, env_flags, rows, sigma) in zip(parts, done):
             known = np.concatenate([r.known for r in rows]) if any(r.n_unknown for r in rows) else None
-            p_opt, flags = self._finish(p_opt, flags, env_flags, known)  # once for the block, not per chunk
+            p_opt, flags, sigma = self._finish(p_opt, flags, env_flags, known, sigma)  # once for the block
             starts = np.cumsum([0] + [r.chunk.channels.size for r in rows])
             for g, order in enumerate(orders):
                 c0, c1 = cols[g], cols[g + 1]
                 for m in range(m0, m1):
                     r0, r1 = starts[m - m0], starts[m - m0 + 1]
-                    out[g][order[m]] = (p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1], True)
+                    out[g][order[m]] = (p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1], True,
+                                        None if sigma is None else sigma[r0:r1, c0:c1])
         return out
 
     def _convert_part(self, run: list[list[_Ready]], orders: list[list[int]], m0: int, m1: int) -> tuple:
@@ -182,11 +184,19 @@ class Conversion:
             v_bias = block(lambda r: r.v_bias)
             env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
         env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
-        out = self.converter.convert([d for r in rows for d in r.ids], ci, cq, env)
-        p_opt, flags = np.asarray(out.p_opt_w, dtype=float), np.asarray(out.flags, dtype=fl.FLAG_DTYPE)
+        ids = [d for r in rows for d in r.ids]
+        out = self.converter.convert(ids, ci, cq, env)
+        p_opt, flags, sigma = self._with_sigma(ids, ci, cq, env, out)
         if p_opt.shape != ci.shape or flags.shape != ci.shape:
             raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {ci.shape}")
-        return p_opt, flags, env_flags, rows
+        return p_opt, flags, env_flags, rows, sigma
+
+    def _with_sigma(self, ids, ci, cq, env, out) -> tuple:
+        """p_opt, flags and sigma_P (None unless the pipeline has a noise model) of a converted block."""
+        if self._noise is None:
+            return np.asarray(out.p_opt_w, dtype=float), np.asarray(out.flags, dtype=fl.FLAG_DTYPE), None
+        u = sigma_p_block(self.converter, ids, ci, cq, env, out, self._noise)
+        return np.asarray(u.p_opt_w, dtype=float), np.asarray(u.flags, dtype=fl.FLAG_DTYPE), u.sigma_p_w
 
     def _pool(self):
         """Threads for the parts of a large run beyond the first (made on first use)."""
@@ -196,8 +206,10 @@ class Conversion:
             self._executor = ThreadPoolExecutor(max_workers=self._threads - 1, thread_name_prefix="convert")
         return self._executor
 
-    def _finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None):
-        """Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN.
+    def _finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None,
+                sigma: np.ndarray | None = None):
+        """Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN
+        (its sigma_P too, when there is one).
 
         Books the flag counts and unknown-channel samples; ``known``: rows with parameters (None: all).
         """
@@ -210,8 +222,10 @@ class Conversion:
             unusable = (flags & (fl.UNUSABLE | (fl.HK_STALE if self.config.hk_stale_power == "nan" else 0))) != 0
             if unusable.any():
                 p_opt = np.where(unusable, np.nan, p_opt)
+                if sigma is not None:
+                    sigma = np.where(unusable, np.float32(np.nan), sigma)
             self.flag_counts.update(fl.counts_by_flag(flags))
-        return p_opt, flags
+        return p_opt, flags, sigma
 
     def _convert_one(self, r: _Ready) -> tuple:
         chunk = r.chunk
@@ -220,26 +234,27 @@ class Conversion:
             # The converter flags rows it has no parameters for (UNKNOWN_CHANNEL) itself.
             env = EnvironmentBlock(t_bath_k=r.t_bath, b_field_t=r.b_field, v_thev_v=r.v_bias, flags=r.env_flags)
             block = self.converter.convert(r.ids, chunk.counts_i, chunk.counts_q, env)
-            p_opt, flags = np.asarray(block.p_opt_w, dtype=float), np.asarray(block.flags, dtype=fl.FLAG_DTYPE)
+            p_opt, flags, sigma = self._with_sigma(r.ids, chunk.counts_i, chunk.counts_q, env, block)
             if p_opt.shape != shape or flags.shape != shape:
                 raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {shape}")
         except Exception as exc:  # one bad block must not stop the stream
             p_opt = np.full(shape, np.nan)
             flags = np.full(shape, fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
+            sigma = None if self._noise is None else np.full(shape, np.nan, dtype=np.float32)
             self._bad("convert_failed", f"{type(exc).__name__}: {exc}",
                       keys.counts_key(self.config.setup, chunk.board, chunk.module))
-        return p_opt, flags, False
+        return p_opt, flags, False, sigma
 
     def _power(self, r: _Ready, converted: tuple) -> tuple[str, bytes]:
         """The power message of a converted chunk (flags completed, flagged power NaN), counters booked."""
         chunk, cfg = r.chunk, self.config
-        p_opt, flags, finished = converted
+        p_opt, flags, finished, sigma = converted
         n_ch, n = chunk.counts_i.shape
         if not finished:
-            p_opt, flags = self._finish(p_opt, flags, r.env_flags, r.known if r.n_unknown else None)
+            p_opt, flags, sigma = self._finish(p_opt, flags, r.env_flags, r.known if r.n_unknown else None, sigma)
         t_pub = self._stamp()
         # Made here from checked inputs (ids from the channels, arrays of the wire dtypes): not checked again.
-        payload = self._encoder.encode(chunk, p_opt, flags, t_pub, r.late)
+        payload = self._encoder.encode(chunk, p_opt, flags, t_pub, r.late, sigma)
         self.ledger.done((chunk.board, chunk.module), late=r.late)
         c = self.counters
         c.chunks_converted += 1

@@ -1,0 +1,54 @@
+"""Each sample's uncertainty through the converter pipeline (issue 26): sigma_P in every power chunk, equal to
+core.uncertainty's on the same block, LOW_RESPONSIVITY flagged, the power itself unchanged."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mntes_stream.core import flags as fl
+from mntes_stream.core.convert import EnvironmentBlock, make_converter
+from mntes_stream.core.uncertainty import UncertaintySettings, noise_model, sigma_p_block
+from mntes_stream.io.messages import CountsChunk, PowerChunk
+from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.service.source import MinimalSource, SourceConfig
+
+
+def _run(conv, msgs, uncertainty):
+    pipe = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None, uncertainty=uncertainty)
+    out = []
+    for t, batch in msgs:
+        out += pipe.handle_many([(k, p, t) for k, p in batch])
+    out += pipe.flush()
+    return [(k, PowerChunk.from_bytes(p)) for k, p in out if "/power/" in k], pipe
+
+
+def test_sigma_p_travels_with_the_power_and_flags_low_responsivity():
+    # A tolerance of 1.01x the nominal sigma_P: the loading's swing takes part of each cycle beyond it.
+    src = MinimalSource(SourceConfig(modules=2, channels=8, hwp_2f_amplitude_w=2e-13))
+    msgs = list(src.batches(1_700_000_000_000_000_000, 2.0))
+    params = {p.detector_id: p for p in src.params}
+    conv = make_converter("table", params)
+    settings = UncertaintySettings(sigma_p_factor=1.01)
+    plain, _ = _run(conv, msgs, None)
+    with_sigma, pipe = _run(conv, msgs, settings)
+    assert len(plain) == len(with_sigma) == pipe.counters.chunks_converted > 0
+    noise = noise_model(list(conv.params), settings)
+    counts = {(c.board, c.module, c.seq): c for _, b in msgs for k, p in b if "/counts/" in k
+              for c in [CountsChunk.from_bytes(p)]}
+    low = 0
+    for (_, a), (_, b) in zip(plain, with_sigma):
+        assert a.sigma_p_w is None and b.sigma_p_w is not None and b.sigma_p_w.dtype == np.float32
+        assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True)  # a warning bit: the power is the same
+        assert np.array_equal(a.flags, b.flags & ~np.uint16(fl.LOW_RESPONSIVITY))
+        usable = (b.flags & fl.UNUSABLE) == 0
+        assert np.all(np.isfinite(b.sigma_p_w[usable])) and np.all(b.sigma_p_w[usable] > 0)
+        low += int(np.count_nonzero(b.flags & fl.LOW_RESPONSIVITY))
+        # The same sigma_P as core.uncertainty gives on that chunk converted alone (with the environment it had:
+        # the pipeline's housekeeping is constant here, so the nominal environment of the chunk's samples).
+        c = counts[(b.board, b.module, b.seq)]
+        env = EnvironmentBlock(t_bath_k=np.full(c.n_samples, 0.1), b_field_t=np.zeros(c.n_samples))
+        ids = list(b.detector_ids)
+        blk = conv.convert(ids, c.counts_i, c.counts_q, env)
+        ref = sigma_p_block(conv, ids, c.counts_i, c.counts_q, env, blk, noise)
+        np.testing.assert_allclose(b.sigma_p_w[usable], ref.sigma_p_w[usable], rtol=2e-3)
+    assert 0 < low  # part of the cycle is flagged
