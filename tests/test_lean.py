@@ -68,9 +68,10 @@ def test_a_known_stream_s_bad_chunk_is_rejected_as_the_full_decoder_rejects_it(c
     _same(dec.decode(KEY, good), CountsChunk.from_bytes(good))  # and the stream goes on
 
 
+@pytest.mark.parametrize("sigma", [False, True])
 @pytest.mark.parametrize("late", [False, True])
 @pytest.mark.parametrize("shape", [(5, 7), (1, 1), (128, 20), (20, 4000)])
-def test_power_messages_are_byte_identical_to_the_message_class(late, shape):
+def test_power_messages_are_byte_identical_to_the_message_class(late, shape, sigma):
     enc = PowerEncoder("lab", "f" * 64, "table")
     rng = np.random.default_rng(shape[0])
     for seq in range(3):
@@ -78,10 +79,11 @@ def test_power_messages_are_byte_identical_to_the_message_class(late, shape):
         block = rng.normal(size=(shape[0] + 2, shape[1] * 2)) * 1e-12
         p = block[1:-1, shape[1]:]  # a strided view of a larger block, as the converter's runs give
         f = rng.integers(0, 2**16, size=shape).astype("<u2")
+        s = (np.abs(block[:-2, :shape[1]]) * 1e-3).astype(np.float32) if sigma else None
         want = PowerChunk("lab", 3, 7, c.channels, detector_ids_for(3, 7, c.channels), c.seq, c.t0_ns,
                           c.sample_rate_hz, p, f, "f" * 64, "table", c.t_pub_ns, 42 + seq,
-                          late=True if late else None).to_bytes()
-        assert enc.encode(c, p, f, 42 + seq, late) == want
+                          late=True if late else None, sigma_p_w=s).to_bytes()
+        assert enc.encode(c, p, f, 42 + seq, late, s) == want
     t = _chunk(0, n=4, t_ns=np.arange(4, dtype=np.int64))
     p, f = np.zeros((5, 4)), np.zeros((5, 4), "<u2")
     got = PowerChunk.from_bytes(enc.encode(t, p, f, 9, late))

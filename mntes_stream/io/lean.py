@@ -126,13 +126,14 @@ class PowerEncoder:
         self._setup, self._identity, self._kind = setup, table_identity, converter_kind
         self._templates: dict[tuple, tuple] = {}
 
-    def _template(self, board: int, module: int, channels: np.ndarray, shape: tuple, late: bool) -> tuple:
-        key = (board, module, channels.tobytes(), shape, late)
+    def _template(self, board: int, module: int, channels: np.ndarray, shape: tuple, late: bool,
+                  sigma: bool) -> tuple:
+        key = (board, module, channels.tobytes(), shape, late, sigma)
         t = self._templates.get(key)
         if t is None:
             # Field order and encodings as PowerChunk._body() and codec.pack() make them (a test compares bytes).
             ids = detector_ids_for(board, module, channels)
-            n_fields = 16 + (1 if late else 0)  # the envelope (2) and every field but t_ns
+            n_fields = 16 + (1 if late else 0) + (1 if sigma else 0)  # the envelope (2) and every field but t_ns
             head = b"".join([
                 _map_head(n_fields), _pack("schema"), _pack(PowerChunk.SCHEMA), _pack("version"),
                 _pack(_versions()[PowerChunk.SCHEMA]), _pack("setup"), _pack(self._setup), _pack("board"),
@@ -144,7 +145,8 @@ class PowerEncoder:
                  _pack("flags") + _array_head("<u2", shape),
                  _pack("table_identity") + _pack(self._identity) + _pack("converter_kind") + _pack(self._kind)
                  + _pack("source_t_pub_ns"), _pack("t_pub_ns"),
-                 _pack("late") + _pack(True) if late else b"")
+                 (_pack("late") + _pack(True) if late else b"")
+                 + (_pack("sigma_p_w") + _array_head("<f4", shape) if sigma else b""))
             if len(self._templates) >= _MAX_HEADERS:
                 self._templates.clear()
             self._templates[key] = t
@@ -157,7 +159,7 @@ class PowerEncoder:
         p_opt_w, flags, sigma_p_w : ndarray, shape (n_ch, n_samp), any layout (a view of a larger block is copied
         once); ``sigma_p_w`` None: not in the message.
         """
-        if chunk.t_ns is not None or sigma_p_w is not None:  # explicit times, or sigma_P: the general encoder
+        if chunk.t_ns is not None:  # explicit times: the general encoder
             return PowerChunk.unchecked(
                 setup=self._setup, board=chunk.board, module=chunk.module, channels=chunk.channels,
                 detector_ids=detector_ids_for(chunk.board, chunk.module, chunk.channels), seq=chunk.seq,
@@ -166,11 +168,12 @@ class PowerEncoder:
                 t_pub_ns=t_pub_ns, t_ns=chunk.t_ns, late=True if late else None,
                 sigma_p_w=sigma_p_w).to_bytes()
         head, k_t0, k_rate, k_p, k_f, mid, k_pub, tail = self._template(
-            chunk.board, chunk.module, chunk.channels, p_opt_w.shape, bool(late))
+            chunk.board, chunk.module, chunk.channels, p_opt_w.shape, bool(late), sigma_p_w is not None)
         return b"".join((head, _pack(chunk.seq), k_t0, _pack(chunk.t0_ns), k_rate, _pack(chunk.sample_rate_hz),
                          k_p, p_opt_w.astype("<f8", copy=False).tobytes(), k_f,
                          flags.astype("<u2", copy=False).tobytes(), mid, _pack(chunk.t_pub_ns), k_pub,
-                         _pack(int(t_pub_ns)), tail))
+                         _pack(int(t_pub_ns)), tail,
+                         b"" if sigma_p_w is None else sigma_p_w.astype("<f4", copy=False).tobytes()))
 
 
 def _map_head(n: int) -> bytes:
