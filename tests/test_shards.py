@@ -18,7 +18,8 @@ from mntes_stream.io.transport import free_tcp_port, loopback, open_session
 from mntes_stream.service.converter import ConverterConfig, owned_params, subscriptions
 from mntes_stream.service.coverage import Coverage
 from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
-from mntes_stream.service.recorder import RecorderConfig, _shard_filter
+from mntes_stream.service.recorder import RecorderConfig
+from mntes_stream.service.recorder_sink import shard_filter
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 
@@ -120,7 +121,7 @@ def test_coverage_reports_counts_without_power_and_power_gaps():
 
 
 def test_recorder_shards_split_streams_and_keep_the_rest_once():
-    keep = [_shard_filter(Shard(i, 2)) for i in range(2)]
+    keep = [shard_filter(Shard(i, 2)) for i in range(2)]
     for b, m in itertools.product(range(2), range(5)):
         for topic in (f"mntes/lab/counts/{b}/{m}", f"mntes/lab/power/{b}/{m}", f"mntes/lab/hk/bias/{b}/{m}"):
             assert [k(topic) for k in keep].count(True) == 1
@@ -128,7 +129,7 @@ def test_recorder_shards_split_streams_and_keep_the_rest_once():
     for topic in ("mntes/lab/hk/t_bath", "mntes/lab/status/converter", "mntes/lab/weird"):
         assert [k(topic) for k in keep] == [True, False]
     assert [k("mntes/lab/provenance") for k in keep] == [True, True]
-    assert _shard_filter(Shard()) is None
+    assert shard_filter(Shard()) is None
     assert RecorderConfig(shard="1/2").file_prefix == "mntes-shard1of2" and RecorderConfig().file_prefix == "mntes"
 
 

@@ -52,3 +52,17 @@ def test_sigma_p_travels_with_the_power_and_flags_low_responsivity():
         ref = sigma_p_block(conv, ids, c.counts_i, c.counts_q, env, blk, noise)
         np.testing.assert_allclose(b.sigma_p_w[usable], ref.sigma_p_w[usable], rtol=2e-3)
     assert 0 < low  # part of the cycle is flagged
+
+
+def test_the_provenance_says_which_noise_was_used():
+    from mntes_stream.io.messages import Provenance
+
+    src = MinimalSource(SourceConfig(modules=1, channels=4))
+    conv = make_converter("table", {p.detector_id: p for p in src.params})
+    off = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None)
+    on = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None,
+                           uncertainty=UncertaintySettings(readout_noise_a=3e-12, sigma_p_factor=4.0))
+    assert Provenance.from_bytes(off.provenance_bytes()).noise == {}
+    noise = Provenance.from_bytes(on.provenance_bytes()).noise
+    assert noise["readout_noise_a_setting"] == 3e-12 and noise["readout_noise_a_range"] == [3e-12, 3e-12]
+    assert noise["low_responsivity"] == "sigma_P > 4 x nominal sigma_P"

@@ -375,6 +375,11 @@ class Provenance(_Message):
         The detector parameter file (``io.paramfile`` TOML text).
     table_identity, converter_kind, software_version : str
     t_ns : int
+    owns : dict
+        The part of the focal plane a converter shard covers (empty: all of it).
+    noise : dict
+        The readout noise behind each sample's sigma_P and the LOW_RESPONSIVITY rule
+        (``core.uncertainty.NoiseModel.provenance``); empty (absent on the wire): no sigma_P.
     """
 
     SCHEMA: ClassVar[str] = "mntes.provenance"
@@ -386,6 +391,7 @@ class Provenance(_Message):
     software_version: str
     t_ns: int
     owns: dict = field(default_factory=dict)
+    noise: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         fc.as_str(self.setup, "setup", NAME_PATTERN)
@@ -393,11 +399,14 @@ class Provenance(_Message):
             fc.as_str(getattr(self, name), name)
         object.__setattr__(self, "t_ns", fc.as_int(self.t_ns, "t_ns"))
         object.__setattr__(self, "owns", _owns_map(self.owns))
+        if not isinstance(self.noise, dict) or not all(isinstance(k, str) for k in self.noise):
+            raise SchemaError("noise must be a map with string keys")
 
     def _body(self) -> dict:
         body = super()._body()
-        if not self.owns:  # a converter of the whole focal plane: the bytes of before
-            body.pop("owns", None)
+        for name in ("owns", "noise"):  # absent when empty: the bytes of before
+            if not getattr(self, name):
+                body.pop(name, None)
         return body
 
 

@@ -79,6 +79,7 @@ class Reporting:
             software_version=__version__,
             t_ns=self._t_created_ns,
             owns=self._owns,
+            noise=self._noise.provenance() if self._noise is not None else {},
         )
 
     def provenance_bytes(self) -> bytes:
