@@ -13,7 +13,8 @@ second (target: 20x for 2,048 detectors x 30 s). Besides, each part alone in
 the same minutes: the converter from the warm cache, reading the recording,
 decoding the counts, and the numba kernel on the recording's own chunks;
 ``--profile N`` adds cProfile's top N functions (own time) of one more warm
-run in process.
+run in process; ``--batch-s`` the in-process figure with ``batch_s`` (the
+messages of each S s of receive time through the pipeline together).
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ def add_arguments(p) -> None:
     p.add_argument("--repeat", type=int, default=3, metavar="N", help="warm runs (default 3; the median is the figure)")
     p.add_argument("--profile", type=int, default=0, metavar="N",
                    help="one more warm run under cProfile: its top N functions by own time (default 0: none)")
+    p.add_argument("--batch-s", type=float, default=1.0, metavar="S",
+                   help="also in process with convert_recording(batch_s=S): S s of messages through the pipeline "
+                        "at once (default 1; 0: not measured)")
     p.add_argument("--keep", metavar="DIR", help="keep the recording, parameters, cache and outputs in DIR")
 
 
@@ -121,10 +125,10 @@ def run(args) -> dict:
 
         cache = work / "home" / ".cache" / "mntes-stream" / "tables"  # the CLI's default cache under HOME
 
-        def convert(k: int):
+        def convert(k: int, batch_s: float = 0.0):
             t0, c0 = time.perf_counter(), time.process_time()
             stats = convert_recording(rec, work / f"out{k}.mcap", params=params_file, table_cache=cache,
-                                      progress=False)
+                                      progress=False, batch_s=batch_s)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             (work / f"out{k}.mcap").unlink()
             return wall, stats, cpu
@@ -150,6 +154,10 @@ def run(args) -> dict:
         cli_warm, cli_warm_cpu = zip(*(command(k + 1) for k in range(args.repeat)))
         stats = convert(0)[1]  # in process: the kernels compiled or loaded once, as a long-lived process has them
         warm, _, warm_cpu = zip(*(convert(k + 1) for k in range(args.repeat)))
+        batched = [convert(k + 1, args.batch_s) for k in range(args.repeat)] if args.batch_s > 0 else []
+        if batched and batched[0][1].samples_converted != stats.samples_converted:
+            raise MntesError(f"bench convert-offline: batched conversion converted {batched[0][1].samples_converted} "
+                             f"samples, message by message {stats.samples_converted}")
         # The parts alone, in the same minutes.
         t0 = time.perf_counter()
         conv = build_converter(None, params=params_file, table_cache=cache)[0]
@@ -186,11 +194,11 @@ def run(args) -> dict:
         "ledger": stats.ledger_line,
         # `mntes-stream convert REC OUT --params P` in its own process: first with an empty cache (bank and
         # converter built and cached), then warm; in process (convert_recording, imports and kernels loaded).
-        "command_cold_s": round(cli_cold_s, 2),
-        "command_warm_s": [round(w, 2) for w in cli_warm],
+        "command_cold_s": round(cli_cold_s, 3),
+        "command_warm_s": [round(w, 3) for w in cli_warm],
         "realtime_factor_command_cold": round(args.seconds / cli_cold_s, 2),
         "realtime_factor_command": round(args.seconds / statistics.median(cli_warm), 2),
-        "in_process_warm_s": [round(w, 2) for w in warm],
+        "in_process_warm_s": [round(w, 3) for w in warm],
         "realtime_factor": round(args.seconds / warm_s, 2),
         # Per CPU second of the conversion's own process (user + system): what a machine shared with other
         # work gives on one core it has to itself; the wall figures above move with the load.
@@ -199,6 +207,12 @@ def run(args) -> dict:
         "realtime_factor_command_per_cpu_s": round(args.seconds / statistics.median(cli_warm_cpu), 2),
         "in_process_warm_cpu_s": [round(c, 2) for c in warm_cpu],
         "realtime_factor_per_cpu_s": round(args.seconds / statistics.median(warm_cpu), 2),
+        # The same in process, the messages of each --batch-s s of receive time through the pipeline together.
+        "batch_s": args.batch_s if batched else None,
+        "in_process_batched_cpu_s": [round(b[2], 2) for b in batched] or None,
+        "realtime_factor_batched_per_cpu_s": round(args.seconds / statistics.median(b[2] for b in batched), 2)
+        if batched else None,
+        "realtime_factor_batched": round(args.seconds / statistics.median(b[0] for b in batched), 2) if batched else None,
         "target_realtime_factor": 20.0,
         "msamples_per_s": round(n_samples / warm_s / 1e6, 3),
         # The parts alone (same minutes): what of the warm run each would take if nothing else did.
