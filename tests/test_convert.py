@@ -276,6 +276,52 @@ def test_backends_agree_on_a_realistic_block(params, bank, backend):
     assert np.count_nonzero(out.flags & fl.INVALID_INPUT) > 0
 
 
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_a_samples_value_does_not_depend_on_its_row_or_neighbours(params, bank):
+    """The compiled kernel runs a row as vector lanes, its remainder as scalar code, and lanes
+    that need a branch (here: a bath beyond the series' 5%, exact power) by the reference: a
+    sample's power and flags are the same bit for bit whichever of these computed it."""
+    from mntes_stream.bench.convert import synthetic_block
+
+    n = 41
+    ids, ci, cq, env = synthetic_block(params, n, seed=9, bad_fraction=0.05)
+    rng = np.random.default_rng(4)
+    shape = ci.shape
+    tb = np.where(rng.random(shape) < 0.3, 0.1075, np.broadcast_to(env.t_bath_k, shape))  # 7.5%: exact
+    cq = np.where(rng.random(shape) < 0.1, cq * 3, cq).astype(np.int32)  # off the model: flags
+    e = EnvironmentBlock(tb, np.broadcast_to(env.b_field_t, shape), env.v_thev_v)
+    conv = make_converter("table", None, bank=bank, backend="numba")
+    whole = conv.convert(ids, ci, cq, e)
+    exact = make_converter("exact", params).convert(ids, ci, cq, e)
+    clean = whole.flags == 0
+    assert np.max(np.abs(whole.p_opt_w - exact.p_opt_w)[clean]) <= TARGET_W
+    assert np.count_nonzero(clean & (tb > 0.105)) > 20
+    assert np.count_nonzero(whole.flags & fl.OUT_OF_TABLE) and np.count_nonzero(whole.flags & fl.INVALID_INPUT)
+    for width in (1, 5, 8, 15, 16, 17, 33):
+        for s0 in (0, 3, n - width):
+            part = conv.convert(ids, ci[:, s0:s0 + width], cq[:, s0:s0 + width],
+                                EnvironmentBlock(tb[:, s0:s0 + width], e.b_field_t[:, s0:s0 + width], e.v_thev_v))
+            assert np.array_equal(part.p_opt_w, whole.p_opt_w[:, s0:s0 + width], equal_nan=True), (width, s0)
+            assert np.array_equal(part.flags, whole.flags[:, s0:s0 + width]), (width, s0)
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_a_converter_pickled_before_the_record_converts_the_same(params, bank):
+    """A converter restored from an older snapshot holds the old per-detector constants (``_pre``,
+    no ``_rec``): it builds the record on first use and converts as a new one."""
+    from mntes_stream.bench.convert import synthetic_block
+
+    ids, ci, cq, env = synthetic_block(params, 30, seed=2)
+    conv = make_converter("table", None, bank=bank, backend="numba")
+    ref = conv.convert(ids, ci, cq, env)
+    state = {k: v for k, v in conv.__dict__.items() if k != "_rec"}
+    state["_pre"] = np.zeros((len(bank), 10))  # the layout before the record
+    old = object.__new__(type(conv))
+    old.__setstate__(state)  # as unpickling does
+    out = old.convert(ids, ci, cq, env)
+    assert np.array_equal(out.p_opt_w, ref.p_opt_w, equal_nan=True) and np.array_equal(out.flags, ref.flags)
+
+
 def test_environment_layouts_are_equivalent(params, bank):
     """Shared (n_samp,) and per-detector (n_det, n_samp) environment give the same result."""
     from mntes_stream.bench.convert import synthetic_block

@@ -8,7 +8,9 @@ the samples invalid (counts at the int32 rail) so the flag path is exercised.
 
 Speed is the median of repeated full conversions (wall clock, and CPU time
 of this process, which is less disturbed by other load on a shared machine),
-beside numpy's ``a * x + b`` over the same counts array in the same run.
+beside numpy's ``a * x + b`` over the same counts array in the same run; and
+over live-size chunks (128 detectors x 20 samples, ``chunks_cpu_msamples_per_s``),
+where per-call and per-row costs count, converter call included.
 Accuracy is against the exact per-sample inverse on the same counts.
 
 The baselines (``linear``, ``electrical``) are timed the same way, with their
@@ -149,7 +151,8 @@ def run(args) -> dict:
     conv.convert(ids[:1], ci[:1, :10], cq[:1, :10], env.__class__(env.t_bath_k[:10], env.b_field_t[:10], env.v_thev_v[:1]))
     out = conv.convert(ids, ci, cq, env)
     wall, cpu = _timed(lambda: conv.convert(ids, ci, cq, env), args.repeats)
-    axpy_wall, _ = _timed(lambda: 1.5 * ci + 2.0, args.repeats)
+    axpy_wall, axpy_cpu = _timed(lambda: 1.5 * ci + 2.0, args.repeats)
+    chunks_cpu = float(np.median([_live_chunks(conv, ids, ci, cq, env) for _ in range(3)]))
 
     exact = make_converter("exact", params)
     t0 = time.perf_counter()
@@ -166,6 +169,8 @@ def run(args) -> dict:
         "cpu_msamples_per_s": n / cpu / 1e6,
         "axpy_msamples_per_s": n / axpy_wall / 1e6,
         "ratio_to_axpy": axpy_wall / wall,
+        "cpu_ratio_to_axpy": axpy_cpu / cpu,
+        "chunks_cpu_msamples_per_s": chunks_cpu,
         "exact_msamples_per_s": n / exact_s / 1e6,
         "max_abs_error_w": _max_err(out.p_opt_w, ref.p_opt_w),
         "flags_identical_to_exact": bool(np.array_equal(out.flags, ref.flags)),
