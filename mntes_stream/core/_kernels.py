@@ -514,10 +514,11 @@ if numba is not None:
         scratch[:] = r[0]
         return scratch
 
-    @_inline
+    @_jit
     def _fill(a, row, scratch):
         """Row ``row`` of a compact environment array (``_baselines._compact``) into ``scratch``
-        (unit stride for the sample loop; no array view: each costs reference counting)."""
+        (unit stride for the sample loop). A call, not inlined: once per row, and six inlined
+        copies of its loops cost seconds of compilation."""
         r = row if a.shape[0] > 1 else 0
         if a.shape[1] > 1:
             for s in range(scratch.size):
@@ -676,24 +677,27 @@ if numba is not None:
         return [t.void(c(k, 2), c(k, 2), *env, *(c(*a) if isinstance(a, tuple) else a for a in inner), *out)
                 for k in (t.int32, f8)]
 
-    def _kernel_signatures():
+    def _kernel_signatures(kind):
         from numba import types as t
 
         f8, i4 = t.float64, t.int32
-        table = _signatures((f8, 1), (i4, 1), (f8, 2))
-        grid = _signatures((f8, 1), (i4, 1), (f8, 3), (f8, 3), (f8, 2), (f8, 1), (f8, 1), f8)
-        return ((_table_kernel, table), (_grid_kernel, grid))
+        if kind == "table":
+            return _table_kernel, _signatures((f8, 1), (i4, 1), (f8, 2))
+        return _grid_kernel, _signatures((f8, 1), (i4, 1), (f8, 3), (f8, 3), (f8, 2), (f8, 1), (f8, 1), f8)
 
-    _compiled = []
+    _compiled = set()
 
-    def compile_kernels() -> None:
-        """Compile (or load from numba's cache) the kernels' signatures, once per process."""
-        if not _compiled:
-            for kernel, sigs in _kernel_signatures():
+    def compile_kernels(kinds=("table", "grid")) -> None:
+        """Compile (or load from numba's cache) the signatures of the given kinds' kernels, once per
+        process; a conversion compiles its own kind's (cold, about 6 s of CPU for "table", 4 for
+        "grid"; loaded from the cache, a fraction of a second)."""
+        for kind in kinds:
+            if kind not in _compiled:
+                kernel, sigs = _kernel_signatures(kind)
                 for sig in sigs:
                     kernel.compile(sig)
                 kernel.disable_compile()
-            _compiled.append(True)
+                _compiled.add(kind)
 
     def _c(*arrays):
         return [np.ascontiguousarray(x) for x in arrays]
@@ -706,17 +710,17 @@ if numba is not None:
 
         ``phys``, ``ko``, ``co`` and ``cpo`` are in ``rec`` and not read again.
         """
-        compile_kernels()
+        compile_kernels(("table",))
         _table_kernel(*_c(ci_, cq_), *_env(tb, ltb, b, v, hk), *_c(rows, rec, dom, x, cidx, coef), out_p, out_f)
 
     def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo,
                    p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):
         """Grid-table conversion (same contract as :func:`grid_numpy`; ``rec``: :func:`row_constants`)."""
-        compile_kernels()
+        compile_kernels(("grid",))
         _grid_kernel(*_c(ci_, cq_), *_env(tb, ltb, b, v, hk), *_c(rows, rec, dom, x, cidx, p_w, dp_w, bias_v, b_nodes,
                                                                   t_ref), float(bias_rtol), out_p, out_f)
 else:  # pragma: no cover - exercised only without numba
     table_numba = grid_numba = None
 
-    def compile_kernels() -> None:
+    def compile_kernels(kinds=("table", "grid")) -> None:
         """Nothing to compile without numba."""
