@@ -40,12 +40,11 @@ from pathlib import Path
 import numpy as np
 
 from mntes_stream.core import flags as fl
-from mntes_stream.core.convert import CONVERTER_KINDS, EnvironmentBlock, make_converter
+from mntes_stream.core.convert import CONVERTER_KINDS, make_converter
 from mntes_stream.errors import ConfigError
 from mntes_stream.g3 import spt3g
 from mntes_stream.g3.counts import scan_block
 from mntes_stream.g3.mapping import (
-    SQRT2,
     BathHistory,
     G3InputConfig,
     HkHistory,
@@ -122,8 +121,6 @@ class OpticalPower:
         self.bath = BathHistory(self.config)
         self._pending_hk: list = []
         self._converter = None
-        self._gain_ref = None
-        self._rows = None
         self._t_last_ns = 0
         self.skipped: tuple = ()
         self.scans = 0
@@ -176,7 +173,6 @@ class OpticalPower:
                     not np.array_equal(wiring.detector_ids, self.wiring.detector_ids):
                 self.wiring = wiring
                 self.hk = HkHistory(int(self.config.hk_retention_s * 1e9))
-                self._converter, self._rows = None, None
                 for hkmap, t in self._pending_hk:
                     self._add_hk(hkmap, t)
                 self._pending_hk = []
@@ -340,27 +336,10 @@ class OpticalPower:
         """True for the MNTES kinds (the bath temperature enters the power balance)."""
         return self.kind in ("table", "grid", "exact")
 
-    # -- conversion ---------------------------------------------------------------------------
-    def _prepare(self):
-        """Converter for the wired bolometers that have parameters (built at the first scan)."""
-        snap = self.hk.first()
-        if self.params is None:
-            self._rows = np.arange(len(self.wiring))
-            return
-        # The converter keeps the file's gain; the housekeeping's enters per sample as a scale of the counts.
-        pdict, missing = params_for_wiring(self.params, self.wiring, snap, gain_from_hk=False)
-        if missing:
-            log.warning("%d wired bolometer(s) without parameters or housekeeping, skipped: %s%s", len(missing),
-                        ", ".join(missing[:8]), " ..." if len(missing) > 8 else "")
-        self.skipped = tuple(missing)
-        if not pdict:
-            raise ConfigError("no wired bolometer has parameters: are they keyed by bolometer name or detector id?")
-        self._rows = np.array([self.wiring._by_id[d] for d in pdict], dtype=np.int64)
-        self._gain_ref = np.array([abs(q.gain_a_per_count) for q in pdict.values()])
-        self._converter = make_converter(self.kind, pdict, **self.converter_options)
-
+    # -- without parameters: kind electrical -----------------------------------------------------
     def convert_block(self, blk):
-        """Power and flags of a :class:`~mntes_stream.g3.counts.ScanBlock`.
+        """Minus spt3g's electrical power of a :class:`~mntes_stream.g3.counts.ScanBlock` (kind ``electrical``
+        without parameters; with parameters the pipeline converts).
 
         Returns
         -------
@@ -368,34 +347,13 @@ class OpticalPower:
         p_opt_w : ndarray of float64, shape (n_det, n_samp)
         flags : ndarray of uint16, shape (n_det, n_samp)
         """
-        if self._rows is None:
-            self._prepare()
-        have = np.full(len(self.wiring), -1, dtype=np.int64)
-        have[blk.rows] = np.arange(blk.rows.size)
-        rows = self._rows[have[self._rows] >= 0]
-        src = have[rows]
-        ci, cq = blk.counts_i[src], blk.counts_q[src]
-        bad = invalid_counts(ci) | invalid_counts(cq)
+        rows = blk.rows
+        ci = blk.counts_i
+        bad = invalid_counts(ci) | invalid_counts(blk.counts_q)
         amps, volts = self.hk.at(blk.t_ns, rows)
         names = [self.wiring.names[r] for r in rows]
-        if self._converter is None:  # electrical without parameters: minus spt3g's electrical power
-            with np.errstate(invalid="ignore"):
-                p = -(ci * amps * volts)
-            f = np.where(bad | ~np.isfinite(p), fl.INVALID_INPUT, 0).astype(np.uint16)
-            p[f != 0] = np.nan
-            return names, p, f
-        sel = np.searchsorted(self._rows, rows)  # both in wiring order
-        scale = SQRT2 * amps / self._gain_ref[sel][:, None]
         with np.errstate(invalid="ignore"):
-            ci_eff = np.where(bad, np.nan, ci * scale)
-            cq_eff = np.where(bad, np.nan, cq * scale)
-        det_ids = [self.wiring.detector_ids[r] for r in rows]
-        if self.needs_bath:
-            t_bath = self.bath.at(blk.t_ns)
-        else:  # linear and electrical ignore the environment: the bath reading if any, else each nominal
-            t_bath = self.bath.at(blk.t_ns) if self.bath.available else \
-                np.array([self._converter.params[k].t_bath_k for k in sel])[:, None] * np.ones(blk.n_samples)
-        env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=np.full(blk.n_samples, self.config.b_field_t),
-                               v_thev_v=volts)
-        out = self._converter.convert(det_ids, ci_eff, cq_eff, env)
-        return names, out.p_opt_w, out.flags
+            p = -(ci * amps * volts)
+        f = np.where(bad | ~np.isfinite(p), fl.INVALID_INPUT, 0).astype(np.uint16)
+        p[f != 0] = np.nan
+        return names, p, f
