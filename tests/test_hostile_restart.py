@@ -59,7 +59,7 @@ def _serve(tmp_path, port: int, source) -> tuple[dict, str]:
     return power, log.read_text()
 
 
-def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source):
+def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, caplog):
     dump_params(source.params, tmp_path / "params.toml")
     port = free_tcp_port()
     (tmp_path / "converter.toml").write_text(
@@ -78,18 +78,31 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source):
         assert isinstance(pw, PowerChunk) and np.isfinite(pw.p_opt_w).all()
         assert pw.table_identity == first[k].table_identity
 
-    # A snapshot others may write is never loaded (a pickle runs what it says); nor a damaged one.
+    # A snapshot others may write is never loaded (a pickle runs what it says): the lookup serve makes, on the
+    # config serve reads, in this process (a serve run per case cost ~15 s on a loaded machine; the rebuild
+    # after a refusal is the damaged case's serve run below).
+    import logging
+
+    from mntes_stream.service.config import load_service_config
+    from mntes_stream.service.snapshot import load_snapshot
+
+    _, cfg = load_service_config(tmp_path / "converter.toml")
     os.chmod(snap, 0o666)
-    third, log3 = _serve(tmp_path, port, source)
-    assert "snapshot not loaded" in log3.split("loaded from the snapshot")[-1] and len(third) == 20
+    with caplog.at_level(logging.WARNING, logger="mntes_stream.converter"):
+        key, got = load_snapshot(cfg)
+    assert got is None and "snapshot not loaded" in caplog.text and "writable by others" in caplog.text
+    # ... nor a damaged one: serve builds instead and converts everything.
     snap.write_bytes(b"\x80\x05garbage")
     os.chmod(snap, 0o600)
     fourth, log4 = _serve(tmp_path, port, source)
-    assert "unusable (" in log4.rsplit("snapshot not loaded", 1)[-1] and len(fourth) == 20
+    # (the log holds every start: the second loaded, this one did not)
+    assert log4.count("loaded from the snapshot") == 1 and len(fourth) == 20
+    assert "unusable (" in log4.rsplit("loaded from the snapshot", 1)[-1]
     # ... and a changed parameter file is another key: built again, not the old converter.
+    assert load_snapshot(cfg)[1] is not None  # the damaged start saved a good one again
     (tmp_path / "params.toml").write_text((tmp_path / "params.toml").read_text() + "\n")
-    _, log5 = _serve(tmp_path, port, source)
-    assert log5.count("loaded from the snapshot") == log4.count("loaded from the snapshot")
+    key5, got5 = load_snapshot(load_service_config(tmp_path / "converter.toml")[1])
+    assert key5 != key and got5 is None
 
 
 def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, source):
