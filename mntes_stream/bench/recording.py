@@ -30,7 +30,7 @@ _SWEEP_KB = (128, 256, 1024, 4096)
 
 
 def add_arguments(p) -> None:
-    from mntes_stream.cli._common import deprecated_alias
+    from mntes_stream.options import deprecated_alias
     from mntes_stream.service.recorder import RecorderConfig
 
     p.add_argument("--modules", type=int, default=40, help="128-channel modules (default 40 = 5120 detectors)")

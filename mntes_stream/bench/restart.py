@@ -39,7 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, zenoh_layer
+from mntes_stream.options import add_zenoh_args, zenoh_layer
 
 HELP = "converter restart: process start to power flowing again, cold and with the table cache warm"
 

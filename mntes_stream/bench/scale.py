@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, zenoh_layer
+from mntes_stream.options import add_zenoh_args, zenoh_layer
 from mntes_stream.service.base import Service
 
 HELP = "router + N converter shards + recorder + source on loopback: aggregate rate, latency, loss, scaling"

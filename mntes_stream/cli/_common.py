@@ -7,6 +7,11 @@ import dataclasses
 from mntes_stream.core.params import DetectorParams, table1_params
 from mntes_stream.errors import ConfigError
 
+# Shared with bench/, which sits below cli/: defined once in mntes_stream.options, named here for the commands.
+from mntes_stream.options import add_zenoh_args as add_zenoh_args
+from mntes_stream.options import deprecated_alias as deprecated_alias
+from mntes_stream.options import zenoh_layer as zenoh_layer
+
 
 def setup_logging(verbose: bool) -> None:
     """INFO (``verbose``) or WARNING to stderr, one format for every command."""
@@ -35,35 +40,6 @@ def params_from_args(args) -> DetectorParams:
         return detectors[args.detector]
     except KeyError:
         raise ConfigError(f"detector {args.detector!r} not in {args.params}") from None
-
-
-def add_zenoh_args(p) -> None:
-    """zenoh's own flags, as its example programs and router take them."""
-    g = p.add_argument_group(
-        "zenoh", "as zenoh's own programs take them; they override the config's [zenoh] table, which overrides "
-                 "the zenoh config file (-c, else [zenoh] config_file, else $ZENOH_CONFIG), which overrides the "
-                 "defaults (peer, listen on loopback only, scouting off)")
-    g.add_argument("-c", "--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
-    g.add_argument("-m", "--mode", choices=("peer", "client", "router"), help="zenoh mode")
-    g.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447 (repeatable)")
-    g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
-                   help="any zenoh config change, VALUE in JSON5, e.g. scouting/gossip/enabled:true (repeatable)")
-    g.add_argument("--no-multicast-scouting", action="store_true", help="multicast scouting off (the default here)")
-
-
-def zenoh_layer(args):
-    """The command line's zenoh flags as a ``ZenohSettings`` layer (only what was given)."""
-    from mntes_stream.io.transport import ZenohSettings
-
-    return ZenohSettings(
-        config_file=args.zenoh_config,
-        mode=args.mode,
-        connect=tuple(args.connect) if args.connect else None,
-        listen=tuple(args.listen) if args.listen else None,
-        multicast_scouting=False if args.no_multicast_scouting else None,
-        cfg=tuple(args.cfg),
-    )
 
 
 def zenoh_from_args(args, table=None):
@@ -151,28 +127,6 @@ def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:
 # ---------------------------------------------------------------------------- one grammar for every command
 # docs/cli.md: --duration (s), --out, --set TABLE.KEY=VALUE, -q/--quiet, --overwrite, --json; old spellings
 # stay as hidden aliases that say, in one line on stderr, what to write instead.
-
-
-def deprecated_alias(p, old: str, new: str, **kwargs) -> None:
-    """A hidden ``old`` flag doing what ``new`` does, with one line on stderr naming ``new``."""
-    import argparse
-    import sys
-
-    base = kwargs.pop("action", "store")
-
-    class _Deprecated(argparse.Action):
-        def __call__(self, parser, namespace, values, option_string=None):
-            print(f"mntes-stream: warning: {option_string} is deprecated; use {new}", file=sys.stderr)
-            if base == "store_true":
-                setattr(namespace, self.dest, True)
-            elif base == "append":
-                setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
-            else:
-                setattr(namespace, self.dest, values)
-
-    if base == "store_true":
-        kwargs["nargs"] = 0
-    p.add_argument(old, action=_Deprecated, help=argparse.SUPPRESS, **kwargs)
 
 
 def add_quiet(p, what: str = "warnings only, no progress") -> None:

@@ -27,7 +27,7 @@ def _g3_to_mcap(inputs, output, params, setup="lab") -> dict:
 
 
 def _positions(path) -> dict:
-    from mntes_stream.feeds.frameworks.g3_focal_plane import positions_from_g3
+    from mntes_stream.g3.focal_plane import positions_from_g3
 
     return {"positions": {d: list(map(float, v)) for d, v in positions_from_g3(path).items()}}
 

@@ -151,7 +151,7 @@ def read_positions(path) -> Positions:
     CSV: a header ``detector,xi_rad,eta_rad,gamma_rad``, one row per detector.
     G3 (``.g3``, ``.g3.gz``, ...): the Wiring frame and the Calibration
     frame's ``BolometerProperties``
-    (:func:`~mntes_stream.feeds.frameworks.g3_focal_plane.positions_from_g3`).
+    (:func:`~mntes_stream.g3.focal_plane.positions_from_g3`).
 
     Returns
     -------
@@ -170,7 +170,7 @@ def read_positions(path) -> Positions:
     if is_g3(path):
         import sys
 
-        from mntes_stream.feeds.frameworks.g3_focal_plane import G3_NOTE, positions_from_g3
+        from mntes_stream.g3.focal_plane import G3_NOTE, positions_from_g3
 
         if "so3g" in sys.modules:  # its bundled spt3g cannot read current G3: read on spt3g 1.0.2 in a child
             from mntes_stream.g3 import isolated
