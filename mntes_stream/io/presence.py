@@ -80,12 +80,12 @@ def presence(p: Presence | None) -> Iterator[None]:
         _current.reset(token)
 
 
-def announce(session, connect: tuple[str, ...] = ()) -> None:
-    """Declare the current :class:`Presence` (if any) on ``session``; watch ``connect`` endpoints.
+def announce(session, connect: tuple[str, ...] = (), p: Presence | None = None) -> None:
+    """Declare ``p`` (default: the current :class:`Presence`, if any) on ``session``; watch ``connect`` endpoints.
 
     Called by ``open_session``; everything declared here ends with the session.
     """
-    p = _current.get()
+    p = p if p is not None else _current.get()
     if p is None:
         return
     zid = str(session.zid())

@@ -114,17 +114,19 @@ def _sleep(stop, seconds: float) -> bool:
     return stop is not None and stop.is_set()
 
 
-def open_or_wait(open_fn: Callable, conf, named: dict, settings):
+def open_or_wait(open_fn: Callable, conf, named: dict, settings, policy: Retrying | None = None):
     """``open_fn(conf)``; for a client in a running service whose router is unreachable, wait for it.
 
     ``named`` is ``describe_config(conf)``; ``settings`` the ``ZenohSettings``
     (``reconnect_min_s``, ``reconnect_max_s``, ``reconnect_give_up_s``).
+    ``policy`` is the service's waiting policy, passed in explicitly (``Service`` lifecycle);
+    None falls back to :func:`current` (services still on their own ``run``).
     Whatever else fails is raised as it is.
     """
     try:
         return open_fn(conf)
     except Exception as exc:  # zenoh's ZError
-        policy = current()
+        policy = policy if policy is not None else current()
         if policy is None or named.get("mode") != "client" or not is_unreachable(exc):
             raise
         backoff = Backoff(settings.reconnect_min_s or 0.5, settings.reconnect_max_s or 4.0)

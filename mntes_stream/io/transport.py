@@ -152,17 +152,20 @@ def describe_config(conf) -> dict:
     return out
 
 
-def open_session(settings: ZenohSettings):
+def open_session(settings: ZenohSettings, *, presence=None, retrying=None):
     """Open a session; use it as a context manager so it is always closed.
 
-    Inside a running service (``io/reconnect.py``) a client whose router is unreachable waits for it.
+    ``presence`` (``io/presence.Presence``) is announced on it; with ``retrying``
+    (``io/reconnect.Retrying``) a client whose router is unreachable waits for it.
+    Both are passed explicitly by the ``Service`` lifecycle (``service/base.py``);
+    None falls back to the context a service still on its own ``run`` sets.
     """
     import zenoh
 
     conf = zenoh_config(settings)
     named = describe_config(conf)
     try:
-        session = reconnect.open_or_wait(zenoh.open, conf, named, settings)
+        session = reconnect.open_or_wait(zenoh.open, conf, named, settings, retrying)
     except TransportError:  # stopped while waiting for the router, or gave up
         raise
     except Exception as exc:  # e.g. a listen port already in use
@@ -171,7 +174,7 @@ def open_session(settings: ZenohSettings):
             f"connect {named.get('connect/endpoints')}): {str(exc).splitlines()[0] if str(exc) else exc!r}"
         ) from None
     # A running service is seen on every session it opens (liveliness token, heartbeat, dead endpoints).
-    announce(session, tuple(named.get("connect/endpoints") or ()))
+    announce(session, tuple(named.get("connect/endpoints") or ()), presence)
     return session
 
 
@@ -238,9 +241,12 @@ class Publishers:
     history_chunks : int
         Counts and housekeeping keys keep this many samples for late or recovering
         subscribers (``io/history.py``: zenoh's AdvancedPublisher); 0: plain publishers.
+    observer : callable, optional
+        ``observer(key, payload)`` sees every message put (a service's metrics);
+        None falls back to :func:`set_publish_observer`'s.
     """
 
-    def __init__(self, session, block: bool = True, history_chunks: int = 0):
+    def __init__(self, session, block: bool = True, history_chunks: int = 0, observer=None):
         import zenoh
 
         self._session = session
@@ -249,7 +255,7 @@ class Publishers:
         self._history = int(history_chunks)
         self.messages = 0
         self.bytes = 0
-        self._observe = getattr(_PUBLISH_OBSERVER, "fn", None)
+        self._observe = observer if observer is not None else getattr(_PUBLISH_OBSERVER, "fn", None)
 
     def publisher(self, key: str):
         pub = self._pubs.get(key)

@@ -7,12 +7,25 @@ A service declares
 - ``Config``: a settings dataclass (``core.settings``) for the whole document:
   its own settings from the main table, sub-tables such as ``[zenoh]`` as
   fields of their own;
-- ``run(stop, ready)``: runs until ``stop`` is set (SIGINT/SIGTERM set it
-  too when run in the main thread) or its own end, sets ``ready`` once it
-  serves (subscribed, publishing), finishes cleanly (pending work done,
-  files closed, session closed) and returns its final statistics as a dict;
+- its hooks, and nothing of the skeleton: :meth:`Service.setup` (open its
+  inputs, declare what it serves), :meth:`Service.step` (one unit of work;
+  False when done), :meth:`Service.finish` (flush, close, return the final
+  statistics as a dict), :meth:`Service.counters` (what the heartbeat shows);
 - its :class:`Heartbeat`: state, uptime and counters, readable from any
   thread while it runs (:meth:`Service.status`).
+
+The lifecycle (:meth:`Service.run`, one signature everywhere:
+``run(stop=None, ready=None)``, both Event-like) runs the skeleton: a stop
+flag that SIGINT/SIGTERM (main thread), the caller's ``stop`` and
+``duration_s`` set; the zenoh session (waiting for its router and announcing
+the service's presence when started by :meth:`Service.start`); one
+:class:`~mntes_stream.io.transport.Publishers` with the metrics observer; ready
+(after setup, or when the service says so: ``ready_after_setup = False``, a
+replay is ready when it first publishes); heartbeat beats; ``linger_s``; finish.
+Everything reaches the hooks explicitly in a :class:`Context`: no ContextVar,
+no thread-local. A service not yet moved to hooks overrides ``run`` itself and
+is started the old way (presence and metrics through the context; listed in
+``docs/architecture.md``).
 
 ``mntes_stream.service.registry`` maps names to classes; ``serve``, ``up``
 and :class:`~mntes_stream.service.supervise.Services` know services only
@@ -26,7 +39,8 @@ import contextlib
 import signal
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from mntes_stream.core.settings import build_document
@@ -34,7 +48,7 @@ from mntes_stream.io import keys, reconnect
 from mntes_stream.io.presence import Presence, presence
 from mntes_stream.service.metrics import metrics_for
 
-__all__ = ["Service", "Heartbeat", "StopFlag", "stop_on_signals"]
+__all__ = ["Service", "Context", "Heartbeat", "StopFlag", "stop_on_signals"]
 
 
 class StopFlag:
@@ -157,6 +171,33 @@ class _Ready:
         return self._heartbeat.state == "running"
 
 
+@dataclass(frozen=True)
+class Context:
+    """What the lifecycle hands a service's hooks, explicitly.
+
+    Attributes
+    ----------
+    stop : StopFlag
+        Set by a signal, the caller's ``stop`` or the end of ``duration_s``.
+    heartbeat : Heartbeat
+    session : zenoh.Session or None
+        None when the service joins no zenoh (``zenoh_settings()`` is None).
+    publishers : Publishers or None
+        BLOCK publishers on ``session``; every put is seen by the metrics.
+    metrics : ServiceMetrics or None
+        The service's Prometheus metrics, when ``[metrics] port`` is set.
+    mark_ready : callable
+        ``mark_ready()`` says the service serves (idempotent).
+    """
+
+    stop: StopFlag
+    heartbeat: Heartbeat
+    session: Any
+    publishers: Any
+    metrics: Any
+    mark_ready: Callable[[], None]
+
+
 class Service(abc.ABC):
     """Base of every long-running service (see the module docstring for the contract).
 
@@ -168,6 +209,10 @@ class Service(abc.ABC):
     name: ClassVar[str]
     Config: ClassVar[type]
     summary: ClassVar[str] = ""
+    #: ready once :meth:`setup` returns; False: the service calls ``ctx.mark_ready()`` itself
+    ready_after_setup: ClassVar[bool] = True
+    #: the lifecycle beats the heartbeat with :meth:`counters` this often
+    beat_every_s: ClassVar[float] = 0.5
 
     def __init__(self, config):
         if not isinstance(config, self.Config):
@@ -199,18 +244,102 @@ class Service(abc.ABC):
                         warn=self.heartbeat.warn)
 
     def start(self, stop=None, ready=None) -> dict[str, Any]:
-        """:meth:`run` with the heartbeat's state kept and the service announced on every zenoh
-        session it opens, where a client waits for its router (``io/reconnect.py``): what ``serve``
+        """:meth:`run` with the heartbeat's state kept, the service announced on its zenoh session,
+        a client waiting for its router (``io/reconnect.py``) and its metrics served: what ``serve``
         and the supervisor call."""
         try:
-            with presence(self.presence()), reconnect.retrying(stop, self.heartbeat.waiting), metrics_for(self):
-                result = self.run(stop, _Ready(self.heartbeat, ready))
+            if type(self).run is Service.run:
+                with metrics_for(self, thread_observer=False) as metrics:
+                    result = self._lifecycle(stop, _Ready(self.heartbeat, ready), metrics, announce=True)
+            else:  # not moved to hooks yet: presence, retrying and metrics reach it through the context
+                with presence(self.presence()), reconnect.retrying(stop, self.heartbeat.waiting), metrics_for(self):
+                    result = self.run(stop, _Ready(self.heartbeat, ready))
         except BaseException:
             self.heartbeat.set_state("failed")
             raise
         self.heartbeat.set_state("stopped")
         return dict(result or {})
 
-    @abc.abstractmethod
     def run(self, stop=None, ready=None) -> Mapping[str, Any]:
-        """Serve until stopped or done; set ``ready`` once serving; return the final statistics."""
+        """Serve until stopped or done; set ``ready`` once serving; return the final statistics.
+
+        The lifecycle without presence, router waiting or metrics (a bare run, e.g. a CLI
+        command or a test); :meth:`start` adds them.
+        """
+        return self._lifecycle(stop, ready, None, announce=False)
+
+    # ------------------------------------------------------------------ hooks
+
+    def zenoh_settings(self):
+        """The ``ZenohSettings`` of the session the lifecycle opens (None: no session)."""
+        return getattr(self.config, "zenoh", None)
+
+    def history_chunks(self) -> int:
+        """Samples each counts/housekeeping key of ``ctx.publishers`` keeps for late subscribers."""
+        return 0
+
+    def duration_s(self) -> float:
+        """Stop after this long (0: until stopped or :meth:`step` says done)."""
+        return float(getattr(self.config, "duration_s", 0.0) or 0.0)
+
+    def linger_s(self) -> float:
+        """Keep the session open this long after the last step (queued is not yet delivered)."""
+        return float(getattr(self.config, "linger_s", 0.0) or 0.0)
+
+    def setup(self, ctx: Context) -> None:
+        """Open inputs, declare what the service serves; ready follows unless ``ready_after_setup`` is False."""
+        return None
+
+    def step(self, ctx: Context) -> bool:
+        """One unit of work, returning within about ``beat_every_s``; False once there is nothing more."""
+        raise NotImplementedError(f"{type(self).__name__} overrides neither step() nor run()")
+
+    def finish(self, ctx: Context) -> Mapping[str, Any]:
+        """Flush and close what :meth:`setup` opened (called on stop too); the final statistics."""
+        return {}
+
+    def counters(self) -> dict[str, Any]:
+        """The running counters the heartbeat shows."""
+        return {}
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def _lifecycle(self, stop, ready, metrics, announce: bool) -> Mapping[str, Any]:
+        from mntes_stream.io.transport import Publishers, open_session
+
+        def mark_ready() -> None:
+            if ready is not None and not ready.is_set():
+                ready.set()
+
+        settings = self.zenoh_settings()
+        with stop_on_signals(stop) as stopping, contextlib.ExitStack() as stack:
+            session = pubs = None
+            if settings is not None:
+                session = stack.enter_context(open_session(
+                    settings, presence=self.presence() if announce else None,
+                    retrying=reconnect.Retrying(stopping, self.heartbeat.waiting) if announce else None))
+                pubs = Publishers(session, history_chunks=self.history_chunks(),
+                                  observer=None if metrics is None else metrics.observe)
+                stack.callback(pubs.close)
+            ctx = Context(stopping, self.heartbeat, session, pubs, metrics, mark_ready)
+            self.setup(ctx)
+            if self.ready_after_setup:
+                mark_ready()
+            duration = self.duration_s()
+            t_end = time.monotonic() + duration if duration > 0 else None
+            next_beat = 0.0
+            while not stopping.is_set():
+                now = time.monotonic()
+                if now >= next_beat:
+                    self.heartbeat.beat(**self.counters())
+                    next_beat = now + self.beat_every_s
+                if t_end is not None and now >= t_end:
+                    break
+                if not self.step(ctx):
+                    break
+            if self.heartbeat.state == "running":
+                self.heartbeat.set_state("stopping")
+            stopping.wait(self.linger_s())
+            result = self.finish(ctx)
+            self.heartbeat.beat(**self.counters())
+        return result

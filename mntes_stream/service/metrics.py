@@ -288,10 +288,12 @@ def require_metrics() -> None:
 
 
 @contextlib.contextmanager
-def metrics_for(service):
+def metrics_for(service, thread_observer: bool = True):
     """Serve ``service``'s metrics while the block runs, if its config has a ``[metrics]`` port; else nothing.
 
-    Messages published from this thread by ``Publishers`` created inside the block are observed.
+    Yields the :class:`ServiceMetrics` (or None): the ``Service`` lifecycle hands its ``observe`` to
+    its ``Publishers``. With ``thread_observer`` (services still on their own ``run``), messages
+    published from this thread by ``Publishers`` created inside the block are observed too.
     """
     settings = getattr(service.config, "metrics", None)
     if not isinstance(settings, MetricsSettings) or not settings.port:
@@ -303,9 +305,11 @@ def metrics_for(service):
     port = metrics.serve(settings)
     service.heartbeat.beat(metrics_port=port)
     log.info("%s: metrics on http://%s:%d/metrics", service.instance_name(), settings.bind, port)
-    set_publish_observer(metrics.observe)
+    if thread_observer:
+        set_publish_observer(metrics.observe)
     try:
         yield metrics
     finally:
-        set_publish_observer(None)
+        if thread_observer:
+            set_publish_observer(None)
         metrics.close()

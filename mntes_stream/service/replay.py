@@ -18,8 +18,8 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.envelope import peek_envelope
 from mntes_stream.io.mcap.ledger import RecordingBook
-from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayService", "ReplayStats", "input_topics", "parse_time", "run_replay"]
@@ -96,77 +96,15 @@ def parse_time(text: str, session_start_ns: int | None) -> int:
     return session_start_ns + int(round(rel * 1e9))
 
 
-def run_replay(config: ReplayConfig, stop_event=None, progress: bool = False, heartbeat=None) -> ReplayStats:
-    """Publish the selected messages of ``config.source``; returns when done or stopped."""
-    from mntes_stream.io.mcap import Session, topic_matcher
-    from mntes_stream.io.transport import Publishers
+def run_replay(config: ReplayConfig, stop=None, ready=None, progress: bool = False) -> ReplayStats:
+    """Publish the selected messages of ``config.source``; returns when done or stopped.
 
-    if not config.source:
-        raise ConfigError("nothing to replay: no source files")
-    session_in = Session(list(config.source))
-    match = topic_matcher(config.topics) if config.topics else (lambda t: keys.kind_of(t) in INPUT_KINDS)
-    topics = sorted(t for t in session_in.message_counts() if match(t))
-    total = session_in.count(topics)
-    by_kind: dict[str, int] = {}
-    book = RecordingBook()
-    n = nbytes = 0
-    behind_max = 0.0
-    first_log = last_log = None
-    unmatched: tuple[str, ...] = ()
-    t_begin = time.monotonic()
-    with stop_on_signals(stop_event) as stopping, open_session(config.zenoh) as z:
-        pubs = Publishers(z)  # BLOCK congestion control
-        if not pubs.wait_matching(topics, config.wait_subscribers_s, stopping):
-            unmatched = tuple(t for t in topics if not pubs.publisher(t).matching_status.matching)
-        if unmatched:
-            log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(unmatched), len(topics), unmatched[0])
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=total, unit="msg", desc="replay")
-        wall0 = time.monotonic()
-        for msg in session_in.iter_messages(topics, config.start_ns, config.end_ns):
-            if first_log is None:
-                first_log = msg.log_time_ns
-            if config.speed > 0:
-                due = wall0 + (msg.log_time_ns - first_log) / 1e9 / config.speed
-                while (wait := due - time.monotonic()) > 0 and not stopping.is_set():
-                    time.sleep(min(wait, 0.05))
-                behind_max = max(behind_max, time.monotonic() - due)
-            if (config.speed > 0 or n % 64 == 0) and stopping.is_set():
-                break
-            last_log = msg.log_time_ns
-            pubs.put(msg.topic, msg.payload)
-            if keys.kind_of(msg.topic) == "counts":  # what the recording holds of each stream, and its gaps
-                book.add(msg.topic, msg.payload, peek_envelope(msg.payload), msg.log_time_ns)
-            n += 1
-            nbytes += len(msg.payload)
-            kind = keys.kind_of(msg.topic) or "other"
-            by_kind[kind] = by_kind.get(kind, 0) + 1
-            if bar is not None:
-                bar.update(1)
-            if heartbeat is not None and n % 256 == 0:
-                heartbeat.beat(messages=n, payload_bytes=nbytes)
-        if bar is not None:
-            bar.close()
-        time.sleep(config.linger_s)
-        pubs.close()
-    stats = ReplayStats(
-        messages=n,
-        payload_bytes=nbytes,
-        by_kind=by_kind,
-        topics=len(topics),
-        unmatched_topics=unmatched,
-        duration_s=time.monotonic() - t_begin,
-        recorded_span_s=0.0 if first_log is None else (last_log - first_log) / 1e9,
-        behind_max_ms=behind_max * 1e3,
-        complete=session_in.complete,
-        ledger=(led := book.ledger_now()).as_dict(),
-        ledger_line=_published(led).line(),
-    )
-    log.info("replay done: %s", stats)
-    return stats
+    ``ready`` is set when the first message goes out (a replay that publishes nothing never is).
+    """
+    svc = ReplayService(config)
+    svc.progress = progress
+    svc.run(stop, ready)
+    return svc.stats
 
 
 def _published(led):
@@ -175,13 +113,97 @@ def _published(led):
 
 
 class ReplayService(Service):
-    """A recorded session back onto zenoh, paced or as fast as possible."""
+    """A recorded session back onto zenoh, paced or as fast as possible; ready when it first publishes."""
 
     name = "replay"
     Config = ReplayConfig
     summary = "a recording back onto zenoh"
+    ready_after_setup = False
+    #: messages per step when not paced (a stop is seen within this many)
+    BURST = 64
 
-    def run(self, stop=None, ready=None) -> dict:
-        if ready is not None:
-            ready.set()
-        return asdict(run_replay(self.config, stop, heartbeat=self.heartbeat))
+    progress = False
+    stats: ReplayStats | None = None
+
+    def setup(self, ctx) -> None:
+        from mntes_stream.io.mcap import Session, topic_matcher
+
+        config = self.config
+        if not config.source:
+            raise ConfigError("nothing to replay: no source files")
+        self._t_begin = time.monotonic()
+        self._in = Session(list(config.source))
+        match = topic_matcher(config.topics) if config.topics else (lambda t: keys.kind_of(t) in INPUT_KINDS)
+        self._topics = sorted(t for t in self._in.message_counts() if match(t))
+        total = self._in.count(self._topics)
+        self._by_kind: dict[str, int] = {}
+        self._book = RecordingBook()
+        self._n = self._nbytes = 0
+        self._behind_max = 0.0
+        self._first_log = self._last_log = None
+        pubs = ctx.publishers  # BLOCK congestion control
+        self._unmatched: tuple[str, ...] = ()
+        if not pubs.wait_matching(self._topics, config.wait_subscribers_s, ctx.stop):
+            self._unmatched = tuple(t for t in self._topics if not pubs.publisher(t).matching_status.matching)
+        if self._unmatched:
+            log.warning("no subscriber for %d of %d topics (e.g. %s); publishing anyway", len(self._unmatched),
+                        len(self._topics), self._unmatched[0])
+        self._bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, unit="msg", desc="replay")
+        self._messages = self._in.iter_messages(self._topics, config.start_ns, config.end_ns)
+        self._wall0 = time.monotonic()
+
+    def step(self, ctx) -> bool:
+        speed = self.config.speed
+        for _ in range(1 if speed > 0 else self.BURST):
+            msg = next(self._messages, None)
+            if msg is None:
+                return False
+            if self._first_log is None:
+                self._first_log = msg.log_time_ns
+            if speed > 0:
+                due = self._wall0 + (msg.log_time_ns - self._first_log) / 1e9 / speed
+                while (wait := due - time.monotonic()) > 0 and not ctx.stop.is_set():
+                    time.sleep(min(wait, 0.05))
+                self._behind_max = max(self._behind_max, time.monotonic() - due)
+                if ctx.stop.is_set():
+                    return False
+            self._last_log = msg.log_time_ns
+            ctx.publishers.put(msg.topic, msg.payload)
+            ctx.mark_ready()
+            kind = keys.kind_of(msg.topic)
+            if kind == "counts":  # what the recording holds of each stream, and its gaps
+                self._book.add(msg.topic, msg.payload, peek_envelope(msg.payload), msg.log_time_ns)
+            self._n += 1
+            self._nbytes += len(msg.payload)
+            kind = kind or "other"
+            self._by_kind[kind] = self._by_kind.get(kind, 0) + 1
+            if self._bar is not None:
+                self._bar.update(1)
+        return True
+
+    def counters(self) -> dict:
+        return {"messages": getattr(self, "_n", 0), "payload_bytes": getattr(self, "_nbytes", 0)}
+
+    def finish(self, ctx) -> dict:
+        if self._bar is not None:
+            self._bar.close()
+        led = self._book.ledger_now()
+        self.stats = stats = ReplayStats(
+            messages=self._n,
+            payload_bytes=self._nbytes,
+            by_kind=self._by_kind,
+            topics=len(self._topics),
+            unmatched_topics=self._unmatched,
+            duration_s=time.monotonic() - self._t_begin,
+            recorded_span_s=0.0 if self._first_log is None else (self._last_log - self._first_log) / 1e9,
+            behind_max_ms=self._behind_max * 1e3,
+            complete=self._in.complete,
+            ledger=led.as_dict(),
+            ledger_line=_published(led).line(),
+        )
+        log.info("replay done: %s", stats)
+        return asdict(stats)
