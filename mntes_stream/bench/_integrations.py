@@ -112,13 +112,13 @@ def foxglove_live(args) -> dict:
 
     import websocket
 
-    from mntes_stream.bench.monitor import _cpu_s, _first_line, _publish
+    from mntes_stream.bench._power_stream import cpu_s, first_line, publish_power
     from mntes_stream.errors import TransportError
     from mntes_stream.io.transport import free_tcp_port
 
     zport = free_tcp_port()
     warmup_s = 5.0
-    pub = mp.get_context("spawn").Process(target=_publish, args=(zport, args.modules, args.rate_hz, args.chunk_s,
+    pub = mp.get_context("spawn").Process(target=publish_power, args=(zport, args.modules, args.rate_hz, args.chunk_s,
                                                                   args.seconds + warmup_s + 10), daemon=True)
     fox = subprocess.Popen([sys.executable, "-m", "mntes_stream", "foxglove", "--setup", "bench", "--port", "0",
                             "--per-module", str(args.per_module), "--max-rate-hz", str(args.max_rate_hz),
@@ -127,7 +127,7 @@ def foxglove_live(args) -> dict:
     stop = threading.Event()
     ws = None
     try:
-        line = _first_line(fox, 60.0)
+        line = first_line(fox, 60.0)
         if "serving ws://" not in line:
             raise TransportError(f"mntes-stream foxglove did not start (first output line: {line!r})")
         url = line.split("serving ", 1)[1].split()[0]
@@ -160,9 +160,9 @@ def foxglove_live(args) -> dict:
         reader.start()
         pub.start()
         time.sleep(warmup_s)
-        f0, cpu0, t0 = frames[0], _cpu_s(fox.pid), time.monotonic()
+        f0, cpu0, t0 = frames[0], cpu_s(fox.pid), time.monotonic()
         time.sleep(args.seconds)
-        f1, cpu1, t1 = frames[0], _cpu_s(fox.pid), time.monotonic()
+        f1, cpu1, t1 = frames[0], cpu_s(fox.pid), time.monotonic()
     finally:
         stop.set()
         if ws is not None:

@@ -47,7 +47,7 @@ def next_rate(lo: float, hi: float, tolerance: float) -> float | None:
     return (lo + hi) / 2
 
 
-def find_rate(args, first: dict, run_once=None, clock=time.monotonic, say=None) -> dict:
+def find_rate(args, first: dict, run_once, clock=time.monotonic, say=None) -> dict:
     """Bisect offered rates in real time; returns the search (every trial) and the rate found.
 
     Parameters
@@ -56,13 +56,11 @@ def find_rate(args, first: dict, run_once=None, clock=time.monotonic, say=None) 
         ``bench stream``'s arguments (copied per trial, rate set by ``sample_rate``).
     first : dict
         The run before: its flat-out rate bounds the search, its passthrough is the yardstick.
-    run_once : callable(args) -> dict, optional
-        One run (default: :func:`mntes_stream.bench.stream.run_once`).
+    run_once : callable(args) -> dict
+        One run (``bench stream`` passes its own :func:`~mntes_stream.bench.stream.run_once`).
     """
     from mntes_stream.errors import ConfigError
 
-    if run_once is None:
-        from mntes_stream.bench.stream import run_once
     if say is None:
         def say(line):
             print(line, file=sys.stderr, flush=True)

@@ -19,7 +19,6 @@ at ``--rate-hz`` in ``--chunk-s`` chunks:
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
@@ -27,6 +26,7 @@ import time
 import numpy as np
 
 from mntes_stream.bench import _integrations
+from mntes_stream.bench._power_stream import cpu_s, first_line, power_chunks, publish_power
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 HELP = "quick-look monitor: aggregation cost and page latency for a full focal plane"
@@ -42,27 +42,6 @@ def add_arguments(p) -> None:
     _integrations.add_arguments(p)  # the Foxglove bridge and the metrics: what they cost (issue 16)
 
 
-def _chunks(modules: int, n_samp: int, rate_hz: float, n_chunks: int, t0_ns: int, setup: str = "bench"):
-    """Encoded power chunks, chunk-major: a 2f line, white noise, one saturated channel per module."""
-    from mntes_stream.core import flags as fl
-    from mntes_stream.io.messages import PowerChunk, detector_ids_for
-
-    rng = np.random.default_rng(0)
-    ch = np.arange(128, dtype=np.int32)
-    for k in range(n_chunks):
-        t = (k * n_samp + np.arange(n_samp)) / rate_hz
-        out = []
-        for m in range(modules):
-            p = 0.5e-12 + 1e-14 * np.sin(2 * np.pi * 1.54 * t) + 1e-16 * rng.standard_normal((128, n_samp))
-            f = np.zeros((128, n_samp), np.uint16)
-            f[7] = fl.SATURATED
-            p[7] = np.nan
-            t0 = t0_ns + int(round(k * n_samp / rate_hz * 1e9))
-            out.append((m, PowerChunk(setup, 0, m, ch, detector_ids_for(0, m, ch), k, t0, rate_hz, p, f,
-                                      "bench", "table", t0, t0).to_bytes()))
-        yield k, out
-
-
 def _in_process(args) -> dict:
     from mntes_stream.io import keys
     from mntes_stream.io.transport import ZenohSettings
@@ -75,7 +54,7 @@ def _in_process(args) -> dict:
     t_ns = time.time_ns()
     busy = 0.0
     ticks, views, sizes = [], [], []
-    for k, batch in _chunks(args.modules, n_samp, args.rate_hz, n_chunks, t_ns):
+    for k, batch in power_chunks(args.modules, n_samp, args.rate_hz, n_chunks, t_ns):
         now = t_ns + int(k * args.chunk_s * 1e9)
         t0 = time.perf_counter()
         for m, payload in batch:
@@ -99,53 +78,6 @@ def _in_process(args) -> dict:
     }
 
 
-def _publish(port: int, modules: int, rate_hz: float, chunk_s: float, seconds: float) -> None:
-    """Publisher process: the power stream on zenoh, paced in real time."""
-    from mntes_stream.io import keys
-    from mntes_stream.io.transport import Publishers, loopback, open_session
-
-    n_samp = max(1, int(round(rate_hz * chunk_s)))
-    n_chunks = int(round(seconds / chunk_s))
-    with open_session(loopback(port)) as z:
-        pubs = Publishers(z)
-        pubs.wait_matching([keys.power_key("bench", 0, 0)], 30)
-        t0 = time.time_ns()
-        gen = _chunks(modules, n_samp, rate_hz, n_chunks, t0)
-        for k, batch in gen:
-            due = t0 + int(round((k + 1) * n_samp / rate_hz * 1e9))  # a chunk goes out once its last sample is taken
-            time.sleep(max(due - time.time_ns(), 0) / 1e9)
-            for m, payload in batch:
-                # Stamp publication now: PowerChunk.t_pub_ns is what the page's latency counts from.
-                pubs.put(keys.power_key("bench", 0, m), _restamp(payload))
-
-
-def _restamp(payload: bytes) -> bytes:
-    from mntes_stream.io.messages import PowerChunk
-
-    c = PowerChunk.from_bytes(payload)
-    object.__setattr__(c, "t_pub_ns", time.time_ns())
-    return c.to_bytes()
-
-
-def _cpu_s(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _first_line(proc, timeout_s: float) -> str:
-    """The child's first stdout line, or "" after ``timeout_s`` (readline alone would wait forever)."""
-    import queue
-    import threading
-
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: lines.put(proc.stdout.readline()), daemon=True).start()
-    try:
-        return lines.get(timeout=timeout_s)
-    except queue.Empty:
-        return ""
-
-
 def _browser(args) -> dict:
     import multiprocessing as mp
     import urllib.request
@@ -156,13 +88,13 @@ def _browser(args) -> dict:
 
     zport = free_tcp_port()
     warmup_s = 8.0
-    pub = mp.get_context("spawn").Process(target=_publish, args=(zport, args.modules, args.rate_hz, args.chunk_s,
+    pub = mp.get_context("spawn").Process(target=publish_power, args=(zport, args.modules, args.rate_hz, args.chunk_s,
                                                                   args.seconds + warmup_s + 5), daemon=True)
     mon = subprocess.Popen([sys.executable, "-m", "mntes_stream", "monitor", "--setup", "bench", "--port", "0",
                             "--connect", f"tcp/127.0.0.1:{zport}"], stdout=subprocess.PIPE, text=True)
     driver = None
     try:
-        line = _first_line(mon, 60.0)
+        line = first_line(mon, 60.0)
         if "serving " not in line:
             raise TransportError(f"mntes-stream monitor did not start (first output line: {line!r})")
         url = line.split("serving ", 1)[1].split()[0]
@@ -170,9 +102,9 @@ def _browser(args) -> dict:
         driver = headless_chromium()
         driver.get(url)
         time.sleep(warmup_s)  # history fills, the page settles
-        s0, cpu0, t0 = page_state(driver), _cpu_s(mon.pid), time.monotonic()
+        s0, cpu0, t0 = page_state(driver), cpu_s(mon.pid), time.monotonic()
         time.sleep(args.seconds)
-        s1, cpu1, t1 = page_state(driver), _cpu_s(mon.pid), time.monotonic()
+        s1, cpu1, t1 = page_state(driver), cpu_s(mon.pid), time.monotonic()
         with urllib.request.urlopen(url + "api/state", timeout=10) as r:
             state = json.loads(r.read())
     finally:
@@ -209,5 +141,5 @@ def run(args) -> dict:
     }
     if args.browser:
         out["browser"] = _browser(args)
-    out["integrations"] = _integrations.run(args, _chunks)
+    out["integrations"] = _integrations.run(args, power_chunks)
     return out

@@ -234,7 +234,7 @@ def run(args) -> dict:
     if args.find_rate:
         from mntes_stream.bench._stream_rate import find_rate
 
-        out["real_time"] = find_rate(args, out)
+        out["real_time"] = find_rate(args, out, run_once)
     return out
 
 
