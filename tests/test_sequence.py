@@ -7,7 +7,7 @@ import random
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mntes_stream.core.sequence import _MAX_RANGES, MAX_RECENT, StreamSequence
+from mntes_stream.core.sequence import _MAX_RANGES, MAX_RECENT, StreamSequence, Verdict
 
 P = 1_000_000  # ns between chunks
 
@@ -36,6 +36,13 @@ def test_a_real_gap_is_lost_and_late_arrivals_take_it_back():
     s, verdicts = _feed(order)
     assert (s.lost, s.out_of_order, s.resets) == (9 - 2, 2, 0)
     assert verdicts[-2:] == ["late", "late"]
+
+
+def test_verdicts_are_typed_and_read_as_their_names():
+    s, verdicts = _feed([0, 1, 3, 2, 2])
+    assert verdicts == [Verdict.NEW, Verdict.NEW, Verdict.NEW, Verdict.LATE, Verdict.DUPLICATE]
+    assert all(type(v) is Verdict for v in verdicts) and [str(v) for v in verdicts[-2:]] == ["late", "duplicate"]
+    assert s.observe(100_000, 40 * P) is Verdict.RESET
 
 
 def test_a_forged_number_is_a_reset_not_thousands_lost():

@@ -22,25 +22,35 @@ Memory per stream is bounded: ``max_recent`` numbers and at most
 ``_MAX_RANGES`` missing ranges, whatever the numbers a sender chooses.
 
 >>> s = StreamSequence()
->>> [s.observe(n, t_first_ns=10 * n) for n in (0, 1, 3, 2, 2)]
+>>> [str(s.observe(n, t_first_ns=10 * n)) for n in (0, 1, 3, 2, 2)]
 ['new', 'new', 'new', 'late', 'duplicate']
 >>> s.lost, s.out_of_order, s.duplicated
 (0, 1, 1)
->>> s.observe(100_000, t_first_ns=40), s.resets  # 99,996 chunks cannot fit in 10 ns
-('reset', 1)
+>>> s.observe(100_000, t_first_ns=40) is Verdict.RESET, s.resets  # 99,996 chunks cannot fit in 10 ns
+(True, 1)
 """
 
 from __future__ import annotations
 
 import bisect
 import collections
+import enum
 
-__all__ = ["StreamSequence"]
+__all__ = ["StreamSequence", "Verdict"]
 
 MAX_RECENT = 256  # numbers remembered to spot duplicates
 MAX_MISSING = 4096  # a longer jump is a restart; skipped numbers remembered (as ranges) for late arrivals
 _MAX_RANGES = 64  # missing ranges kept; the oldest are forgotten first (they stay counted as lost)
 _SLACK = 2  # chunks a jump may exceed what the elapsed time allows (jitter, a partial chunk)
+
+
+class Verdict(enum.StrEnum):
+    """What a chunk's number is to its stream; a ``str`` (``"new"``, ...) where text is wanted."""
+
+    NEW = "new"
+    LATE = "late"  # a number counted lost turned up: no longer lost
+    DUPLICATE = "duplicate"  # seen already with the same first sample time: drop it
+    RESET = "reset"  # the stream started over at this number: take it
 
 
 class StreamSequence:
@@ -68,7 +78,7 @@ class StreamSequence:
         self._period: int | None = None  # smallest positive first-sample step per number seen
         self.lost = self.out_of_order = self.duplicated = self.resets = 0
 
-    def observe(self, seq: int, t_first_ns: int) -> str:
+    def observe(self, seq: int, t_first_ns: int) -> Verdict:
         """Book one chunk's number.
 
         Parameters
@@ -80,20 +90,20 @@ class StreamSequence:
 
         Returns
         -------
-        str
-            ``"new"``, ``"late"``, ``"duplicate"`` (drop it) or ``"reset"``
+        Verdict
+            ``NEW``, ``LATE``, ``DUPLICATE`` (drop it) or ``RESET``
             (the stream restarted at this number; take it).
         """
         seq, t = int(seq), int(t_first_ns)
         seen = self._recent_t.get(seq)
         if seen == t:
             self.duplicated += 1
-            return "duplicate"
-        verdict = "new"
+            return Verdict.DUPLICATE
+        verdict = Verdict.NEW
         if self.next is not None and (seen is not None or self._restarted(seq, t)):
             self.resets += 1
             self._forget()
-            verdict = "reset"
+            verdict = Verdict.RESET
         if self.next is None or seq >= self.next:
             if self.next is not None and seq > self.next:
                 self.lost += seq - self.next
@@ -106,7 +116,7 @@ class StreamSequence:
             if self._take_missing(seq):
                 self.lost -= 1
             self.out_of_order += 1
-            verdict = "late"
+            verdict = Verdict.LATE
         self._last_t = t if self._last_t is None else max(self._last_t, t)
         self._recent.append(seq)
         self._recent_t[seq] = t

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from mntes_stream.core import flags as fl
-from mntes_stream.core.sequence import StreamSequence
+from mntes_stream.core.sequence import StreamSequence, Verdict
 from mntes_stream.errors import ConfigError
 
 __all__ = ["TodBlock", "StreamId", "StreamStats", "StreamAssembler", "BlockBuffer", "GapFill", "Piece",
@@ -386,7 +386,7 @@ class StreamAssembler:
         n = int(t_ns.size)
         if n == 0:
             return []
-        if self.sequence.observe(seq, int(t_ns[0])) == "duplicate":
+        if self.sequence.observe(seq, int(t_ns[0])) is Verdict.DUPLICATE:
             st.duplicate_chunks += 1
             return []
         st.seq_gaps = max(self.sequence.lost, 0)

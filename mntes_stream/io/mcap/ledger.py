@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import msgpack
 
 from mntes_stream.core.ledger import LOST_MEANS, OTHER, Ledger, stream_order
-from mntes_stream.core.sequence import StreamSequence
+from mntes_stream.core.sequence import StreamSequence, Verdict
 from mntes_stream.errors import MntesError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.envelope import Envelope, peek_envelope
@@ -77,8 +77,8 @@ class RecordingBook:
     def _bounded(self, stream: str, known) -> str:
         return stream if stream in known or len(known) < _MAX_STREAMS else OTHER
 
-    def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None) -> str:
-        """Book one recorded message; returns the counts verdict (``new``, ``late``, ``duplicate``, ``reset``) or ``""``.
+    def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None) -> Verdict | None:
+        """Book one recorded message; returns the counts chunk's :class:`~mntes_stream.core.sequence.Verdict`, else None.
 
         ``late``: whether a power payload is marked late, when the caller read it already (else read here).
         """
@@ -94,28 +94,28 @@ class RecordingBook:
             service = self.status(payload)
             if service is not None and (topic in self.status_topics or len(self.status_topics) < _MAX_CONVERTERS):
                 self.status_topics[topic] = service
-        return ""
+        return None
 
-    def _counts(self, topic: str, env: Envelope, t_ns: int) -> str:
+    def _counts(self, topic: str, env: Envelope, t_ns: int) -> Verdict | None:
         stream = self._stream_of.get(topic)
         if stream is None:
             stream = self._stream(topic)
             if stream is None:
-                return ""
+                return None
             stream = self._bounded(stream, self.ledger.streams)
             if len(self._stream_of) < _MAX_STREAMS:
                 self._stream_of[topic] = stream
         self.ledger.received(stream)
         if env.problem or env.seq is None:
             self.ledger.rejected(stream, "malformed" if env.problem else "no_seq")
-            return ""
+            return None
         seq = self.sequences.get(topic)
         if seq is None:
             seq = StreamSequence()
             if len(self.sequences) < _MAX_STREAMS:
                 self.sequences[topic] = seq
         verdict = seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
-        if verdict == "duplicate":
+        if verdict is Verdict.DUPLICATE:
             self.ledger.duplicate(stream)
         else:
             self.ledger.done(stream)
