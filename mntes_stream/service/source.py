@@ -239,6 +239,41 @@ def default_params(cfg: SourceConfig) -> list[DetectorParams]:
     return [p.replace(v_thev_v=float(vi)) for p, vi in zip(out, v)]
 
 
+class Pacer:
+    """When each batch is due: ``speed`` x real time from the first batch (or from ``t_ref_ns`` = now).
+
+    ``wait(t_pub_ns, stop)`` sleeps until the batch is due (waking for ``stop``); ``behind_max_ms``
+    is the worst lateness against the schedule.
+    """
+
+    def __init__(self, speed: float, t_ref_ns: int | None = None):
+        self.speed, self.t_ref_ns = speed, t_ref_ns
+        self._wall0 = self._t_first = None
+        self.behind_max_s = 0.0
+
+    @property
+    def behind_max_ms(self) -> float:
+        return self.behind_max_s * 1e3
+
+    def wait(self, t_pub_ns: int, stop=None) -> None:
+        if self._wall0 is None:
+            self._wall0, self._t_first = time.monotonic(), (t_pub_ns if self.t_ref_ns is None else self.t_ref_ns)
+        if self.speed <= 0:
+            return
+        if self.t_ref_ns is not None:
+            # Data clock started at t_ref_ns = wall clock then: pace on the wall clock itself.
+            due = (self.t_ref_ns + (t_pub_ns - self.t_ref_ns) / self.speed) / 1e9
+            clock = time.time
+        else:
+            due = self._wall0 + (t_pub_ns - self._t_first) / 1e9 / self.speed
+            clock = time.monotonic
+        while (wait := due - clock()) > 0:
+            time.sleep(min(wait, 0.05))
+            if stop is not None and stop.is_set():
+                break
+        self.behind_max_s = max(self.behind_max_s, clock() - due)
+
+
 def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None, wait_keys: Iterable[str] = (),
             wait_s: float = 10.0, progress=None, t_ref_ns: int | None = None, history_chunks: int = 0) -> dict:
     """Publish batches on ``session`` paced by their ``t_pub_ns`` (``speed`` x real time; 0: flat out).
@@ -277,28 +312,13 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
         if not matched:
             log.warning("no subscriber yet for some of %s; publishing anyway", list(wait_keys))
     n_batches = 0
-    behind_max = 0.0
-    wall0 = t_first = None
+    pacer = Pacer(speed, t_ref_ns)
     next_progress = time.monotonic() + 1.0
     try:
         for t_pub_ns, batch in batches:
             if stop is not None and stop.is_set():
                 break
-            if wall0 is None:
-                wall0, t_first = time.monotonic(), (t_pub_ns if t_ref_ns is None else t_ref_ns)
-            if speed > 0:
-                if t_ref_ns is not None:
-                    # Data clock started at t_ref_ns = wall clock then: pace on the wall clock itself.
-                    due = (t_ref_ns + (t_pub_ns - t_ref_ns) / speed) / 1e9
-                    clock = time.time
-                else:
-                    due = wall0 + (t_pub_ns - t_first) / 1e9 / speed
-                    clock = time.monotonic
-                while (wait := due - clock()) > 0:
-                    time.sleep(min(wait, 0.05))
-                    if stop is not None and stop.is_set():
-                        break
-                behind_max = max(behind_max, clock() - due)
+            pacer.wait(t_pub_ns, stop)
             for key, payload in batch:
                 pubs.put(key, payload)
             n_batches += 1
@@ -308,7 +328,7 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
     finally:
         pubs.close()
     return {"batches": n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
-            "behind_max_ms": behind_max * 1e3, "matched": matched}
+            "behind_max_ms": pacer.behind_max_ms, "matched": matched}
 
 
 @dataclass(frozen=True)
@@ -328,44 +348,70 @@ class SourceServiceConfig(Settings):
 
 def run_source(svc: SourceServiceConfig, stop=None, ready=None, t_start_ns: int | None = None) -> dict:
     """Publish :class:`MinimalSource` batches until done or stopped; returns :func:`publish`'s counters."""
-    from mntes_stream.io.history import cache_chunks
-    from mntes_stream.io.transport import Publishers, open_session
-    from mntes_stream.service.base import stop_on_signals
-
-    params = None
-    if svc.params:
-        from mntes_stream.io.paramfile import load_params
-
-        params = list(load_params(svc.params).values())
-    src = MinimalSource(svc.source, params)
-    cfg = svc.source
-    counts_keys = [keys.counts_key(cfg.setup, b, m) for b in range(cfg.boards) for m in range(cfg.modules)]
-    with stop_on_signals(stop) as stopping, open_session(svc.zenoh) as session:
-        if ready is not None:
-            ready.set()
-        # Wait for the converter before the data clock starts, so waiting is not latency.
-        pubs = Publishers(session)
-        try:
-            if not pubs.wait_matching(counts_keys, 30.0, stopping):
-                log.warning("source: no subscriber for the counts yet; publishing anyway")
-        finally:
-            pubs.close()
-        src.prepare()
-        start = t_start_ns if t_start_ns is not None else time.time_ns()
-        log.info("source: %d detectors, %d modules, %.2f Hz, publishing", cfg.n_detectors, cfg.boards * cfg.modules, cfg.sample_rate_hz)
-        result = publish(session, src.batches(start, svc.duration_s), speed=svc.speed, stop=stopping, t_ref_ns=start,
-                         history_chunks=cache_chunks(svc.zenoh.history_seconds, cfg.chunk_s))
-        stopping.wait(svc.linger_s)
-    log.info("source stopped: %s", result)
-    return result
+    service = SourceService(svc)
+    service.t_start_ns = t_start_ns
+    return dict(service.run(stop, ready))
 
 
 class SourceService(Service):
-    """The minimal physics source: counts and housekeeping in real time."""
+    """The minimal physics source: counts and housekeeping in real time.
+
+    Ready once its session is open, before it waits (up to 30 s) for a subscriber to the counts:
+    the converter started after it is what it waits for, and waiting is not latency.
+    """
 
     name = "source"
     Config = SourceServiceConfig
     summary = "the minimal physics source (counts + housekeeping)"
+    #: data time of the first sample (None: now)
+    t_start_ns: int | None = None
 
-    def run(self, stop=None, ready=None) -> dict:
-        return run_source(self.config, stop, ready)
+    def duration_s(self) -> float:
+        return 0.0  # duration_s is seconds of data: the batches end there
+
+    def history_chunks(self) -> int:
+        from mntes_stream.io.history import cache_chunks
+
+        return cache_chunks(self.config.zenoh.history_seconds, self.config.source.chunk_s)
+
+    def setup(self, ctx) -> None:
+        svc, cfg = self.config, self.config.source
+        params = None
+        if svc.params:
+            from mntes_stream.io.paramfile import load_params
+
+            params = list(load_params(svc.params).values())
+        src = MinimalSource(cfg, params)
+        ctx.mark_ready()
+        counts_keys = [keys.counts_key(cfg.setup, b, m) for b in range(cfg.boards) for m in range(cfg.modules)]
+        self._matched = ctx.publishers.wait_matching(counts_keys, 30.0, ctx.stop)
+        if not self._matched:
+            log.warning("source: no subscriber for the counts yet; publishing anyway")
+        src.prepare()
+        start = self.t_start_ns if self.t_start_ns is not None else time.time_ns()
+        log.info("source: %d detectors, %d modules, %.2f Hz, publishing", cfg.n_detectors, cfg.boards * cfg.modules,
+                 cfg.sample_rate_hz)
+        self._batches = src.batches(start, svc.duration_s)
+        self._pacer = Pacer(svc.speed, start)
+        self._n_batches = 0
+
+    def step(self, ctx) -> bool:
+        item = next(self._batches, None)
+        if item is None:
+            return False
+        t_pub_ns, batch = item
+        self._pacer.wait(t_pub_ns, ctx.stop)
+        for key, payload in batch:
+            ctx.publishers.put(key, payload)
+        self._n_batches += 1
+        return True
+
+    def counters(self) -> dict:
+        return {"batches": getattr(self, "_n_batches", 0)}
+
+    def finish(self, ctx) -> dict:
+        pubs = ctx.publishers
+        result = {"batches": self._n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
+                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched}
+        log.info("source stopped: %s", result)
+        return result
