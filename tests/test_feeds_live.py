@@ -8,9 +8,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_feeds import RATE, STEP, T0, N, bits, chunk, write
 
 from mntes_stream.core import flags as fl
+from mntes_stream.errors import ConfigError
 from mntes_stream.feeds import LivePowerFeed
 from mntes_stream.io import keys
 from mntes_stream.io.mcap import RotatingMcapWriter
@@ -113,6 +115,17 @@ def test_live_feed_without_selection_grows_rows_and_stops_at_max_blocks():
     c = chunk(3, channels=(0, 1, 3))
     np.testing.assert_array_equal(bits(blocks[3].p_opt_w), bits(c.p_opt_w))
     assert feed._session is None
+
+
+def test_live_feed_takes_board_and_module_as_the_recorded_feed_does():
+    """``board``/``module``: a number or None (any), as RecordedPower; the old ``"*"`` string is one line."""
+    z = loopback(listen_port=free_tcp_port())  # not joined: only the subscription is worked out
+    assert LivePowerFeed(z, "t").key_exprs == [keys.power_key("t", "*", "*")]
+    assert LivePowerFeed(z, "t", board=2).key_exprs == [keys.power_key("t", 2, "*")]
+    assert LivePowerFeed(z, "t", module=5).key_exprs == [keys.power_key("t", "*", 5)]
+    for bad in ("*", -1, True):
+        with pytest.raises(ConfigError, match="board .*expected a number >= 0, or None"):
+            LivePowerFeed(z, "t", board=bad)
 
 
 def test_live_hole_comes_in_bounded_blocks_and_a_corrupt_time_does_not_end_the_stream():

@@ -50,8 +50,9 @@ class LivePowerFeed:
     setup : str
     detectors : iterable of str, optional
         Only these detectors (rows in this order, per module); default all.
-    board, module : int or "*"
-        Streams to subscribe to when no detectors are given.
+    board, module : int, optional
+        Streams to subscribe to when no detectors are given; None (default): any,
+        as :class:`~mntes_stream.feeds.recorded.RecordedPower` takes them.
     max_blocks : int, optional
         Stop after this many blocks (gap blocks included).
     duration_s : float, optional
@@ -73,8 +74,8 @@ class LivePowerFeed:
         Payloads that did not decode as power chunks (skipped).
     """
 
-    def __init__(self, zenoh, setup: str, *, detectors: Iterable[str] | None = None, board: int | str = "*",
-                 module: int | str = "*", max_blocks: int | None = None, duration_s: float | None = None,
+    def __init__(self, zenoh, setup: str, *, detectors: Iterable[str] | None = None, board: int | None = None,
+                 module: int | None = None, max_blocks: int | None = None, duration_s: float | None = None,
                  idle_timeout_s: float = 10.0, queue_size: int = 1024, max_gap_s: float = DEFAULT_MAX_GAP_S,
                  gap_block_samples: int = DEFAULT_BLOCK_SAMPLES):
         self.settings = zenoh
@@ -86,7 +87,10 @@ class LivePowerFeed:
             mods = sorted({parse_detector_id(d)[:2] for d in self._dets})
             self.key_exprs = [keys.power_key(setup, b, m) for b, m in mods]
         else:
-            self.key_exprs = [keys.power_key(setup, board, module)]
+            for name, v in (("board", board), ("module", module)):
+                if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+                    raise ConfigError(f"{name} {v!r}: expected a number >= 0, or None for any")
+            self.key_exprs = [keys.power_key(setup, "*" if board is None else board, "*" if module is None else module)]
         for name, v in (("max_blocks", max_blocks), ("duration_s", duration_s), ("idle_timeout_s", idle_timeout_s),
                         ("max_gap_s", max_gap_s), ("gap_block_samples", gap_block_samples)):
             if v is not None and not v > 0:
