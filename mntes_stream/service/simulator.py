@@ -298,27 +298,15 @@ class SimulatorServiceConfig(Settings):
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 
-def run_simulator(cfg: SimulatorServiceConfig, stop=None, truth: TruthRecorder | None = None, ready=None,
-                  heartbeat=None) -> dict:
+def run_simulator(cfg: SimulatorServiceConfig, stop=None, ready=None, truth: TruthRecorder | None = None) -> dict:
     """Publish until ``duration_s`` of data is out or ``stop`` is set (SIGINT/SIGTERM set it too).
 
-    ``ready`` is set once the truth parameters are written (``params_out``); the
-    clock starts when the converter has subscribed (or after 10 s).
+    ``ready`` is set once the truth parameters are written (``params_out``) and the session is open;
+    the clock starts when the converter has subscribed (or after 10 s).
     """
-    from mntes_stream.service.base import stop_on_signals
-
-    source = SimulatorSource(cfg.sim, cfg.setup, cfg.chunk_s)
-    if cfg.params_out:
-        from mntes_stream.io.paramfile import dump_params
-
-        dump_params(source.params, cfg.params_out, metadata={"source": "mntes-stream simulator (truth)",
-                                                             "sim_config": json.dumps(cfg.sim.to_dict())})
-    if ready is not None:
-        ready.set()
-    progress = None if heartbeat is None else (lambda counters: heartbeat.beat(**counters))
-    with stop_on_signals(stop) as stopping:
-        return publish_live(source, cfg.zenoh, speed=cfg.speed, duration_s=cfg.duration_s, stop=stopping, truth=truth,
-                            linger_s=cfg.linger_s, progress=progress)
+    service = SimulatorService(cfg)
+    service.truth = truth
+    return dict(service.run(stop, ready))
 
 
 class SimulatorService(Service):
@@ -327,6 +315,55 @@ class SimulatorService(Service):
     name = "simulator"
     Config = SimulatorServiceConfig
     summary = "the simulated DfMux array, live"
+    #: seconds to wait for a subscriber to the counts before the data clock starts
+    WAIT_S = 10.0
+    truth: TruthRecorder | None = None
 
-    def run(self, stop=None, ready=None) -> dict:
-        return run_simulator(self.config, stop, ready=ready, heartbeat=self.heartbeat)
+    def duration_s(self) -> float:
+        return 0.0  # duration_s is seconds of data: the batches end there
+
+    def history_chunks(self) -> int:
+        from mntes_stream.io.history import cache_chunks
+
+        return cache_chunks(self.config.zenoh.history_seconds, self.config.chunk_s)
+
+    def setup(self, ctx) -> None:
+        from mntes_stream.service.source import Pacer
+
+        cfg = self.config
+        source = SimulatorSource(cfg.sim, cfg.setup, cfg.chunk_s)
+        if cfg.params_out:
+            from mntes_stream.io.paramfile import dump_params
+
+            dump_params(source.params, cfg.params_out, metadata={"source": "mntes-stream simulator (truth)",
+                                                                 "sim_config": json.dumps(cfg.sim.to_dict())})
+        ctx.mark_ready()
+        # Wait for the converter before the data clock starts, so waiting is not latency.
+        self._matched = ctx.publishers.wait_matching(source.wait_keys(), self.WAIT_S, ctx.stop)
+        if not self._matched:
+            log.warning("simulator: no subscriber for the counts yet; publishing anyway")
+        start = time.time_ns()
+        self._batches = source.batches(start, cfg.duration_s, truth=self.truth)
+        self._pacer = Pacer(cfg.speed, start)
+        self._n_batches = 0
+
+    def step(self, ctx) -> bool:
+        item = next(self._batches, None)
+        if item is None:
+            return False
+        t_pub_ns, batch = item
+        self._pacer.wait(t_pub_ns, ctx.stop)
+        for key, payload in batch:
+            ctx.publishers.put(key, payload)
+        self._n_batches += 1
+        return True
+
+    def counters(self) -> dict:
+        return {"batches": getattr(self, "_n_batches", 0)}
+
+    def finish(self, ctx) -> dict:
+        pubs = ctx.publishers
+        result = {"batches": self._n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
+                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched}
+        log.info("simulator stopped: %s", result)
+        return result
