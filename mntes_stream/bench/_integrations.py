@@ -84,7 +84,7 @@ def metrics_cost(batches, seconds: float, n_modules: int) -> dict:
 
 def foxglove_cost(batches, seconds: float, per_module: int, max_rate_hz: float) -> dict:
     """Core fraction of the bridge's work on every power chunk, logged to a foxglove channel with a sink."""
-    from mntes_stream.foxglove.service import _Bridge, require_foxglove
+    from mntes_stream.foxglove.service import ChannelBridge, require_foxglove
     from mntes_stream.foxglove.translate import FoxgloveView
     from mntes_stream.io.messages import decode
 
@@ -92,7 +92,7 @@ def foxglove_cost(batches, seconds: float, per_module: int, max_rate_hz: float) 
     with tempfile.TemporaryDirectory() as tmp:
         context = fg.Context()
         sink = fg.open_mcap(str(Path(tmp) / "bridge.mcap"), context=context)
-        bridge = _Bridge(fg, context, FoxgloveView((), per_module, max_rate_hz))
+        bridge = ChannelBridge(fg, context, FoxgloveView((), per_module, max_rate_hz))
         busy = 0.0
         try:
             for _, batch in batches:

@@ -25,7 +25,7 @@ from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.service.base import Service, stop_on_signals
 from mntes_stream.service.metrics import MetricsSettings
 
-__all__ = ["FoxgloveConfig", "FoxgloveService", "require_foxglove"]
+__all__ = ["ChannelBridge", "FoxgloveConfig", "FoxgloveService", "require_foxglove"]
 
 log = logging.getLogger("mntes_stream.foxglove")
 
@@ -56,7 +56,7 @@ class FoxgloveConfig(Settings):
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 
-class _Bridge:
+class ChannelBridge:
     """Decoded messages -> foxglove channels of one context (created on first message of a topic)."""
 
     def __init__(self, foxglove, context, view):
@@ -110,7 +110,7 @@ class FoxgloveService(Service):
                 counts["dropped"] += 1
 
         context = fg.Context()
-        bridge = _Bridge(fg, context, FoxgloveView(cfg.detectors, cfg.per_module, cfg.max_rate_hz))
+        bridge = ChannelBridge(fg, context, FoxgloveView(cfg.detectors, cfg.per_module, cfg.max_rate_hz))
         t_end = time.monotonic() + cfg.duration_s if cfg.duration_s else None
         server = None
         with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:

@@ -33,14 +33,14 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ["OpticalPower", "spt3g", "spt3g_in_use"]
+__all__ = ["OpticalPower", "RefuseAfterSpt3g", "spt3g", "spt3g_in_use"]
 
 _LOADED = None
 # so3g (imported by toast and sotodlib) loaded after spt3g 1.0.2 segfaults the process.
 _AFTER_SPT3G = ("so3g", "toast", "sotodlib")
 
 
-class _RefuseAfterSpt3g:
+class RefuseAfterSpt3g:
     """A ``sys.meta_path`` finder: so3g/toast/sotodlib after spt3g 1.0.2 is a clear ImportError, not a segfault."""
 
     def find_spec(self, name, path=None, target=None):
@@ -77,7 +77,7 @@ def spt3g():
         # (so3g happens to load it; spt3g 1.0.2 alone does not).
         import_extra("spt3g.calibration", "g3")
         if not _bundled(core) and not any(m in sys.modules for m in _AFTER_SPT3G):
-            sys.meta_path.insert(0, _RefuseAfterSpt3g())
+            sys.meta_path.insert(0, RefuseAfterSpt3g())
     return _LOADED
 
 

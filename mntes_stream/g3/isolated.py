@@ -56,9 +56,9 @@ def run(task: str, **kwargs) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    from mntes_stream.g3 import _RefuseAfterSpt3g
+    from mntes_stream.g3 import RefuseAfterSpt3g
 
-    sys.meta_path.insert(0, _RefuseAfterSpt3g())  # before anything could load so3g's spt3g
+    sys.meta_path.insert(0, RefuseAfterSpt3g())  # before anything could load so3g's spt3g
     try:
         task, kwargs = argv[0], json.loads(argv[1])
         out = TASKS[task](**kwargs)
