@@ -105,7 +105,7 @@ def test_read_fields_gives_what_ocs_aggregator_wrote_as_so3g_reads_it(tmp_path):
     t, v = write_hk(tmp_path / "hk", 0.1, 0.01)
     code = ALONE + f"""
 import json
-from mntes_stream.ocs.hkfile import read_fields
+from mntes_stream.g3.ocs_hkfile import read_fields
 s = read_fields(sys.argv[1], [{FIELD!r}, "observatory.LS240.feeds.temperatures.Channel_1_T"])
 print(json.dumps({{k: [x.t_ns.tolist(), x.value.tolist()] for k, x in s.items()}}))
 """

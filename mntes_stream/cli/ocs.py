@@ -18,9 +18,9 @@ def add_hk_args(p) -> None:
 
 
 def hk_fields(args):
-    """The :class:`~mntes_stream.ocs.hk.OcsFields` of ``--hk`` / ``--t-bath-field``, or None without ``--hk``."""
+    """The :class:`~mntes_stream.g3.ocs_hk.OcsFields` of ``--hk`` / ``--t-bath-field``, or None without ``--hk``."""
     from mntes_stream.errors import ConfigError
-    from mntes_stream.ocs.hk import OcsFields
+    from mntes_stream.g3.ocs_hk import OcsFields
 
     hk, field = getattr(args, "hk", None), getattr(args, "t_bath_field", None)
     if not hk:
@@ -38,7 +38,7 @@ def hk_messages_of(args, setup: str, start_ns=None, end_ns=None) -> list | None:
     fields = hk_fields(args)
     if fields is None:
         return None
-    from mntes_stream.ocs.hk import hk_from_files
+    from mntes_stream.g3.ocs_hk import hk_from_files
 
     return hk_from_files(args.hk, fields, setup, start_ns, end_ns)
 

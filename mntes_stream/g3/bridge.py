@@ -254,7 +254,7 @@ class _OcsBath:
     """``hk``: the OCS thermometer's readings as t_bath messages, handed out as the data's time passes them."""
 
     def __init__(self, b: BridgeSettings):
-        from mntes_stream.ocs.hk import OcsFields, hk_from_files
+        from mntes_stream.g3.ocs_hk import OcsFields, hk_from_files
 
         if not b.t_bath_field:
             raise ConfigError("g3-bridge: hk needs t_bath_field (the thermometer's full OCS field name)")

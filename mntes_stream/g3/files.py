@@ -214,7 +214,7 @@ def g3_messages(inputs, setup: str, config: G3InputConfig | None = None, chunk_s
     order, merged by time; the run's own readings of their sensors are left out.
     """
     if hk:
-        from mntes_stream.ocs.hk import merge_by_time
+        from mntes_stream.g3.ocs_hk import merge_by_time
 
         hk = list(hk)
         replaced = {key for _, key, _ in hk}

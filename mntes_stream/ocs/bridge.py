@@ -36,9 +36,9 @@ import numpy as np
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
+from mntes_stream.g3.ocs_hk import OcsFields
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings
-from mntes_stream.ocs.hk import OcsFields
 from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
@@ -204,8 +204,8 @@ class OcsBridgeService(Service):
         return _Session
 
     def _on_feed(self, feed: str, args) -> None:
+        from mntes_stream.g3.ocs_hk import feed_readings
         from mntes_stream.io.messages import SENSOR_UNITS, HousekeepingChunk
-        from mntes_stream.ocs.hk import feed_readings
 
         self._counts["publications"] += 1
         message = args[0] if len(args) == 1 else list(args)

@@ -74,7 +74,7 @@ def hk_from_files(path, fields: OcsFields, setup: str, start_ns: int | None = No
     """Every configured sensor's readings from OCS HK file(s) ``path`` as messages, in time order,
     limited to what data in [start_ns, end_ns] needs (:func:`within`)."""
     from mntes_stream.errors import ConfigError
-    from mntes_stream.ocs.hkfile import read_fields
+    from mntes_stream.g3.ocs_hkfile import read_fields
 
     sensors = fields.sensors()
     if not sensors:
