@@ -87,7 +87,7 @@ def _recv_text_until(ws, pred, timeout_s=20.0):
 
 
 def test_live_bridge_serves_advertised_channels_and_the_converters_power(tmp_path):
-    from mntes_stream.foxglove.service import FoxgloveConfig, FoxgloveService
+    from mntes_stream.service.foxglove import FoxgloveConfig, FoxgloveService
 
     ws_port = free_tcp_port()
     with live_setup(tmp_path) as zport, open_session(loopback(None, [zport])) as session:

@@ -84,9 +84,9 @@ def metrics_cost(batches, seconds: float, n_modules: int) -> dict:
 
 def foxglove_cost(batches, seconds: float, per_module: int, max_rate_hz: float) -> dict:
     """Core fraction of the bridge's work on every power chunk, logged to a foxglove channel with a sink."""
-    from mntes_stream.foxglove.service import ChannelBridge, require_foxglove
     from mntes_stream.foxglove.translate import FoxgloveView
     from mntes_stream.io.messages import decode
+    from mntes_stream.service.foxglove import ChannelBridge, require_foxglove
 
     fg = require_foxglove()
     with tempfile.TemporaryDirectory() as tmp:

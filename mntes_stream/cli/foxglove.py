@@ -8,7 +8,7 @@ _SERVICE = ("setup", "bind", "port", "detectors", "per_module", "max_rate_hz", "
 
 
 def run_foxglove(args) -> int:
-    from mntes_stream.foxglove.service import FoxgloveService, require_foxglove
+    from mntes_stream.service.foxglove import FoxgloveService, require_foxglove
 
     setup_logging(args.verbose)
     require_foxglove()  # checked before anything starts
@@ -19,7 +19,7 @@ def run_foxglove(args) -> int:
 
 def register(sub) -> None:
     from mntes_stream.cli._common import add_settings_args
-    from mntes_stream.foxglove.service import FoxgloveConfig
+    from mntes_stream.service.foxglove import FoxgloveConfig
 
     p = sub.add_parser(
         "foxglove",

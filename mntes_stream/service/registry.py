@@ -30,7 +30,7 @@ ENTRIES: dict[str, str] = {
     "recorder": "mntes_stream.service.recorder:RecorderService",
     "replay": "mntes_stream.service.replay:ReplayService",
     "monitor": "mntes_stream.monitor.service:MonitorService",
-    "foxglove": "mntes_stream.foxglove.service:FoxgloveService",
+    "foxglove": "mntes_stream.service.foxglove:FoxgloveService",
     "router": "mntes_stream.service.router:RouterService",
     "g3-bridge": "mntes_stream.g3.bridge:G3BridgeService",
     "dfmux-bridge": "mntes_stream.dfmux.bridge:DfMuxBridgeService",
