@@ -291,6 +291,6 @@ def test_every_status_field_is_checked_by_exactly_one_rule():
     from dataclasses import fields
 
     S = m.StatusMessage
-    ruled = list(S._RATES + S._LATENCIES + S._COUNTERS) + [
+    ruled = list(S.RATES + S.LATENCIES + S.COUNTERS) + [
         "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns", "ledger"]
     assert sorted(ruled) == sorted(f.name for f in fields(S))

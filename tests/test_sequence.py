@@ -42,6 +42,7 @@ def test_verdicts_are_typed_and_read_as_their_names():
     s, verdicts = _feed([0, 1, 3, 2, 2])
     assert verdicts == [Verdict.NEW, Verdict.NEW, Verdict.NEW, Verdict.LATE, Verdict.DUPLICATE]
     assert all(type(v) is Verdict for v in verdicts) and [str(v) for v in verdicts[-2:]] == ["late", "duplicate"]
+    assert s.newest_t_ns == 3 * P
     assert s.observe(100_000, 40 * P) is Verdict.RESET
 
 

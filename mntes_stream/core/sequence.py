@@ -78,6 +78,11 @@ class StreamSequence:
         self._period: int | None = None  # smallest positive first-sample step per number seen
         self.lost = self.out_of_order = self.duplicated = self.resets = 0
 
+    @property
+    def newest_t_ns(self) -> int | None:
+        """The newest first-sample time booked (None before the first chunk): where the stream's pace is."""
+        return self._last_t
+
     def observe(self, seq: int, t_first_ns: int) -> Verdict:
         """Book one chunk's number.
 

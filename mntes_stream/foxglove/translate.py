@@ -86,7 +86,7 @@ SCHEMAS: dict[str, dict] = {
         "converter health (mntes.status fields; counters cumulative since start, rates and latencies over the interval)",
         {"setup": {"type": "string"}, "service": {"type": "string"}, "uptime_s": {"type": "number"},
          "interval_s": {"type": "number"},
-         **{k: {"type": "integer"} for k in StatusMessage._COUNTERS if k != "t_ns"},
+         **{k: {"type": "integer"} for k in StatusMessage.COUNTERS if k != "t_ns"},
          "bad_messages": {"type": "object", "additionalProperties": {"type": "integer"}},
          "flag_counts": {"type": "object", "additionalProperties": {"type": "integer"}},
          "hk_age_s": {"type": "object", "additionalProperties": _NUMBER_OR_NULL},
@@ -199,7 +199,7 @@ class FoxgloveView:
     def status(self, msg: StatusMessage) -> list[JsonMessage]:
         body = {k: v for k, v in _status_fields(msg).items() if k in SCHEMAS["mntes.foxglove.status"]["properties"]}
         body["hk_age_s"] = {k: _num(v) for k, v in msg.hk_age_s.items()}  # JSON has no inf/NaN
-        for k in ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s", *StatusMessage._LATENCIES):
+        for k in (*StatusMessage.RATES, *StatusMessage.LATENCIES):
             body[k] = None if body[k] is None else _num(body[k])
         body["timestamp"] = _stamp(msg.t_ns)
         out = [JsonMessage(f"/mntes/{msg.setup}/status/{msg.service}", "mntes.foxglove.status", msg.t_ns, body)]

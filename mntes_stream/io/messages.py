@@ -320,9 +320,10 @@ class StatusMessage(_Message):
     # Absent from statuses of earlier versions of the converter: decoded with their defaults.
     _LATER: ClassVar[frozenset] = frozenset(
         {"owns", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected", "chunks_set_aside", "ledger"})
-    _RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
-    _LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms")
-    _COUNTERS: ClassVar[tuple[str, ...]] = (
+    # The fields by kind (rates >= 0, latencies that may be negative, counters), for readers of statuses too.
+    RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
+    LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms")
+    COUNTERS: ClassVar[tuple[str, ...]] = (
         "t_ns", "chunks_received", "chunks_converted", "chunks_pending", "samples_converted", "chunks_lost",
         "chunks_duplicated", "chunks_out_of_order", "hk_received", "hk_stale_samples", "hk_missing_samples",
         "unknown_channel_samples", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected",
@@ -333,14 +334,14 @@ class StatusMessage(_Message):
         fc.as_str(self.setup, "setup", NAME_PATTERN)
         fc.as_str(self.service, "service")
         fc.as_str(self.last_error, "last_error")
-        for name in self._RATES:
+        for name in self.RATES:
             v = fc.as_float(getattr(self, name), name)
             if v < 0:
                 raise SchemaError(f"{name} must be >= 0")
             object.__setattr__(self, name, v)
-        for name in self._LATENCIES:  # may be negative when clocks disagree
+        for name in self.LATENCIES:  # may be negative when clocks disagree
             object.__setattr__(self, name, fc.as_float(getattr(self, name), name, optional=True))
-        for name in self._COUNTERS:
+        for name in self.COUNTERS:
             object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
         object.__setattr__(self, "bad_messages", _count_map(self.bad_messages, "bad_messages"))
         object.__setattr__(self, "flag_counts", _count_map(self.flag_counts, "flag_counts"))
