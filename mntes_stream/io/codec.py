@@ -29,6 +29,7 @@ __all__ = [
     "pack",
     "unpack",
     "schema_versions",
+    "current_versions",
     "json_schema",
 ]
 
@@ -59,12 +60,12 @@ def _schemas() -> dict[tuple[str, int], dict]:
 
 def schema_versions() -> dict[str, int]:
     """Current (highest) version of each message schema, from ``schemas/``."""
-    return dict(_versions())
+    return dict(current_versions())
 
 
 @functools.cache
-def _versions() -> dict[str, int]:
-    # Read on every message: computed once (callers of schema_versions() get a copy).
+def current_versions() -> dict[str, int]:
+    """:func:`schema_versions` itself, shared and cached: read on every message, never to be modified."""
     versions: dict[str, int] = {}
     for name, version in _schemas():
         versions[name] = max(version, versions.get(name, 0))
@@ -123,7 +124,7 @@ def decode_array(d: Any, field: str = "array", dtype: str | None = None, ndim: i
 
 def pack(schema: str, body: dict) -> bytes:
     """Serialise a message: ``body`` plus ``schema`` and its current ``version``."""
-    versions = _versions()
+    versions = current_versions()
     if schema not in versions:
         raise SchemaError(f"unknown message schema {schema!r}")
     msg = {"schema": schema, "version": versions[schema]}
@@ -153,7 +154,7 @@ def unpack(payload: bytes, expected: str | tuple[str, ...] | None = None) -> dic
         names = (expected,) if isinstance(expected, str) else expected
         if name not in names:
             raise SchemaError(f"expected schema {'/'.join(names)}, got {name!r}", "wrong_schema")
-    current = _versions().get(name)
+    current = current_versions().get(name)
     if current is None:
         raise SchemaError(f"unknown message schema {name!r}", "unknown_schema")
     if version != current:

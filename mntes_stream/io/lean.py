@@ -21,8 +21,8 @@ from __future__ import annotations
 import msgpack
 import numpy as np
 
-from mntes_stream.io.codec import _versions
-from mntes_stream.io.message_base import _unpack
+from mntes_stream.io.codec import current_versions as _versions
+from mntes_stream.io.message_base import unpack_payload as _unpack
 from mntes_stream.io.messages import CountsChunk, PowerChunk, detector_ids_for
 
 __all__ = ["CountsDecoder", "PowerEncoder"]

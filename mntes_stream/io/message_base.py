@@ -12,10 +12,10 @@ from mntes_stream.core.ids import detector_id
 from mntes_stream.errors import SchemaError
 from mntes_stream.io.codec import decode_array, encode_array, pack, unpack
 
-__all__ = ["_Message", "_unpack", "detector_ids_for", "_time_body"]
+__all__ = ["MessageBase", "unpack_payload", "detector_ids_for", "_time_body"]
 
 
-def _unpack(payload: Any, expected=None) -> dict:
+def unpack_payload(payload: Any, expected=None) -> dict:
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise SchemaError(f"payload must be bytes, got {type(payload).__name__}", "malformed")
     msg = unpack(bytes(payload))
@@ -52,7 +52,7 @@ def _time_body(obj) -> dict:
     return {"t0_ns": obj.t0_ns, "sample_rate_hz": obj.sample_rate_hz}
 
 
-class _Message:
+class MessageBase:
     """Shared encode/decode machinery; subclasses are frozen dataclasses."""
 
     SCHEMA: ClassVar[str]
@@ -90,7 +90,7 @@ class _Message:
     @classmethod
     def from_bytes(cls, payload: bytes):
         """Decode and validate; raises :class:`SchemaError` (with ``.reason``)."""
-        return cls._from_map(_unpack(payload, cls.SCHEMA))
+        return cls._from_map(unpack_payload(payload, cls.SCHEMA))
 
     @classmethod
     def _from_map(cls, msg: dict):

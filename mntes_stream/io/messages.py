@@ -22,7 +22,7 @@ from mntes_stream.errors import SCHEMA_REASONS, SchemaError
 from mntes_stream.io import fields as fc
 from mntes_stream.io.fields import SAMPLE_RATE_RANGE_HZ
 from mntes_stream.io.keys import NAME_PATTERN
-from mntes_stream.io.message_base import _Message, _unpack, detector_ids_for
+from mntes_stream.io.message_base import MessageBase, detector_ids_for, unpack_payload
 
 __all__ = [
     "REASONS",
@@ -46,7 +46,7 @@ SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V"}
 
 
 @dataclass(frozen=True, eq=False)
-class CountsChunk(_Message):
+class CountsChunk(MessageBase):
     """One chunk of demodulated I/Q counts from one module.
 
     Attributes
@@ -108,7 +108,7 @@ class CountsChunk(_Message):
 
 
 @dataclass(frozen=True, eq=False)
-class HousekeepingChunk(_Message):
+class HousekeepingChunk(MessageBase):
     """Readings of one housekeeping sensor.
 
     Attributes
@@ -168,7 +168,7 @@ class HousekeepingChunk(_Message):
 
 
 @dataclass(frozen=True, eq=False)
-class PowerChunk(_Message):
+class PowerChunk(MessageBase):
     """Optical power of one module chunk (the converter's output).
 
     Attributes
@@ -221,7 +221,7 @@ class PowerChunk(_Message):
 
     @classmethod
     def unchecked(cls, **values):
-        """As :meth:`_Message.unchecked`; ``sigma_p_w`` may be left out (optional: callers from before it stay valid)."""
+        """As :meth:`MessageBase.unchecked`; ``sigma_p_w`` may be left out (optional: callers from before it stay valid)."""
         values.setdefault("sigma_p_w", None)
         return super().unchecked(**values)
 
@@ -274,7 +274,7 @@ def _count_map(value: Any, name: str) -> dict:
 
 
 @dataclass(frozen=True, eq=False)
-class StatusMessage(_Message):
+class StatusMessage(MessageBase):
     """Converter health, published periodically (schema ``status.v1.json``).
 
     Counters are cumulative since start; ``rate_*`` and ``latency_*`` cover
@@ -366,7 +366,7 @@ class StatusMessage(_Message):
 
 
 @dataclass(frozen=True, eq=False)
-class Provenance(_Message):
+class Provenance(MessageBase):
     """What a conversion used: enough to reproduce it from a recording.
 
     Attributes
@@ -445,7 +445,7 @@ MESSAGE_TYPES: dict[str, type] = {
 
 def decode(payload: bytes, expected: str | tuple[str, ...] | None = None):
     """Decode any message by its schema name; :class:`SchemaError` on anything wrong."""
-    msg = _unpack(payload, expected)
+    msg = unpack_payload(payload, expected)
     cls = MESSAGE_TYPES.get(msg["schema"])
     if cls is None:  # a schema in schemas/ without a class here
         raise SchemaError(f"no message class for schema {msg['schema']!r}", "unknown_schema")
