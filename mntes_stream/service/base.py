@@ -295,7 +295,10 @@ class Service(abc.ABC):
         raise NotImplementedError(f"{type(self).__name__} overrides neither step() nor run()")
 
     def finish(self, ctx: Context) -> Mapping[str, Any]:
-        """Flush and close what :meth:`setup` opened (called on stop too); the final statistics."""
+        """Flush and close what :meth:`setup` opened (on stop, and after a failed step too); the final statistics.
+
+        It may close ``ctx.session`` itself (to drain what arrived before it closed); the lifecycle closes it
+        (again) after."""
         return {}
 
     def counters(self) -> dict[str, Any]:
@@ -328,18 +331,20 @@ class Service(abc.ABC):
             duration = self.duration_s()
             t_end = time.monotonic() + duration if duration > 0 else None
             next_beat = 0.0
-            while not stopping.is_set():
-                now = time.monotonic()
-                if now >= next_beat:
-                    self.heartbeat.beat(**self.counters())
-                    next_beat = now + self.beat_every_s
-                if t_end is not None and now >= t_end:
-                    break
-                if not self.step(ctx):
-                    break
-            if self.heartbeat.state == "running":
-                self.heartbeat.set_state("stopping")
-            stopping.wait(self.linger_s())
-            result = self.finish(ctx)
+            try:
+                while not stopping.is_set():
+                    now = time.monotonic()
+                    if now >= next_beat:
+                        self.heartbeat.beat(**self.counters())
+                        next_beat = now + self.beat_every_s
+                    if t_end is not None and now >= t_end:
+                        break
+                    if not self.step(ctx):
+                        break
+                if self.heartbeat.state == "running":
+                    self.heartbeat.set_state("stopping")
+                stopping.wait(self.linger_s())
+            finally:  # a failed step still has its files finished; its error is the one raised
+                result = self.finish(ctx)
             self.heartbeat.beat(**self.counters())
         return result

@@ -2,7 +2,7 @@
 
 The zenoh callback only timestamps the sample and puts it on a bounded queue
 (:class:`~mntes_stream.io.transport.QueueSubscriber`); the calling thread of
-:func:`run_recorder` drains it into a
+:class:`RecorderService` (its ``step``) drains it into a
 :class:`~mntes_stream.service.recorder_sink.RecorderSink`, which reads each
 payload's header (never decoding its arrays), books it and hands the bytes to
 a writer thread (:class:`~mntes_stream.io.mcap.background.BackgroundMcapWriter`:
@@ -34,8 +34,8 @@ from mntes_stream.core.settings import Settings, setting
 from mntes_stream.core.shards import Shard
 from mntes_stream.errors import MntesError, TransportError
 from mntes_stream.io import keys
-from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "cost_line", "final_line", "run_recorder"]
@@ -190,134 +190,22 @@ def cost_line(stats: dict) -> str:
     return line
 
 
-def run_recorder(config: RecorderConfig, stop_event=None, ready=None, heartbeat=None) -> RecorderStats:
-    """Record until ``stop_event`` is set, SIGINT/SIGTERM arrives, or ``duration_s`` passes.
+def run_recorder(config: RecorderConfig, stop=None, ready=None) -> RecorderStats:
+    """Record until ``stop`` is set, SIGINT/SIGTERM arrives, or ``duration_s`` passes.
 
-    Parameters
-    ----------
-    config : RecorderConfig
-    stop_event : threading.Event or multiprocessing.Event, optional
-        Anything with ``is_set()``; safe to launch in a spawned process.
-        SIGINT/SIGTERM also stop it when it runs in the main thread.
-    ready : Event-like, optional
-        Set once subscribed.
-    heartbeat : Heartbeat, optional
-        Gets the message and byte counts at every log interval.
-
-    Returns
-    -------
-    RecorderStats
-        After the last file is finished (summary and footer written).
+    ``stop`` and ``ready`` are Event-like (safe in a spawned process); ``ready`` is set once
+    subscribed. Returns after the last file is finished (summary and footer written).
     """
-    from mntes_stream.io.transport import QueueSubscriber
-    from mntes_stream.service.recorder_sink import RecorderSink
+    service = RecorderService(config)
+    service.run(stop, ready)
+    return service.stats
 
-    zenoh = _reach_the_source(config.zenoh)
-    sink = RecorderSink(config)
-    writer, book, coverage = sink.writer, sink.book, sink.coverage
-    t_start = time.monotonic()
-    next_log = t_start + config.log_interval_s
-    next_cover = 0.0
 
-    session = sub = None
-    error: BaseException | None = None
-    with stop_on_signals(stop_event) as stopping:
-        try:
-            session = open_session(zenoh)
-            # The callback only timestamps and queues; a full queue makes it wait,
-            # which BLOCK publishers feel as back-pressure (nothing is dropped).
-            # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
-            # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
-            sub = QueueSubscriber(session, [config.subscription], maxsize=config.queue_messages,
-                                  max_bytes=int(config.queue_mb * 1e6), recover="history")
-            # A converter's provenance, answered on request, is recorded from the start too (only that:
-            # the heartbeat queryables under alive/ answer a wider query, and are not data).
-            sub.query(session, keys.provenance_key(config.setup))
-            log.info("recording %s into %s", config.subscription, writer.current_path)
-            if ready is not None:
-                ready.set()
-            while not stopping.is_set():
-                if config.duration_s and time.monotonic() - t_start >= config.duration_s:
-                    break
-                item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
-                if item is not None:
-                    sink.add(*item)
-                    for item in sub.drain(10_000):  # then check the stop flags once per batch
-                        sink.add(*item)
-                writer.tick()
-                if heartbeat is not None:
-                    heartbeat.beat(messages=writer.messages, payload_bytes=writer.payload_bytes, invalid=writer.invalid,
-                                   files=len(writer.files), queue_depth=sub.qsize(), writer_queue_depth=writer.qsize(),
-                                   writer_queue_full=writer.queue_full)
-                if time.monotonic() >= next_cover:  # counts without power: said in the heartbeat (ps) and the log
-                    now = time.monotonic()
-                    next_cover = now + 0.25
-                    cover = coverage.summary(now)
-                    if heartbeat is not None:  # numbers are Prometheus counters too (service/metrics.py)
-                        led = book.ledger_now()
-                        t = led.totals()
-                        heartbeat.beat(**cover, ledger_line=led.line(), chunks_recorded=t.done, chunks_missing=t.missing,
-                                       chunks_duplicate=t.duplicate, chunks_lost=t.lost,
-                                       cpu_s_per_msamples=sink.cpu()["cpu_s_per_msamples"])
-                if time.monotonic() >= next_log:
-                    next_log += config.log_interval_s
-                    log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid, writer.current_path.name)
-        except BaseException as exc:  # finish the file whatever happened, then re-raise
-            error = exc
-        finally:
-            try:
-                if sub is not None:
-                    for item in sub.drain():
-                        sink.add(*item)
-                    sub.close()
-                if session is not None:
-                    session.close()
-                if sub is not None:
-                    for item in sub.drain():
-                        sink.add(*item)
-            except BaseException as exc:  # a dead network or a full disk must not lose the file
-                error = error or exc
-            try:
-                writer.close()
-            except BaseException as exc:
-                error = error or exc
-    if error is not None:
-        if isinstance(error, (MntesError, KeyboardInterrupt)):
-            raise error
-        raise TransportError(f"recorder failed: {type(error).__name__}: {error}") from error
-    led = book.ledger_now()
-    trackers = [*sink.sequences.values(), *book.sequences.values()]
-    now = time.monotonic()
-    stats = RecorderStats(
-        messages=writer.messages,
-        payload_bytes=writer.payload_bytes,
-        by_kind=sink.by_kind,
-        invalid=writer.invalid,
-        seq_gaps=max(sum(q.lost for q in trackers), 0),
-        seq_repeats=sum(q.duplicated + q.out_of_order + q.resets for q in trackers),
-        files=tuple(str(p) for p in writer.files),
-        flushes=writer.flushes,
-        queue_high_water=sub.high_water,
-        queue_high_water_mb=sub.high_water_bytes / 1e6,
-        dropped_on_close=sub.dropped_on_close,
-        duration_s=time.monotonic() - t_start,
-        unconverted=tuple(coverage.unconverted(now)),
-        power_gaps=dict(coverage.gaps),
-        power_late=dict(coverage.late),
-        unconverted_why={s: coverage.reason(s) for s in coverage.unconverted(now)},
-        power_only=tuple(coverage.power_only(now)),
-        ledger=led.as_dict(),
-        ledger_line=led.line(),
-        converters={name: book.converter_line(name) for name in sorted(book.converters)},
-        writer_queue_full=writer.queue_full,
-        writer_wait_s=round(writer.wait_s, 3),
-        writer_queue_high_water=writer.queue_high_water,
-        **sink.cpu(),
-    )
-    log.info("recorder stopped: %s", stats)
-    log.info("recorder %s", cost_line(asdict(stats)))
-    log.info("recorder %s", stats.final_line())
-    return stats
+def _failed(exc: BaseException) -> BaseException:
+    """Our errors as they are; anything else (a dead network, a full disk) as one TransportError."""
+    if isinstance(exc, (MntesError, KeyboardInterrupt)):
+        return exc
+    return TransportError(f"recorder failed: {type(exc).__name__}: {exc}")
 
 
 def _reach_the_source(z: ZenohSettings) -> ZenohSettings:
@@ -350,6 +238,117 @@ class RecorderService(Service):
     name = "recorder"
     Config = RecorderConfig
     summary = "every message of a setup into rotated MCAP files"
+    beat_every_s = 0.25  # counts without power are said in the heartbeat (ps) this soon
+    stats: RecorderStats | None = None
 
-    def run(self, stop=None, ready=None) -> dict:
-        return asdict(run_recorder(self.config, stop, ready, heartbeat=self.heartbeat))
+    def zenoh_settings(self) -> ZenohSettings:
+        return _reach_the_source(self.config.zenoh)
+
+    def setup(self, ctx) -> None:
+        from mntes_stream.io.transport import QueueSubscriber
+        from mntes_stream.service.recorder_sink import RecorderSink
+
+        config = self.config
+        self._t_start = time.monotonic()
+        self._next_log = self._t_start + config.log_interval_s
+        self._sink = sink = RecorderSink(config)
+        self._sub = None
+        try:
+            # The callback only timestamps and queues; a full queue makes it wait,
+            # which BLOCK publishers feel as back-pressure (nothing is dropped).
+            # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
+            # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
+            self._sub = QueueSubscriber(ctx.session, [config.subscription], maxsize=config.queue_messages,
+                                        max_bytes=int(config.queue_mb * 1e6), recover="history")
+            # A converter's provenance, answered on request, is recorded from the start too (only that:
+            # the heartbeat queryables under alive/ answer a wider query, and are not data).
+            self._sub.query(ctx.session, keys.provenance_key(config.setup))
+        except BaseException as exc:  # the file is finished whatever happened
+            sink.writer.close()
+            raise _failed(exc) from exc
+        log.info("recording %s into %s", config.subscription, sink.writer.current_path)
+
+    def step(self, ctx) -> bool:
+        sink, sub, writer = self._sink, self._sub, self._sink.writer
+        try:
+            item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
+            if item is not None:
+                sink.add(*item)
+                for item in sub.drain(10_000):  # then check the stop flags once per batch
+                    sink.add(*item)
+            writer.tick()
+        except BaseException as exc:
+            raise _failed(exc) from exc
+        if time.monotonic() >= self._next_log:
+            self._next_log += self.config.log_interval_s
+            log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid,
+                     writer.current_path.name)
+        return True
+
+    def counters(self) -> dict:
+        sink, sub = getattr(self, "_sink", None), getattr(self, "_sub", None)
+        if sink is None or sub is None:
+            return {}
+        writer, book = sink.writer, sink.book
+        led = book.ledger_now()
+        t = led.totals()
+        # numbers are Prometheus counters too (service/metrics.py)
+        return {"messages": writer.messages, "payload_bytes": writer.payload_bytes, "invalid": writer.invalid,
+                "files": len(writer.files), "queue_depth": sub.qsize(), "writer_queue_depth": writer.qsize(),
+                "writer_queue_full": writer.queue_full, **sink.coverage.summary(time.monotonic()),
+                "ledger_line": led.line(), "chunks_recorded": t.done, "chunks_missing": t.missing,
+                "chunks_duplicate": t.duplicate, "chunks_lost": t.lost,
+                "cpu_s_per_msamples": sink.cpu()["cpu_s_per_msamples"]}
+
+    def finish(self, ctx) -> dict:
+        sink, sub = self._sink, self._sub
+        writer, book, coverage = sink.writer, sink.book, sink.coverage
+        error = None
+        try:  # what arrived before the session closed is recorded too
+            for item in sub.drain():
+                sink.add(*item)
+            sub.close()
+            ctx.session.close()
+            for item in sub.drain():
+                sink.add(*item)
+        except BaseException as exc:  # a dead network or a full disk must not lose the file
+            error = exc
+        try:
+            writer.close()
+        except BaseException as exc:
+            error = error or exc
+        if error is not None:
+            raise _failed(error) from error
+        led = book.ledger_now()
+        trackers = [*sink.sequences.values(), *book.sequences.values()]
+        now = time.monotonic()
+        self.stats = stats = RecorderStats(
+            messages=writer.messages,
+            payload_bytes=writer.payload_bytes,
+            by_kind=sink.by_kind,
+            invalid=writer.invalid,
+            seq_gaps=max(sum(q.lost for q in trackers), 0),
+            seq_repeats=sum(q.duplicated + q.out_of_order + q.resets for q in trackers),
+            files=tuple(str(p) for p in writer.files),
+            flushes=writer.flushes,
+            queue_high_water=sub.high_water,
+            queue_high_water_mb=sub.high_water_bytes / 1e6,
+            dropped_on_close=sub.dropped_on_close,
+            duration_s=time.monotonic() - self._t_start,
+            unconverted=tuple(coverage.unconverted(now)),
+            power_gaps=dict(coverage.gaps),
+            power_late=dict(coverage.late),
+            unconverted_why={s: coverage.reason(s) for s in coverage.unconverted(now)},
+            power_only=tuple(coverage.power_only(now)),
+            ledger=led.as_dict(),
+            ledger_line=led.line(),
+            converters={name: book.converter_line(name) for name in sorted(book.converters)},
+            writer_queue_full=writer.queue_full,
+            writer_wait_s=round(writer.wait_s, 3),
+            writer_queue_high_water=writer.queue_high_water,
+            **sink.cpu(),
+        )
+        log.info("recorder stopped: %s", stats)
+        log.info("recorder %s", cost_line(asdict(stats)))
+        log.info("recorder %s", stats.final_line())
+        return asdict(stats)
