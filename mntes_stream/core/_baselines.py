@@ -142,7 +142,7 @@ if _numba is not None:
 
     @_inline
     def _row(a, row, scratch):
-        """Row ``row`` of a compact environment array (see :func:`_compact`), unit stride."""
+        """Row ``row`` of a compact environment array (see :func:`compact`), unit stride."""
         r = a[row if a.shape[0] > 1 else 0]
         if a.shape[1] == scratch.size:
             return r
@@ -204,7 +204,7 @@ if _numba is not None:
         _compile()
         ci_ = np.ascontiguousarray(ci_)
         cq_ = np.ascontiguousarray(cq_)
-        _kernel(ci_, cq_, _compact(tb), _compact(b), _compact(v), _compact(hk), np.ascontiguousarray(rows), cst, dom,
+        _kernel(ci_, cq_, compact(tb), compact(b), compact(v), compact(hk), np.ascontiguousarray(rows), cst, dom,
                 kind, out_p, out_f)
 
     _compiled = []
@@ -228,7 +228,7 @@ if _numba is not None:
         _kernel.disable_compile()
         _compiled.append(True)
 
-    def _compact(a: np.ndarray) -> np.ndarray:
+    def compact(a: np.ndarray) -> np.ndarray:
         """A broadcast view as the small C-contiguous array behind it: (1 or n_rows, 1 or n_samp)."""
         if a.ndim == 2 and a.shape[0] > 1 and a.strides[0] == 0:
             a = a[:1]

@@ -310,7 +310,7 @@ except ImportError:  # the numpy twins above still work
 if numba is not None:
     from numba.core import compiler as _numba_compiler
 
-    from mntes_stream.core._baselines import _compact
+    from mntes_stream.core._baselines import compact
 
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     # Helpers are inlined in numba IR: a real call would incref/decref every
@@ -507,7 +507,7 @@ if numba is not None:
 
     @_inline
     def _row(a, row, scratch):
-        """Row ``row`` of a compact environment array (``_baselines._compact``), unit stride."""
+        """Row ``row`` of a compact environment array (``_baselines.compact``), unit stride."""
         r = a[row if a.shape[0] > 1 else 0]
         if a.shape[1] == scratch.size:
             return r
@@ -516,7 +516,7 @@ if numba is not None:
 
     @_jit
     def _fill(a, row, scratch):
-        """Row ``row`` of a compact environment array (``_baselines._compact``) into ``scratch``
+        """Row ``row`` of a compact environment array (``_baselines.compact``) into ``scratch``
         (unit stride for the sample loop). A call, not inlined: once per row, and six inlined
         copies of its loops cost seconds of compilation."""
         r = row if a.shape[0] > 1 else 0
@@ -703,7 +703,7 @@ if numba is not None:
         return [np.ascontiguousarray(x) for x in arrays]
 
     def _env(tb, ltb, b, v, hk):
-        return [_compact(a) for a in (tb, ltb, b, v, hk)]
+        return [compact(a) for a in (tb, ltb, b, v, hk)]
 
     def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
         """Structured-table conversion (same contract as :func:`table_numpy`; ``rec``: :func:`row_constants`).
