@@ -17,8 +17,8 @@ import time
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.io import keys
-from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
 log = logging.getLogger(__name__)
@@ -43,23 +43,29 @@ class RouterService(Service):
     Config = RouterConfig
     summary = "zenoh router: the hub every service connects to as a client"
 
-    def run(self, stop=None, ready=None) -> dict:
-        cfg = self.config
-        t0 = time.monotonic()
-        seen: set[str] = set()
-        with stop_on_signals(stop) as stopping, open_session(dataclasses.replace(cfg.zenoh, mode="router")) as session:
-            log.info("router %s: zenoh id %s", cfg.name, session.zid())
-            if ready is not None:
-                ready.set()
-            next_log = 0.0
-            while not stopping.wait(0.2):
-                if cfg.duration_s and time.monotonic() - t0 >= cfg.duration_s:
-                    break
-                peers = [str(z) for z in session.info.peers_zid()] + [str(z) for z in session.info.routers_zid()]
-                seen.update(peers)
-                links = len(list(session.info.links()))
-                self.heartbeat.beat(links=links, zenoh_ids_seen=len(seen))
-                if time.monotonic() >= next_log:
-                    log.info("router %s: %d links, %d zenoh ids seen", cfg.name, links, len(seen))
-                    next_log = time.monotonic() + cfg.log_interval_s
-        return {"zenoh_ids_seen": len(seen), "duration_s": time.monotonic() - t0}
+    def zenoh_settings(self) -> ZenohSettings:
+        return dataclasses.replace(self.config.zenoh, mode="router")
+
+    def setup(self, ctx) -> None:
+        self._t0 = time.monotonic()
+        self._seen: set[str] = set()
+        self._links = 0
+        self._next_log = 0.0
+        log.info("router %s: zenoh id %s", self.config.name, ctx.session.zid())
+
+    def step(self, ctx) -> bool:
+        if ctx.stop.wait(0.2):
+            return False
+        session = ctx.session
+        self._seen.update([str(z) for z in session.info.peers_zid()] + [str(z) for z in session.info.routers_zid()])
+        self._links = len(list(session.info.links()))
+        if time.monotonic() >= self._next_log:
+            log.info("router %s: %d links, %d zenoh ids seen", self.config.name, self._links, len(self._seen))
+            self._next_log = time.monotonic() + self.config.log_interval_s
+        return True
+
+    def counters(self) -> dict:
+        return {"links": getattr(self, "_links", 0), "zenoh_ids_seen": len(getattr(self, "_seen", ()))}
+
+    def finish(self, ctx) -> dict:
+        return {"zenoh_ids_seen": len(self._seen), "duration_s": time.monotonic() - self._t0}
