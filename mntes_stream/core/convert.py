@@ -361,6 +361,21 @@ class _Base:
     def _convert(self, inp: _Inputs, p: np.ndarray, f: np.ndarray) -> None:
         raise NotImplementedError
 
+    # What core.uncertainty needs to follow a conversion sample by sample, without reaching into privates.
+    @property
+    def kernel_constants(self) -> np.ndarray:
+        """Per-detector constants the kernels read, one row per detector (shared: never modify)."""
+        return self._phys
+
+    def inputs(self, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray,
+               env: EnvironmentBlock) -> _Inputs:
+        """The arguments of :meth:`convert` as it works on them: checked, rows looked up, environment broadcast."""
+        return _prepare(self._rows, self._v_nominal, detector_ids, counts_i, counts_q, env)
+
+    def measured_current(self, inp: _Inputs, rows: np.ndarray) -> np.ndarray:
+        """Gain times counts (what the readout reports) of every row of ``inp``; ``rows``: each row's detector."""
+        return _measured_current(self._phys, rows, inp, 0, inp.counts_i.shape[0])
+
 
 class ExactConverter(_Base):
     """Per-sample exact inverse (:func:`core.model.invert_current`): the oracle."""

@@ -235,7 +235,7 @@ class NoiseModel:
         rec = cache.get(key)
         if rec is None:
             cache.clear()
-            rec = cache[key] = _uk.row_constants(converter._phys, self, converter.bank.arrays)
+            rec = cache[key] = _uk.row_constants(converter.kernel_constants, self, converter.bank.arrays)
         return rec
 
     def provenance(self) -> dict:
@@ -341,11 +341,9 @@ def sigma_p_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, 
     SchemaError
         Arrays that are not the block's.
     """
-    from mntes_stream.core.convert import _measured_current, _prepare
-
     if noise.detector_ids != converter.detector_ids:
         raise ConfigError("the noise model was built for other detectors than the converter's")
-    inp = _prepare(converter._rows, converter._v_nominal, detector_ids, counts_i, counts_q, env)
+    inp = converter.inputs(detector_ids, counts_i, counts_q, env)
     shape = inp.counts_i.shape
     if block.p_opt_w.shape != shape or block.flags.shape != shape:
         raise SchemaError(f"power block {block.p_opt_w.shape} is not of the counts' shape {shape}")
@@ -362,7 +360,7 @@ def sigma_p_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, 
     else:
         rows = np.maximum(inp.rows, 0)
         usable = ((flags & fl.UNUSABLE) == 0) & (inp.rows >= 0)[:, None]
-        i_meas = _measured_current(converter._phys, rows, inp, 0, shape[0])
+        i_meas = converter.measured_current(inp, rows)
         sigma[:] = np.nan
         for k in np.flatnonzero(usable.any(axis=1)):
             d = inp.rows[k]
