@@ -4,8 +4,11 @@ Every package (and top-level module) of ``mntes_stream`` declares in
 :data:`CONTRACTS` the packages it may import; ``errors`` and the root
 package (``__version__``) are open to all. An import anywhere in a module,
 inside a function too, counts. The contracts form no cycle, and the code
-keeps them; :data:`KNOWN_VIOLATIONS` lists what is still to fix (each must
-still occur, so a fixed one leaves the list). docs/architecture.md "Layers".
+keeps them. Between modules: no new import cycle, and no module imports
+another's private names; what is still to fix is listed
+(:data:`KNOWN_MODULE_CYCLES`, :data:`KNOWN_PRIVATE_IMPORTS`), each entry
+required to still occur, so a fixed one leaves its list.
+docs/architecture.md "Layers".
 """
 
 from __future__ import annotations
@@ -124,8 +127,7 @@ CONTRACTS: dict[str, set[str]] = {
             "bench"},
     "__main__": {"cli"},
 }
-KNOWN_VIOLATIONS: dict[tuple[str, str], str] = {}  # edges against the contracts still to fix (none left)
-# Cycles between modules of one package (function-local imports counted), also still to fix.
+# Cycles between modules of one package (function-local imports counted), still to fix.
 KNOWN_MODULE_CYCLES = {
     frozenset({"feeds.frameworks", "feeds.frameworks._common", "feeds.frameworks.litebird_io",
                "feeds.frameworks.sotodlib_io", "feeds.frameworks.toast_io", "feeds.hdf5", "feeds.recorded"}),
@@ -183,10 +185,7 @@ def test_every_package_has_a_contract_and_the_contracts_have_no_cycle():
 
 def test_packages_import_only_what_their_contract_allows():
     found = _violations(_modules())
-    new = {edge: where for edge, where in found.items() if edge not in KNOWN_VIOLATIONS}
-    assert not new, new
-    fixed = set(KNOWN_VIOLATIONS) - set(found)
-    assert not fixed, f"no longer violated, remove from KNOWN_VIOLATIONS: {fixed}"
+    assert not found, found
 
 
 def _module_cycles(modules) -> set[frozenset[str]]:
