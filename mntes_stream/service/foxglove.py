@@ -14,15 +14,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import queue
-import time
 from dataclasses import dataclass
 
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
-from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["ChannelBridge", "FoxgloveConfig", "FoxgloveService", "require_foxglove"]
@@ -93,14 +92,13 @@ class FoxgloveService(Service):
     Config = FoxgloveConfig
     summary = "serve a setup to the Foxglove app (Foxglove WebSocket protocol, json channels)"
 
-    def run(self, stop=None, ready=None) -> dict:
+    def setup(self, ctx) -> None:
         from mntes_stream.foxglove.translate import FoxgloveView
-        from mntes_stream.io.messages import decode
 
         fg = require_foxglove()
         cfg = self.config
-        pending: queue.Queue = queue.Queue(maxsize=cfg.queue_size)
-        counts = {"received": 0, "dropped": 0, "bad": 0}
+        self._pending = pending = queue.Queue(maxsize=cfg.queue_size)
+        self._counts = counts = {"received": 0, "dropped": 0, "bad": 0}
 
         def on_sample(sample) -> None:
             try:
@@ -110,38 +108,46 @@ class FoxgloveService(Service):
                 counts["dropped"] += 1
 
         context = fg.Context()
-        bridge = ChannelBridge(fg, context, FoxgloveView(cfg.detectors, cfg.per_module, cfg.max_rate_hz))
-        t_end = time.monotonic() + cfg.duration_s if cfg.duration_s else None
-        server = None
-        with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
-            subs = [session.declare_subscriber(k, on_sample)
-                    for k in (keys.status_key(cfg.setup), keys.hk_key(cfg.setup), keys.power_key(cfg.setup))]
-            try:
-                try:
-                    server = fg.start_server(name=f"mntes-stream {cfg.setup}", host=cfg.bind, port=cfg.port,
-                                             context=context)
-                except Exception as exc:  # address in use, bad address: one line
-                    raise ConfigError(f"foxglove: cannot serve on {cfg.bind}:{cfg.port}: {exc}") from None
-                shown = f"[{cfg.bind}]" if ":" in cfg.bind else cfg.bind
-                print(f"mntes-stream foxglove: serving ws://{shown}:{server.port} (setup {cfg.setup})", flush=True)
-                self.heartbeat.beat(port=server.port)
-                if ready is not None:
-                    ready.set()
-                while not stopping.is_set() and (t_end is None or time.monotonic() < t_end):
-                    try:
-                        payload = pending.get(timeout=0.1)
-                    except queue.Empty:
-                        continue
-                    try:
-                        bridge.handle(decode(payload, ("mntes.power", "mntes.hk", "mntes.status")))
-                    except SchemaError:
-                        counts["bad"] += 1
-                    self.heartbeat.beat(**counts, logged=bridge.logged, channels=len(bridge.channels),
-                                        queue_depth=pending.qsize())
-            finally:
-                for sub in subs:
-                    with contextlib.suppress(Exception):
-                        sub.undeclare()
-                if server is not None:
-                    server.stop()
-        return {**counts, "logged": bridge.logged, "channels": len(bridge.channels)}
+        self._bridge = ChannelBridge(fg, context, FoxgloveView(cfg.detectors, cfg.per_module, cfg.max_rate_hz))
+        self._server = None
+        self._subs = [ctx.session.declare_subscriber(k, on_sample)
+                      for k in (keys.status_key(cfg.setup), keys.hk_key(cfg.setup), keys.power_key(cfg.setup))]
+        try:
+            self._server = fg.start_server(name=f"mntes-stream {cfg.setup}", host=cfg.bind, port=cfg.port,
+                                           context=context)
+        except Exception as exc:  # address in use, bad address: one line
+            self._close()
+            raise ConfigError(f"foxglove: cannot serve on {cfg.bind}:{cfg.port}: {exc}") from None
+        shown = f"[{cfg.bind}]" if ":" in cfg.bind else cfg.bind
+        print(f"mntes-stream foxglove: serving ws://{shown}:{self._server.port} (setup {cfg.setup})", flush=True)
+        self.heartbeat.beat(port=self._server.port)
+
+    def step(self, ctx) -> bool:
+        from mntes_stream.io.messages import decode
+
+        try:
+            payload = self._pending.get(timeout=0.1)
+        except queue.Empty:
+            return True
+        try:
+            self._bridge.handle(decode(payload, ("mntes.power", "mntes.hk", "mntes.status")))
+        except SchemaError:
+            self._counts["bad"] += 1
+        return True
+
+    def counters(self) -> dict:
+        if not hasattr(self, "_bridge"):
+            return {}
+        return {**self._counts, "logged": self._bridge.logged, "channels": len(self._bridge.channels),
+                "queue_depth": self._pending.qsize()}
+
+    def _close(self) -> None:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        if self._server is not None:
+            self._server.stop()
+
+    def finish(self, ctx) -> dict:
+        self._close()
+        return {**self._counts, "logged": self._bridge.logged, "channels": len(self._bridge.channels)}
