@@ -117,28 +117,30 @@ class OcsBridgeService(Service):
                               "temperatures.Channel_06_T', or --t-bath-field)")
         return sensors
 
-    def run(self, stop=None, ready=None) -> dict:
-        from mntes_stream.errors import import_extra
-        from mntes_stream.io.transport import Publishers, open_session
-        from mntes_stream.service.base import stop_on_signals
+    def duration_s(self) -> float:
+        return 0.0  # [ocs-bridge] duration_s ends the WAMP loop itself (_serve)
 
-        wamp = import_extra("autobahn.asyncio.wamp", "ocs")
+    def setup(self, ctx) -> None:
+        from mntes_stream.errors import import_extra
+
+        self._wamp = import_extra("autobahn.asyncio.wamp", "ocs")
         self._sensors = [_Sensor(s, f, k) for s, (f, k) in self._fields().items()]
         self._counts = {"publications": 0, "connections": 0, "connect_failures": 0, "disconnects": 0,
                         "router_state": "connecting", "router_error": ""}
         self._said: set = set()
         self._t0 = time.monotonic()
-        with stop_on_signals(stop) as stopping, open_session(self.config.zenoh) as session:
-            pubs = Publishers(session)
-            self._pubs = pubs
-            if ready is not None:
-                ready.set()
-            loop = asyncio.new_event_loop()
-            try:
-                loop.run_until_complete(self._serve(wamp, stopping))
-            finally:
-                loop.close()
-                pubs.close()
+        self._pubs = ctx.publishers
+
+    def step(self, ctx) -> bool:
+        # One step: the WAMP client's own loop (reconnecting, beating) until stopped or its duration ends.
+        loop = asyncio.new_event_loop()
+        try:
+            loop.run_until_complete(self._serve(self._wamp, ctx.stop))
+        finally:
+            loop.close()
+        return False
+
+    def finish(self, ctx) -> dict:
         result = self._beat()
         log.info("ocs-bridge stopped: %s", result)
         return result
