@@ -317,10 +317,11 @@ class G3BridgeService(Service):
     def owns(self) -> dict:
         return {"source": self.config.bridge.source, "boards": list(self.config.bridge.boards) or "all"}
 
-    def run(self, stop=None, ready=None) -> dict:
+    def duration_s(self) -> float:
+        return self.config.bridge.duration_s
+
+    def setup(self, ctx) -> None:
         from mntes_stream.g3.translate import FrameTranslator
-        from mntes_stream.io.transport import Publishers, open_session
-        from mntes_stream.service.base import stop_on_signals
 
         b = self.config.bridge
         self._said: set = set()
@@ -329,60 +330,58 @@ class G3BridgeService(Service):
             from mntes_stream.io.paramfile import load_params
 
             gref = {d: abs(p.gain_a_per_count) for d, p in load_params(b.params).items()}
-        tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards, gain_reference=gref,
-                             max_held=b.max_held_frames)
-        src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects, max_frame_bytes=int(b.max_frame_mb * 2**20),
-                       reconnect_max_s=b.reconnect_max_s)
-        hk = _OcsBath(b) if b.hk else None
-        t_start = time.monotonic()
-        first_data_ns = None
-        waited = False
-        with stop_on_signals(stop) as stopping, open_session(self.config.zenoh) as session:
-            pubs = Publishers(session)
-            if ready is not None:
-                ready.set()
-            try:
-                while not stopping.is_set():
-                    if b.duration_s and time.monotonic() - t_start >= b.duration_s:
-                        break
-                    frames = src.next()
-                    if frames is None:  # (re)connecting: what the last connection gave goes out now
-                        for key, payload in tr.flush():
-                            pubs.put(key, payload)
-                        stopping.wait(min(0.05, b.reconnect_s))
-                        self._beat(tr, src, pubs)
-                        continue
-                    if not frames and src.finished:
-                        break
-                    out = []
-                    for frame in frames:
-                        out += tr.accept(frame)
-                    counts = [k for k, _ in out if keys.kind_of(k) == "counts"]
-                    if hk is not None:  # the bath from OCS HK files, up to the data's time (and one beyond)
-                        out = hk.up_to(tr._t_last_ns if counts else None) + [m for m in out if m[0] != hk.key]
-                    if counts and hk is None:
-                        t_last = tr._t_last_ns
-                        first_data_ns = first_data_ns or t_last
-                        if not len(tr.bath):
-                            if self.config.g3.t_bath_default_k is not None:
-                                out = tr.default_bath(t_last) + out
-                            elif t_last - first_data_ns > b.bath_wait_s * 1e9:
-                                tr.bath.require()  # the one-line error naming the thermometer setting
-                    if out and not waited and b.wait_subscribers_s > 0:
-                        waited = True
-                        pubs.wait_matching([k for k, _ in out], b.wait_subscribers_s, stopping)
-                    for key, payload in out:
-                        pubs.put(key, payload)
-                    while tr.gain_changed_at:
-                        self.heartbeat.warn(f"DfMux gain changed at {tr.gain_changed_at.pop(0)} ns: the converter "
-                                            "keeps the gain of its parameters")
-                    self._beat(tr, src, pubs)
-                for key, payload in tr.flush():
-                    pubs.put(key, payload)
-                tr.drop_held()
-            finally:
-                src.close()
-                pubs.close()
+        self._tr = FrameTranslator(b.setup, self.config.g3, b.chunk_samples, b.boards, gain_reference=gref,
+                                   max_held=b.max_held_frames)
+        self._src = G3Source(b.source, b.timeout_s, b.reconnect_s, b.max_reconnects,
+                             max_frame_bytes=int(b.max_frame_mb * 2**20), reconnect_max_s=b.reconnect_max_s)
+        self._hk = _OcsBath(b) if b.hk else None
+        self._first_data_ns = None
+        self._waited = False
+
+    def step(self, ctx) -> bool:
+        b, tr, src, hk, pubs = self.config.bridge, self._tr, self._src, self._hk, ctx.publishers
+        frames = src.next()
+        if frames is None:  # (re)connecting: what the last connection gave goes out now
+            for key, payload in tr.flush():
+                pubs.put(key, payload)
+            ctx.stop.wait(min(0.05, b.reconnect_s))
+            self._beat(tr, src, pubs)
+            return True
+        if not frames and src.finished:
+            return False
+        out = []
+        for frame in frames:
+            out += tr.accept(frame)
+        counts = [k for k, _ in out if keys.kind_of(k) == "counts"]
+        if hk is not None:  # the bath from OCS HK files, up to the data's time (and one beyond)
+            out = hk.up_to(tr._t_last_ns if counts else None) + [m for m in out if m[0] != hk.key]
+        if counts and hk is None:
+            t_last = tr._t_last_ns
+            self._first_data_ns = self._first_data_ns or t_last
+            if not len(tr.bath):
+                if self.config.g3.t_bath_default_k is not None:
+                    out = tr.default_bath(t_last) + out
+                elif t_last - self._first_data_ns > b.bath_wait_s * 1e9:
+                    tr.bath.require()  # the one-line error naming the thermometer setting
+        if out and not self._waited and b.wait_subscribers_s > 0:
+            self._waited = True
+            pubs.wait_matching([k for k, _ in out], b.wait_subscribers_s, ctx.stop)
+        for key, payload in out:
+            pubs.put(key, payload)
+        while tr.gain_changed_at:
+            self.heartbeat.warn(f"DfMux gain changed at {tr.gain_changed_at.pop(0)} ns: the converter "
+                                "keeps the gain of its parameters")
+        self._beat(tr, src, pubs)
+        return True
+
+    def finish(self, ctx) -> dict:
+        tr, src, pubs = self._tr, self._src, ctx.publishers
+        try:
+            for key, payload in tr.flush():
+                pubs.put(key, payload)
+            tr.drop_held()
+        finally:
+            src.close()
         result = self._beat(tr, src, pubs)
         log.info("g3-bridge stopped: %s", result)
         return result
