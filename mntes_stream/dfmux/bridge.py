@@ -298,60 +298,61 @@ class DfMuxBridgeService(Service):
         return {"boards": list(b.boards) + list(b.v2_boards), "interface": b.interface or None,
                 "sctp": list(b.sctp)}
 
-    def run(self, stop=None, ready=None) -> dict:
+    def duration_s(self) -> float:
+        return self.config.bridge.duration_s
+
+    def history_chunks(self) -> int:
+        from mntes_stream.io.history import cache_chunks
+
+        return cache_chunks(self.config.zenoh.history_seconds, self.config.bridge.chunk_samples * 6.5536e-3)
+
+    def setup(self, ctx) -> None:
         from mntes_stream.dfmux.assemble import Assembler
         from mntes_stream.dfmux.publish import HkPublisher
-        from mntes_stream.io.history import cache_chunks
-        from mntes_stream.io.transport import Publishers, open_session
-        from mntes_stream.service.base import stop_on_signals
 
         b = self.config.bridge
-        hk = HkPublisher(b.setup, b.t_bath_k, b.b_field_t, bias_table(b.bias), b.bias_every_s)
-        asm = Assembler(b.setup, b.chunk_samples)
-        readout = Readout(b)  # every setting checked before spt3g is loaded
+        self._hk = HkPublisher(b.setup, b.t_bath_k, b.b_field_t, bias_table(b.bias), b.bias_every_s)
+        self._asm = Assembler(b.setup, b.chunk_samples)
+        self._readout = Readout(b)  # every setting checked before spt3g is loaded
         core, dfmux, which = load_spt3g()
         log.info("dfmux-bridge: %s", which)
         self.spt3g = which
         core.set_log_level(getattr(core.G3LogLevel, f"LOG_{b.spt3g_log.upper()}"))
         self._said = 0
         self.released = None
-        t_start = time.monotonic()
-        t_beat = 0.0
-        waited = False
-        with stop_on_signals(stop) as stopping, open_session(self.config.zenoh) as session:
-            pubs = Publishers(session, history_chunks=cache_chunks(self.config.zenoh.history_seconds,
-                                                                   b.chunk_samples * 6.5536e-3))
-            self._marker_seen = False
-            readout.start(core, dfmux)
-            if ready is not None:
-                ready.set()
-            try:
-                while not stopping.is_set():
-                    if b.duration_s and time.monotonic() - t_start >= b.duration_s:
-                        break
-                    waited = self._step(readout, asm, hk, pubs, stopping, waited)
-                    if time.monotonic() - t_beat > 0.5:
-                        t_beat = time.monotonic()
-                        asm.check_silent(b.silent_s)
-                        self._beat(asm, readout, pubs)
-                # What the builder still holds comes out before the marker packets; then the last chunks.
-                readout.start_waker()
-                self.released = readout.release()
-                t_end = time.monotonic() + 3.0
-                while self.released and not self._marker_seen and time.monotonic() < t_end:
-                    waited = self._step(readout, asm, hk, pubs, stopping, waited)
-                if self.released and not self._marker_seen:
-                    self.released = False
-                while not readout.frames.empty():  # only the marker packets' own frames are left
-                    readout.frames.get_nowait()
-                asm.check_silent(b.silent_s)
-                chunks = asm.flush(time.time_ns())
-                for key, payload in hk.messages(chunks, asm.t_newest_ns) + [
-                        (keys.counts_key(b.setup, c.board, c.module), c.to_bytes()) for c in chunks]:
-                    pubs.put(key, payload)
-            finally:
-                readout.stop()
-                pubs.close()
+        self._t_beat = 0.0
+        self._waited = False
+        self._marker_seen = False
+        self._readout.start(core, dfmux)
+
+    def step(self, ctx) -> bool:
+        self._waited = self._step(self._readout, self._asm, self._hk, ctx.publishers, ctx.stop, self._waited)
+        if time.monotonic() - self._t_beat > 0.5:
+            self._t_beat = time.monotonic()
+            self._asm.check_silent(self.config.bridge.silent_s)
+            self._beat(self._asm, self._readout, ctx.publishers)
+        return True
+
+    def finish(self, ctx) -> dict:
+        b, readout, asm, hk, pubs = self.config.bridge, self._readout, self._asm, self._hk, ctx.publishers
+        try:
+            # What the builder still holds comes out before the marker packets; then the last chunks.
+            readout.start_waker()
+            self.released = readout.release()
+            t_end = time.monotonic() + 3.0
+            while self.released and not self._marker_seen and time.monotonic() < t_end:
+                self._waited = self._step(readout, asm, hk, pubs, ctx.stop, self._waited)
+            if self.released and not self._marker_seen:
+                self.released = False
+            while not readout.frames.empty():  # only the marker packets' own frames are left
+                readout.frames.get_nowait()
+            asm.check_silent(b.silent_s)
+            chunks = asm.flush(time.time_ns())
+            for key, payload in hk.messages(chunks, asm.t_newest_ns) + [
+                    (keys.counts_key(b.setup, c.board, c.module), c.to_bytes()) for c in chunks]:
+                pubs.put(key, payload)
+        finally:
+            readout.stop()
         result = self._beat(asm, readout, pubs)
         log.info("dfmux-bridge stopped: %s", result)
         return result
