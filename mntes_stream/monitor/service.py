@@ -17,7 +17,7 @@ from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.monitor.aggregate import MonitorConfig
 from mntes_stream.monitor.web_limits import WebLimits
-from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
 __all__ = ["MonitorServiceConfig", "MonitorService", "load_positions"]
@@ -98,28 +98,41 @@ class MonitorService(Service):
     Config = MonitorServiceConfig
     summary = "quick-look web page (or terminal table) of power, housekeeping and service health"
 
-    def run(self, stop=None, ready=None) -> dict:
+    ready_after_setup = False  # the web page is ready when its server listens
+
+    def duration_s(self) -> float:
+        return 0.0  # the text loop and the web server end at duration_s themselves
+
+    def setup(self, ctx) -> None:
         from mntes_stream.monitor.subscriber import MonitorSubscriber
 
         cfg = self.config
         positions = load_positions(cfg.params) if cfg.params else None
-        with stop_on_signals(stop) as stopping, MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions) as sub:
-            if cfg.text:
-                if ready is not None:
-                    ready.set()
-                _run_text(sub, cfg, stopping)
-            else:
-                from mntes_stream.monitor.server import serve
+        self._sub = MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions, session=ctx.session)
+        self._sub.start()
 
-                def on_ready(host, port):
-                    shown = f"[{host}]" if ":" in host else host
-                    print(f"mntes-stream monitor: serving http://{shown}:{port}/ (setup {cfg.setup})", flush=True)
-                    if ready is not None:
-                        ready.set()
+    def step(self, ctx) -> bool:
+        # One step: the terminal table or the web server, until stopped or duration_s.
+        cfg, sub = self.config, self._sub
+        if cfg.text:
+            ctx.mark_ready()
+            _run_text(sub, cfg, ctx.stop)
+            return False
+        from mntes_stream.monitor.server import serve
 
-                serve(sub, cfg.bind, cfg.port, cfg.update_s, cfg.duration_s, on_ready, stopping,
-                      allowed_hosts=cfg.allowed_hosts, max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s,
-                      limits=cfg.web)
-            with sub.lock:
-                health = sub.aggregator.tick(time.time_ns())["health"]["monitor"]
+        def on_ready(host, port):
+            shown = f"[{host}]" if ":" in host else host
+            print(f"mntes-stream monitor: serving http://{shown}:{port}/ (setup {cfg.setup})", flush=True)
+            ctx.mark_ready()
+
+        serve(sub, cfg.bind, cfg.port, cfg.update_s, cfg.duration_s, on_ready, ctx.stop,
+              allowed_hosts=cfg.allowed_hosts, max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s,
+              limits=cfg.web)
+        return False
+
+    def finish(self, ctx) -> dict:
+        sub = self._sub
+        with sub.lock:
+            health = sub.aggregator.tick(time.time_ns())["health"]["monitor"]
+        sub.close()
         return {k: v for k, v in health.items() if isinstance(v, (int, float, str))}

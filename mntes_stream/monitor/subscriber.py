@@ -51,7 +51,8 @@ class MonitorSubscriber:
     """
 
     def __init__(self, setup: str, zenoh: ZenohSettings, config: MonitorConfig | None = None, queue_size: int = 8192,
-                 positions: dict | None = None, queue_mb: float = 64.0, max_message_mb: float = 16.0):
+                 positions: dict | None = None, queue_mb: float = 64.0, max_message_mb: float = 16.0,
+                 session=None):
         self.setup = setup
         self.key_exprs = (keys.power_key(setup), keys.hk_key(setup), keys.status_key(setup))
         self.zenoh = zenoh
@@ -63,7 +64,8 @@ class MonitorSubscriber:
         self._queued_bytes = 0  # approximate (updated by two threads without a lock): a bound, not a count
         self._too_large = 0
         self._stop = threading.Event()
-        self._session = None
+        self._session = session  # given (a Service's): used, not closed; else opened at start
+        self._own_session = session is None
         self._subs: list = []
         self._thread: threading.Thread | None = None
         self._dropped = 0
@@ -78,7 +80,8 @@ class MonitorSubscriber:
         self.close()
 
     def start(self) -> None:
-        self._session = open_session(self.zenoh)
+        if self._own_session:
+            self._session = open_session(self.zenoh)
         try:
             for expr in self.key_exprs:
                 self._subs.append(self._session.declare_subscriber(expr, self._on_sample))
@@ -95,10 +98,10 @@ class MonitorSubscriber:
             with contextlib.suppress(Exception):
                 sub.undeclare()
         self._subs.clear()
-        if self._session is not None:
+        if self._session is not None and self._own_session:
             with contextlib.suppress(Exception):
                 self._session.close()
-            self._session = None
+        self._session = None
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
