@@ -29,9 +29,15 @@ SLOW_TESTS = frozenset(
 )
 
 
+# Tests that need the crossbar router, which .ci/run installs in the background while the tests run: last, so
+# its install has the whole suite's time to finish before they wait for it.
+NEEDS_CROSSBAR = ("tests/test_ocs_bridge.py", "tests/test_dfmux_bridge.py::test_lab_recipe_as_written")
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m deselects
 def pytest_collection_modifyitems(config, items):
     for item in items:
         nodeid = item.nodeid.split("[", 1)[0]
         if nodeid in SLOW_TESTS or nodeid.split("::", 1)[0] in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
+    items.sort(key=lambda item: item.nodeid.startswith(NEEDS_CROSSBAR))  # stable: the rest keep their order
