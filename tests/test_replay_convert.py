@@ -241,10 +241,11 @@ def test_offline_convert_with_new_parameters_via_cli(source_recording, tmp_path)
     # K (T^n - T_bath^n): the new parameters infer more optical power from the same counts.
     shift = np.mean([np.nanmean(b.p_opt_w - a.p_opt_w) for a, b in zip(rec, new)])
     assert shift > 1e-15
-    # Running it again is a refusal, not an overwrite.
+    # Running it again is a refusal, not an overwrite (one line naming the flag that would).
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "convert", str(path), str(out), "-q"],
                          capture_output=True, text=True, timeout=120)
-    assert res.returncode == 2 and "cannot create" in res.stderr
+    assert res.returncode == 2 and "exists (--overwrite replaces it)" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
 
 
 def test_offline_convert_with_a_table_file(source_recording, tmp_path):
