@@ -23,8 +23,8 @@ from mntes_stream.core.uncertainty import UncertaintySettings
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import decode
-from mntes_stream.io.transport import Publishers, QueueSubscriber, ZenohSettings, answer, open_session
-from mntes_stream.service.base import Service, stop_on_signals
+from mntes_stream.io.transport import QueueSubscriber, ZenohSettings, answer
+from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 from mntes_stream.service.pipeline_config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 
@@ -249,139 +249,16 @@ def subscriptions(cfg: ConverterConfig, streams=None) -> list[str]:
     return [keys.hk_key(setup, "**")] + exprs
 
 
-def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None, heartbeat=None,
-                  on_ownership=None) -> dict:
+def run_converter(cfg: ConverterConfig, stop=None, ready=None, converter=None) -> dict:
     """Run until stopped; returns the final status as a dict.
 
-    Parameters
-    ----------
-    cfg : ConverterConfig
-    stop : Event-like, optional
-        Set it to stop (SIGINT/SIGTERM also stop when run in the main thread).
-    ready : Event-like, optional
-        Set once subscribed, the streams claimed and the provenance out.
-    converter : optional
-        Use this converter instead of building one from ``cfg`` (tests, benchmarks).
-    heartbeat : Heartbeat, optional
-        Gets the pipeline's counters once per status.
-    on_ownership : callable, optional
-        Given the :class:`~mntes_stream.service.ownership.Ownership` once the streams are claimed.
+    ``stop`` and ``ready`` are Event-like: set ``stop`` to stop (SIGINT/SIGTERM also stop when run in
+    the main thread); ``ready`` is set once subscribed, the streams claimed and the provenance out.
+    ``converter`` is used instead of building one from ``cfg`` (tests, benchmarks).
     """
-    from mntes_stream.io.claims import StreamClaims
-    from mntes_stream.io.history import POWER_CHUNK_S, cache_chunks
-    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
-    from mntes_stream.service.ownership import Ownership, owns_summary
-    from mntes_stream.service.pipeline import ConverterPipeline
-    from mntes_stream.service.snapshot import load_snapshot, save_snapshot
-
-    # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
-    snap_key, snap = load_snapshot(cfg) if converter is None else (None, None)
-    if snap is not None:
-        params, streams, conv = snap
-    else:
-        params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
-        conv = converter if converter is not None else build_converter(cfg, params)
-        if converter is None:
-            save_snapshot(cfg, snap_key, params, streams, conv)
-    if streams is None and converter is not None:
-        from mntes_stream.service.housekeeping import known_modules
-
-        modules = known_modules(conv.detector_ids)
-        streams = sorted(modules) if modules is not None else None
-    _warm_up(conv)
-    summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
-    pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None, threads=cfg.threads,
-                             set_aside_bytes=int(cfg.set_aside_mb * 1e6),
-                             uncertainty=cfg.uncertainty if cfg.sigma_p else None)
-    if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
-        n = pipe.resume_sequences(ckpt[0])
-        log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
-                 "since counts as missed", cfg.name, n, (time.time_ns() - ckpt[1]) / 1e9, cfg.checkpoint)
-    beat = heartbeat.beat if heartbeat is not None else (lambda **_: None)
-    t_start = time.monotonic()
-    prov_key = keys.provenance_key(cfg.setup)
-    status_key = keys.status_key(cfg.setup, cfg.name)
-    topics = subscriptions(cfg, streams)
-    claims = owner = watch = None
-    with stop_on_signals(stop) as stopping, open_session(cfg.zenoh) as session:
-        pubs = Publishers(session, history_chunks=cache_chunks(cfg.zenoh.history_seconds, POWER_CHUNK_S))
-        # A blocking receive: zenoh's thread only queues each sample (bounded: a full queue makes it wait, which
-        # pushes back on the publishers), and this thread sleeps until one is there instead of polling.
-        # Samples come in arrival order: a step's housekeeping (published first) before its counts.
-        # What the sources' caches hold (io/history.py) comes first, so a converter restarted after a crash
-        # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
-        # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
-        sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=stopping, mode="callback",
-                              recover="history")
-        # Provenance on request too: a recorder started later asks instead of waiting for the next one.
-        answer(session, prov_key, pipe.provenance_bytes())
-        try:
-            if streams:
-                claims = StreamClaims(session, cfg.setup, cfg.name, streams, standby=cfg.standby)
-                owner = Ownership(claims, summary, cfg.standby, cfg.holdback_s,
-                                  warn=heartbeat.warn if heartbeat is not None else None)
-                pipe.owns_status = owner.status
-                watch = _PowerWatch(session, owner, cfg.setup)
-                if on_ownership is not None:
-                    on_ownership(owner)
-            pubs.put(prov_key, pipe.provenance_bytes())
-            next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
-            log.info("converter %s: %d detectors, kind %s, tables %s; %s; subscribed to %s", cfg.name,
-                     len(conv.detector_ids), conv.kind, str(conv.identity)[:12],
-                     _owning(cfg, streams, owner), topics if len(topics) <= 8 else f"{len(topics)} key expressions")
-            if ready is not None:
-                ready.set()
-            behind_since = None  # monotonic time since when every batch was full (None: caught up)
-            while not stopping.is_set():
-                if cfg.duration_s and time.monotonic() - t_start >= cfg.duration_s:
-                    break
-                item = sub.get(timeout_s=0.05 if not pipe.set_aside else 0.0)
-                # What has arrived is handled as one batch (converted together: less work per chunk); nothing
-                # waits for more to come, so a batch is what piled up while the previous one was converted.
-                now = time.time_ns()
-                if item is None:  # nothing waiting: time for what was set aside under overload
-                    behind_since, pipe.overloaded = None, False
-                    outs = pipe.tick(now) + pipe.convert_late(cfg.batch_max // 8 or 1)
-                else:
-                    batch = [item, *sub.drain(cfg.batch_max - 1)]
-                    mono = time.monotonic()
-                    behind_since = (behind_since or mono) if len(batch) >= cfg.batch_max else None
-                    pipe.overloaded = behind_since is not None and mono - behind_since >= cfg.overload_after_s
-                    outs = pipe.handle_many(batch)
-                if owner is not None:
-                    outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
-                for key, payload in outs:
-                    # The checkpoint before the status: what a status says converted is on disk when it is seen.
-                    if key == status_key and cfg.checkpoint:
-                        save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
-                    pubs.put(key, payload)
-                    if key == status_key:  # what the status says, in the heartbeat too (ps)
-                        st = decode(payload)
-                        beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost, latency_p99_ms=st.latency_p99_ms,
-                             bad_messages=sum(st.bad_messages.values()), samples_per_s=st.rate_msamples_per_s * 1e6)
-                if time.monotonic() >= next_prov:
-                    pubs.put(prov_key, pipe.provenance_bytes())
-                    next_prov = time.monotonic() + cfg.provenance_interval_s
-            # Stop receiving, convert what is already here, say so, then close.
-            sub.close()
-            outs = pipe.handle_many(list(sub.drain())) + pipe.flush()
-            for key, payload in outs:
-                if owner is None or owner.allow(key, payload, time.time_ns()):
-                    pubs.put(key, payload)
-            if cfg.checkpoint:
-                save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
-        finally:
-            sub.close()
-            if watch is not None:
-                watch.close()
-            if claims is not None:
-                claims.close()  # a standby takes over at once, not after the session's lease
-            pubs.close()
-    final = pipe.status()
-    line = pipe.ledger_now().line()
-    log.info("converter %s stopped: %s", cfg.name, line)
-    return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close,
-                                                                    "ledger_line": line}
+    service = ConverterService(cfg)
+    service.prebuilt = converter
+    return dict(service.run(stop, ready))
 
 
 def _owning(cfg: ConverterConfig, streams, owner) -> str:
@@ -421,6 +298,8 @@ class ConverterService(Service):
     summary = "counts + housekeeping in, power + status + provenance out"
 
     _ownership = None
+    #: a converter to use instead of building one from the config (tests, benchmarks: run_converter)
+    prebuilt = None
 
     def owns(self) -> dict:
         if self._ownership is not None:
@@ -428,6 +307,132 @@ class ConverterService(Service):
         return {"boards": list(self.config.boards) or "*", "modules": list(self.config.modules) or "*",
                 "shard": self.config.shard or "0/1"}
 
-    def run(self, stop=None, ready=None) -> dict:
-        return run_converter(self.config, stop, ready, heartbeat=self.heartbeat,
-                             on_ownership=lambda o: setattr(self, "_ownership", o))
+    def history_chunks(self) -> int:
+        from mntes_stream.io.history import POWER_CHUNK_S, cache_chunks
+
+        return cache_chunks(self.config.zenoh.history_seconds, POWER_CHUNK_S)
+
+    def setup(self, ctx) -> None:
+        from mntes_stream.io.claims import StreamClaims
+        from mntes_stream.service.checkpoint import load_checkpoint
+        from mntes_stream.service.ownership import Ownership, owns_summary
+        from mntes_stream.service.pipeline import ConverterPipeline
+        from mntes_stream.service.snapshot import load_snapshot, save_snapshot
+
+        cfg, converter = self.config, self.prebuilt
+        # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
+        snap_key, snap = load_snapshot(cfg) if converter is None else (None, None)
+        if snap is not None:
+            params, streams, conv = snap
+        else:
+            params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
+            conv = converter if converter is not None else build_converter(cfg, params)
+            if converter is None:
+                save_snapshot(cfg, snap_key, params, streams, conv)
+        if streams is None and converter is not None:
+            from mntes_stream.service.housekeeping import known_modules
+
+            modules = known_modules(conv.detector_ids)
+            streams = sorted(modules) if modules is not None else None
+        _warm_up(conv)
+        summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
+        self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
+                                              threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
+                                              uncertainty=cfg.uncertainty if cfg.sigma_p else None)
+        if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
+            n = pipe.resume_sequences(ckpt[0])
+            log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
+                     "since counts as missed", cfg.name, n, (time.time_ns() - ckpt[1]) / 1e9, cfg.checkpoint)
+        self._prov_key = keys.provenance_key(cfg.setup)
+        self._status_key = keys.status_key(cfg.setup, cfg.name)
+        topics = subscriptions(cfg, streams)
+        self._claims = self._watch = None
+        owner = None
+        session = ctx.session
+        # A blocking receive: zenoh's thread only queues each sample (bounded: a full queue makes it wait, which
+        # pushes back on the publishers), and this thread sleeps until one is there instead of polling.
+        # Samples come in arrival order: a step's housekeeping (published first) before its counts.
+        # What the sources' caches hold (io/history.py) comes first, so a converter restarted after a crash
+        # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
+        # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
+        self._sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=ctx.stop, mode="callback",
+                                    recover="history")
+        try:
+            # Provenance on request too: a recorder started later asks instead of waiting for the next one.
+            answer(session, self._prov_key, pipe.provenance_bytes())
+            if streams:
+                self._claims = StreamClaims(session, cfg.setup, cfg.name, streams, standby=cfg.standby)
+                owner = Ownership(self._claims, summary, cfg.standby, cfg.holdback_s, warn=self.heartbeat.warn)
+                pipe.owns_status = owner.status
+                self._watch = _PowerWatch(session, owner, cfg.setup)
+                self._ownership = owner
+            ctx.publishers.put(self._prov_key, pipe.provenance_bytes())
+        except BaseException:
+            self._close()
+            raise
+        self._next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
+        self._behind_since = None  # monotonic time since when every batch was full (None: caught up)
+        log.info("converter %s: %d detectors, kind %s, tables %s; %s; subscribed to %s", cfg.name,
+                 len(conv.detector_ids), conv.kind, str(conv.identity)[:12],
+                 _owning(cfg, streams, owner), topics if len(topics) <= 8 else f"{len(topics)} key expressions")
+
+    def step(self, ctx) -> bool:
+        from mntes_stream.service.checkpoint import save_checkpoint
+
+        cfg, pipe, sub, owner, pubs = self.config, self._pipe, self._sub, self._ownership, ctx.publishers
+        item = sub.get(timeout_s=0.05 if not pipe.set_aside else 0.0)
+        # What has arrived is handled as one batch (converted together: less work per chunk); nothing
+        # waits for more to come, so a batch is what piled up while the previous one was converted.
+        now = time.time_ns()
+        if item is None:  # nothing waiting: time for what was set aside under overload
+            self._behind_since, pipe.overloaded = None, False
+            outs = pipe.tick(now) + pipe.convert_late(cfg.batch_max // 8 or 1)
+        else:
+            batch = [item, *sub.drain(cfg.batch_max - 1)]
+            mono = time.monotonic()
+            self._behind_since = (self._behind_since or mono) if len(batch) >= cfg.batch_max else None
+            pipe.overloaded = self._behind_since is not None and mono - self._behind_since >= cfg.overload_after_s
+            outs = pipe.handle_many(batch)
+        if owner is not None:
+            outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
+        for key, payload in outs:
+            # The checkpoint before the status: what a status says converted is on disk when it is seen.
+            if key == self._status_key and cfg.checkpoint:
+                save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
+            pubs.put(key, payload)
+            if key == self._status_key:  # what the status says, in the heartbeat too (ps)
+                st = decode(payload)
+                self.heartbeat.beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost,
+                                    latency_p99_ms=st.latency_p99_ms, bad_messages=sum(st.bad_messages.values()),
+                                    samples_per_s=st.rate_msamples_per_s * 1e6)
+        if time.monotonic() >= self._next_prov:
+            pubs.put(self._prov_key, pipe.provenance_bytes())
+            self._next_prov = time.monotonic() + cfg.provenance_interval_s
+        return True
+
+    def _close(self) -> None:
+        self._sub.close()
+        if self._watch is not None:
+            self._watch.close()
+        if self._claims is not None:
+            self._claims.close()  # a standby takes over at once, not after the session's lease
+
+    def finish(self, ctx) -> dict:
+        from mntes_stream.service.checkpoint import save_checkpoint
+
+        cfg, pipe, sub, owner = self.config, self._pipe, self._sub, self._ownership
+        try:  # stop receiving, convert what is already here, say so, then close
+            sub.close()
+            outs = pipe.handle_many(list(sub.drain())) + pipe.flush()
+            for key, payload in outs:
+                if owner is None or owner.allow(key, payload, time.time_ns()):
+                    ctx.publishers.put(key, payload)
+            if cfg.checkpoint:
+                save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
+        finally:
+            self._close()
+        final = pipe.status()
+        line = pipe.ledger_now().line()
+        log.info("converter %s stopped: %s", cfg.name, line)
+        return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close,
+                                                                        "ledger_line": line}
