@@ -53,8 +53,7 @@ class _Dies(Service):
     name = "dies"
     Config = _DiesConfig
 
-    def run(self, stop=None, ready=None) -> dict:
-        ready.set()
+    def step(self, ctx) -> bool:  # ready once setup (none) returned
         time.sleep(self.config.after_s)
         os._exit(3)
 

@@ -118,3 +118,21 @@ def test_stop_ends_a_hook_service_before_its_duration():
     t0 = time.monotonic()
     svc.start(stop, None)
     assert time.monotonic() - t0 < 2.0 and svc.calls == ["setup", "finish"]
+
+
+@pytest.mark.parametrize("method", ["run", "start"])
+def test_a_service_overriding_the_lifecycle_is_refused_when_defined(method):
+    # The skeleton is the base's: a class running its own would get no presence, router waiting or metrics.
+    with pytest.raises(TypeError, match=f"overrides Service.{method}"):
+        type("OwnSkeleton", (Ticker,), {method: lambda self, stop=None, ready=None: {}})
+
+
+def test_a_client_outside_a_service_fails_at_once_without_its_router():
+    # No policy passed, none picked up from the context: one TransportError line, no waiting.
+    from mntes_stream.errors import TransportError
+    from mntes_stream.io.transport import ZenohSettings
+
+    t0 = time.monotonic()
+    with pytest.raises(TransportError, match="cannot open zenoh session"):
+        open_session(ZenohSettings(mode="client", connect=(f"tcp/127.0.0.1:{free_tcp_port()}",)))
+    assert time.monotonic() - t0 < 5.0

@@ -23,8 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from mntes_stream.bench.stream import BenchSource
 from mntes_stream.options import add_zenoh_args, zenoh_layer
-from mntes_stream.service.base import Service
 
 HELP = "router + N converter shards + recorder + source on loopback: aggregate rate, latency, loss, scaling"
 
@@ -44,40 +44,6 @@ def add_arguments(p) -> None:
     p.add_argument("--kind", default="table", help="conversion kind (default table)")
     p.add_argument("--keep", metavar="DIR", help="keep the recordings and parameters in DIR")
     add_zenoh_args(p)
-
-
-class _Source(Service):
-    """The minimal source, flat out, then lingering until told to stop (queued is not delivered)."""
-
-    name = "bench-scale-source"
-    Config = dict
-
-    def run(self, stop=None, ready=None) -> dict:
-        from mntes_stream.errors import TransportError
-        from mntes_stream.io import keys
-        from mntes_stream.io.paramfile import load_params
-        from mntes_stream.io.transport import Publishers, open_session
-        from mntes_stream.service.source import MinimalSource, publish
-
-        cfg = self.config
-        sc = cfg["source"]
-        src = MinimalSource(sc, list(load_params(cfg["params"]).values()))
-        src.prepare()
-        counts_keys = [keys.counts_key(sc.setup, 0, m) for m in range(sc.modules)]
-        with open_session(cfg["zenoh"]) as z:
-            ready.set()
-            pubs = Publishers(z)
-            if not pubs.wait_matching(counts_keys, 120.0, stop):
-                raise TransportError("bench scale: the converter shards did not subscribe to every stream in 120 s")
-            pubs.close()
-            # Let every shard's status and claims settle before the clock starts.
-            time.sleep(1.0)
-            start = time.time_ns()
-            res = publish(z, src.batches(start, cfg["duration_s"]), speed=0.0, stop=stop, t_ref_ns=start)
-            out = dict(res, t_start_ns=start, t_end_ns=time.time_ns(), chunks_sent=res["batches"] * len(counts_keys))
-            while not stop.is_set():
-                time.sleep(0.05)
-        return out
 
 
 def _analyse(rec_dir: Path, setup: str) -> dict:
@@ -145,9 +111,11 @@ def _one(args, n_shards: int, work: Path, params_file: Path, sc) -> dict:
                                   zenoh=client)
             names.append(cfg.name)
             services.start(cfg.name, "converter", cfg)
-        src_cfg = {"source": sc, "params": str(params_file), "zenoh": client, "duration_s": args.duration}
+        # Flat out; the shards' status and claims settle for 1 s before the clock starts.
+        src_cfg = {"source": sc, "params": str(params_file), "zenoh": client, "duration_s": args.duration,
+                   "match_s": 120.0, "settle_s": 1.0, "label": "bench scale"}
         load_before = os.getloadavg()[0]
-        services.start("source", _Source, src_cfg)
+        services.start("source", BenchSource, src_cfg)
         n_chunks = math.ceil(args.duration * sc.sample_rate_hz / sc.chunk_samples - 1e-9) * sc.modules
         deadline = time.monotonic() + args.duration * 20 + 120
         with open_session(client) as z:

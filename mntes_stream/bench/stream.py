@@ -66,95 +66,139 @@ def add_arguments(p) -> None:
 
 
 class _Sink(Service):
-    """Plain subscriber: decode every counts chunk, count samples (the passthrough yardstick)."""
+    """Plain subscriber: decode every counts chunk, count samples (the passthrough yardstick).
+
+    ``config``: a dict with ``zenoh`` (ZenohSettings) and ``key`` (the key expression).
+    """
 
     name = "bench-sink"
     Config = dict
 
-    def run(self, stop=None, ready=None) -> dict:
-        return _sink(self.config, stop, ready)
+    def zenoh_settings(self):
+        return self.config["zenoh"]
+
+    def setup(self, ctx) -> None:
+        from mntes_stream.io.transport import QueueSubscriber
+
+        self._sub = QueueSubscriber(ctx.session, [self.config["key"]], maxsize=1 << 16)
+        self._n = self._samples = 0
+        self._t_first = self._t_last = None
+
+    def step(self, ctx) -> bool:
+        from mntes_stream.io.messages import CountsChunk
+
+        item = self._sub.get(timeout_s=0.05)
+        while item is not None:
+            c = CountsChunk.from_bytes(item[1])
+            self._n += 1
+            self._samples += c.counts_i.size
+            self._t_first = item[2] if self._t_first is None else self._t_first
+            self._t_last = item[2]
+            item = self._sub.get()
+        return True
+
+    def counters(self) -> dict:
+        return {"messages": getattr(self, "_n", 0)}
+
+    def finish(self, ctx) -> dict:
+        self._sub.close()
+        n, samples = self._n, self._samples
+        span = (self._t_last - self._t_first) / 1e9 if n > 1 else 0.0
+        return {"messages": n, "samples": samples, "span_s": span, "t_first_ns": self._t_first,
+                "t_last_ns": self._t_last, "msamples_per_s": samples / span / 1e6 if span > 0 else 0.0}
 
 
-class _Source(Service):
-    """Both phases of the source side (one session, one process)."""
+class BenchSource(Service):
+    """The minimal source of ``bench stream`` and ``bench scale``: an optional passthrough phase, then the array.
+
+    ``config`` is a dict: ``source`` (SourceConfig), ``params`` (file), ``zenoh``, ``duration_s`` (of data),
+    and optionally ``flat_out`` (default True), ``passthrough_s`` with ``pass_setup`` (phase 1: the same
+    counts messages re-keyed to ``pass_setup``, flat out, for a plain subscriber), ``match_s`` (how long
+    the counts may wait for their subscriber, default 60), ``settle_s`` (a pause before the clock starts,
+    default 0.5) and ``label`` (for its errors). After the last batch it stays until stopped: ``put``
+    returns once a message is queued, not delivered, and closing the session would lose what the
+    converter has not taken yet.
+    """
 
     name = "bench-source"
     Config = dict
 
-    def run(self, stop=None, ready=None) -> dict:
-        return _source(self.config, stop, ready)
+    def zenoh_settings(self):
+        return self.config["zenoh"]
 
+    def duration_s(self) -> float:
+        return 0.0  # ``duration_s`` is of data; the run ends when the bench stops it
 
-def _sink(cfg: dict, stop, ready) -> dict:
-    """See :class:`_Sink`."""
-    from mntes_stream.io.messages import CountsChunk
-    from mntes_stream.io.transport import QueueSubscriber, open_session
+    def setup(self, ctx) -> None:
+        from mntes_stream.io import keys
+        from mntes_stream.io.paramfile import load_params
+        from mntes_stream.service.source import MinimalSource
 
-    n = samples = 0
-    t_first = t_last = None
-    with open_session(cfg["zenoh"]) as z:
-        sub = QueueSubscriber(z, [cfg["key"]], maxsize=1 << 16)
-        ready.set()
-        while not stop.is_set():
-            item = sub.get(timeout_s=0.05)
-            while item is not None:
-                c = CountsChunk.from_bytes(item[1])
-                n += 1
-                samples += c.counts_i.size
-                t_first = item[2] if t_first is None else t_first
-                t_last = item[2]
-                item = sub.get()
-        sub.close()
-    span = (t_last - t_first) / 1e9 if n > 1 else 0.0
-    return {"messages": n, "samples": samples, "span_s": span, "t_first_ns": t_first, "t_last_ns": t_last,
-            "msamples_per_s": samples / span / 1e6 if span > 0 else 0.0}
+        cfg = self.config
+        self._src = MinimalSource(cfg["source"], list(load_params(cfg["params"]).values()))
+        self._src.prepare()
+        sc = cfg["source"]
+        self._counts_keys = [keys.counts_key(sc.setup, b, m) for b in range(sc.boards) for m in range(sc.modules)]
+        self._out: dict = {}
+        self._n_batches = 0
+        self._work = self._phases(ctx)
 
+    def _phases(self, ctx):
+        """The run as a generator: each ``next`` is one unit of work (one :meth:`step`)."""
+        from mntes_stream.errors import TransportError
+        from mntes_stream.service.source import Pacer
 
-def _source(cfg: dict, stop, ready) -> dict:
-    """See :class:`_Source`."""
-    from mntes_stream.errors import TransportError
-    from mntes_stream.io import keys
-    from mntes_stream.io.paramfile import load_params
-    from mntes_stream.io.transport import Publishers, open_session
-    from mntes_stream.service.source import MinimalSource, publish
-
-    src = MinimalSource(cfg["source"], list(load_params(cfg["params"]).values()))
-    src.prepare()
-    sc = cfg["source"]
-    counts_keys = [keys.counts_key(sc.setup, b, m) for b in range(sc.boards) for m in range(sc.modules)]
-    out: dict = {}
-    with open_session(cfg["zenoh"]) as z:
-        ready.set()
-        pubs = Publishers(z)
-        if cfg["passthrough_s"] > 0:
-            # Phase 1: the same counts messages, re-keyed to the plain subscriber, flat out.
+        cfg, src, pubs = self.config, self._src, ctx.publishers
+        sc = cfg["source"]
+        if cfg.get("passthrough_s", 0) > 0:
             pass_msgs = []
             for _, batch in src.batches(time.time_ns(), duration_s=2.0):
                 pass_msgs += [(k.replace(f"/{sc.setup}/", f"/{cfg['pass_setup']}/", 1), p) for k, p in batch
                               if "/counts/" in k]
-            pass_keys = sorted({k for k, _ in pass_msgs})
-            pubs.wait_matching(pass_keys, 30.0, stop)
+            pubs.wait_matching(sorted({k for k, _ in pass_msgs}), 30.0, ctx.stop)
+            yield
             n = 0
             t_end = time.monotonic() + cfg["passthrough_s"]
-            while time.monotonic() < t_end and not stop.is_set():
+            while time.monotonic() < t_end:
                 for k, p in pass_msgs:
                     pubs.put(k, p)
                 n += len(pass_msgs)
-            out["passthrough_sent"] = n
-        # Phase 2: the array through the converter, into the recorder.
-        if not pubs.wait_matching(counts_keys, 60.0, stop):
-            raise TransportError("bench stream: the converter did not subscribe to the counts within 60 s")
-        pubs.close()
-        time.sleep(0.5)  # let the passthrough messages drain before the clock starts
+                yield
+            self._out["passthrough_sent"] = n
+        match_s = float(cfg.get("match_s", 60.0))
+        if not pubs.wait_matching(self._counts_keys, match_s, ctx.stop):
+            raise TransportError(f"{cfg.get('label', 'bench stream')}: the converter did not subscribe to every "
+                                 f"counts stream within {match_s:g} s")
+        yield
+        ctx.stop.wait(float(cfg.get("settle_s", 0.5)))  # what came before drains; shards settle
         start = time.time_ns()
-        res = publish(z, src.batches(start, cfg["duration_s"]), speed=0.0 if cfg["flat_out"] else 1.0,
-                      stop=stop, t_ref_ns=start)
-        out.update(res, t_start_ns=start, t_end_ns=time.time_ns(), chunks_sent=res["batches"] * len(counts_keys))
-        # put() returns once a message is queued, not delivered: closing the session now would
-        # lose what the converter has not taken yet. Stay until told (the converter has drained).
-        while not stop.is_set():
-            time.sleep(0.05)
-    return out
+        self._out["t_start_ns"] = start
+        self._pacer = Pacer(0.0 if cfg.get("flat_out", True) else 1.0, start)
+        m0, b0 = pubs.messages, pubs.bytes
+        for t_pub_ns, batch in src.batches(start, cfg["duration_s"]):
+            self._pacer.wait(t_pub_ns, ctx.stop)
+            for key, payload in batch:
+                pubs.put(key, payload)
+            self._n_batches += 1
+            self._out.update(messages=pubs.messages - m0, bytes=pubs.bytes - b0)
+            yield
+        self._out["t_end_ns"] = time.time_ns()
+        while True:  # stay until stopped (see the class docstring)
+            ctx.stop.wait(0.05)
+            yield
+
+    def step(self, ctx) -> bool:
+        return next(self._work, False) is None
+
+    def counters(self) -> dict:
+        return {"batches": getattr(self, "_n_batches", 0)}
+
+    def finish(self, ctx) -> dict:
+        out = dict(self._out, batches=self._n_batches, chunks_sent=self._n_batches * len(self._counts_keys))
+        if "t_start_ns" in out:
+            out.setdefault("t_end_ns", time.time_ns())  # stopped while publishing
+            out["behind_max_ms"] = self._pacer.behind_max_ms
+        return out
 
 
 def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window_end_ns: int | None):
@@ -284,7 +328,7 @@ def run_once(args) -> dict:
     peers = [p_conv, *p_recs, *([p_sink] if with_pass else [])]
     src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, peers)),
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
-               "flat_out": args.flat_out}
+               "flat_out": args.flat_out, "label": "bench stream"}
     sink_cfg = {"zenoh": zenoh.over(loopback(p_sink)), "key": keys.counts_key(pass_setup, "*", "*")}
     load_before = os.getloadavg()[0]
     services = Services()
@@ -295,7 +339,7 @@ def run_once(args) -> dict:
         services.start("converter", "converter", conv_cfg)
         if with_pass:
             services.start("sink", _Sink, sink_cfg)
-        services.start("source", _Source, src_cfg)
+        services.start("source", BenchSource, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
         pids = {name: proc.pid for name, proc in services.procs.items()}
         cpu_samples = []  # (wall ns, CPU seconds of each process so far): what each used in each phase

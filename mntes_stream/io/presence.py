@@ -1,8 +1,8 @@
 """Who is alive on a setup: a zenoh liveliness token and a heartbeat queryable per service.
 
-While a service runs (:meth:`Service.start <mntes_stream.service.base.Service.start>`
-enters :func:`presence`), every zenoh session it opens through
-:func:`~mntes_stream.io.transport.open_session` declares
+While a service runs, the session its lifecycle opens
+(:meth:`Service.start <mntes_stream.service.base.Service.start>` passes its
+:class:`Presence` to :func:`~mntes_stream.io.transport.open_session`, explicitly) declares
 
 - a liveliness token ``mntes/<setup>/alive/<service>/<name>``: zenoh removes
   it when the session closes or the process dies, so a reader sees a service
@@ -18,29 +18,25 @@ for ``dead_after_s`` is logged once and put in the heartbeat's warnings.
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import logging
 import os
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import msgpack
 
 from mntes_stream.io import keys
 
-__all__ = ["Presence", "presence", "announce", "list_services", "DEAD_AFTER_S"]
+__all__ = ["Presence", "announce", "list_services", "DEAD_AFTER_S"]
 
 log = logging.getLogger(__name__)
 
 #: A connect endpoint with no link for this long is reported (once).
 DEAD_AFTER_S = 5.0
 _POLL_S = 0.25
-
-_current: contextvars.ContextVar[Presence | None] = contextvars.ContextVar("mntes_presence", default=None)
-
 
 @dataclass(frozen=True)
 class Presence:
@@ -70,22 +66,11 @@ class Presence:
         return keys.alive_key(self.setup, self.service, self.name)
 
 
-@contextlib.contextmanager
-def presence(p: Presence | None) -> Iterator[None]:
-    """Sessions opened in this thread (and its context) while the block runs announce ``p``."""
-    token = _current.set(p)
-    try:
-        yield
-    finally:
-        _current.reset(token)
-
-
 def announce(session, connect: tuple[str, ...] = (), p: Presence | None = None) -> None:
-    """Declare ``p`` (default: the current :class:`Presence`, if any) on ``session``; watch ``connect`` endpoints.
+    """Declare ``p`` (None: nothing) on ``session``; watch ``connect`` endpoints.
 
     Called by ``open_session``; everything declared here ends with the session.
     """
-    p = p if p is not None else _current.get()
     if p is None:
         return
     zid = str(session.zid())

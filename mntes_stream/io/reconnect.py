@@ -9,7 +9,7 @@ though, does not open without a router: with ``connect/timeout_ms`` 0 (its
 default) ``zenoh.open`` fails at once, with -1 it blocks in native code
 where neither a stop flag nor Ctrl-C reaches it. So for a client, and only
 while a service runs (:meth:`Service.start <mntes_stream.service.base.Service.start>`
-enters :func:`retrying`), ``open_session`` tries again with bounded
+passes a :class:`Retrying` to ``open_session``, explicitly), it tries again with bounded
 exponential backoff, says so in the service's heartbeat and log, and gives
 up only when the service is stopped (or after ``reconnect_give_up_s``).
 Outside a service (a test, a benchmark's own session, ``up``'s monitoring
@@ -18,18 +18,15 @@ session) a client still fails at once with one line.
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import logging
 import re
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mntes_stream.errors import TransportError
 
-__all__ = ["Retrying", "retrying", "stopping_with", "current", "Backoff", "open_or_wait", "open_with_retry",
-           "is_unreachable"]
+__all__ = ["Retrying", "Backoff", "open_or_wait", "open_with_retry", "is_unreachable"]
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +37,7 @@ _AT_SOURCE = re.compile(r"\s+at /\S+\.rs:\d+\.?$")  # zenoh's own source locatio
 
 @dataclass(frozen=True)
 class Retrying:
-    """How ``open_session`` waits in this context.
+    """How ``open_session`` waits for an unreachable router (a running service's policy).
 
     Parameters
     ----------
@@ -52,38 +49,6 @@ class Retrying:
 
     stop: object | None = None
     report: Callable[[str | None], None] = field(default=lambda _: None)
-
-
-_current: contextvars.ContextVar[Retrying | None] = contextvars.ContextVar("mntes_retrying", default=None)
-
-
-def current() -> Retrying | None:
-    """The waiting policy in force here, or None (fail at once)."""
-    return _current.get()
-
-
-@contextlib.contextmanager
-def retrying(stop=None, report: Callable[[str | None], None] | None = None) -> Iterator[None]:
-    """Client sessions opened in this thread while the block runs wait for their router."""
-    token = _current.set(Retrying(stop, report or (lambda _: None)))
-    try:
-        yield
-    finally:
-        _current.reset(token)
-
-
-@contextlib.contextmanager
-def stopping_with(stop) -> Iterator[None]:
-    """Inside :func:`retrying`, let ``stop`` (e.g. a signal-set flag) end the wait; elsewhere nothing."""
-    cur = _current.get()
-    if cur is None:
-        yield
-        return
-    token = _current.set(Retrying(stop, cur.report))
-    try:
-        yield
-    finally:
-        _current.reset(token)
 
 
 @dataclass
@@ -120,13 +85,12 @@ def open_or_wait(open_fn: Callable, conf, named: dict, settings, policy: Retryin
     ``named`` is ``describe_config(conf)``; ``settings`` the ``ZenohSettings``
     (``reconnect_min_s``, ``reconnect_max_s``, ``reconnect_give_up_s``).
     ``policy`` is the service's waiting policy, passed in explicitly (``Service`` lifecycle);
-    None falls back to :func:`current` (services still on their own ``run``).
+    None: fail at once.
     Whatever else fails is raised as it is.
     """
     try:
         return open_fn(conf)
     except Exception as exc:  # zenoh's ZError
-        policy = policy if policy is not None else current()
         if policy is None or named.get("mode") != "client" or not is_unreachable(exc):
             raise
         backoff = Backoff(settings.reconnect_min_s or 0.5, settings.reconnect_max_s or 4.0)

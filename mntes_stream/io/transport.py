@@ -43,7 +43,6 @@ __all__ = [
     "Publishers",
     "QueueSubscriber",
     "answer",
-    "set_publish_observer",
 ]
 
 _MODES = ("peer", "client", "router")
@@ -158,7 +157,7 @@ def open_session(settings: ZenohSettings, *, presence=None, retrying=None):
     ``presence`` (``io/presence.Presence``) is announced on it; with ``retrying``
     (``io/reconnect.Retrying``) a client whose router is unreachable waits for it.
     Both are passed explicitly by the ``Service`` lifecycle (``service/base.py``);
-    None falls back to the context a service still on its own ``run`` sets.
+    None: not announced, and a client without its router fails at once.
     """
     import zenoh
 
@@ -218,15 +217,6 @@ def answer(session, key: str, payload: bytes):
         raise TransportError(f"cannot declare queryable on {key!r}: {exc}") from None
 
 
-_PUBLISH_OBSERVER = threading.local()
-
-
-def set_publish_observer(fn) -> None:
-    """``fn(key, payload)`` sees every message put by :class:`Publishers` created later in this thread
-    (a service's metrics, ``service/metrics.py``); None stops it."""
-    _PUBLISH_OBSERVER.fn = fn
-
-
 class Publishers:
     """One BLOCK publisher per key, declared on first use.
 
@@ -242,8 +232,7 @@ class Publishers:
         Counts and housekeeping keys keep this many samples for late or recovering
         subscribers (``io/history.py``: zenoh's AdvancedPublisher); 0: plain publishers.
     observer : callable, optional
-        ``observer(key, payload)`` sees every message put (a service's metrics);
-        None falls back to :func:`set_publish_observer`'s.
+        ``observer(key, payload)`` sees every message put (a service's metrics, passed by its lifecycle).
     """
 
     def __init__(self, session, block: bool = True, history_chunks: int = 0, observer=None):
@@ -255,7 +244,7 @@ class Publishers:
         self._history = int(history_chunks)
         self.messages = 0
         self.bytes = 0
-        self._observe = observer if observer is not None else getattr(_PUBLISH_OBSERVER, "fn", None)
+        self._observe = observer
 
     def publisher(self, key: str):
         pub = self._pubs.get(key)

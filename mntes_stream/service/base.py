@@ -22,10 +22,10 @@ the service's presence when started by :meth:`Service.start`); one
 :class:`~mntes_stream.io.transport.Publishers` with the metrics observer; ready
 (after setup, or when the service says so: ``ready_after_setup = False``, a
 replay is ready when it first publishes); heartbeat beats; ``linger_s``; finish.
-Everything reaches the hooks explicitly in a :class:`Context`: no ContextVar,
-no thread-local. A service not yet moved to hooks overrides ``run`` itself and
-is started the old way (presence and metrics through the context; listed in
-``docs/architecture.md``).
+Everything reaches the hooks explicitly in a :class:`Context`, and presence,
+router waiting and the metrics observer reach the session and publishers as
+arguments: no ContextVar, no thread-local. ``run`` and ``start`` are the
+lifecycle's: a subclass overriding them is refused when it is defined.
 
 ``mntes_stream.service.registry`` maps names to classes; ``serve``, ``up``
 and :class:`~mntes_stream.service.supervise.Services` know services only
@@ -45,7 +45,7 @@ from typing import Any, ClassVar
 
 from mntes_stream.core.settings import build_document
 from mntes_stream.io import keys, reconnect
-from mntes_stream.io.presence import Presence, presence
+from mntes_stream.io.presence import Presence
 from mntes_stream.service.metrics import metrics_for
 
 __all__ = ["Service", "Context", "Heartbeat", "StopFlag", "stop_on_signals"]
@@ -87,8 +87,7 @@ def stop_on_signals(outer=None):
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: flag.set())
     try:
-        with reconnect.stopping_with(flag):  # a client waiting for its router stops too
-            yield flag
+        yield flag
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -214,6 +213,15 @@ class Service(abc.ABC):
     #: the lifecycle beats the heartbeat with :meth:`counters` this often
     beat_every_s: ClassVar[float] = 0.5
 
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        # A service that ran its own skeleton would skip what start() passes it (presence, router
+        # waiting, metrics): the lifecycle is the base's alone.
+        for name in ("run", "start", "_lifecycle"):
+            if name in vars(cls):
+                raise TypeError(f"{cls.__name__} overrides Service.{name}: a service writes hooks "
+                                f"(setup, step, finish, counters), the lifecycle runs them")
+
     def __init__(self, config):
         if not isinstance(config, self.Config):
             raise TypeError(f"{type(self).__name__} takes a {self.Config.__name__}, got {type(config).__name__}")
@@ -248,12 +256,8 @@ class Service(abc.ABC):
         a client waiting for its router (``io/reconnect.py``) and its metrics served: what ``serve``
         and the supervisor call."""
         try:
-            if type(self).run is Service.run:
-                with metrics_for(self, thread_observer=False) as metrics:
-                    result = self._lifecycle(stop, _Ready(self.heartbeat, ready), metrics, announce=True)
-            else:  # not moved to hooks yet: presence, retrying and metrics reach it through the context
-                with presence(self.presence()), reconnect.retrying(stop, self.heartbeat.waiting), metrics_for(self):
-                    result = self.run(stop, _Ready(self.heartbeat, ready))
+            with metrics_for(self) as metrics:
+                result = self._lifecycle(stop, _Ready(self.heartbeat, ready), metrics, announce=True)
         except BaseException:
             self.heartbeat.set_state("failed")
             raise
@@ -292,7 +296,7 @@ class Service(abc.ABC):
 
     def step(self, ctx: Context) -> bool:
         """One unit of work, returning within about ``beat_every_s``; False once there is nothing more."""
-        raise NotImplementedError(f"{type(self).__name__} overrides neither step() nor run()")
+        raise NotImplementedError(f"{type(self).__name__} does not write step()")
 
     def finish(self, ctx: Context) -> Mapping[str, Any]:
         """Flush and close what :meth:`setup` opened (on stop, and after a failed step too); the final statistics.

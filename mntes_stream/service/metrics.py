@@ -288,28 +288,21 @@ def require_metrics() -> None:
 
 
 @contextlib.contextmanager
-def metrics_for(service, thread_observer: bool = True):
+def metrics_for(service):
     """Serve ``service``'s metrics while the block runs, if its config has a ``[metrics]`` port; else nothing.
 
     Yields the :class:`ServiceMetrics` (or None): the ``Service`` lifecycle hands its ``observe`` to
-    its ``Publishers``. With ``thread_observer`` (services still on their own ``run``), messages
-    published from this thread by ``Publishers`` created inside the block are observed too.
+    its ``Publishers``, explicitly.
     """
     settings = getattr(service.config, "metrics", None)
     if not isinstance(settings, MetricsSettings) or not settings.port:
         yield None
         return
-    from mntes_stream.io.transport import set_publish_observer
-
     metrics = ServiceMetrics(service)
     port = metrics.serve(settings)
     service.heartbeat.beat(metrics_port=port)
     log.info("%s: metrics on http://%s:%d/metrics", service.instance_name(), settings.bind, port)
-    if thread_observer:
-        set_publish_observer(metrics.observe)
     try:
         yield metrics
     finally:
-        if thread_observer:
-            set_publish_observer(None)
         metrics.close()
