@@ -134,10 +134,17 @@ def test_live_bridge_serves_advertised_channels_and_the_converters_power(tmp_pat
                 # Its Prometheus endpoint (a real GET): what it received, dropped and logged.
                 import urllib.request
 
-                with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as r:
-                    text = r.read().decode()
-                counters = dict(re.findall(r'^mntes_service_counter\{counter="(\w+)",name="foxglove",'
+                def scrape() -> dict:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as r:
+                        text = r.read().decode()
+                    return dict(re.findall(r'^mntes_service_counter\{counter="(\w+)",name="foxglove",'
                                            r'service="foxglove"\} (\S+)$', text, re.M))
+
+                # The heartbeat carries the counters every 0.5 s: a scrape may see the beat before the traffic.
+                deadline = time.monotonic() + 10
+                while (float((counters := scrape()).get("received", 0)) == 0 or float(counters["logged"]) < 30) \
+                        and time.monotonic() < deadline:
+                    time.sleep(0.2)
                 assert float(counters["received"]) > 0 and float(counters["logged"]) >= 30
                 assert "dropped" in counters and "queue_depth" in counters
             finally:
