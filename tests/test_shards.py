@@ -35,6 +35,19 @@ def test_every_stream_in_exactly_one_shard_whatever_n():
             Shard.parse(bad)
 
 
+@pytest.mark.parametrize("cls,kw", [(ConverterConfig, {"params": "p.toml"}), (RecorderConfig, {})])
+def test_the_shard_is_parsed_once_at_the_config_boundary(cls, kw):
+    import dataclasses
+    import pickle
+
+    cfg = cls(shard="1/3", **kw)
+    assert cfg.shard_parsed == Shard(1, 3) and cfg.shard == "1/3"  # the text stays what the file said
+    assert pickle.loads(pickle.dumps(cfg)).shard_parsed == Shard(1, 3)  # as a spawned service gets it
+    assert cls(**kw).shard_parsed == Shard() and dataclasses.replace(cfg, shard="2/3").shard_parsed == Shard(2, 3)
+    with pytest.raises(ConfigError, match="shard '1-3'"):
+        cls(shard="1-3", **kw)
+
+
 def test_earliest_claim_publishes():
     a, b, c = Claim(10, "z2", "a"), Claim(20, "z1", "b", standby=True), Claim(10, "z1", "c")
     assert publisher([a, b, c]) == c  # same time: the instance id breaks the tie, the same everywhere

@@ -94,14 +94,21 @@ class ConverterConfig(Settings):
         super().__post_init__()
         if not self.params and not self.tables:
             raise ConfigError("give params (a parameter file) or tables (a table bank file)")
-        shard = Shard.parse(self.shard)  # checks 0 <= i < N
+        # Parsed once, here at the boundary (checks 0 <= i < N); everything after takes the Shard.
+        shard = Shard.parse(self.shard)
+        object.__setattr__(self, "_shard", shard)
         if not shard.whole and self.name == "converter":  # shards of one setup need names of their own
             object.__setattr__(self, "name", f"converter-{shard.index}of{shard.count}")
 
     @property
+    def shard_parsed(self) -> Shard:
+        """``shard`` as the :class:`~mntes_stream.core.shards.Shard` it names (``Shard()``: the whole focal plane)."""
+        return self._shard
+
+    @property
     def partial(self) -> bool:
         """True when this converter owns part of the focal plane (boards, modules or a shard)."""
-        return bool(self.boards or self.modules or not Shard.parse(self.shard).whole)
+        return bool(self.boards or self.modules or not self.shard_parsed.whole)
 
     @classmethod
     def for_pipeline(cls, pipeline: PipelineConfig, **kw) -> ConverterConfig:
@@ -139,10 +146,10 @@ def owned_params(cfg: ConverterConfig):
         if cfg.partial:
             raise ConfigError("boards, modules and shard need detector ids of the form b<board>m<module>c<channel>")
         return params, None
-    streams = owned_streams(modules, Shard.parse(cfg.shard), cfg.boards, cfg.modules)
+    streams = owned_streams(modules, cfg.shard_parsed, cfg.boards, cfg.modules)
     if cfg.partial and not streams:
         raise ConfigError(f"boards {list(cfg.boards) or '*'}, modules {list(cfg.modules) or '*'}, shard "
-                          f"{cfg.shard or '0/1'}: no stream of the parameters is in that part of the focal plane")
+                          f"{cfg.shard_parsed}: no stream of the parameters is in that part of the focal plane")
     if params is not None and cfg.partial:
         wanted = set(streams)
         params = {d: p for d, p in params.items() if _stream(d) in wanted}
@@ -265,7 +272,7 @@ def _owning(cfg: ConverterConfig, streams, owner) -> str:
     if streams is None:
         return "every stream"
     held = f", {len(owner.held)} held back (claimed first by another converter)" if owner and owner.held else ""
-    what = f"shard {cfg.shard}" if cfg.shard else "boards/modules" if cfg.partial else "the focal plane"
+    what = f"shard {cfg.shard_parsed}" if cfg.shard else "boards/modules" if cfg.partial else "the focal plane"
     return f"{what}: {len(streams)} stream(s){held}"
 
 
@@ -305,7 +312,7 @@ class ConverterService(Service):
         if self._ownership is not None:
             return self._ownership.status()
         return {"boards": list(self.config.boards) or "*", "modules": list(self.config.modules) or "*",
-                "shard": self.config.shard or "0/1"}
+                "shard": str(self.config.shard_parsed)}
 
     def history_chunks(self) -> int:
         from mntes_stream.io.history import POWER_CHUNK_S, cache_chunks
@@ -335,7 +342,7 @@ class ConverterService(Service):
             modules = known_modules(conv.detector_ids)
             streams = sorted(modules) if modules is not None else None
         _warm_up(conv)
-        summary = owns_summary(Shard.parse(cfg.shard), cfg.boards, cfg.modules, streams) if streams is not None else {}
+        summary = owns_summary(cfg.shard_parsed, cfg.boards, cfg.modules, streams) if streams is not None else {}
         self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
                                               uncertainty=cfg.uncertainty if cfg.sigma_p else None)

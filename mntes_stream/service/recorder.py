@@ -87,7 +87,13 @@ class RecorderConfig(Settings):
 
     def __post_init__(self):
         super().__post_init__()
-        Shard.parse(self.shard)  # checks i/N
+        # Parsed once, here at the boundary (checks i/N); everything after takes the Shard.
+        object.__setattr__(self, "_shard", Shard.parse(self.shard))
+
+    @property
+    def shard_parsed(self) -> Shard:
+        """``shard`` as the :class:`~mntes_stream.core.shards.Shard` it names (``Shard()``: everything)."""
+        return self._shard
 
     @property
     def subscription(self) -> str:
@@ -96,7 +102,7 @@ class RecorderConfig(Settings):
     @property
     def file_prefix(self) -> str:
         """``prefix``, or ``<prefix>-shard<i>of<N>`` for a recorder shard: one file set per shard."""
-        shard = Shard.parse(self.shard)
+        shard = self.shard_parsed
         return self.prefix if shard.whole else f"{self.prefix}-shard{shard.index}of{shard.count}"
 
     def to_metadata(self) -> dict[str, str]:

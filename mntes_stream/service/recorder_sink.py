@@ -64,7 +64,7 @@ class RecorderSink:
         self.by_kind: dict[str, int] = {}
         self.samples = 0  # counts samples (channels x samples of every valid counts chunk)
         self._kinds: dict[str, str] = {}
-        self._mine = shard_filter(Shard.parse(config.shard))
+        self._mine = shard_filter(config.shard_parsed)
         self.cpu0_s = time.process_time()
         self.thread_cpu0_s = time.thread_time()  # the receive thread's: a sink is fed by the thread that made it
 
