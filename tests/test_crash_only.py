@@ -135,7 +135,8 @@ def test_recorder_and_converter_wait_for_a_router_that_comes_up_later(tmp_path):
     finally:
         for p in reversed(procs):
             p.interrupt(30)
-    published, rec_stats, conv_stats = (_json_in("".join(src.seen)), _json_in(rec_out), _json_in(conv_out))
+    # Each --json document from its stdout alone: a log line on stderr may come between its lines.
+    published, rec_stats, conv_stats = (_json_in("".join(p.stdout)) for p in (src, rec, conv))
     by_kind = rec_stats["by_kind"]
     # Everything the source published after the router came up is recorded: 2 s of 0.1 s counts
     # chunks from 2 modules, and the housekeeping, ...

@@ -47,11 +47,14 @@ class Proc:
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         self.lines: queue.Queue = queue.Queue()
         self.seen: list[str] = []
+        self.stdout: list[str] = []  # stdout alone (a --json document without the log lines of stderr)
         for stream in (self.p.stdout, self.p.stderr):
             threading.Thread(target=self._pump, args=(stream,), daemon=True).start()
 
     def _pump(self, stream) -> None:
         for line in stream:
+            if stream is self.p.stdout:
+                self.stdout.append(line)
             self.lines.put(line)
 
     def wait_for(self, pattern: str, timeout_s: float = 90.0) -> str:
