@@ -74,9 +74,10 @@ def load_positions(path: str | Path) -> dict[str, tuple[float, float]]:
     return out
 
 
-def _run_text(sub, cfg: MonitorServiceConfig, stop, out=sys.stdout) -> None:
+def _run_text(sub, cfg: MonitorServiceConfig, stop, out=None) -> None:
     from mntes_stream.monitor.text import render_text
 
+    out = sys.stdout if out is None else out  # now: a default bound at import keeps a stream long gone
     clear = out.isatty()
     t_end = time.monotonic() + cfg.duration_s if cfg.duration_s > 0 else None
     period = max(cfg.update_s, 0.1)
