@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mntes_stream.core.ledger import OTHER, Ledger
-from mntes_stream.core.sequence import StreamSequence
+from mntes_stream.core.sequence import StreamSequence, Verdict
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
 from mntes_stream.io.lean import CountsDecoder, PowerEncoder
@@ -342,12 +342,12 @@ class ConverterPipeline(Overload, Conversion, Reporting):
         t = self._times(chunk)
         t_first = int(t[0]) if t.size else chunk.t_pub_ns
         verdict = self._sequence(stream, chunk.seq, t_first, key)
-        if verdict == "duplicate":
+        if verdict is Verdict.DUPLICATE:
             self.ledger.duplicate(stream)
             return
         delay = t_recv_ns - chunk.t_pub_ns
         pace = self._pace.get(stream)
-        if pace is None or verdict == "reset":
+        if pace is None or verdict is Verdict.RESET:
             pace = self._pace[stream] = DelayFloor()
         lag = delay - pace.add(t_first, delay)
         self.hk.note_delay(stream, delay)
@@ -372,8 +372,8 @@ class ConverterPipeline(Overload, Conversion, Reporting):
             t.setflags(write=False)
         return t
 
-    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> str:
-        """Book-keep a sequence number; the tracker's verdict (``duplicate``: drop it)."""
+    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> Verdict:
+        """Book-keep a sequence number; the tracker's verdict (``DUPLICATE``: drop it)."""
         s = self._streams.get(stream_id)
         if s is None:
             s = self._streams[stream_id] = StreamSequence()
@@ -381,7 +381,7 @@ class ConverterPipeline(Overload, Conversion, Reporting):
         floor = self._floor.get(stream_id) if self._floor else None
         if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
             s.duplicated += 1  # converted by the converter that ran before this restart (its checkpoint says so)
-            return "duplicate"
+            return Verdict.DUPLICATE
         resumed = self._resumed.pop(stream_id, None) if self._resumed else None
         verdict = s.observe(seq, t_first_ns)
         if resumed is not None and seq > resumed[0] and t_first_ns > resumed[1]:  # newer data, later numbers
@@ -389,7 +389,7 @@ class ConverterPipeline(Overload, Conversion, Reporting):
             self.counters.chunks_missed_while_down += missed
             self.last_error = f"restart: {key} missed {missed} chunks (seq {expected}..{seq - 1}) while no converter ran"
             log.warning("%s", self.last_error)
-        if verdict == "reset":
+        if verdict is Verdict.RESET:
             # Counted as a reset, not as a jump of lost chunks or a run of late ones.
             self._bad("seq_reset", f"sequence number {seq}, expected {expected}: stream restarted", key)
         return verdict

@@ -82,5 +82,5 @@ class Overload:
         for p in (*self._pending, *self._aside):
             k = (p.chunk.board, p.chunk.module)
             held[k] = min(held.get(k, p.chunk.seq), p.chunk.seq)
-        return {k: (min(s.next - 1, held.get(k, s.next) - 1), s._last_t) for k, s in self._streams.items()
-                if s.next is not None and s._last_t is not None}
+        return {k: (min(s.next - 1, held.get(k, s.next) - 1), s.newest_t_ns) for k, s in self._streams.items()
+                if s.next is not None and s.newest_t_ns is not None}
