@@ -8,7 +8,7 @@ import numpy as np
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock, make_converter
 from mntes_stream.core.uncertainty import UncertaintySettings, noise_model, sigma_p_block
-from mntes_stream.io.messages import CountsChunk, PowerChunk
+from mntes_stream.io.messages import CountsChunk, PowerChunk, Provenance
 from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
@@ -66,3 +66,39 @@ def test_the_provenance_says_which_noise_was_used():
     noise = Provenance.from_bytes(on.provenance_bytes()).noise
     assert noise["readout_noise_a_setting"] == 3e-12 and noise["readout_noise_a_range"] == [3e-12, 3e-12]
     assert noise["low_responsivity"] == "sigma_P > 4 x nominal sigma_P"
+
+
+def test_offline_convert_takes_sigma_p_from_the_converter_config(tmp_path):
+    """``convert REC OUT --config CONVERTER.toml`` with ``[converter] sigma_p = true``: sigma_P as that converter
+    would publish it, the power the same as without."""
+    import subprocess
+    import sys
+
+    from mntes_stream.io.mcap import Session
+
+    def cli(*args):
+        res = subprocess.run([sys.executable, "-m", "mntes_stream", *args], cwd=tmp_path, capture_output=True,
+                             text=True, timeout=300)
+        assert res.returncode == 0, res.stderr
+        return res
+
+    cli("simulate", "--out", "rec.mcap", "--modules", "1", "--channels", "8", "--duration", "2")
+    (tmp_path / "conv.toml").write_text('[converter]\nparams = "rec.params.toml"\nsigma_p = true\n'
+                                        '[uncertainty]\nsigma_p_factor = 1.01\n')
+    cli("convert", "rec.mcap", "with.mcap", "--params", "rec.params.toml", "--config", "conv.toml", "-q")
+    cli("convert", "rec.mcap", "without.mcap", "--params", "rec.params.toml", "-q")
+
+    def power(name):
+        msgs = list(Session(tmp_path / name).iter_messages())
+        prov = [Provenance.from_bytes(m.payload) for m in msgs if m.topic.endswith("/provenance")]
+        return [PowerChunk.from_bytes(m.payload) for m in msgs if "/power/" in m.topic], prov[-1]
+
+    (w, prov_w), (wo, prov_wo) = power("with.mcap"), power("without.mcap")
+    assert len(w) == len(wo) > 0 and prov_w.noise["low_responsivity"] == "sigma_P > 1.01 x nominal sigma_P"
+    assert prov_wo.noise == {}
+    for a, b in zip(w, wo):
+        assert b.sigma_p_w is None and a.sigma_p_w is not None
+        assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True)
+        assert np.array_equal(a.flags & ~np.uint16(fl.LOW_RESPONSIVITY), b.flags)
+        usable = (a.flags & fl.UNUSABLE) == 0
+        assert np.all(a.sigma_p_w[usable] > 0) and np.all(np.isnan(a.sigma_p_w[~usable]))

@@ -221,11 +221,13 @@ def run_convert(args) -> int:
     refuse_inapplicable(args, _g3_name(args.input), _g3_name(args.output))
     claim_out(args.output, args.overwrite, inputs=[args.input])
 
-    pipeline = None
+    pipeline = uncertainty = None
     if args.config:
         from mntes_stream.service.converter import ConverterService
 
-        pipeline = service_config(ConverterService, args.config, (), {}, None).pipeline
+        conf = service_config(ConverterService, args.config, (), {}, None)
+        pipeline = conf.pipeline
+        uncertainty = conf.uncertainty if conf.sigma_p else None  # sigma_P as that converter publishes it
     if _g3_name(args.input) or _g3_name(args.output):  # SPT-3G G3 in or out (mntes_stream.g3)
         from mntes_stream.cli.g3 import run_g3_convert
 
@@ -234,7 +236,7 @@ def run_convert(args) -> int:
 
     with recording_with_hk(args, args.input) as source:  # --hk: bath temperature from OCS HK files
         stats = convert_recording(source, args.output, tables=args.tables, params=args.params,
-                                  pipeline_config=pipeline, progress=not args.quiet)
+                                  pipeline_config=pipeline, progress=not args.quiet, uncertainty=uncertainty)
     if stats.damaged:  # on stderr too: a convert in a script must not pass over it
         import sys
 
@@ -296,7 +298,7 @@ def register(sub) -> None:
     p.add_argument("output", metavar="OUT.mcap", help="the converted recording to write (OUT.g3: SPT-3G Scan frames)")
     p.add_argument("--tables", metavar="FILE", help="response tables to use instead of the recorded ones")
     p.add_argument("--params", metavar="FILE", help="detector parameter TOML to use instead of the recorded one")
-    p.add_argument("--config", metavar="FILE", help="converter TOML whose [alignment]/[status] settings to use "
+    p.add_argument("--config", metavar="FILE", help="converter TOML whose [alignment]/[status] settings (and [converter] sigma_p with [uncertainty]) to use "
                                                     "(default: the pipeline defaults for the recorded setup)")
     add_overwrite(p, "replace an existing OUT file")
     add_json(p, "print the statistics as one JSON document")

@@ -276,7 +276,8 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
 
 
 def convert_recording(source, output: str | Path, *, tables=None, params=None, pipeline_config=None,
-                      progress: bool = True, table_cache=..., batch_s: float = 0.0) -> OfflineStats:
+                      progress: bool = True, table_cache=..., batch_s: float = 0.0,
+                      uncertainty=None) -> OfflineStats:
     """Re-convert the recorded counts and housekeeping of ``source`` into ``output`` (MCAP).
 
     Parameters
@@ -303,6 +304,9 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         live converter's backlog does: the same power and flags, in about 30 %
         less CPU (longer kernel rows, fewer calls), with the outputs stamped
         at each batch's last message and fewer status messages.
+    uncertainty : core.uncertainty.UncertaintySettings, optional
+        Given: sigma_P and LOW_RESPONSIVITY in every power chunk, as a live converter with
+        ``[converter] sigma_p = true`` and this ``[uncertainty]`` table publishes them.
     """
     from collections import Counter
 
@@ -378,7 +382,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
 
         def start_pipeline(k, t_ns):
             conv, pd = plan[k][1][:2]
-            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None)
+            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty)
             out.write(keys.provenance_key(pipeline_config.setup), new.provenance_bytes(), t_ns)
             return new
 
