@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from mntes_stream.core.shards import Claim, Shard, owned_streams, publisher
+from mntes_stream.core.shards import Claim, Shard, StreamKey, owned_streams, publisher
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
 from mntes_stream.io.claims import StreamClaims, parse_claim
@@ -35,6 +35,20 @@ def test_every_stream_in_exactly_one_shard_whatever_n():
             Shard.parse(bad)
 
 
+def test_a_stream_key_is_parsed_once_and_spelled_as_keys_spell_it():
+    from mntes_stream.core.ledger import OTHER, Ledger, stream_order
+
+    assert StreamKey.parse("3/10") == (3, 10) and str(StreamKey(3, 10)) == "3/10"
+    for bad in ("3", "3/", "/1", "a/1", "-1/2", "1/2/3", OTHER):
+        assert StreamKey.parse(bad) is None
+    # Ledgers keep their "b/m" names (the status messages' format), ordered numerically, other names last.
+    led = Ledger()
+    for stream in ((0, 10), StreamKey(0, 2), "weird"):
+        led.received(stream)
+    assert list(led.as_dict()) == ["0/2", "0/10", "weird"]
+    assert sorted(["0/10", OTHER, "0/2"], key=stream_order) == ["0/2", "0/10", OTHER]
+
+
 @pytest.mark.parametrize("cls,kw", [(ConverterConfig, {"params": "p.toml"}), (RecorderConfig, {})])
 def test_the_shard_is_parsed_once_at_the_config_boundary(cls, kw):
     import dataclasses
@@ -54,6 +68,7 @@ def test_earliest_claim_publishes():
     assert publisher([b]) == b and publisher([]) is None
     key = keys.claim_key("lab", 0, 3, 10, "z2", "standby", "conv")
     assert parse_claim(key) == ((0, 3), Claim(10, "z2", "conv", True))
+    assert type(parse_claim(key)[0]) is StreamKey and str(parse_claim(key)[0]) == "0/3"
     assert parse_claim("mntes/lab/claim/0/x/1/z/primary/n") is None and parse_claim("mntes/lab/power/0/1") is None
 
 

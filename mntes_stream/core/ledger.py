@@ -36,6 +36,8 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
+from mntes_stream.core.shards import StreamKey
+
 __all__ = ["Ledger", "StreamLedger", "OTHER", "LOST_MEANS", "stream_order", "summary_line", "totals_of"]
 
 OTHER = "other"  # chunks of streams a stage does not keep (unknown streams): one bounded entry
@@ -111,7 +113,7 @@ class Ledger:
         self.streams: dict[str, StreamLedger] = {}
 
     def _s(self, stream) -> StreamLedger:
-        key = stream if isinstance(stream, str) else f"{stream[0]}/{stream[1]}"
+        key = stream if isinstance(stream, str) else str(StreamKey(*stream))
         s = self.streams.get(key)
         if s is None:
             s = self.streams[key] = StreamLedger()
@@ -196,8 +198,8 @@ def summary_line(t: StreamLedger, verb: str = "converted") -> str:
 
 def stream_order(key: str):
     """Sort key of stream names: ``"<board>/<module>"`` numerically, then any other name."""
-    parts = key.split("/")
-    return (0, *map(int, parts)) if len(parts) == 2 and all(p.isdigit() for p in parts) else (1, key)
+    stream = StreamKey.parse(key)
+    return (0, *stream) if stream is not None else (1, key)
 
 
 def totals_of(ledger_dict: dict) -> StreamLedger:

@@ -19,10 +19,37 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from mntes_stream.errors import ConfigError
 
-__all__ = ["Claim", "Shard", "owned_streams", "publisher", "stream_label"]
+__all__ = ["Claim", "Shard", "StreamKey", "owned_streams", "publisher", "stream_label"]
+
+
+class StreamKey(NamedTuple):
+    """One stream, ``(board, module)``; written ``"<board>/<module>"`` as keys and ledgers spell it.
+
+    A tuple (immutable; equal to, and hashed as, the plain ``(board, module)`` pairs code already keys by),
+    so a parsed stream can go wherever a pair went.
+
+    >>> k = StreamKey.parse("0/12")
+    >>> k, str(k), k == (0, 12)
+    (StreamKey(board=0, module=12), '0/12', True)
+    >>> StreamKey.parse("0/x") is None and StreamKey.parse("other") is None
+    True
+    """
+
+    board: int
+    module: int
+
+    @classmethod
+    def parse(cls, text: str) -> StreamKey | None:
+        """``"<board>/<module>"`` (non-negative integers) as a StreamKey; None for any other text."""
+        b, sep, m = str(text).partition("/")
+        return cls(int(b), int(m)) if sep and b.isdigit() and m.isdigit() else None
+
+    def __str__(self) -> str:
+        return f"{self.board}/{self.module}"
 
 
 @dataclass(frozen=True)
@@ -87,7 +114,7 @@ def owned_streams(streams: Iterable[tuple[int, int]], shard: Shard, boards: Iter
 
 def stream_label(stream: tuple[int, int]) -> str:
     """``"<board>/<module>"``, as keys spell a stream."""
-    return f"{int(stream[0])}/{int(stream[1])}"
+    return str(StreamKey(int(stream[0]), int(stream[1])))
 
 
 @dataclass(frozen=True, order=True)

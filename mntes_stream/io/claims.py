@@ -17,7 +17,7 @@ import threading
 import time
 from collections.abc import Iterable
 
-from mntes_stream.core.shards import Claim, publisher
+from mntes_stream.core.shards import Claim, StreamKey, publisher
 from mntes_stream.errors import TransportError
 from mntes_stream.io import keys
 
@@ -26,13 +26,13 @@ __all__ = ["StreamClaims", "parse_claim"]
 log = logging.getLogger(__name__)
 
 
-def parse_claim(key: str) -> tuple[tuple[int, int], Claim] | None:
+def parse_claim(key: str) -> tuple[StreamKey, Claim] | None:
     """``((board, module), Claim)`` of a claim token's key; None for anything else."""
     parts = str(key).split("/")
     if len(parts) != 9 or parts[0] != keys.PREFIX or parts[2] != "claim":
         return None
     try:
-        return (int(parts[3]), int(parts[4])), Claim(int(parts[5]), parts[6], parts[8], parts[7] == "standby")
+        return StreamKey(int(parts[3]), int(parts[4])), Claim(int(parts[5]), parts[6], parts[8], parts[7] == "standby")
     except ValueError:
         return None
 

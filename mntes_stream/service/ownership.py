@@ -15,7 +15,7 @@ from __future__ import annotations
 import collections
 import logging
 
-from mntes_stream.core.shards import Shard, stream_label
+from mntes_stream.core.shards import Shard, StreamKey, stream_label
 from mntes_stream.io import keys
 
 __all__ = ["Ownership", "owns_summary"]
@@ -40,14 +40,9 @@ def owns_summary(shard: Shard, boards, modules, streams) -> dict:
             "streams": len(streams), "stream_list": _labels(streams)}
 
 
-def _stream_of(key: str) -> tuple[int, int] | None:
+def _stream_of(key: str) -> StreamKey | None:
     parts = key.split("/")
-    if len(parts) == 5 and parts[2] == "power":
-        try:
-            return int(parts[3]), int(parts[4])
-        except ValueError:
-            return None
-    return None
+    return StreamKey.parse("/".join(parts[3:])) if len(parts) == 5 and parts[2] == "power" else None
 
 
 def _seq_of(payload: bytes) -> int | None:
