@@ -38,7 +38,7 @@ from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
-from mntes_stream.service.source import Batch
+from mntes_stream.service.source import Batch, PacedBatches
 
 __all__ = ["SimulatorSource", "SimulatorService", "SimulatorServiceConfig", "TruthRecorder", "write_mcap",
            "publish_live", "run_simulator", "load_truth", "TRUTH_NOTE"]
@@ -309,7 +309,7 @@ def run_simulator(cfg: SimulatorServiceConfig, stop=None, ready=None, truth: Tru
     return dict(service.run(stop, ready))
 
 
-class SimulatorService(Service):
+class SimulatorService(PacedBatches, Service):
     """The array simulator live over zenoh (MNTES physics, housekeeping, truth kept apart)."""
 
     name = "simulator"
@@ -346,24 +346,3 @@ class SimulatorService(Service):
         self._batches = source.batches(start, cfg.duration_s, truth=self.truth)
         self._pacer = Pacer(cfg.speed, start)
         self._n_batches = 0
-
-    def step(self, ctx) -> bool:
-        item = next(self._batches, None)
-        if item is None:
-            return False
-        t_pub_ns, batch = item
-        self._pacer.wait(t_pub_ns, ctx.stop)
-        for key, payload in batch:
-            ctx.publishers.put(key, payload)
-        self._n_batches += 1
-        return True
-
-    def counters(self) -> dict:
-        return {"batches": getattr(self, "_n_batches", 0)}
-
-    def finish(self, ctx) -> dict:
-        pubs = ctx.publishers
-        result = {"batches": self._n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
-                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched}
-        log.info("simulator stopped: %s", result)
-        return result

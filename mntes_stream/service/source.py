@@ -353,7 +353,33 @@ def run_source(svc: SourceServiceConfig, stop=None, ready=None, t_start_ns: int 
     return dict(service.run(stop, ready))
 
 
-class SourceService(Service):
+class PacedBatches:
+    """The hooks a paced publisher of batches shares (source, simulator): its ``setup`` sets ``_batches`` (an
+    iterator of ``(t_pub_ns, [(key, payload), ...])``), ``_pacer``, ``_n_batches`` and ``_matched``."""
+
+    def step(self, ctx) -> bool:
+        item = next(self._batches, None)
+        if item is None:
+            return False
+        t_pub_ns, batch = item
+        self._pacer.wait(t_pub_ns, ctx.stop)
+        for key, payload in batch:
+            ctx.publishers.put(key, payload)
+        self._n_batches += 1
+        return True
+
+    def counters(self) -> dict:
+        return {"batches": getattr(self, "_n_batches", 0)}
+
+    def finish(self, ctx) -> dict:
+        pubs = ctx.publishers
+        result = {"batches": self._n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
+                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched}
+        log.info("%s stopped: %s", self.name, result)
+        return result
+
+
+class SourceService(PacedBatches, Service):
     """The minimal physics source: counts and housekeeping in real time.
 
     Ready once its session is open, before it waits (up to 30 s) for a subscriber to the counts:
@@ -394,24 +420,3 @@ class SourceService(Service):
         self._batches = src.batches(start, svc.duration_s)
         self._pacer = Pacer(svc.speed, start)
         self._n_batches = 0
-
-    def step(self, ctx) -> bool:
-        item = next(self._batches, None)
-        if item is None:
-            return False
-        t_pub_ns, batch = item
-        self._pacer.wait(t_pub_ns, ctx.stop)
-        for key, payload in batch:
-            ctx.publishers.put(key, payload)
-        self._n_batches += 1
-        return True
-
-    def counters(self) -> dict:
-        return {"batches": getattr(self, "_n_batches", 0)}
-
-    def finish(self, ctx) -> dict:
-        pubs = ctx.publishers
-        result = {"batches": self._n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
-                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched}
-        log.info("source stopped: %s", result)
-        return result
