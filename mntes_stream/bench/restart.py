@@ -12,9 +12,10 @@ imports, parameters, table bank, compiled kernels, zenoh session):
 - ``first_power_s``: its first power chunk is received;
 - ``all_modules_s``: every module has had a power chunk from it;
 - ``missed_per_module``: counts chunks of each module (median) published
-  between the last power of the killed process and the first of the new one,
-  never converted live (0 when the sources' history covers the restart: the
-  new converter starts where its checkpoint says, ``io/history.py``);
+  after the last power of the killed process and never converted by the new
+  one during its run (0 when the sources' history covers the restart: the new
+  converter starts where its checkpoint says, ``io/history.py``; recovered
+  history may reach it after its first live chunks);
   ``restarted_chunks_lost``: what the restarted converter itself reports (its
   ``checkpoint``), to compare.
 
@@ -90,6 +91,7 @@ def _one_start(config: Path, sub, n_modules: int, run_s: float, last_power: dict
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     ready = first = all_mods = None
     first_seq: dict = {}
+    power_seqs: dict = {}
     counts_seq: dict = {}
     last_status = None
     try:
@@ -113,6 +115,7 @@ def _one_start(config: Path, sub, n_modules: int, run_s: float, last_power: dict
                 pw = PowerChunk.from_bytes(payload)
                 first = now if first is None else first
                 first_seq.setdefault((pw.board, pw.module), pw.seq)
+                power_seqs.setdefault((pw.board, pw.module), set()).add(pw.seq)
                 last = last_power.get((pw.board, pw.module))
                 last_power[(pw.board, pw.module)] = pw.seq if last is None else max(last, pw.seq)
                 if all_mods is None and len(first_seq) == n_modules:
@@ -126,6 +129,7 @@ def _one_start(config: Path, sub, n_modules: int, run_s: float, last_power: dict
             proc.send_signal(signal.SIGKILL)  # a crash: nothing flushed, nothing said
         proc.wait(30)
     return {"ready_s": ready, "first_power_s": first, "all_modules_s": all_mods, "first_seq": first_seq,
+            "power_seqs": power_seqs,
             "status": last_status if isinstance(last_status, StatusMessage) else None}
 
 
@@ -162,8 +166,11 @@ def run(args) -> dict:
                 for i in range(1 + args.restarts):
                     before = dict(last_power)
                     r = _one_start(config, sub, args.modules, args.run_s, last_power)
-                    if i > 0:  # chunks of each module between the killed process's last power and the new first
-                        r["missed"] = [max(r["first_seq"][m] - before[m] - 1, 0) for m in r["first_seq"] if m in before]
+                    if i > 0:  # chunks of each module after the killed process's last power never converted by the
+                        # new one during its run (history it recovers may come after its first live chunk)
+                        r["missed"] = [sum(1 for q in range(before[m] + 1, max(seqs)) if q not in seqs)
+                                       for m, seqs in r["power_seqs"].items() if m in before]
+                    r.pop("power_seqs")
                     starts.append(r)
             finally:
                 services.stop("source", timeout_s=30)
