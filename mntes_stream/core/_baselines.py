@@ -141,8 +141,8 @@ if _numba is not None:
         return f, i_re, i_im
 
     @_inline
-    def _row(a, row, scratch):
-        """Row ``row`` of a compact environment array (see :func:`compact`), unit stride."""
+    def row_view(a, row, scratch):
+        """Row ``row`` of a compact environment array (see :func:`compact`), unit stride (``_kernels`` too)."""
         r = a[row if a.shape[0] > 1 else 0]
         if a.shape[1] == scratch.size:
             return r
@@ -160,7 +160,7 @@ if _numba is not None:
         for row in range(n_rows):
             d = rows[row]
             if d < 0:
-                hk_r = _row(hk, row, s_hk)
+                hk_r = row_view(hk, row, s_hk)
                 for s in range(n_samp):
                     out_f[row, s] = hk_r[s] | _UNKNOWN
                     out_p[row, s] = math.nan
@@ -173,8 +173,8 @@ if _numba is not None:
             # Smith's two branches as one expression: a factor 1.0 is exact, so the sum is numpy's.
             k_r, k_i = (1.0, cd) if cst[d, _SMITH_RE] != 0.0 else (cd, 1.0)
             ci_r, cq_r, p_r, f_r = ci_[row], cq_[row], out_p[row], out_f[row]
-            tb_r, b_r, v_r = _row(tb, row, s_tb), _row(b, row, s_b), _row(v, row, s_v)
-            hk_r = _row(hk, row, s_hk)
+            tb_r, b_r, v_r = row_view(tb, row, s_tb), row_view(b, row, s_b), row_view(v, row, s_v)
+            hk_r = row_view(hk, row, s_hk)
             if kind == LINEAR:
                 for s in range(n_samp):
                     f, i_re, i_im = _front(float(ci_r[s]), float(cq_r[s]), tb_r[s], b_r[s], v_r[s], hk_r[s], c)

@@ -310,7 +310,7 @@ except ImportError:  # the numpy twins above still work
 if numba is not None:
     from numba.core import compiler as _numba_compiler
 
-    from mntes_stream.core._baselines import compact
+    from mntes_stream.core._baselines import compact, row_view
 
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     # Helpers are inlined in numba IR: a real call would incref/decref every
@@ -505,15 +505,6 @@ if numba is not None:
         p = kt - kb - v * v * r / ((r + q[4]) ** 2 + q[9] * q[9])
         return p, ~(abs(xx) <= SERIES_LIMIT) | ~(abs(y) <= SERIES_LIMIT)
 
-    @_inline
-    def _row(a, row, scratch):
-        """Row ``row`` of a compact environment array (``_baselines.compact``), unit stride."""
-        r = a[row if a.shape[0] > 1 else 0]
-        if a.shape[1] == scratch.size:
-            return r
-        scratch[:] = r[0]
-        return scratch
-
     @_jit
     def _fill(a, row, scratch):
         """Row ``row`` of a compact environment array (``_baselines.compact``) into ``scratch``
@@ -608,14 +599,14 @@ if numba is not None:
         s_hk = np.empty(n_samp, dtype=np.uint16)
         for row in range(n_rows):
             d = rows[row]
-            hk_r = _row(hk, row, s_hk)
+            hk_r = row_view(hk, row, s_hk)
             if d < 0:
                 for s in range(n_samp):
                     out_f[row, s] = hk_r[s] | _UNKNOWN
                     out_p[row, s] = math.nan
                 continue
             q = _record(rec, d)
-            tb_r, ltb_r, b_r, v_r = _row(tb, row, s_tb), _row(ltb, row, s_ltb), _row(b, row, s_b), _row(v, row, s_v)
+            tb_r, ltb_r, b_r, v_r = row_view(tb, row, s_tb), row_view(ltb, row, s_ltb), row_view(b, row, s_b), row_view(v, row, s_v)
             x_lo, x_hi = q[_R_X_LO], q[_R_X_HI]
             a = _binomials(q)
             for s in range(n_samp):

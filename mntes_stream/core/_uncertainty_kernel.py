@@ -21,24 +21,12 @@ import math
 import numpy as np
 
 from mntes_stream.core import flags as fl
+from mntes_stream.core._kernels import binomials
 
 SQRT2 = math.sqrt(2.0)
 SERIES_LIMIT = 0.05
 _UNUSABLE = int(fl.UNUSABLE)
 _LOW = int(fl.LOW_RESPONSIVITY)
-
-
-def binomials(n):
-    """``C(n, k)``, k = 1..8 (plain arithmetic: the compiled kernel uses this very function)."""
-    a1 = n
-    a2 = a1 * (n - 1.0) / 2.0
-    a3 = a2 * (n - 2.0) / 3.0
-    a4 = a3 * (n - 3.0) / 4.0
-    a5 = a4 * (n - 4.0) / 5.0
-    a6 = a5 * (n - 5.0) / 6.0
-    a7 = a6 * (n - 6.0) / 7.0
-    a8 = a7 * (n - 7.0) / 8.0
-    return a1, a2, a3, a4, a5, a6, a7, a8
 
 
 def row_constants(phys, noise, bank_arrays) -> np.ndarray:
