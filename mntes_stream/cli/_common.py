@@ -95,16 +95,9 @@ def settings_from_args(args, names) -> dict:
 
 def service_config(service_cls, path, sets, flags: dict, zenoh_flags):
     """A service's config: its file (``--config``) or its defaults, ``--set`` items, then flags, then zenoh flags."""
-    from mntes_stream.service.config import load_service_config, with_zenoh
+    from mntes_stream.service.config import config_of, with_zenoh
 
-    if path:
-        service, cfg = load_service_config(path, sets)
-        if service is not service_cls:
-            raise ConfigError(f"{path}: a [{service.name}] config, not a [{service_cls.name}] one")
-    elif sets:
-        raise ConfigError("--set needs --config")
-    else:
-        cfg = service_cls.Config()
+    cfg = config_of(service_cls, path, sets)
     try:
         cfg = dataclasses.replace(cfg, **flags)
     except ConfigError as exc:

@@ -83,17 +83,10 @@ def bridge_config(args):
     import dataclasses
 
     from mntes_stream.errors import ConfigError
-    from mntes_stream.ocs.bridge import OcsBridgeConfig, OcsBridgeService
-    from mntes_stream.service.config import load_service_config
+    from mntes_stream.ocs.bridge import OcsBridgeService
+    from mntes_stream.service.config import config_of
 
-    if args.config:
-        service, cfg = load_service_config(args.config, args.set)
-        if service is not OcsBridgeService:
-            raise ConfigError(f"{args.config}: a [{service.name}] config, not an [ocs-bridge] one")
-    elif args.set:
-        raise ConfigError("--set needs --config")
-    else:
-        cfg = OcsBridgeConfig()
+    cfg = config_of(OcsBridgeService, args.config, args.set)
     flags = {k: getattr(args, k) for k in ("router", "realm", "setup", "duration_s", "stale_s", "t_bath_field",
                                            "b_field_field") if getattr(args, k, None) is not None}
     try:

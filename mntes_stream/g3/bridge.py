@@ -282,16 +282,9 @@ def bridge_config(args) -> G3BridgeConfig:
     """The config from ``--config``/``--set`` and the command line (which wins)."""
     import dataclasses
 
-    from mntes_stream.service.config import load_service_config
+    from mntes_stream.service.config import config_of
 
-    if args.config:
-        service, cfg = load_service_config(args.config, args.set)
-        if service is not G3BridgeService:
-            raise ConfigError(f"{args.config}: a [{service.name}] config, not a [g3-bridge] one")
-    elif args.set:
-        raise ConfigError("--set needs --config")
-    else:
-        cfg = G3BridgeConfig()
+    cfg = config_of(G3BridgeService, args.config, args.set)
     flags = {k: getattr(args, a) for k, a in (("source", "source"), ("setup", "setup"), ("boards", "boards"),
                                               ("params", "params"), ("hk", "hk"), ("t_bath_field", "t_bath_field"),
                                               ("chunk_samples", "chunk_samples"), ("duration_s", "duration_s"))

@@ -19,7 +19,7 @@ from typing import Any
 from mntes_stream.core.settings import declared, document_tables, to_table
 from mntes_stream.errors import ConfigError
 
-__all__ = ["read_toml", "service_of", "apply_overrides", "load_service_config", "with_zenoh", "file_kind",
+__all__ = ["read_toml", "service_of", "apply_overrides", "load_service_config", "config_of", "with_zenoh", "file_kind",
            "check_file", "check_paths", "show_file"]
 
 # What `config check` takes for a config file; anything else it is given is skipped, said in a note.
@@ -103,6 +103,21 @@ def load_service_config(path: str | Path, overrides: Iterable[str] = ()):
     doc = apply_overrides(doc, overrides, service)
     base = str(Path(path).resolve().parent)
     return service, service.config_from_document(doc, str(path), base_dir=base)
+
+
+def config_of(service_cls, path, overrides: Iterable[str] = ()):
+    """``service_cls``'s config: its file (``--config``, with ``--set`` items) or, without one, its defaults.
+
+    Raises ConfigError for a file of another service, or ``--set`` items without a file.
+    """
+    if path:
+        service, cfg = load_service_config(path, overrides)
+        if service is not service_cls:
+            raise ConfigError(f"{path}: a [{service.name}] config, not a [{service_cls.name}] one")
+        return cfg
+    if overrides:
+        raise ConfigError("--set needs --config")
+    return service_cls.Config()
 
 
 def with_zenoh(config, zenoh_layer):
