@@ -1,8 +1,11 @@
-"""The converter pipeline's conversion step: released chunks to power messages, in as few converter calls as may be.
+"""The converter's stages from alignment on: rows and environment, conversion, flags, encoding (no I/O).
 
-A mixin of :class:`~mntes_stream.service.pipeline.ConverterPipeline` (its
-state: ``converter``, ``hk``, ``counters``, ``config``; its ``_bad`` and
-``_stamp``), kept apart so each module stays one concern.
+``environment`` makes a released chunk's ``_Ready`` (its rows and its
+housekeeping at every sample); :class:`Convert` gathers them until the end of
+the batch and converts them in as few converter calls as may be;
+:class:`Flags` completes the flags and makes flagged power NaN; :class:`Encode`
+makes each chunk's power message and books it. See ``service.stages`` for
+what flows between stages.
 """
 
 from __future__ import annotations
@@ -16,9 +19,11 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.core.uncertainty import sigma_p_block
 from mntes_stream.io import keys
+from mntes_stream.io.lean import PowerEncoder
 from mntes_stream.io.messages import CountsChunk, detector_ids_for
+from mntes_stream.service.stages import Books, End, Pending
 
-__all__ = ["Conversion"]
+__all__ = ["Convert", "Encode", "Environment", "Flags"]
 
 # A run is split across threads only from this many samples (rows x samples): below, a thread hand-over
 # (tens of microseconds) costs more than the kernel time it saves.
@@ -43,6 +48,27 @@ class _Ready:
     late: bool = False
 
 
+@dataclass
+class _Run:
+    """A run's converted blocks (``Convert`` to ``Flags``): per part, its modules and their block."""
+
+    run: list
+    orders: list
+    cols: np.ndarray
+    parts: list  # (m0, m1, p_opt, flags, env_flags, rows, sigma)
+
+
+@dataclass
+class _Converted:
+    """One chunk's power, flags and sigma_P (``finished``: housekeeping and unknown-row flags applied)."""
+
+    ready: _Ready
+    p_opt: np.ndarray
+    flags: np.ndarray
+    sigma: np.ndarray | None
+    finished: bool
+
+
 def _layout(group: list[_Ready]) -> tuple | None:
     """A group's rows, module by module (None when a module appears twice: not merged)."""
     rows = sorted((r.chunk.board, r.chunk.module, r.chunk.channels.tobytes(), r.v_bias is None) for r in group)
@@ -63,13 +89,18 @@ def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
     return list(runs.values())
 
 
-class Conversion:
-    """Rows, environment, grouped conversion and power messages of released chunks (see the module docstring).
+class Environment:
+    """A released chunk's rows (detector ids, which have parameters) and housekeeping at every sample.
 
-    Its host sets ``_threads`` (>= 1) and ``_executor`` (None until a thread pool is needed).
+    Called by the housekeeping stage at a chunk's release (``service.stages.Align``).
     """
 
-    def _rows_for(self, chunk: CountsChunk) -> tuple:
+    def __init__(self, books: Books, hk, known: frozenset):
+        self.books, self.hk, self._known = books, hk, known
+        self._rows: dict[tuple, tuple] = {}
+        self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
+
+    def rows_for(self, chunk: CountsChunk) -> tuple:
         """Detector ids of the rows and which the converter knows (cached per channel list)."""
         cache_key = (chunk.board, chunk.module, chunk.channels.tobytes())
         rows = self._rows.get(cache_key)
@@ -81,57 +112,74 @@ class Conversion:
             rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
             if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
                 self._unmatched += 1
-                self.last_error = (f"no_detector on {keys.counts_key(self.config.setup, chunk.board, chunk.module)}: "
-                                   f"none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
-                                   "flagged UNKNOWN_CHANNEL")[:500]
+                books = self.books
+                books.last_error = (f"no_detector on {keys.counts_key(books.config.setup, chunk.board, chunk.module)}"
+                                    f": none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
+                                    "flagged UNKNOWN_CHANNEL")[:500]
                 if self._unmatched <= 10 or self._unmatched % 1000 == 0:
-                    log.warning("%s", self.last_error)
+                    log.warning("%s", books.last_error)
         return rows
 
-    def _environment(self, p) -> _Ready:
-        """A pending chunk's rows and its housekeeping at every sample, as of now (the release)."""
+    def __call__(self, p: Pending) -> _Ready:
         chunk, t = p.chunk, p.t_ns
         t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
         b_field, f_b = self.hk.scalar("b_field", chunk, t)
         env_flags_t = f_tb | f_b
-        ids, known, n_unknown = self._rows_for(chunk)
+        ids, known, n_unknown = self.rows_for(chunk)
         v_bias, f_bias = self.hk.bias(chunk, t, ids)
         env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
         return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
 
-    def _convert_ready(self, out: list) -> None:
-        """Convert the released chunks in as few converter calls as may be.
 
-        The modules of one readout step share their sample times, hence their
-        aligned bath temperature and field (the same cached arrays): a *group*.
-        The groups with the same rows (modules and channel lists) form a *run*
-        (:func:`_runs`), converted as one block whose rows are the detectors and whose
-        columns are the samples of every step in turn: a backlog of steps costs
-        the converter's per-call work once, and each detector's tables are
-        looked up once per run rather than once per step (on a 5,000-detector
-        focal plane those lookups miss the cache). Rows and samples are
-        independent, so the power is the same as chunk by chunk.
-        """
-        ready, self._ready = self._ready, []
+class Convert:
+    """Released chunks, gathered until the end of the batch, through the converter in as few calls as may be.
+
+    The modules of one readout step share their sample times, hence their
+    aligned bath temperature and field (the same cached arrays): a *group*.
+    The groups with the same rows (modules and channel lists) form a *run*
+    (:func:`_runs`), converted as one block whose rows are the detectors and whose
+    columns are the samples of every step in turn: a backlog of steps costs
+    the converter's per-call work once, and each detector's tables are
+    looked up once per run rather than once per step (on a 5,000-detector
+    focal plane those lookups miss the cache). Rows and samples are
+    independent, so the power is the same as chunk by chunk. With ``threads``
+    > 1 a large run is split by modules across threads (the kernel releases
+    the GIL). A run whose call fails is converted chunk by chunk, which finds
+    the chunk that failed: it is flagged INVALID_INPUT and counted.
+    """
+
+    name = "convert"
+
+    def __init__(self, books: Books, converter, threads: int = 1, noise=None):
+        self.books, self.converter, self._threads, self._noise = books, converter, threads, noise
+        self._executor = None
+        self._held: list[_Ready] = []
+
+    def __call__(self, items: list) -> list:
+        out = []
+        for item in items:
+            if type(item) is _Ready:
+                self._held.append(item)
+                continue
+            if type(item) is End:
+                self._convert(out)
+            out.append(item)
+        return out
+
+    def _convert(self, out: list) -> None:
+        held, self._held = self._held, []
         groups: dict[tuple, list[_Ready]] = {}
-        for r in ready:
+        for r in held:
             groups.setdefault((id(r.t_bath), id(r.b_field), r.v_bias is None, r.late), []).append(r)
         for run in _runs(list(groups.values())):
-            blocks = self._convert_run(run) if len(run) > 1 or len(run[0]) > 1 else None
-            for g, group in enumerate(run):
-                for k, r in enumerate(group):
-                    try:
-                        out.append(self._power(r, blocks[g][k] if blocks is not None else self._convert_one(r)))
-                    except Exception as exc:
-                        self._dropped(r.chunk, exc)
+            parts = self._run(run) if len(run) > 1 or len(run[0]) > 1 else None
+            if parts is not None:
+                out.append(parts)
+            else:
+                out += [self._one(r) for group in run for r in group]
 
-    def _convert_run(self, run: list[list[_Ready]]) -> list[list[tuple]] | None:
-        """Converter calls for a run of groups; each chunk's (p_opt, flags) block, per group in its order.
-
-        One call, or with ``threads`` > 1 and a large run, one call per part of
-        its modules, side by side in threads (the compiled kernel releases the
-        GIL). None: convert them one by one (which finds and counts the chunk that failed).
-        """
+    def _run(self, run: list[list[_Ready]]) -> _Run | None:
+        """Converter calls for a run of groups (None: convert them one by one)."""
         orders = [sorted(range(len(g)), key=lambda k, g=g: (g[k].chunk.board, g[k].chunk.module)) for g in run]
         n_mod = len(orders[0])
         cols = np.cumsum([0] + [g[0].chunk.counts_i.shape[1] for g in run])
@@ -141,30 +189,19 @@ class Conversion:
         parts = [(bounds[i], bounds[i + 1]) for i in range(k)]
         try:
             if k == 1:
-                done = [self._convert_part(run, orders, 0, n_mod)]
+                done = [self._part(run, orders, 0, n_mod)]
             else:
-                futures = [self._pool().submit(self._convert_part, run, orders, m0, m1) for m0, m1 in parts[1:]]
-                done = [self._convert_part(run, orders, *parts[0])] + [f.result() for f in futures]
-        except Exception:  # find out which chunk it was: one by one, each failure counted
+                futures = [self._pool().submit(self._part, run, orders, m0, m1) for m0, m1 in parts[1:]]
+                done = [self._part(run, orders, *parts[0])] + [f.result() for f in futures]
+        except Exception:  # noqa: BLE001 - find out which chunk it was: one by one, each failure counted
             return None
-        out = [[None] * len(g) for g in run]
-        for (m0, m1), (p_opt, flags, env_flags, rows, sigma) in zip(parts, done):
-            known = np.concatenate([r.known for r in rows]) if any(r.n_unknown for r in rows) else None
-            p_opt, flags, sigma = self._finish(p_opt, flags, env_flags, known, sigma)  # once for the block
-            starts = np.cumsum([0] + [r.chunk.channels.size for r in rows])
-            for g, order in enumerate(orders):
-                c0, c1 = cols[g], cols[g + 1]
-                for m in range(m0, m1):
-                    r0, r1 = starts[m - m0], starts[m - m0 + 1]
-                    out[g][order[m]] = (p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1], True,
-                                        None if sigma is None else sigma[r0:r1, c0:c1])
-        return out
+        return _Run(run, orders, cols, [(m0, m1, *d) for (m0, m1), d in zip(parts, done)])
 
-    def _convert_part(self, run: list[list[_Ready]], orders: list[list[int]], m0: int, m1: int) -> tuple:
+    def _part(self, run: list[list[_Ready]], orders: list[list[int]], m0: int, m1: int) -> tuple:
         """Modules ``m0:m1`` of the run (in stream order) through one converter call.
 
-        Returns p_opt and flags (rows, samples), the environment flags and the rows' chunks of the first group.
-        Raises on any failure (the caller then converts chunk by chunk).
+        Returns p_opt and flags (rows, samples), the environment flags, the rows' chunks of the first
+        group and sigma_P (or None). Raises on any failure (the caller then converts chunk by chunk).
         """
         rows = [run[0][k] for k in orders[0][m0:m1]]  # the part's row layout, module by module
         steps = len(run)
@@ -206,28 +243,7 @@ class Conversion:
             self._executor = ThreadPoolExecutor(max_workers=self._threads - 1, thread_name_prefix="convert")
         return self._executor
 
-    def _finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None,
-                sigma: np.ndarray | None = None):
-        """Whatever the converter did: housekeeping and unknown-channel flags hold, and flagged power is NaN
-        (its sigma_P too, when there is one).
-
-        Books the flag counts and unknown-channel samples; ``known``: rows with parameters (None: all).
-        """
-        flags = flags | env_flags
-        if known is not None:
-            flags[~known] |= fl.UNKNOWN_CHANNEL
-            self.counters.unknown_channel_samples += int((~known).sum()) * flags.shape[1]
-        if flags.any():
-            # Stale housekeeping: the last good reading is older than its limit, so the value it gives is not power.
-            unusable = (flags & (fl.UNUSABLE | (fl.HK_STALE if self.config.hk_stale_power == "nan" else 0))) != 0
-            if unusable.any():
-                p_opt = np.where(unusable, np.nan, p_opt)
-                if sigma is not None:
-                    sigma = np.where(unusable, np.float32(np.nan), sigma)
-            self.flag_counts.update(fl.counts_by_flag(flags))
-        return p_opt, flags, sigma
-
-    def _convert_one(self, r: _Ready) -> tuple:
+    def _one(self, r: _Ready) -> _Converted:
         chunk = r.chunk
         shape = chunk.counts_i.shape
         try:
@@ -237,33 +253,116 @@ class Conversion:
             p_opt, flags, sigma = self._with_sigma(r.ids, chunk.counts_i, chunk.counts_q, env, block)
             if p_opt.shape != shape or flags.shape != shape:
                 raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {shape}")
-        except Exception as exc:  # one bad block must not stop the stream
+        except Exception as exc:  # noqa: BLE001 - one bad block must not stop the stream
             p_opt = np.full(shape, np.nan)
             flags = np.full(shape, fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
             sigma = None if self._noise is None else np.full(shape, np.nan, dtype=np.float32)
-            self._bad("convert_failed", f"{type(exc).__name__}: {exc}",
-                      keys.counts_key(self.config.setup, chunk.board, chunk.module))
-        return p_opt, flags, False, sigma
+            self.books.bad("convert_failed", f"{type(exc).__name__}: {exc}",
+                           keys.counts_key(self.books.config.setup, chunk.board, chunk.module))
+        return _Converted(r, p_opt, flags, sigma, False)
 
-    def _power(self, r: _Ready, converted: tuple) -> tuple[str, bytes]:
-        """The power message of a converted chunk (flags completed, flagged power NaN), counters booked."""
-        chunk, cfg = r.chunk, self.config
-        p_opt, flags, finished, sigma = converted
+
+class Flags:
+    """Whatever the converter did: housekeeping and unknown-row flags hold, and flagged power is NaN.
+
+    Applied once per converted block (then sliced into chunks), or per chunk
+    converted alone. Books the flag counts and unknown-channel samples. Stale
+    housekeeping (the last good reading older than its limit) makes power NaN
+    when ``hk_stale_power = "nan"``.
+    """
+
+    name = "flags"
+
+    def __init__(self, books: Books):
+        self.books = books
+        nan_too = fl.HK_STALE if books.config.hk_stale_power == "nan" else 0
+        self._unusable = fl.UNUSABLE | nan_too
+
+    def __call__(self, items: list) -> list:
+        out = []
+        for item in items:
+            kind = type(item)
+            if kind is _Run:
+                self._run(item, out)
+            elif kind is _Converted and not item.finished:
+                r = item.ready
+                p, f, s = self.finish(item.p_opt, item.flags, r.env_flags, r.known if r.n_unknown else None,
+                                      item.sigma)
+                out.append(_Converted(r, p, f, s, True))
+            else:
+                out.append(item)
+        return out
+
+    def _run(self, item: _Run, out: list) -> None:
+        run, cols = item.run, item.cols
+        chunks: list[list] = [[None] * len(g) for g in run]
+        for m0, m1, p_opt, flags, env_flags, rows, sigma in item.parts:
+            known = np.concatenate([r.known for r in rows]) if any(r.n_unknown for r in rows) else None
+            p_opt, flags, sigma = self.finish(p_opt, flags, env_flags, known, sigma)  # once for the block
+            starts = np.cumsum([0] + [r.chunk.channels.size for r in rows])
+            for g, order in enumerate(item.orders):
+                c0, c1 = cols[g], cols[g + 1]
+                for m in range(m0, m1):
+                    r0, r1 = starts[m - m0], starts[m - m0 + 1]
+                    chunks[g][order[m]] = _Converted(run[g][order[m]], p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1],
+                                                     None if sigma is None else sigma[r0:r1, c0:c1], True)
+        for row in chunks:
+            out += row
+
+    def finish(self, p_opt: np.ndarray, flags: np.ndarray, env_flags: np.ndarray, known: np.ndarray | None,
+               sigma: np.ndarray | None = None):
+        """p_opt, flags and sigma_P of a block with its flags completed; ``known``: rows with parameters (None: all)."""
+        flags = flags | env_flags
+        if known is not None:
+            flags[~known] |= fl.UNKNOWN_CHANNEL
+            self.books.counters.unknown_channel_samples += int((~known).sum()) * flags.shape[1]
+        if flags.any():
+            unusable = (flags & self._unusable) != 0
+            if unusable.any():
+                p_opt = np.where(unusable, np.nan, p_opt)
+                if sigma is not None:
+                    sigma = np.where(unusable, np.float32(np.nan), sigma)
+            self.books.flag_counts.update(fl.counts_by_flag(flags))
+        return p_opt, flags, sigma
+
+
+class Encode:
+    """Each converted chunk to its power message ``(key, payload)``, booked in the counters and the ledger.
+
+    The payload comes from the stream's template (``io.lean.PowerEncoder``):
+    byte-identical to ``PowerChunk.to_bytes``, from checked inputs, not checked again.
+    """
+
+    name = "encode"
+
+    def __init__(self, books: Books, table_identity: str, kind: str):
+        self.books = books
+        self._encoder = PowerEncoder(books.config.setup, table_identity, kind)
+
+    def __call__(self, items: list) -> list:
+        out = []
+        for item in items:
+            if type(item) is not _Converted:
+                out.append(item)
+                continue
+            try:
+                out.append(self._one(item))
+            except Exception as exc:  # noqa: BLE001
+                self.books.dropped(item.ready.chunk, exc)
+        return out
+
+    def _one(self, item: _Converted) -> tuple[str, bytes]:
+        r, books = item.ready, self.books
+        chunk, cfg = r.chunk, books.config
         n_ch, n = chunk.counts_i.shape
-        if not finished:
-            p_opt, flags, sigma = self._finish(p_opt, flags, r.env_flags, r.known if r.n_unknown else None, sigma)
-        t_pub = self._stamp()
-        # Made here from checked inputs (ids from the channels, arrays of the wire dtypes): not checked again.
-        payload = self._encoder.encode(chunk, p_opt, flags, t_pub, r.late, sigma)
-        self.ledger.done((chunk.board, chunk.module), late=r.late)
-        c = self.counters
+        t_pub = books.stamp()
+        payload = self._encoder.encode(chunk, item.p_opt, item.flags, t_pub, r.late, item.sigma)
+        books.ledger.done((chunk.board, chunk.module), late=r.late)
+        c = books.counters
         c.chunks_converted += 1
         c.samples_converted += n_ch * n
         if r.env_flags_t.any():
             c.hk_stale_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_STALE))
             c.hk_missing_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_MISSING))
-        self._interval_chunks += 1
-        self._interval_samples += n_ch * n
-        self._interval_latency_ms.append((t_pub - chunk.t_pub_ns) / 1e6)
+        books.interval.add(n_ch * n, (t_pub - chunk.t_pub_ns) / 1e6)
         return keys.power_key(cfg.setup, chunk.board, chunk.module), payload
-

@@ -1,12 +1,9 @@
-"""The converter pipeline's reports: its status (interval figures, the ledger) and its provenance.
-
-A mixin of :class:`~mntes_stream.service.pipeline.ConverterPipeline` (its
-counters, ledger, streams and config), kept apart so each module stays one concern.
-"""
+"""The converter's last stage: its status (interval figures, the ledger) and its provenance (no I/O)."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -14,40 +11,78 @@ from mntes_stream import __version__
 from mntes_stream.core import flags as fl
 from mntes_stream.io import keys
 from mntes_stream.io.messages import Provenance, StatusMessage
+from mntes_stream.service.housekeeping import ns
+from mntes_stream.service.stages import Align, Books, End, Sequence
 
-__all__ = ["Reporting"]
+__all__ = ["Status"]
 
 
-class Reporting:
-    """Status and provenance messages of the pipeline (see the module docstring)."""
+class Status:
+    """At the end of a batch, the status message when one is due (every ``status_interval_s`` of receive time).
+
+    Parameters
+    ----------
+    books : Books
+    sequence, align : the stages whose state the status reports (streams, set aside, held, housekeeping)
+    converter, params, owns, noise : what the provenance names
+    """
+
+    name = "status"
+
+    def __init__(self, books: Books, sequence: Sequence, align: Align, converter, params: list, owns: dict,
+                 noise=None):
+        self.books, self.sequence, self.align = books, sequence, align
+        self.converter, self._params, self._owns, self._noise = converter, params, owns, noise
+        self.owns_status: Callable[[], dict] | None = None
+        self._status_ns = ns(books.config.status_interval_s)
+        self._next_ns: int | None = None
+        self._last_ns: int | None = None
+        self._provenance: bytes | None = None
+        self._t_created_ns = time.time_ns()
+
+    def __call__(self, items: list) -> list:
+        if items and type(items[-1]) is End:
+            books = self.books
+            if books.now_ns is not None:
+                if self._next_ns is None:
+                    self._last_ns = books.t_first_ns
+                    self._next_ns = books.t_first_ns + self._status_ns
+                if books.now_ns >= self._next_ns:
+                    items.insert(len(items) - 1, self.emit())
+                    # Skip missed slots rather than bursting after a pause.
+                    while self._next_ns <= books.now_ns:
+                        self._next_ns += self._status_ns
+        return items
 
     def status(self) -> StatusMessage:
         """The status as of the latest message (interval figures since the last emitted status)."""
-        now = self._now_ns if self._now_ns is not None else time.time_ns()
-        start = self._t_first_ns if self._t_first_ns is not None else now
-        since = self._last_status_ns if self._last_status_ns is not None else start
+        books, seq = self.books, self.sequence
+        now = books.now_ns if books.now_ns is not None else time.time_ns()
+        start = books.t_first_ns if books.t_first_ns is not None else now
+        since = self._last_ns if self._last_ns is not None else start
         interval_s = max(now - since, 0) / 1e9
-        lat = np.asarray(self._interval_latency_ms)
-        c = self.counters
-        streams = self._streams.values()
-        led = self.ledger_now()
+        iv = books.interval
+        lat = np.asarray(iv.latency_ms)
+        c = books.counters
+        streams = seq.streams.values()
+        led = seq.ledger_now()
         tot = led.totals()
         return StatusMessage(
-            setup=self.config.setup,
-            service=self.config.service,
+            setup=books.config.setup,
+            service=books.config.service,
             t_ns=max(now, 0),
             uptime_s=max(now - start, 0) / 1e9,
             interval_s=interval_s,
             chunks_received=c.chunks_received,
             chunks_converted=c.chunks_converted,
-            chunks_pending=len(self._pending),
+            chunks_pending=len(self.align.pending),
             samples_converted=c.samples_converted,
             chunks_lost=tot.lost,
             chunks_missing=tot.missing,
             chunks_shed=tot.shed_total,
             chunks_late=tot.late,
             chunks_rejected=tot.rejected_total,
-            chunks_set_aside=len(self._aside),
+            chunks_set_aside=len(seq.aside),
             ledger=led.as_dict(),
             chunks_duplicated=sum(s.duplicated for s in streams),
             chunks_out_of_order=sum(s.out_of_order for s in streams),
@@ -55,24 +90,31 @@ class Reporting:
             hk_stale_samples=c.hk_stale_samples,
             hk_missing_samples=c.hk_missing_samples,
             unknown_channel_samples=c.unknown_channel_samples,
-            bad_messages=dict(self.bad_messages),
-            flag_counts={name: self.flag_counts.get(name, 0) for name in fl.NAMES.values()},
-            hk_age_s=self.hk.ages_s(now),
-            rate_chunks_per_s=self._interval_chunks / interval_s if interval_s > 0 else 0.0,
-            rate_msamples_per_s=self._interval_samples / interval_s / 1e6 if interval_s > 0 else 0.0,
+            bad_messages=dict(books.bad_messages),
+            flag_counts={name: books.flag_counts.get(name, 0) for name in fl.NAMES.values()},
+            hk_age_s=self.align.hk.ages_s(now),
+            rate_chunks_per_s=iv.chunks / interval_s if interval_s > 0 else 0.0,
+            rate_msamples_per_s=iv.samples / interval_s / 1e6 if interval_s > 0 else 0.0,
             latency_p50_ms=float(np.percentile(lat, 50)) if lat.size else None,
             latency_p99_ms=float(np.percentile(lat, 99)) if lat.size else None,
             latency_max_ms=float(lat.max()) if lat.size else None,
-            last_error=self.last_error,
+            last_error=books.last_error,
             owns=self.owns_status() if self.owns_status is not None else self._owns,
         )
+
+    def emit(self) -> tuple[str, bytes]:
+        """The status message now; the interval figures start again."""
+        msg = self.status()
+        self._last_ns = self.books.now_ns
+        self.books.interval.reset()
+        return keys.status_key(self.books.config.setup, self.books.config.service), msg.to_bytes()
 
     def provenance(self) -> Provenance:
         """Parameters (TOML text), table identity, converter kind and software version."""
         from mntes_stream.io.paramfile import params_to_toml
 
         return Provenance(
-            setup=self.config.setup,
+            setup=self.books.config.setup,
             params_toml=params_to_toml(self._params) if self._params else "",
             table_identity=str(self.converter.identity),
             converter_kind=str(self.converter.kind),
@@ -87,18 +129,3 @@ class Reporting:
         if self._provenance is None:
             self._provenance = self.provenance().to_bytes()
         return self._provenance
-
-    def _maybe_status(self, out: list) -> None:
-        if self._now_ns is not None and self._now_ns >= self._next_status_ns:
-            out.append(self._emit_status())
-            # Skip missed slots rather than bursting after a pause.
-            while self._next_status_ns <= self._now_ns:
-                self._next_status_ns += self._status_ns
-
-    def _emit_status(self) -> tuple[str, bytes]:
-        msg = self.status()
-        self._last_status_ns = self._now_ns
-        self._interval_latency_ms = []
-        self._interval_chunks = 0
-        self._interval_samples = 0
-        return keys.status_key(self.config.setup, self.config.service), msg.to_bytes()

@@ -1,0 +1,493 @@
+"""The converter's stages up to conversion: decode, sequence, housekeeping and alignment (no I/O).
+
+Each stage is a callable over a batch: it takes the batch's items in order
+and returns the items it passes on, as an spt3g module takes a frame and
+returns frames. What flows:
+
+- ``(key, payload, t_recv_ns)``: a received message (into :class:`Decode`);
+- :class:`Counts` / :class:`Hk`: a decoded counts or housekeeping message;
+- :class:`Tick`: a message dropped at the door, which still lets receive time pass;
+- :class:`Pending`: a counts chunk booked in its stream's sequence, held for housekeeping;
+- ``_Ready`` (``service.pipeline_convert``): a released chunk with its housekeeping aligned;
+- :data:`END`, last of every batch (``End(force=True)``: flush): the stages that
+  gather (conversion, status) act on it.
+
+The stages are declared once, in order, by
+:func:`~mntes_stream.service.pipeline.converter_stages`; every path (the live
+service, offline ``convert``, replay into a converter, the G3 ``OpticalPower``
+module) runs that list through :class:`~mntes_stream.service.pipeline.ConverterPipeline`.
+Housekeeping and alignment are one stage because a chunk is aligned with the
+history *as of its release*: a reading received after it must not change it,
+or the power would depend on how the messages were batched.
+
+Every stage books what it drops in the shared :class:`Books` (counters, the
+ledger, bad messages by reason): nothing leaves the flow uncounted.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mntes_stream.core.ledger import OTHER, Ledger
+from mntes_stream.core.sequence import StreamSequence, Verdict
+from mntes_stream.errors import ConfigError, SchemaError
+from mntes_stream.io import keys
+from mntes_stream.io.lean import CountsDecoder
+from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
+from mntes_stream.service.housekeeping import DelayFloor, Housekeeping, ns
+from mntes_stream.service.pipeline_config import PipelineConfig
+
+__all__ = ["END", "Books", "Counts", "Decode", "End", "Hk", "Align", "Pending", "PipelineCounters", "Sequence",
+           "Tick"]
+
+log = logging.getLogger("mntes_stream.converter")
+
+
+@dataclass
+class PipelineCounters:
+    """Cumulative counts since start (sequence counts are summed over the streams' trackers)."""
+
+    chunks_received: int = 0
+    chunks_converted: int = 0
+    chunks_failed: int = 0
+    samples_converted: int = 0
+    chunks_shed: int = 0
+    hk_received: int = 0
+    hk_stale_samples: int = 0
+    hk_missing_samples: int = 0
+    unknown_channel_samples: int = 0
+    chunks_missed_while_down: int = 0  # published between a checkpoint and this start (resume_sequences)
+
+    def as_dict(self) -> dict[str, int]:
+        return dataclasses.asdict(self)
+
+
+class Interval:
+    """Figures since the last status: power chunks and samples published, their latency (ms)."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self.chunks, self.samples, self.latency_ms = 0, 0, []
+
+    def add(self, samples: int, latency_ms: float) -> None:
+        self.chunks += 1
+        self.samples += samples
+        self.latency_ms.append(latency_ms)
+
+
+class Books:
+    """What every stage books: counters, the ledger, bad messages by reason, the last error, the clock.
+
+    Parameters
+    ----------
+    config : PipelineConfig
+    clock : callable or None
+        Publication time stamp of outputs (ns); None: the receive time of the newest message.
+    """
+
+    def __init__(self, config: PipelineConfig, clock: Callable[[], int] | None):
+        self.config = config
+        self.counters = PipelineCounters()
+        self.ledger = Ledger("converted")
+        self.bad_messages: collections.Counter = collections.Counter()
+        self.flag_counts: collections.Counter = collections.Counter()
+        self.last_error = ""
+        self.interval = Interval()
+        self.clock = clock
+        self.t_first_ns: int | None = None
+        self.now_ns: int | None = None  # the newest receive time handled
+
+    def advance(self, t_ns: int) -> None:
+        if self.t_first_ns is None:
+            self.t_first_ns = t_ns
+        self.now_ns = t_ns if self.now_ns is None else max(self.now_ns, t_ns)
+
+    def stamp(self) -> int:
+        return int(self.clock()) if self.clock is not None else int(self.now_ns)
+
+    def bad(self, reason: str, detail: str, key: str) -> None:
+        self.bad_messages[reason] += 1
+        self.last_error = f"{reason} on {key}: {detail}"[:500]
+        n = self.bad_messages[reason]
+        if n <= 10 or n % 1000 == 0:  # log, but never flood the log
+            log.warning("bad message #%d (%s) on %s: %s", n, reason, key, detail)
+
+    def dropped(self, chunk: CountsChunk, exc: Exception) -> None:
+        """A chunk that could not be carried on: counted, in its ledger, said; never re-published."""
+        key = keys.counts_key(self.config.setup, chunk.board, chunk.module)
+        self.counters.chunks_failed += 1
+        self.ledger.rejected((chunk.board, chunk.module), "internal_error")
+        self.bad("internal_error", f"chunk seq {chunk.seq} dropped: {type(exc).__name__}: {exc}", key)
+        log.error("internal error converting %s seq %d; chunk dropped", key, chunk.seq, exc_info=exc)
+
+    def internal(self, exc: Exception, where: str, key: str) -> None:
+        """A stage's own bug on one item: counted and shown, the service goes on."""
+        self.bad("internal_error", f"{type(exc).__name__}: {exc}", key)
+        log.error("internal error (%s) handling %s", where, key, exc_info=exc)
+
+
+@dataclass(frozen=True)
+class End:
+    """The end of a batch: the gathering stages act now (``force``: release everything held, a flush)."""
+
+    force: bool = False
+
+
+END = End()
+
+
+@dataclass(frozen=True)
+class Tick:
+    """Receive time passing without an item to carry (a message dropped at the door)."""
+
+    t_recv_ns: int
+
+
+@dataclass(frozen=True)
+class Counts:
+    info: dict
+    chunk: CountsChunk
+    key: str
+    t_recv_ns: int
+
+
+@dataclass(frozen=True)
+class Hk:
+    info: dict
+    hk: HousekeepingChunk
+    key: str
+    t_recv_ns: int
+
+
+@dataclass
+class Pending:
+    """A counts chunk booked in its stream's sequence, waiting for its housekeeping."""
+
+    chunk: CountsChunk
+    t_recv_ns: int
+    t_ns: np.ndarray
+    t_last_ns: int | None
+    late: bool = False  # set aside under overload: converted later, published as late power
+
+
+def reject(books: Books, modules, info: dict, reason: str) -> None:
+    """A counts message refused: in its stream's ledger when the stream is ours, else under OTHER (bounded)."""
+    b, m = info.get("board", ""), info.get("module", "")
+    stream = (int(b), int(m)) if b.isdigit() and m.isdigit() else None
+    if stream is None or (modules is not None and stream not in modules):
+        stream = OTHER
+    books.ledger.received(stream)
+    books.ledger.rejected(stream, reason)
+
+
+class Decode:
+    """Messages to :class:`Counts` and :class:`Hk`: the key parsed, the payload decoded and matched to it.
+
+    A message that fails is counted by reason (a counts message also in its
+    stream's ledger as received and rejected) and leaves a :class:`Tick`.
+    """
+
+    name = "decode"
+
+    def __init__(self, books: Books, modules):
+        self.books, self.modules = books, modules
+        self._decoder = CountsDecoder()
+
+    def __call__(self, items: list) -> list:
+        out, books, setup = [], self.books, self.books.config.setup
+        for item in items:
+            if type(item) is not tuple:
+                out.append(item)
+                continue
+            key, payload, t_recv_ns = item
+            key, t_recv_ns = str(key), int(t_recv_ns)
+            books.advance(t_recv_ns)
+            try:
+                decoded = self._one(key, payload, t_recv_ns, setup)
+            except SchemaError as exc:
+                books.bad(exc.reason, str(exc), key)
+                decoded = None
+            except Exception as exc:  # noqa: BLE001 - the service must survive its own bugs too
+                books.internal(exc, self.name, key)
+                decoded = None
+            out.append(decoded if decoded is not None else Tick(t_recv_ns))
+        return out
+
+    def _one(self, key: str, payload: bytes, t_recv_ns: int, setup: str):
+        books = self.books
+        try:
+            info = keys.parse_key(key)
+        except ConfigError as exc:
+            books.bad("wrong_key", str(exc), key)
+            return None
+        if info["setup"] != setup:
+            books.bad("wrong_key", f"setup {info['setup']!r} is not {setup!r}", key)
+            return None
+        kind = info["kind"]
+        if kind == "counts":
+            try:
+                chunk = self._decoder.decode(key, payload)
+            except SchemaError as exc:  # the key names its stream: booked there as received and rejected
+                reject(books, self.modules, info, exc.reason)
+                raise
+            if chunk.setup != setup or info["board"] != str(chunk.board) or info["module"] != str(chunk.module):
+                reject(books, self.modules, info, "wrong_key")
+                books.bad("wrong_key", f"payload is setup {chunk.setup} board {chunk.board} module {chunk.module}",
+                          key)
+                return None
+            if self.modules is not None and (chunk.board, chunk.module) not in self.modules:
+                reject(books, self.modules, info, "unknown_stream")
+                books.bad("unknown_stream", f"board {chunk.board} module {chunk.module}: no detector of it in the "
+                                            "parameters (given no state, not converted)", key)
+                return None
+            return Counts(info, chunk, key, t_recv_ns)
+        if kind == "hk":
+            return Hk(info, HousekeepingChunk.from_bytes(payload), key, t_recv_ns)
+        books.bad("wrong_key", f"the converter does not consume {kind!r} messages", key)
+        return None
+
+
+def _nbytes(p: Pending) -> int:
+    """What a held chunk's counts take (I and Q)."""
+    return p.chunk.counts_i.nbytes + p.chunk.counts_q.nbytes
+
+
+class Sequence:
+    """:class:`Counts` to :class:`Pending`: each chunk's sequence number booked per ``(board, module)`` stream.
+
+    ``core.sequence``: lost, late and duplicates (dropped) counted, a restarted
+    stream resynchronised (``bad_messages["seq_reset"]``, not lost). Under a
+    real overload (``overloaded``, set by the live service), a chunk further
+    behind its own stream's pace than ``max_lag_s`` is set aside (``aside``)
+    for late conversion, the oldest shed beyond ``set_aside_bytes``.
+    """
+
+    name = "sequence"
+
+    def __init__(self, books: Books, modules, set_aside_bytes: int):
+        self.books, self.modules = books, modules
+        self.streams: dict[tuple[int, int], StreamSequence] = {}
+        self.pace: dict[tuple[int, int], DelayFloor] = {}
+        self.overloaded = False
+        self.aside: collections.deque[Pending] = collections.deque()
+        self._aside_bytes, self._aside_max = 0, int(set_aside_bytes)
+        self._max_lag_ns = ns(books.config.max_lag_s)
+        self._step_times: dict[tuple, np.ndarray] = {}
+        # Streams continued from a checkpoint, until their first chunk: (next number, checkpoint sample time).
+        self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
+        # ... and for good: older chunks (history from the sources' caches) were converted before the restart.
+        self._floor: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def __call__(self, items: list) -> list:
+        out = []
+        for item in items:
+            if type(item) is not Counts:
+                out.append(item)
+                continue
+            try:
+                p = self._one(item)
+            except Exception as exc:  # noqa: BLE001
+                self.books.internal(exc, self.name, item.key)
+                p = None
+            out.append(p if p is not None else Tick(item.t_recv_ns))
+        return out
+
+    def _one(self, item: Counts) -> Pending | None:
+        books, chunk = self.books, item.chunk
+        stream = (chunk.board, chunk.module)
+        books.counters.chunks_received += 1
+        books.ledger.received(stream)
+        t = self._times(chunk)
+        t_first = int(t[0]) if t.size else chunk.t_pub_ns
+        verdict = self._sequence(stream, chunk.seq, t_first, item.key)
+        if verdict is Verdict.DUPLICATE:
+            books.ledger.duplicate(stream)
+            return None
+        delay = item.t_recv_ns - chunk.t_pub_ns
+        pace = self.pace.get(stream)
+        if pace is None or verdict is Verdict.RESET:
+            pace = self.pace[stream] = DelayFloor()
+        lag = delay - pace.add(t_first, delay)
+        p = Pending(chunk, item.t_recv_ns, t, int(t.max()) if t.size else None)
+        if self.overloaded and lag > self._max_lag_ns and books.config.overload == "shed":
+            # A real overload (the service says so), and behind its own stream's pace: converting it now
+            # would make every later chunk later too. Kept for when there is time (late power).
+            self._set_aside(p, lag, item.key)
+            return None
+        return p
+
+    def _times(self, chunk: CountsChunk) -> np.ndarray:
+        """A chunk's sample times, computed once per readout step (the modules of a step share them; read-only)."""
+        if chunk.t_ns is not None:
+            return chunk.t_ns
+        key = (chunk.t0_ns, chunk.sample_rate_hz, chunk.counts_i.shape[1])
+        t = self._step_times.get(key)
+        if t is None:
+            if len(self._step_times) >= 256:
+                self._step_times.clear()
+            t = self._step_times[key] = chunk.times_ns()
+            t.setflags(write=False)
+        return t
+
+    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> Verdict:
+        """Book-keep a sequence number; the tracker's verdict (``DUPLICATE``: drop it)."""
+        s = self.streams.get(stream_id)
+        if s is None:
+            s = self.streams[stream_id] = StreamSequence()
+        expected = s.next
+        floor = self._floor.get(stream_id) if self._floor else None
+        if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
+            s.duplicated += 1  # converted by the converter that ran before this restart (its checkpoint says so)
+            return Verdict.DUPLICATE
+        resumed = self._resumed.pop(stream_id, None) if self._resumed else None
+        verdict = s.observe(seq, t_first_ns)
+        if resumed is not None and seq > resumed[0] and t_first_ns > resumed[1]:  # newer data, later numbers
+            missed = seq - resumed[0]  # (a gap too long for the tracker is a reset there, but missed all the same)
+            self.books.counters.chunks_missed_while_down += missed
+            self.books.last_error = (f"restart: {key} missed {missed} chunks (seq {expected}..{seq - 1}) while no "
+                                     "converter ran")
+            log.warning("%s", self.books.last_error)
+        if verdict is Verdict.RESET:
+            # Counted as a reset, not as a jump of lost chunks or a run of late ones.
+            self.books.bad("seq_reset", f"sequence number {seq}, expected {expected}: stream restarted", key)
+        return verdict
+
+    def resume(self, state: dict) -> int:
+        """Continue streams from a checkpoint (``ConverterPipeline.resume_sequences``); returns the streams resumed."""
+        for stream, (seq, t_ns) in state.items():
+            stream = (int(stream[0]), int(stream[1]))
+            if stream in self.streams or (self.modules is not None and stream not in self.modules):
+                continue
+            s = self.streams[stream] = StreamSequence()
+            s.observe(int(seq), int(t_ns))
+            self._resumed[stream] = self._floor[stream] = (s.next, int(t_ns))
+        return len(self._resumed)
+
+    def _set_aside(self, p: Pending, lag_ns: int, key: str) -> None:
+        """Under overload: keep the chunk for later (the oldest set-aside chunks shed beyond the budget)."""
+        books = self.books
+        p.late = True
+        self.aside.append(p)
+        self._aside_bytes += _nbytes(p)
+        if len(self.aside) == 1 or len(self.aside) % 1000 == 0:
+            log.warning("overload: %s seq %d %.3g s behind its stream set aside for late conversion (%d held)",
+                        key, p.chunk.seq, lag_ns / 1e9, len(self.aside))
+        while self._aside_bytes > self._aside_max and self.aside:
+            old = self.aside.popleft()
+            self._aside_bytes -= _nbytes(old)
+            books.counters.chunks_shed += 1
+            books.ledger.shed((old.chunk.board, old.chunk.module), "overload")
+            books.bad("overload", f"chunk seq {old.chunk.seq} of {old.chunk.board}/{old.chunk.module} shed: the "
+                      "set-aside budget is full (its counts are recorded: offline convert gives its power)", key)
+
+    def ledger_now(self) -> Ledger:
+        """The ledger with each stream's never-received count as its sequence tracker says now."""
+        for (b, m), s in self.streams.items():
+            self.books.ledger.set_missing((b, m), s.lost)
+        return self.books.ledger
+
+    def take_aside(self, n: int) -> list[Pending]:
+        """Up to ``n`` set-aside chunks, oldest first (each stream's in order)."""
+        out = []
+        for _ in range(min(int(n), len(self.aside))):
+            p = self.aside.popleft()
+            self._aside_bytes -= _nbytes(p)
+            out.append(p)
+        return out
+
+
+class Align:
+    """Housekeeping and alignment: :class:`Hk` into the histories; :class:`Pending` chunks held, released aligned.
+
+    A chunk waits until every *required* sensor has a reading at or after its
+    last sample (interpolated, not extrapolated) or until it has waited
+    ``hk_wait_s`` of receive time, whichever first; at most ``max_pending``
+    are held (beyond, the oldest is released at once). A released chunk
+    leaves as ``_Ready``, aligned by ``environment`` (``service.pipeline_convert``)
+    with the histories as of its release. Readings are judged by
+    ``service.housekeeping`` (bad ones counted by reason).
+    """
+
+    name = "housekeeping"
+
+    def __init__(self, books: Books, hk: Housekeeping, environment: Callable[[Pending], object]):
+        self.books, self.hk, self.environment = books, hk, environment
+        self.pending: collections.deque[Pending] = collections.deque()
+        self._wait_ns = ns(books.config.hk_wait_s)
+        self._now_ns: int | None = None
+
+    def __call__(self, items: list) -> list:
+        out = []
+        for item in items:
+            kind = type(item)
+            if kind is Pending:
+                self._tick(item.t_recv_ns)
+                self.hk.note_delay((item.chunk.board, item.chunk.module), item.t_recv_ns - item.chunk.t_pub_ns)
+                self.pending.append(item)
+            elif kind is Hk:
+                self._tick(item.t_recv_ns)
+                self._hk(item)
+            elif kind is Tick:
+                self._tick(item.t_recv_ns)
+            elif kind is End:
+                self._release(out, item.force)
+                out.append(item)
+                continue
+            else:
+                out.append(item)
+                continue
+            self._release(out)
+        return out
+
+    def _tick(self, t_ns: int) -> None:
+        self._now_ns = t_ns if self._now_ns is None else max(self._now_ns, t_ns)
+
+    def _hk(self, item: Hk) -> None:
+        hk, books = item.hk, self.books
+        expected = keys.hk_sensor(hk.sensor, hk.board, hk.module)
+        if hk.setup != books.config.setup or item.info["sensor"] != expected:
+            books.bad("wrong_key", f"payload is setup {hk.setup} sensor {expected}", item.key)
+            return
+        books.counters.hk_received += 1
+        try:
+            problems = self.hk.add(hk, item.t_recv_ns)
+        except Exception as exc:  # noqa: BLE001
+            books.internal(exc, self.name, item.key)
+            return
+        for reason, detail in problems:
+            books.bad(reason, detail, item.key)
+
+    def _release(self, out: list, force: bool = False) -> None:
+        """Chunks whose housekeeping is there (or that waited long enough) leave the queue, aligned now."""
+        if not self.pending:
+            return
+        now = self._now_ns if self._now_ns is not None else self.books.now_ns
+        keep: collections.deque[Pending] = collections.deque()
+        overflow = len(self.pending) - self.books.config.max_pending
+        try:
+            # Each chunk leaves the queue before it is aligned: one that cannot be is counted
+            # and dropped, never re-published nor left blocking the rest.
+            for i in range(len(self.pending)):
+                p = self.pending.popleft()
+                try:
+                    if force or i < overflow or self.hk.bracketed(p.t_last_ns) or now - p.t_recv_ns >= self._wait_ns:
+                        out.append(self.environment(p))
+                    else:
+                        keep.append(p)
+                except Exception as exc:  # noqa: BLE001
+                    self.books.dropped(p.chunk, exc)
+        finally:
+            keep.extend(self.pending)
+            self.pending = keep
+
+    def tick(self, t_ns: int) -> None:
+        """Receive time passes with no message (``ConverterPipeline.tick``)."""
+        self._tick(t_ns)
