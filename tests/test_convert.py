@@ -381,6 +381,47 @@ def test_float_counts_may_carry_nan(params, bank):
     assert np.all(np.isnan(out.p_opt_w[0, 1:]))
 
 
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_rows_with_a_bad_first_or_last_sample_convert_as_the_numpy_twin(params, bank):
+    """The compiled kernel prefetches each block of rows' table lines from every row's first and
+    last sample (``_kernels._prefetch_block``): a NaN, infinite, railed or off-table sample there,
+    or an unknown detector, still converts as the numpy twin does, over more rows than one block."""
+    from mntes_stream.bench.convert import synthetic_block
+    from mntes_stream.core import _kernels
+
+    ids, ci, cq, env = synthetic_block(params, 7, seed=12, bad_fraction=0.0)
+    reps = _kernels._BLOCK // (len(ids) + 1) + 2
+    rows = np.arange(reps * (len(ids) + 1)) % (len(ids) + 1)  # the last of each group: unknown
+    known = rows < len(ids)
+    k = np.minimum(rows, len(ids) - 1)
+    all_ids = [ids[j] if ok else "nobody" for j, ok in zip(k, known)]
+    ci, cq = ci[k].astype(np.float64), cq[k].astype(np.float64)
+    n = np.arange(len(rows))
+    ci[n % 3 == 0, 0] = np.nan
+    ci[n % 5 == 0, -1] = np.inf
+    ci[n % 7 == 1, 0] *= 10.0   # R far off the table
+    cq[n % 11 == 2, -1] = 2.0**31
+    ci[n % 4 == 3, -1] *= 0.5
+    e = EnvironmentBlock(env.t_bath_k, env.b_field_t, np.where(known, env.v_thev_v[k], 1.0))
+    conv = make_converter("table", None, bank=bank, backend="numba")
+    out = conv.convert(all_ids, ci, cq, e)
+    ref = make_converter("table", None, bank=bank, backend="numpy").convert(all_ids, ci, cq, e)
+    assert len(rows) > _kernels._BLOCK
+    assert np.array_equal(out.flags, ref.flags)
+    assert np.allclose(out.p_opt_w, ref.p_opt_w, rtol=0, atol=TARGET_W, equal_nan=True)
+    for flag in (fl.INVALID_INPUT, fl.UNKNOWN_CHANNEL, fl.OUT_OF_TABLE | fl.SATURATED | fl.SUPERCONDUCTING):
+        assert np.count_nonzero(out.flags[:, [0, -1]] & flag), flag
+    assert np.count_nonzero(out.flags == 0) > len(rows)
+    # The cell it prefetches from is the detector's own whatever the sample, as the kernel then
+    # reads it: int(NaN) is undefined (INT64_MIN on x86), so a NaN R must never reach it.
+    rec = conv._row_constants()
+    for d in range(len(ids)):
+        first, n_cell = rec[d, _kernels._R_C0], rec[d, _kernels._R_NCELL]
+        for xi in (np.nan, np.inf, -np.inf, 2.0**31, ci[d, 1], 10 * ci[d, 1], 0.1 * ci[d, 1], -ci[d, 1]):
+            cell = _kernels._cell_of(float(xi), float(cq[d, 1]), 0.0, float(env.v_thev_v[d]), rec, d)
+            assert first <= cell < first + n_cell, (d, xi)
+
+
 # --- linear baselines against independent expectations ----------------------------------
 
 def test_linear_is_exact_at_the_operating_point_and_second_order_away(params):

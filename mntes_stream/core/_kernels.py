@@ -31,6 +31,11 @@ front end's constants, K, n, field and current coefficients, the binomials
 to) and the detector's table window (R range, knot and cell offsets). One
 320-byte row per detector instead of some forty values from seven arrays,
 so a short row (a live chunk holds about 20 samples) is cheap to start.
+What still made it dear was waiting: a row's record, lookup cell, knots and
+coefficients are cache misses in a bank far larger than the cache, each
+address known only once the line before has come. The table kernel asks
+for them (``llvm.prefetch``) a block of rows ahead, so the misses of many
+rows overlap (:func:`_prefetch_block`); the arithmetic is untouched.
 """
 
 from __future__ import annotations
@@ -332,6 +337,34 @@ if numba is not None:
 
     _jit_vector = numba.njit(cache=True, nogil=True, error_model="numpy", pipeline_class=_NoAliasCompiler)
 
+    from llvmlite import ir as _ir
+    from numba.core import types as _nt
+    from numba.extending import intrinsic as _intrinsic
+
+    @_intrinsic
+    def _prefetch(typingctx, arr, i):
+        """Start loading the cache line of element ``i`` (flat, C order) of ``arr`` into L1; no result.
+
+        LLVM's ``llvm.prefetch`` (``prefetcht0`` on x86), which numba does not
+        expose. Unlike a load it neither waits nor faults, so a kernel can ask
+        for the table lines of many rows before it reads the first of them.
+        ``i`` must lie within the array only for the later read to be useful.
+        """
+        sig = _nt.void(arr, i)
+
+        def codegen(context, builder, signature, args):
+            aryty, ity = signature.args
+            ary = context.make_array(aryty)(context, builder, args[0])
+            ptr = builder.gep(ary.data, [context.cast(builder, args[1], ity, _nt.intp)])
+            i8p, i32 = _ir.IntType(8).as_pointer(), _ir.IntType(32)
+            fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p],
+                                                  _ir.FunctionType(_ir.VoidType(), [i8p, i32, i32, i32]))
+            # read (0), keep in all levels (3), data cache (1)
+            builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+            return context.get_dummy_value()
+
+        return sig, codegen
+
     @_inline
     def _front(xi, xq, tb, b, v, hk, det, dom):
         """One sample: flags so far, R, |i|^2 and whether R is on the stable branch.
@@ -519,6 +552,79 @@ if numba is not None:
             for s in range(scratch.size):
                 scratch[s] = value
 
+    # Rows per block of _prefetch_block: enough misses in flight to fill the memory pipeline, and
+    # their lines (some 18 a row, 70 kB a block) still in L1/L2 when the rows are converted.
+    _BLOCK = 64
+
+    @_inline
+    def _cell_of(xi, xq, bs, vs, rec, d):
+        """Index into ``cell_interval`` of a sample's lookup cell, for prefetching only: R as the
+        kernel computes it, the table's first cell where R is outside the table or NaN."""
+        ire = rec[d, 0] * xi - rec[d, 1] * xq - rec[d, 2] * bs
+        iim = rec[d, 0] * xq + rec[d, 1] * xi - rec[d, 3] * bs
+        r = SQRT2 * vs * ire / (ire * ire + iim * iim) - rec[d, 4]
+        x_lo = rec[d, _R_X_LO]
+        rc = r if (x_lo <= r) & (r <= rec[d, _R_X_HI]) else x_lo  # NaN too: int(NaN) is undefined
+        k = int((rc - x_lo) * rec[d, _R_CPO])
+        n1 = int(rec[d, _R_NCELL]) - 1
+        return int(rec[d, _R_C0]) + (k if k < n1 else n1)
+
+    @_jit
+    def _prefetch_block(ends, b, v, rows, rec, x, cidx, coef, r0, r1, cells):
+        """Prefetch the table lines rows ``r0:r1`` will read: their records, the lookup cells
+        between their first and last samples' R, and those cells' intervals.
+
+        A short row (a live chunk holds about 20 samples) otherwise waits on
+        a chain of cache misses before its first sample (record, then cell,
+        then knot and coefficients: each address needs the line before) and the
+        next row's chain starts only after. Here each link is asked for the
+        whole block at once, one pass per link, so the misses of all its rows
+        overlap (5120 rows of 20 samples: 0.9 us a row before, 0.3 after).
+        The first and last samples bound the cells and intervals of a slowly
+        varying row (the bench's span some five lines of cells, two or three
+        intervals); at most eight lines of cells and nine intervals a row.
+        ``ends`` (shape (>= r1 - r0, 4)) holds each row's first and last
+        counts (I, Q, I, Q) as float64, so this function has one signature
+        whatever the counts' type (each costs half a second of compiling).
+        Only addresses are computed, nothing is written but ``cells``
+        (scratch, shape (>= r1 - r0, 2), int64: each row's lowest and highest
+        cell, from the second pass to the third).
+        """
+        n_col, n_coef = rec.shape[1], coef.shape[1]
+        for row in range(r0, r1):
+            d = rows[row]
+            if d >= 0:
+                base = d * n_col
+                for c in range(0, n_col, 8):
+                    _prefetch(rec, base + c)
+                _prefetch(rec, base + n_col - 1)  # the last line, when rec is not line-aligned
+        rb, rv = b.shape[0] > 1, v.shape[0] > 1
+        b1, v1 = b.shape[1] - 1, v.shape[1] - 1
+        for row in range(r0, r1):
+            d = rows[row]
+            c0 = c1 = -1
+            if d >= 0:
+                br, vr, e = row if rb else 0, row if rv else 0, row - r0
+                c0 = _cell_of(ends[e, 0], ends[e, 1], b[br, 0], v[vr, 0], rec, d)
+                c1 = _cell_of(ends[e, 2], ends[e, 3], b[br, b1], v[vr, v1], rec, d)
+                if c1 < c0:
+                    c0, c1 = c1, c0
+                for c in range(c0, min(c1, c0 + 8 * 16) + 1, 16):  # int32 cells, 16 a line
+                    _prefetch(cidx, c)
+                _prefetch(cidx, c1)
+            cells[row - r0, 0], cells[row - r0, 1] = c0, c1
+        for row in range(r0, r1):
+            c0, c1 = cells[row - r0, 0], cells[row - r0, 1]
+            if c0 >= 0:
+                k0 = int(rec[rows[row], _R_K0])
+                j0, j1 = k0 + cidx[c0], k0 + cidx[c1] + 1  # j1: a row may step into the next interval
+                j1 = min(j1, j0 + 8)
+                for j in range(j0, j1 + 1):
+                    _prefetch(coef, j * n_coef)
+                    _prefetch(coef, j * n_coef + n_coef - 1)
+                _prefetch(x, j0)
+                _prefetch(x, j1)
+
     @_jit_vector
     def _table_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx, coef, out_p, out_f):
         """The "table" kind over (n_rows, n_samp) samples: ``out_p`` (NaN where unusable), ``out_f``.
@@ -528,7 +634,8 @@ if numba is not None:
         lookup step, the exact power beyond the series) is marked and done
         again by the reference, :func:`_table_sample`, which is called only
         there: it reads the tables as array arguments, whose reference
-        counting costs a call per sample.
+        counting costs a call per sample. Rows go in blocks of ``_BLOCK``,
+        whose table lines :func:`_prefetch_block` asks for first.
         """
         n_rows, n_samp = out_p.shape
         dm = _dom(dom)
@@ -537,49 +644,63 @@ if numba is not None:
         marks = np.zeros(n_samp, dtype=np.uint8)
         shared = (tb.shape[0] == 1, ltb.shape[0] == 1, b.shape[0] == 1, v.shape[0] == 1, hk.shape[0] == 1)
         _fill(tb, 0, s_tb), _fill(ltb, 0, s_ltb), _fill(b, 0, s_b), _fill(v, 0, s_v), _fill(hk, 0, s_hk)
-        for row in range(n_rows):
-            d = rows[row]
-            if not shared[4]:
-                _fill(hk, row, s_hk)
-            if d < 0:
+        cells, ends = np.empty((_BLOCK, 2), dtype=np.int64), np.empty((_BLOCK, 4))
+        for r0 in range(0, n_rows, _BLOCK):
+            r1 = min(r0 + _BLOCK, n_rows)
+            if n_samp > 0:
+                for row in range(r0, r1):
+                    e = row - r0
+                    ends[e, 0], ends[e, 1] = ci_[row, 0], cq_[row, 0]
+                    ends[e, 2], ends[e, 3] = ci_[row, n_samp - 1], cq_[row, n_samp - 1]
+                _prefetch_block(ends, b, v, rows, rec, x, cidx, coef, r0, r1, cells)
+            for row in range(r0, r1):
+                d = rows[row]
+                if not shared[4]:
+                    _fill(hk, row, s_hk)
+                if d < 0:
+                    for s in range(n_samp):
+                        out_f[row, s] = s_hk[s] | _UNKNOWN
+                        out_p[row, s] = math.nan
+                    continue
+                if not shared[0]:
+                    _fill(tb, row, s_tb)
+                if not shared[1]:
+                    _fill(ltb, row, s_ltb)
+                if not shared[2]:
+                    _fill(b, row, s_b)
+                if not shared[3]:
+                    if v.shape[1] == 1:  # the live layout (a bias per detector): no call per row
+                        v_row = v[row, 0]
+                        for s in range(n_samp):
+                            s_v[s] = v_row
+                    else:
+                        _fill(v, row, s_v)
+                q = _record(rec, d)
+                k0, last = int(q[_R_K0]), int(q[_R_LAST])
+                n_slow = 0
                 for s in range(n_samp):
-                    out_f[row, s] = s_hk[s] | _UNKNOWN
-                    out_p[row, s] = math.nan
-                continue
-            if not shared[0]:
-                _fill(tb, row, s_tb)
-            if not shared[1]:
-                _fill(ltb, row, s_ltb)
-            if not shared[2]:
-                _fill(b, row, s_b)
-            if not shared[3]:
-                _fill(v, row, s_v)
-            q = _record(rec, d)
-            k0, last = int(q[_R_K0]), int(q[_R_LAST])
-            n_slow = 0
-            for s in range(n_samp):
-                tbs, bs, vs = s_tb[s], s_b[s], s_v[s]
-                f, r, m2, inside, rc = _lane_front(float(ci_[row, s]), float(cq_[row, s]), tbs, bs, vs,
-                                                   int(s_hk[s]), q, dm)
-                # find_interval's lookup, one step, and whether it needed more.
-                j = k0 + cidx[_cell(rc, q)]
-                j += (j + 1 < last) & (rc >= x[j + 1])
-                more = (j + 1 < last) & (rc >= x[j + 1])
-                u = rc - x[j]
-                w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
-                inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
-                p, beyond = _lane_power(w, inv_ts, r, m2, tbs, bs, vs, q)
-                out_p[row, s] = p if inside & ((f & _UNUSABLE) == 0) else math.nan
-                out_f[row, s] = f
-                slow = inside & (more | beyond)
-                marks[s] = slow
-                n_slow += slow
-            if n_slow:
-                for s in range(n_samp):
-                    if marks[s]:
-                        out_p[row, s], out_f[row, s] = _table_sample(
-                            float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_ltb[s], s_b[s], s_v[s],
-                            int(s_hk[s]), q, dm, x, cidx, coef)
+                    tbs, bs, vs = s_tb[s], s_b[s], s_v[s]
+                    f, r, m2, inside, rc = _lane_front(float(ci_[row, s]), float(cq_[row, s]), tbs, bs, vs,
+                                                       int(s_hk[s]), q, dm)
+                    # find_interval's lookup, one step, and whether it needed more.
+                    j = k0 + cidx[_cell(rc, q)]
+                    j += (j + 1 < last) & (rc >= x[j + 1])
+                    more = (j + 1 < last) & (rc >= x[j + 1])
+                    u = rc - x[j]
+                    w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
+                    inv_ts = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
+                    p, beyond = _lane_power(w, inv_ts, r, m2, tbs, bs, vs, q)
+                    out_p[row, s] = p if inside & ((f & _UNUSABLE) == 0) else math.nan
+                    out_f[row, s] = f
+                    slow = inside & (more | beyond)
+                    marks[s] = slow
+                    n_slow += slow
+                if n_slow:
+                    for s in range(n_samp):
+                        if marks[s]:
+                            out_p[row, s], out_f[row, s] = _table_sample(
+                                float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_ltb[s], s_b[s], s_v[s],
+                                int(s_hk[s]), q, dm, x, cidx, coef)
 
     @_jit
     def _grid_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx,
