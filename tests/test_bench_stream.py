@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from mntes_stream.bench._stream_rate import find_rate, next_rate, trial_passes
-from mntes_stream.bench.stream import _cpu_in, _cpu_s, _per_process
+from mntes_stream.bench.stream import _cpu_in, _cpu_s, _per_process, _relay_template, _stamped
 
 
 def test_cores_come_from_the_samples_inside_the_window():
@@ -94,10 +94,36 @@ def test_the_search_finds_the_capacity_within_tolerance_and_budget():
     assert len(res["trials"]) == 2 and "stopping" in lines[-1] and res["msamples_per_s"] <= capacity
 
 
+def test_relay_power_is_the_converters_encoding_with_both_times_stamped():
+    """The relay's message per chunk: byte for byte what the converter's encoder makes of zeros with these times."""
+    import numpy as np
+
+    from mntes_stream.io.lean import PowerEncoder
+    from mntes_stream.io.messages import CountsChunk, PowerChunk
+
+    counts = np.arange(3 * 20, dtype=np.int32).reshape(3, 20)
+
+    def chunk(seq, t_pub_ns):
+        return CountsChunk(setup="benchrelay", board=1, module=4, channels=np.array([0, 5, 9], np.int32), seq=seq,
+                           t0_ns=1_700_000_000_000_000_000 + seq, sample_rate_hz=200.0, counts_i=counts,
+                           counts_q=-counts, t_pub_ns=t_pub_ns)
+
+    enc = PowerEncoder("benchrelay", "relay", "relay")
+    key, head, mid = t = _relay_template(enc, "benchrelay", chunk(0, 1_764_000_000_000_000_000))
+    assert key == "mntes/benchrelay/power/1/4"
+    src, now = 1_764_000_000_123_456_789, 1_764_000_000_987_654_321
+    msg = _stamped(t, src, now)
+    # Only the two times are new: seq and t0_ns stay those of the stream's first chunk.
+    assert msg == enc.encode(chunk(0, src), np.zeros((3, 20)), np.zeros((3, 20), np.uint16), t_pub_ns=now)
+    pw = PowerChunk.from_bytes(msg)
+    assert (pw.source_t_pub_ns, pw.t_pub_ns, pw.p_opt_w.shape, pw.module) == (src, now, (3, 20), 4)
+
+
 def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
     """Flat out then one real-time trial: every chunk converted and recorded, per-process figures consistent."""
     res = subprocess.run([sys.executable, "-m", "mntes_stream", "bench", "stream", "--modules", "2", "--channels", "8",
-                          "--flat-out", "--duration", "120", "--warmup", "0.5", "--passthrough-s", "1", "--threads", "2",
+                          "--flat-out", "--duration", "120", "--warmup", "0.5", "--passthrough-s", "1", "--relay-s", "0.5",
+                          "--threads", "2",
                           "--compression", "lz4", "--find-rate", "--sustain", "2", "--trials", "1", "--json"],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
@@ -107,8 +133,8 @@ def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
     assert out["lost"] == 0 and out["chunks_recorded"] == out["chunks_sent"] > 0
     assert out["ratio_to_passthrough"] == pytest.approx(out["msamples_per_s"] / out["passthrough_msamples_per_s"],
                                                         abs=1e-3)
-    stream, passthrough = out["per_process"]["stream"], out["per_process"]["passthrough"]
-    assert set(stream) == set(passthrough) == {"recorder", "converter", "sink", "source"}
+    stream, passthrough, relay = (out["per_process"][k] for k in ("stream", "passthrough", "relay"))
+    assert set(stream) == set(passthrough) == set(relay) == {"recorder", "converter", "sink", "source", "relay"}
     assert all(0 <= p["cores"] <= os.cpu_count() + 0.1 for p in stream.values())
     assert stream["converter"]["cpu_s"] > 0 and passthrough["sink"]["cpu_s"] > 0
     assert stream["sink"]["msamples_per_cpu_s"] is None and passthrough["converter"]["msamples_per_cpu_s"] is None
@@ -118,6 +144,12 @@ def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
     assert out["recorder_msamples_per_cpu_s"] == stream["recorder"]["msamples_per_cpu_s"]
     assert out["ratio_per_core"] == pytest.approx(
         out["converter_msamples_per_core_s"] / out["passthrough_msamples_per_core_s"], rel=0.01, abs=1e-3)
+    # The relay phase: every chunk relayed, at a rate per core of its own; idle in the other phases.
+    assert out["relay_chunks"] > 0 and out["relay_msamples_per_s"] > 0
+    assert out["relay_msamples_per_core_s"] == relay["relay"]["msamples_per_cpu_s"] > 0
+    assert stream["relay"]["msamples_per_cpu_s"] is None and relay["converter"]["msamples_per_cpu_s"] is None
+    assert out["converter_ratio_to_relay"] > 0 and out["converter_ratio_to_relay"] == pytest.approx(
+        out["converter_msamples_per_core_s"] / out["relay_msamples_per_core_s"], rel=0.01, abs=1e-3)
     rt = out["real_time"]
     (trial,) = rt["trials"]
     assert trial["offered_msamples_per_s"] == pytest.approx(out["msamples_per_s"] * 1.05 / 2, rel=1e-3)

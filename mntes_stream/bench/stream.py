@@ -6,7 +6,14 @@ yardstick. Two phases in one run:
 
 1. passthrough: the source publishes pre-encoded counts chunks flat out to the
    plain subscriber, which decodes each one: what zenoh + msgpack carry with
-   no conversion (``passthrough_msamples_per_s``);
+   no conversion (``passthrough_msamples_per_s``); then, for ``--relay-s``, the
+   same chunks to a relay (:class:`_Relay`), a converter whose conversion costs
+   nothing: it receives and decodes each counts chunk as the converter does and
+   publishes a pre-encoded power message of the converter's size and shape for
+   it, which the plain subscriber counts. The relay's M samples per CPU second
+   of its own (``relay_msamples_per_core_s``) is the most a converter on this
+   transport can do per core; ``converter_ratio_to_relay`` says how far the
+   converter is from it;
 2. stream: ``--duration`` seconds of the array in real time (or flat out with
    ``--flat-out``) through the converter into the recorder. Figures come from
    the recording itself: every power chunk's latency (``t_pub_ns`` of the
@@ -19,6 +26,7 @@ from __future__ import annotations
 
 import os
 import statistics
+import struct
 import tempfile
 import time
 from pathlib import Path
@@ -39,14 +47,17 @@ def add_arguments(p) -> None:
                         "pass in about two and the rate would be mostly start-up)")
     p.add_argument("--warmup", type=float, default=2.0, metavar="S", help="left out of rates and latencies (default 2 s)")
     p.add_argument("--passthrough-s", type=float, default=3.0, metavar="S", help="passthrough phase length (default 3 s)")
+    p.add_argument("--relay-s", type=float, default=2.0, metavar="S",
+                   help="after the passthrough, this long through the relay (a zero-cost converter: receive, "
+                        "decode, publish a pre-encoded power message) to the same subscriber (default 2 s; 0: none)")
     p.add_argument("--kind", default="table", help="conversion kind (default table)")
     p.add_argument("--flat-out", action="store_true", help="stream phase as fast as possible instead of real time")
     p.add_argument("--threads", type=int, default=1, metavar="N",
                    help="the converter's conversion threads ([converter] threads, default 1)")
     p.add_argument("--recorder-shards", type=int, default=1, metavar="K",
                    help="K recorder processes, each recording its shard of the streams (default 1)")
-    p.add_argument("--compression", default="zstd", choices=("zstd", "lz4", "none"),
-                   help="recorder chunk compression (default zstd)")
+    p.add_argument("--compression", default=None, choices=("zstd", "lz4", "none"),
+                   help="recorder chunk compression (default: the recorder's own, lz4)")
     p.add_argument("--keep", metavar="DIR", help="keep the recording and parameters in DIR")
     p.add_argument("--find-rate", action="store_true",
                    help="then find the real-time rate: the highest offered rate (by sample rate) sustained for "
@@ -65,10 +76,31 @@ def add_arguments(p) -> None:
     add_zenoh_args(p)
 
 
+class _Tally:
+    """Messages and samples a subscriber took in, and when the first and last arrived (receive times)."""
+
+    def __init__(self):
+        self.n = self.samples = 0
+        self.t_first = self.t_last = None
+
+    def add(self, samples: int, t_recv_ns: int) -> None:
+        self.n += 1
+        self.samples += samples
+        self.t_first = t_recv_ns if self.t_first is None else self.t_first
+        self.t_last = t_recv_ns
+
+    def result(self) -> dict:
+        span = (self.t_last - self.t_first) / 1e9 if self.n > 1 else 0.0
+        return {"messages": self.n, "samples": self.samples, "span_s": span, "t_first_ns": self.t_first,
+                "t_last_ns": self.t_last, "msamples_per_s": self.samples / span / 1e6 if span > 0 else 0.0}
+
+
 class _Sink(Service):
     """Plain subscriber: decode every counts chunk, count samples (the passthrough yardstick).
 
-    ``config``: a dict with ``zenoh`` (ZenohSettings) and ``key`` (the key expression).
+    ``config``: a dict with ``zenoh`` (ZenohSettings), ``key`` (the counts key expression) and optionally
+    ``power_key`` (the relay's power: unpacked, its schema checked and its samples counted, reported
+    under ``"relayed"``).
     """
 
     name = "bench-sink"
@@ -80,32 +112,120 @@ class _Sink(Service):
     def setup(self, ctx) -> None:
         from mntes_stream.io.transport import QueueSubscriber
 
-        self._sub = QueueSubscriber(ctx.session, [self.config["key"]], maxsize=1 << 16)
-        self._n = self._samples = 0
-        self._t_first = self._t_last = None
+        keys = [self.config["key"], *([self.config["power_key"]] if self.config.get("power_key") else [])]
+        self._sub = QueueSubscriber(ctx.session, keys, maxsize=1 << 16)
+        self._counts, self._power = _Tally(), _Tally()
 
     def step(self, ctx) -> bool:
-        from mntes_stream.io.messages import CountsChunk
+        from mntes_stream.io.message_base import unpack_payload
+        from mntes_stream.io.messages import CountsChunk, PowerChunk
 
         item = self._sub.get(timeout_s=0.05)
         while item is not None:
-            c = CountsChunk.from_bytes(item[1])
-            self._n += 1
-            self._samples += c.counts_i.size
-            self._t_first = item[2] if self._t_first is None else self._t_first
-            self._t_last = item[2]
+            if "/power/" in item[0]:
+                # Unpacked, not validated: the relay's messages are a converter's, and this subscriber's
+                # time is not what the relay phase measures (it only must keep up).
+                shape = unpack_payload(item[1], PowerChunk.SCHEMA)["p_opt_w"]["shape"]
+                self._power.add(shape[0] * shape[1], item[2])
+            else:
+                self._counts.add(CountsChunk.from_bytes(item[1]).counts_i.size, item[2])
             item = self._sub.get()
         return True
 
     def counters(self) -> dict:
-        return {"messages": getattr(self, "_n", 0)}
+        return {"messages": self._counts.n if hasattr(self, "_counts") else 0}
 
     def finish(self, ctx) -> dict:
         self._sub.close()
-        n, samples = self._n, self._samples
-        span = (self._t_last - self._t_first) / 1e9 if n > 1 else 0.0
-        return {"messages": n, "samples": samples, "span_s": span, "t_first_ns": self._t_first,
-                "t_last_ns": self._t_last, "msamples_per_s": samples / span / 1e6 if span > 0 else 0.0}
+        return {**self._counts.result(), "relayed": self._power.result()}
+
+
+class _Relay(Service):
+    """A converter whose conversion costs nothing: the ceiling of a converter's rate per core on this transport.
+
+    It receives counts chunks as the converter does (a bounded callback queue, recovering subscriber,
+    the lean decoder of the converter's hot path), and publishes for each a power message of the size
+    and shape the converter would publish for it, encoded once per stream by the converter's encoder
+    (zeros for power and flags); per chunk only the two publication times at the end of the message
+    are stamped anew (fixed-width integers: a slice and a pack). Publishers keep the converter's
+    history cache. ``config``: a dict with ``zenoh``, ``key`` (counts key expression), ``setup`` (of
+    the power keys).
+    """
+
+    name = "bench-relay"
+    Config = dict
+
+    def zenoh_settings(self):
+        return self.config["zenoh"]
+
+    def history_chunks(self) -> int:
+        from mntes_stream.io.history import POWER_CHUNK_S, cache_chunks
+
+        return cache_chunks(self.config["zenoh"].history_seconds, POWER_CHUNK_S)
+
+    def setup(self, ctx) -> None:
+        from mntes_stream.io.lean import CountsDecoder, PowerEncoder
+        from mntes_stream.io.transport import QueueSubscriber
+
+        # Bounded as the converter's: a relay behind the source pushes back on it instead of piling up.
+        self._sub = QueueSubscriber(ctx.session, [self.config["key"]], maxsize=256, stop=ctx.stop,
+                                    mode="callback", recover="history")
+        self._decoder = CountsDecoder()
+        self._encoder = PowerEncoder(self.config["setup"], "relay", "relay")
+        self._templates: dict = {}  # counts key -> (power key, message head up to source_t_pub_ns, middle)
+        self._tally = _Tally()
+
+    def step(self, ctx) -> bool:
+        pubs, decode, templates, setup = ctx.publishers, self._decoder.decode, self._templates, self.config["setup"]
+        item = self._sub.get(timeout_s=0.05)
+        while item is not None:
+            key, payload, _ = item
+            chunk = decode(key, payload)
+            t = templates.get(key)
+            if t is None:
+                t = templates[key] = _relay_template(self._encoder, setup, chunk)
+            pubs.put(t[0], _stamped(t, chunk.t_pub_ns, time.time_ns()))
+            self._tally.add(chunk.counts_i.size, time.time_ns())
+            item = self._sub.get()
+        return True
+
+    def counters(self) -> dict:
+        return {"relayed": self._tally.n if hasattr(self, "_tally") else 0}
+
+    def finish(self, ctx) -> dict:
+        self._sub.close()
+        return self._tally.result()
+
+
+_MID = b"\xa8t_pub_ns\xcf"  # between the two times of a power message: the key t_pub_ns, its value's type byte
+_U64 = struct.Struct(">Q").pack
+
+
+def _relay_template(encoder, setup: str, chunk) -> tuple:
+    """The relay's power message for ``chunk``'s stream: ``(power key, bytes up to source_t_pub_ns's value, middle)``.
+
+    Encoded by the converter's :class:`~mntes_stream.io.lean.PowerEncoder` (zeros for power and flags,
+    shape (n_ch, n_samp) of the chunk). Publication times since 1970 in ns pack as msgpack uint64
+    (0xcf and 8 bytes), so stamping others (:func:`_stamped`) keeps the message's length and layout;
+    a message not ending so raises :class:`SchemaError`.
+    """
+    import numpy as np
+
+    from mntes_stream.errors import SchemaError
+    from mntes_stream.io import keys
+
+    shape = chunk.counts_i.shape
+    big = (1 << 63) - 1
+    msg = encoder.encode(chunk, np.zeros(shape), np.zeros(shape, np.uint16), t_pub_ns=big)
+    if not msg.endswith(b"\xcf" + _U64(chunk.t_pub_ns) + _MID + _U64(big)):
+        raise SchemaError(f"bench relay: the power message of stream {chunk.board}/{chunk.module} does not end "
+                          "with its two publication times", "malformed")
+    return keys.power_key(setup, chunk.board, chunk.module), msg[:-26], _MID
+
+
+def _stamped(template: tuple, source_t_pub_ns: int, t_pub_ns: int) -> bytes:
+    """The template's message with these two publication times (the rest as encoded once)."""
+    return b"".join((template[1], _U64(source_t_pub_ns), template[2], _U64(t_pub_ns)))
 
 
 class BenchSource(Service):
@@ -113,7 +233,8 @@ class BenchSource(Service):
 
     ``config`` is a dict: ``source`` (SourceConfig), ``params`` (file), ``zenoh``, ``duration_s`` (of data),
     and optionally ``flat_out`` (default True), ``passthrough_s`` with ``pass_setup`` (phase 1: the same
-    counts messages re-keyed to ``pass_setup``, flat out, for a plain subscriber), ``match_s`` (how long
+    counts messages re-keyed to ``pass_setup``, flat out, for a plain subscriber), then ``relay_s`` with
+    ``relay_setup`` (the same, re-keyed to ``relay_setup``, for the relay), ``match_s`` (how long
     the counts may wait for their subscriber, default 60), ``settle_s`` (a pause before the clock starts,
     default 0.5) and ``label`` (for its errors). After the last batch it stays until stopped: ``put``
     returns once a message is queued, not delivered, and closing the session would lose what the
@@ -151,20 +272,23 @@ class BenchSource(Service):
         cfg, src, pubs = self.config, self._src, ctx.publishers
         sc = cfg["source"]
         if cfg.get("passthrough_s", 0) > 0:
-            pass_msgs = []
-            for _, batch in src.batches(time.time_ns(), duration_s=2.0):
-                pass_msgs += [(k.replace(f"/{sc.setup}/", f"/{cfg['pass_setup']}/", 1), p) for k, p in batch
-                              if "/counts/" in k]
-            pubs.wait_matching(sorted({k for k, _ in pass_msgs}), 30.0, ctx.stop)
-            yield
-            n = 0
-            t_end = time.monotonic() + cfg["passthrough_s"]
-            while time.monotonic() < t_end:
-                for k, p in pass_msgs:
-                    pubs.put(k, p)
-                n += len(pass_msgs)
+            counts = [(k, p) for _, batch in src.batches(time.time_ns(), duration_s=2.0) for k, p in batch
+                      if "/counts/" in k]
+            phases = [("passthrough", cfg["pass_setup"], cfg["passthrough_s"])]
+            if cfg.get("relay_s", 0) > 0:
+                phases.append(("relay", cfg["relay_setup"], cfg["relay_s"]))
+            for phase, setup, seconds in phases:
+                msgs = [(k.replace(f"/{sc.setup}/", f"/{setup}/", 1), p) for k, p in counts]
+                pubs.wait_matching(sorted({k for k, _ in msgs}), 30.0, ctx.stop)
                 yield
-            self._out["passthrough_sent"] = n
+                n = 0
+                t_end = time.monotonic() + seconds
+                while time.monotonic() < t_end:
+                    for k, p in msgs:
+                        pubs.put(k, p)
+                    n += len(msgs)
+                    yield
+                self._out[f"{phase}_sent"] = n
         match_s = float(cfg.get("match_s", 60.0))
         if not pubs.wait_matching(self._counts_keys, match_s, ctx.stop):
             raise TransportError(f"{cfg.get('label', 'bench stream')}: the converter did not subscribe to every "
@@ -294,12 +418,15 @@ def run_once(args) -> dict:
     from mntes_stream.service.source import MinimalSource, SourceConfig
     from mntes_stream.service.supervise import Services
 
-    setup, pass_setup = "bench", "benchpass"
+    setup, pass_setup, relay_setup = "bench", "benchpass", "benchrelay"
     if args.duration is None:
         args.duration = 60.0 if args.flat_out else 20.0
     if args.recorder_shards < 1:
         raise ConfigError("--recorder-shards takes a count >= 1")
     with_pass = args.passthrough_s > 0
+    with_relay = with_pass and getattr(args, "relay_s", 0) > 0  # bench scale's arguments have no relay
+    if args.compression is None:
+        args.compression = RecorderConfig().compression
     n = max(1, round(args.chunk_s * args.sample_rate))
     sc = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
                       sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate,
@@ -315,7 +442,7 @@ def run_once(args) -> dict:
     params_file = work / "params.toml"
     dump_params(MinimalSource(sc).params, params_file)
     p_recs = [free_tcp_port() for _ in range(args.recorder_shards)]
-    p_conv, p_src, p_sink = (free_tcp_port() for _ in range(3))
+    p_conv, p_src, p_sink, p_relay = (free_tcp_port() for _ in range(4))
     zenoh = zenoh_layer(args)
     rec_cfgs = [RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0,
                                log_interval_s=3600, compression=args.compression,
@@ -325,20 +452,26 @@ def run_once(args) -> dict:
     conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, provenance_interval_s=0,
                                threads=args.threads,
                                zenoh=zenoh.over(loopback(p_conv, p_recs)))
-    peers = [p_conv, *p_recs, *([p_sink] if with_pass else [])]
+    peers = [p_conv, *p_recs, *([p_sink] if with_pass else []), *([p_relay] if with_relay else [])]
     src_cfg = {"source": sc, "params": str(params_file), "zenoh": zenoh.over(loopback(p_src, peers)),
                "pass_setup": pass_setup, "passthrough_s": args.passthrough_s, "duration_s": args.duration,
+               "relay_setup": relay_setup, "relay_s": args.relay_s if with_relay else 0.0,
                "flat_out": args.flat_out, "label": "bench stream"}
-    sink_cfg = {"zenoh": zenoh.over(loopback(p_sink)), "key": keys.counts_key(pass_setup, "*", "*")}
+    sink_cfg = {"zenoh": zenoh.over(loopback(p_sink)), "key": keys.counts_key(pass_setup, "*", "*"),
+                "power_key": keys.power_key(relay_setup, "*", "*") if with_relay else None}
+    relay_cfg = {"zenoh": zenoh.over(loopback(p_relay, [p_sink])), "key": keys.counts_key(relay_setup, "*", "*"),
+                 "setup": relay_setup}
     load_before = os.getloadavg()[0]
     services = Services()
-    names = ("source", "converter", *rec_names, *(["sink"] if with_pass else []))
+    names = ("source", "converter", *rec_names, *(["sink"] if with_pass else []), *(["relay"] if with_relay else []))
     try:
         for name, rec_cfg in zip(rec_names, rec_cfgs):
             services.start(name, "recorder", rec_cfg)
         services.start("converter", "converter", conv_cfg)
         if with_pass:
             services.start("sink", _Sink, sink_cfg)
+        if with_relay:
+            services.start("relay", _Relay, relay_cfg)
         services.start("source", BenchSource, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
         pids = {name: proc.pid for name, proc in services.procs.items()}
@@ -365,7 +498,7 @@ def run_once(args) -> dict:
         for name in names:
             services.stop(name, timeout_s=10)
     results, ok_all = services.collect()
-    src, conv, rec, sink = (results.get(k, {}) for k in ("source", "converter", "recorder", "sink"))
+    src, conv, rec, sink, relay = (results.get(k, {}) for k in ("source", "converter", "recorder", "sink", "relay"))
     if not isinstance(src, dict) or "t_start_ns" not in src:
         raise TransportError(f"bench stream: the source failed: {src}; converter: {conv}; recorder: {rec}")
     window_end = None if args.flat_out else src["t_start_ns"] + int(args.duration * 1e9)
@@ -388,6 +521,12 @@ def run_once(args) -> dict:
     procs_stream = _per_process(cpu_samples, src["t_start_ns"], stream_end, msps, share)
     procs_pass = _per_process(cpu_samples, sink.get("t_first_ns"), sink.get("t_last_ns"), pass_msps,
                               {"source": 1.0, "sink": 1.0}) if with_pass else {}
+    # The relay phase over the subscriber's receipts of the relayed power: every sample went through all three.
+    relayed = sink.get("relayed") or {}
+    relay_msps = relayed.get("msamples_per_s", 0.0)
+    procs_relay = _per_process(cpu_samples, relayed.get("t_first_ns"), relayed.get("t_last_ns"), relay_msps,
+                               {"source": 1.0, "relay": 1.0, "sink": 1.0}) if with_relay else {}
+    relay_per_core = procs_relay.get("relay", {}).get("msamples_per_cpu_s")
     cores_stream = {k: v["cores"] for k, v in procs_stream.items()}
     cores_pass = {k: v["cores"] for k, v in procs_pass.items()}
     per_core = procs_stream.get("converter", {}).get("msamples_per_cpu_s")
@@ -436,15 +575,23 @@ def run_once(args) -> dict:
         "ratio_to_passthrough": ratio(msps, pass_msps),
         # Per process and phase (from /proc, sampled about every 0.1 s): CPU seconds, cores, and M samples
         # per CPU second of what went through it; a process idle in a phase has no rate there.
-        "per_process": {"stream": procs_stream, "passthrough": procs_pass},
+        "per_process": {"stream": procs_stream, "passthrough": procs_pass, "relay": procs_relay},
         "cores_during_stream": cores_stream,
         "cores_during_passthrough": cores_pass,
         # Per core of the process itself: the converter's rate per core it used, the plain subscriber's likewise.
         "converter_msamples_per_core_s": per_core,
         "passthrough_msamples_per_core_s": pass_per_core,
         "ratio_per_core": ratio(per_core, pass_per_core),
+        # The relay (a converter whose conversion costs nothing, see the module docstring): the ceiling of the
+        # converter's rate per core on this transport, and the converter's share of it.
+        "relay_msamples_per_s": round(relay_msps, 3) if with_relay else None,
+        "relay_chunks": relay.get("messages") if with_relay and isinstance(relay, dict) else None,
+        "relay_msamples_per_core_s": relay_per_core,
+        "relay_ratio_per_core": ratio(relay_per_core, pass_per_core),
+        "converter_ratio_to_relay": ratio(per_core, relay_per_core),
         "recorder_msamples_per_cpu_s": round(rec_per_cpu, 3) if rec_per_cpu else None,
         "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), **({"sink": cpu(sink)} if with_pass else {}),
+                         **({"relay": cpu(relay)} if with_relay else {}),
                          **{name: cpu(results.get(name, {})) for name in rec_names}},
         "converter_threads": args.threads,
         "recorder_shards": args.recorder_shards,

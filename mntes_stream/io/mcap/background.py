@@ -77,7 +77,10 @@ class BackgroundMcapWriter:
         self._max_bytes = int(queue_bytes)
         self._items: collections.deque = collections.deque()
         self._bytes = 0
-        self._cv = threading.Condition()
+        # A plain lock under the condition, taken as ``with self._lock`` (C, no Python frames): the caller takes
+        # it for every message.
+        self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)
         self._file_seq = 1
         self._file_queued = 0  # payload bytes handed over for the current file
         self._opened = time.monotonic()
@@ -87,6 +90,9 @@ class BackgroundMcapWriter:
         self._raised = False
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        # Whether the writer thread still takes items: a flag it clears as it ends (Thread.is_alive, asked for every
+        # message, cost as much as the rest of the hand-over).
+        self._alive = True
         self._thread.start()
 
     # -- the caller's side
@@ -152,8 +158,8 @@ class BackgroundMcapWriter:
             raise self.error
 
     def _put(self, item, n: int, wait: bool = True) -> None:
-        with self._cv:
-            if not self._thread.is_alive() and item[0] != _CLOSE:
+        with self._lock:
+            if not self._alive and item[0] != _CLOSE:
                 self._w.unwritten += item[0] == _MSG  # the writer died (said by _raise_once): counted, not queued
                 return
             if wait and self._items and (len(self._items) >= self._max_items or self._bytes + n > self._max_bytes):
@@ -161,7 +167,7 @@ class BackgroundMcapWriter:
                 self._cv.notify_all()  # the writer may be lingering for a batch that cannot grow
                 t0 = time.monotonic()
                 while (self._items and (len(self._items) >= self._max_items or self._bytes + n > self._max_bytes)
-                       and self._thread.is_alive()):
+                       and self._alive):
                     self._cv.wait(0.1)
                 self.wait_s += time.monotonic() - t0
             self._items.append(item)
@@ -174,10 +180,18 @@ class BackgroundMcapWriter:
 
     # -- the writer thread
     def _run(self) -> None:
+        try:
+            self._write_items()
+        finally:
+            with self._lock:
+                self._alive = False
+                self._cv.notify_all()  # a caller waiting for room stops waiting
+
+    def _write_items(self) -> None:
         w = self._w
         written = 0  # payload bytes written into the current file
         while True:
-            with self._cv:
+            with self._lock:
                 if len(self._items) < self._wake:
                     self._cv.wait(_LINGER_S if self._items else max(w.next_tick_s(), 0.001))
                 batch = [self._items.popleft() for _ in range(min(len(self._items), _BATCH))]

@@ -5,11 +5,16 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import struct
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 
 import msgpack
-from mcap.writer import CompressionType, Writer
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import ChunkIndex
+from mcap.writer import CompressionType, IndexType, Writer
 
 from mntes_stream import __version__
 from mntes_stream.errors import ConfigError, SchemaError, TransportError
@@ -27,6 +32,144 @@ from mntes_stream.io.mcap.envelope import (
 )
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ").pack  # opcode, record length, channel, sequence, log time, publish time
+_CHUNK_HEAD = struct.Struct("<BQQQQI").pack  # opcode, record length, start, end, uncompressed size and crc
+
+
+class _Chunk:
+    """The open chunk of a :class:`_LeanWriter`: its records as a list of bytes, joined once when it closes.
+
+    Stands in for ``mcap``'s ``ChunkBuilder`` (same attributes and methods, which the library's ``Writer``
+    calls for channels and schemas), where every message went through a ``Message`` object and a
+    ``BytesIO`` (a copy of the payload, and a seek and rewrite of each record's length).
+    """
+
+    def __init__(self) -> None:
+        self.parts: list = []
+        self.count = 0  # bytes of records so far
+        self.num_messages = 0
+        self.message_start_time = self.message_end_time = 0
+        # channel id -> [log time, offset, log time, offset, ...]: the chunk's message index records, flat
+        self.message_indices: dict[int, list] = {}
+
+    def add_message_bytes(self, channel_id: int, sequence: int, log_time: int, publish_time: int, data: bytes) -> None:
+        """One message record (as ``mcap.records.Message.write`` lays it out) and its index entry."""
+        if self.num_messages == 0:
+            self.message_start_time = self.message_end_time = log_time
+        elif log_time < self.message_start_time:
+            self.message_start_time = log_time
+        elif log_time > self.message_end_time:
+            self.message_end_time = log_time
+        index = self.message_indices.get(channel_id)
+        if index is None:
+            index = self.message_indices[channel_id] = []
+        index += (log_time, self.count)
+        self.num_messages += 1
+        self.parts.append(_MESSAGE_HEAD(Opcode.MESSAGE, 22 + len(data), channel_id, sequence, log_time, publish_time))
+        self.parts.append(data)
+        self.count += 31 + len(data)
+
+    def add_message(self, message) -> None:
+        self.add_message_bytes(message.channel_id, message.sequence, message.log_time, message.publish_time,
+                               message.data)
+
+    def _record(self, record) -> None:
+        b = RecordBuilder()
+        record.write(b)
+        data = b.end()
+        self.parts.append(data)
+        self.count += len(data)
+
+    add_channel = add_schema = _record
+
+    def end(self) -> bytes:
+        data = b"".join(self.parts)
+        self.parts, self.count = [], 0
+        return data
+
+    def reset(self) -> None:
+        self.parts, self.count, self.num_messages = [], 0, 0
+        self.message_start_time = self.message_end_time = 0
+        self.message_indices.clear()
+
+
+class _LeanWriter(Writer):
+    """``mcap.writer.Writer`` with a cheaper path for messages into chunks; the file is byte for byte the same.
+
+    Each message's record is packed once and its payload referenced, not copied, until the chunk is
+    joined (one copy), compressed and written straight to the file; the library's path copied each
+    payload three more times (into its chunk buffer, the chunk record, the output buffer) and built a
+    ``Message`` object per message, and two packs per message for its index. Written against mcap
+    1.6's ``Writer``, whose name-mangled internals it uses (``_Writer__...``); a test
+    (``tests/test_mcap_files.py``) compares whole files with the library's for every compression.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        if self._Writer__enable_data_crcs or self._Writer__chunk_builder is None:
+            raise ConfigError("the lean MCAP writer writes chunked files without a data-section CRC")
+        self._Writer__chunk_builder = _Chunk()
+        self._stats = self._Writer__statistics
+        self._compress = {CompressionType.LZ4: "lz4", CompressionType.ZSTD: "zstd"}.get(
+            self._Writer__compression, "")
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0):
+        st = self._stats
+        if st.message_count == 0:
+            st.message_start_time = log_time
+        elif log_time < st.message_start_time:
+            st.message_start_time = log_time
+        if log_time > st.message_end_time:
+            st.message_end_time = log_time
+        st.channel_message_counts[channel_id] += 1
+        st.message_count += 1
+        chunk = self._Writer__chunk_builder
+        chunk.add_message_bytes(channel_id, sequence, log_time, publish_time, data)
+        if chunk.count > self._Writer__chunk_size:
+            self._Writer__finalize_chunk()
+
+    def _Writer__finalize_chunk(self) -> None:
+        """As the library's ``__finalize_chunk``, writing the compressed chunk to the file without copying it."""
+        chunk = self._Writer__chunk_builder
+        if chunk.num_messages == 0:
+            return
+        self._stats.chunk_count += 1
+        data = chunk.end()
+        if self._compress == "lz4":
+            import lz4.frame
+
+            compressed = lz4.frame.compress(data)
+        elif self._compress == "zstd":
+            import zstandard
+
+            compressed = zstandard.compress(data)
+        else:
+            compressed = data
+        name = self._compress.encode()
+        crc = zlib.crc32(data) if self._Writer__enable_crcs else 0
+        self._Writer__flush()
+        stream = self._Writer__stream
+        start = stream.tell()
+        length = 8 * 3 + 4 + 4 + len(name) + 8 + len(compressed)
+        stream.write(_CHUNK_HEAD(Opcode.CHUNK, length, chunk.message_start_time, chunk.message_end_time, len(data), crc)
+                     + len(name).to_bytes(4, "little") + name + len(compressed).to_bytes(8, "little"))
+        stream.write(compressed)
+        index = ChunkIndex(message_start_time=chunk.message_start_time, message_end_time=chunk.message_end_time,
+                           chunk_start_offset=start, chunk_length=9 + length, message_index_offsets={},
+                           message_index_length=0, compression=self._compress, compressed_size=len(compressed),
+                           uncompressed_size=len(data))
+        index_start = start + 9 + length
+        builder = self._Writer__record_builder
+        if self._Writer__index_types & IndexType.MESSAGE:
+            # Each as mcap.records.MessageIndex.write lays it out, in one pack instead of two per message.
+            for cid, flat in chunk.message_indices.items():
+                index.message_index_offsets[cid] = index_start + builder.count
+                builder.write(struct.pack(f"<BQHI{len(flat)}Q", Opcode.MESSAGE_INDEX, 6 + 8 * len(flat), cid,
+                                          8 * len(flat), *flat))
+        index.message_index_length = builder.count
+        self._Writer__flush()
+        self._Writer__chunk_indices.append(index)
+        chunk.reset()
 
 
 class McapFileWriter:
@@ -97,6 +240,9 @@ class McapFileWriter:
         self._json_schemas: dict[str, int] = {}
         self._json_channels: dict[str, int] = {}
         self._channels: dict[tuple[str, str, int, str], int] = {}
+        # (topic, schema, version, the envelope's problem) -> channel id: what _channel decides for a message,
+        # looked up once per message instead of decided again
+        self._channel_of: dict[tuple[str, str, int, str], int] = {}
         self._provenance: tuple[bytes, int] | None = None
         self.messages = 0
         self.json_messages = 0
@@ -105,7 +251,7 @@ class McapFileWriter:
         self.invalid = 0
         self.closed = False
         try:
-            self._writer = Writer(self._file, chunk_size=chunk_size_bytes, compression=_COMPRESSION[compression])
+            self._writer = _LeanWriter(self._file, chunk_size=chunk_size_bytes, compression=_COMPRESSION[compression])
             self._writer.start(profile="", library=f"mntes-stream {__version__}")
             # Flag bits and units in every file: a reader needs no project code to know what bit 3 means.
             for name, data in {**mcap_metadata(), **(metadata or {})}.items():
@@ -145,6 +291,12 @@ class McapFileWriter:
 
     # -- channels
     def _channel(self, topic: str, env: Envelope) -> int:
+        cid = self._channel_of.get((topic, env.schema, env.version, env.problem))
+        if cid is None:
+            cid = self._channel_of[(topic, env.schema, env.version, env.problem)] = self._new_channel(topic, env)
+        return cid
+
+    def _new_channel(self, topic: str, env: Envelope) -> int:
         problem = env.problem
         schema_id = 0
         if not problem:
@@ -177,12 +329,13 @@ class McapFileWriter:
         pub = env.publish_time_ns if env.publish_time_ns is not None and env.publish_time_ns >= 0 else log_time_ns
         seq = (env.seq or 0) & 0xFFFFFFFF
         self.messages += 1  # counted before the write: a failed write is among the ones said to be missing
-
-        def add():
-            cid = self._channel(str(key), env)
-            self._writer.add_message(cid, log_time=int(log_time_ns), data=payload, publish_time=int(pub), sequence=seq)
-
-        self._guard(add)
+        if self.failed:
+            raise TransportError(f"cannot write {self._target}: an earlier write failed ({self.failed})")
+        try:  # as _guard, without a closure and a call for every message
+            self._writer.add_message(self._channel(str(key), env), log_time=int(log_time_ns), data=payload,
+                                     publish_time=int(pub), sequence=seq)
+        except OSError as exc:
+            raise self._failure(exc) from None
         self.payload_bytes += len(payload)
         self.unflushed_bytes += len(payload)
         if env.schema == PROVENANCE_SCHEMA and not env.problem and (self._provenance is None or payload != self._provenance[0]):
