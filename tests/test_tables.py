@@ -135,6 +135,9 @@ def test_save_load_round_trip_keeps_identity_and_results(tmp_path, params, bank)
     assert loaded.params == bank.params and loaded.domain == bank.domain
     for name, a in bank.arrays.items():
         assert np.array_equal(loaded.arrays[name], a)
+    for b in (bank, loaded):  # built or loaded, the kernel's lookups start on a cache line
+        for name in ("r_knot_ohm", "cell_interval", "coeffs"):
+            assert b.arrays[name].ctypes.data % 64 == 0 and not b.arrays[name].flags.writeable, name
     assert read_header(path)["identity"] == bank.identity
     ids = list(params)
     ci = np.full((len(ids), 3), 1_200_000, np.int32)
