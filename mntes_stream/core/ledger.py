@@ -111,12 +111,18 @@ class Ledger:
     def __init__(self, verb: str = "converted"):
         self.verb = str(verb)
         self.streams: dict[str, StreamLedger] = {}
+        self._by_tuple: dict[tuple, StreamLedger] = {}  # (board, module) -> its ledger: no key string per chunk
 
     def _s(self, stream) -> StreamLedger:
+        s = self._by_tuple.get(stream) if type(stream) is tuple else None
+        if s is not None:
+            return s
         key = stream if isinstance(stream, str) else str(StreamKey(*stream))
         s = self.streams.get(key)
         if s is None:
             s = self.streams[key] = StreamLedger()
+        if type(stream) is tuple and len(self._by_tuple) < 1 << 16:
+            self._by_tuple[stream] = s
         return s
 
     def received(self, stream, n: int = 1) -> None:
