@@ -74,11 +74,15 @@ def test_bench_convert_offline_on_a_small_recording():
     assert out["command_warm_cpu_s"][0] < out["command_cold_cpu_s"]
     assert len(out["profile_top_own_time"]) == 5 and all(r["own_s"] >= 0 for r in out["profile_top_own_time"])
     assert set(out["parts_s"]) == {"converter_from_warm_cache", "read_recording", "decode_counts", "kernel"}
-    assert out["batch_s"] == 1.0 and out["realtime_factor_batched_per_cpu_s"] > 0
+    assert out["batch_s"] == 0.0 and out["realtime_factor_at_batch_s_per_cpu_s"] > 0  # message by message
+    assert out["command_startup_cpu_s"] is None  # --startup not given: one process fewer
 
 
 def test_batched_offline_conversion_gives_the_same_power_and_flags(recording):
-    """batch_s > 0 puts each batch through handle_many: power and flags bit for bit, stamps at batch ends."""
+    """batch_s > 0 (the default: 1) puts each batch through handle_many: power and flags bit for bit as message by
+    message (batch_s=0), stamps at batch ends; the output in lz4 chunks."""
+    from mcap.reader import make_reader
+
     from mntes_stream.io.messages import PowerChunk
 
     def power(path):
@@ -91,9 +95,11 @@ def test_batched_offline_conversion_gives_the_same_power_and_flags(recording):
 
     params = recording / "params.toml"
     one = convert_recording(recording / "rec.mcap", recording / "one.mcap", params=params, progress=False,
-                            table_cache=recording / "cache")
+                            table_cache=recording / "cache", batch_s=0)
     many = convert_recording(recording / "rec.mcap", recording / "many.mcap", params=params, progress=False,
-                             table_cache=recording / "cache", batch_s=0.5)
+                             table_cache=recording / "cache")
+    with open(recording / "many.mcap", "rb") as f:
+        assert {c.compression for c in make_reader(f).get_summary().chunk_indexes} == {"lz4"}
     a, b = power(recording / "one.mcap"), power(recording / "many.mcap")
     assert set(a) == set(b) and len(a) == one.power_chunks == many.power_chunks > 0
     assert all(a[k][:2] == b[k][:2] for k in a)  # the same numbers

@@ -13,12 +13,19 @@ second (target: 20x for 2,048 detectors x 30 s). Besides, each part alone in
 the same minutes: the converter from the warm cache, reading the recording,
 decoding the counts, and the numba kernel on the recording's own chunks;
 ``--profile N`` adds cProfile's top N functions (own time) of one more warm
-run in process; ``--batch-s`` the in-process figure with ``batch_s`` (the
-messages of each S s of receive time through the pipeline together).
+run in process; ``--batch-s`` the in-process figure with ``batch_s=S`` besides
+the default (0, the default of this option: message by message, each output
+stamped at the message that released it; the default conversion puts the
+messages of each second of receive time through the pipeline together).
+``--startup`` measures the command's start-up alone (imports, the compiled
+kernels' load, the converter from the warm cache): the same command, with the
+same parameters, on a recording of one module for ``--chunk-s``; the
+command's figure without it is given too.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import resource
 import shutil
@@ -42,9 +49,11 @@ def add_arguments(p) -> None:
     p.add_argument("--repeat", type=int, default=3, metavar="N", help="warm runs (default 3; the median is the figure)")
     p.add_argument("--profile", type=int, default=0, metavar="N",
                    help="one more warm run under cProfile: its top N functions by own time (default 0: none)")
-    p.add_argument("--batch-s", type=float, default=1.0, metavar="S",
-                   help="also in process with convert_recording(batch_s=S): S s of messages through the pipeline "
-                        "at once (default 1; 0: not measured)")
+    p.add_argument("--batch-s", type=float, default=0.0, metavar="S",
+                   help="also in process with convert_recording(batch_s=S) (default 0: message by message; "
+                        "the default conversion batches 1 s; < 0: not measured)")
+    p.add_argument("--startup", action="store_true",
+                   help="also the command's start-up alone: the same command on one module for one chunk")
     p.add_argument("--keep", metavar="DIR", help="keep the recording, parameters, cache and outputs in DIR")
 
 
@@ -116,29 +125,32 @@ def run(args) -> dict:
                         sample_rate_hz=args.sample_rate)
         source = SimulatorSource(cfg, setup, args.chunk_s)
         rec, params_file = work / "recording.mcap", work / "params.toml"
-        for stale in (rec, *work.glob("out*.mcap")):
+        tiny = work / "startup.mcap"  # one module, one chunk: the command's start-up
+        for stale in (rec, tiny, *work.glob("out*.mcap")):
             stale.unlink(missing_ok=True)
         shutil.rmtree(work / "home", ignore_errors=True)
         dump_params(source.params, params_file)
         written = write_mcap(source, rec, args.seconds)
         n_samples = written["samples"]
+        if args.startup:
+            write_mcap(SimulatorSource(dataclasses.replace(cfg, modules=1), setup, args.chunk_s), tiny, args.chunk_s)
 
         cache = work / "home" / ".cache" / "mntes-stream" / "tables"  # the CLI's default cache under HOME
 
-        def convert(k: int, batch_s: float = 0.0):
+        def convert(k: int, batch_s: float | None = None):
             t0, c0 = time.perf_counter(), time.process_time()
             stats = convert_recording(rec, work / f"out{k}.mcap", params=params_file, table_cache=cache,
-                                      progress=False, batch_s=batch_s)
+                                      progress=False, **({} if batch_s is None else {"batch_s": batch_s}))
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             (work / f"out{k}.mcap").unlink()
             return wall, stats, cpu
 
-        def command(k: int) -> tuple[float, float]:
+        def command(k: int, recording=rec) -> tuple[float, float]:
             # The command as a user runs it, its own process: imports and compiled kernels loaded too.
             out = work / f"cli{k}.mcap"
             r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
-            res = subprocess.run([sys.executable, "-m", "mntes_stream", "convert", str(rec), str(out), "--params",
+            res = subprocess.run([sys.executable, "-m", "mntes_stream", "convert", str(recording), str(out), "--params",
                                   str(params_file), "-q"], capture_output=True, text=True,
                                  env={**os.environ, "HOME": str(work / "home")})
             wall = time.perf_counter() - t0
@@ -152,12 +164,14 @@ def run(args) -> dict:
         load = [os.getloadavg()[0]]
         cli_cold_s, cli_cold_cpu = command(0)  # fills the cache
         cli_warm, cli_warm_cpu = zip(*(command(k + 1) for k in range(args.repeat)))
+        # The same parameters: the converter from the same warm cache.
+        startup, startup_cpu = zip(*(command(k + 1, tiny) for k in range(args.repeat))) if args.startup else ((), ())
         stats = convert(0)[1]  # in process: the kernels compiled or loaded once, as a long-lived process has them
         warm, _, warm_cpu = zip(*(convert(k + 1) for k in range(args.repeat)))
-        batched = [convert(k + 1, args.batch_s) for k in range(args.repeat)] if args.batch_s > 0 else []
+        batched = [convert(k + 1, args.batch_s) for k in range(args.repeat)] if args.batch_s >= 0 else []
         if batched and batched[0][1].samples_converted != stats.samples_converted:
-            raise MntesError(f"bench convert-offline: batched conversion converted {batched[0][1].samples_converted} "
-                             f"samples, message by message {stats.samples_converted}")
+            raise MntesError(f"bench convert-offline: batch_s={args.batch_s} converted "
+                             f"{batched[0][1].samples_converted} samples, the default {stats.samples_converted}")
         # The parts alone, in the same minutes.
         t0 = time.perf_counter()
         conv = build_converter(None, params=params_file, table_cache=cache)[0]
@@ -205,14 +219,20 @@ def run(args) -> dict:
         "command_cold_cpu_s": round(cli_cold_cpu, 2),
         "command_warm_cpu_s": [round(c, 2) for c in cli_warm_cpu],
         "realtime_factor_command_per_cpu_s": round(args.seconds / statistics.median(cli_warm_cpu), 2),
+        # The command's start-up alone: the same command on one module for one chunk (cache warm).
+        "command_startup_s": [round(w, 3) for w in startup] or None,
+        "command_startup_cpu_s": [round(c, 2) for c in startup_cpu] or None,
+        "realtime_factor_command_without_startup_per_cpu_s": round(
+            args.seconds / max(statistics.median(cli_warm_cpu) - statistics.median(startup_cpu), 1e-3), 2)
+        if startup else None,
         "in_process_warm_cpu_s": [round(c, 2) for c in warm_cpu],
         "realtime_factor_per_cpu_s": round(args.seconds / statistics.median(warm_cpu), 2),
-        # The same in process, the messages of each --batch-s s of receive time through the pipeline together.
+        # The same in process with convert_recording(batch_s=--batch-s): 0, message by message.
         "batch_s": args.batch_s if batched else None,
-        "in_process_batched_cpu_s": [round(b[2], 2) for b in batched] or None,
-        "realtime_factor_batched_per_cpu_s": round(args.seconds / statistics.median(b[2] for b in batched), 2)
+        "in_process_at_batch_s_cpu_s": [round(b[2], 2) for b in batched] or None,
+        "realtime_factor_at_batch_s_per_cpu_s": round(args.seconds / statistics.median(b[2] for b in batched), 2)
         if batched else None,
-        "realtime_factor_batched": round(args.seconds / statistics.median(b[0] for b in batched), 2) if batched else None,
+        "realtime_factor_at_batch_s": round(args.seconds / statistics.median(b[0] for b in batched), 2) if batched else None,
         "target_realtime_factor": 20.0,
         "msamples_per_s": round(n_samples / warm_s / 1e6, 3),
         # The parts alone (same minutes): what of the warm run each would take if nothing else did.

@@ -132,47 +132,70 @@ def align(
     finite = np.isfinite(hv) if hv.ndim == 1 else np.all(np.isfinite(hv), axis=1)
     if not np.all(finite):
         ht, hv = ht[finite], hv[finite]
+    return _align_checked(t, ht, hv, staleness_ns, valid_range)
+
+
+def _align_checked(t: np.ndarray, ht: np.ndarray, hv: np.ndarray, staleness_ns: int, valid_range) -> Aligned:
+    """:func:`align` on inputs it has checked: ``t`` int64 (n,), ``ht`` int64 (m,) strictly increasing,
+    ``hv`` float64 (m,) or (m, k) all finite, ``staleness_ns`` >= 0.
+
+    :class:`HkSeries` keeps its history so (sorted, non-finite readings dropped on add) and calls this
+    directly: the checks cost more than the alignment of a short chunk. Steps whose outcome is known
+    (every sample after a reading, no reading out of range, none missing) are skipped; the arithmetic
+    of every value is the same as when they are not.
+    """
     n, m = t.size, ht.size
-    out_shape = (n,) + hv.shape[1:]
-    flags = np.zeros(n, dtype=fl.FLAG_DTYPE)
+    flag_dtype = fl.FLAG_DTYPE
     if m == 0:
-        return Aligned(np.full(out_shape, np.nan), flags | fl.HK_MISSING, np.full(n, -1, dtype=np.int64))
-    bad = np.zeros(m, dtype=bool)
+        return Aligned(np.full((n,) + hv.shape[1:], np.nan), np.full(n, fl.HK_MISSING, dtype=flag_dtype),
+                       np.full(n, -1, dtype=np.int64))
+    # prev: newest reading at or before t; nxt: oldest reading at or after t (idx <= m: prev <= m - 1).
+    idx = np.searchsorted(ht, t, side="right")
+    prev = np.maximum(idx - 1, 0)
+    has_prev = idx > 0
+    all_prev = bool(has_prev.all())
+    ht_prev = ht[prev]
+    exact = has_prev & (ht_prev == t)
+    nxt = np.minimum(idx, m - 1)
+    if exact.any():
+        nxt = np.where(exact, prev, nxt)
+    has_next = exact | (idx < m)
+    bracketed = has_prev & has_next
+    ht_next = ht[nxt]
+    # int64 differences: exact for ns timestamps.
+    d_prev = t - ht_prev
+    d_next = ht_next - t
+    span = ht_next - ht_prev
+    w = np.zeros(n)
+    np.divide(d_prev, span, out=w, where=bracketed & (span > 0))
+    hv_prev, hv_next = hv[prev], hv[nxt]
+    value = hv_prev + (w if hv.ndim == 1 else w[:, None]) * (hv_next - hv_prev)
+    # Before the oldest reading: the oldest value (age d_next); after the newest: hold.
+    age = np.where(bracketed, np.minimum(d_prev, d_next), np.where(has_prev, d_prev, d_next))
+    if all_prev:
+        missing = None
+        stale = age > staleness_ns
+    else:
+        value[~has_prev] = hv_next[~has_prev]
+        missing = ~has_prev & (d_next > staleness_ns)
+        stale = ~missing & (age > staleness_ns)
+    flags = stale.astype(flag_dtype) * np.array(fl.HK_STALE, dtype=flag_dtype)
     if valid_range is not None:
         lo, hi = valid_range
         inside = (hv >= lo) & (hv <= hi)
         bad = ~(inside if hv.ndim == 1 else np.all(inside, axis=1))
-    # prev: newest reading at or before t; nxt: oldest reading at or after t.
-    idx = np.searchsorted(ht, t, side="right")
-    prev = np.clip(idx - 1, 0, m - 1)
-    has_prev = idx > 0
-    exact = has_prev & (ht[prev] == t)
-    nxt = np.where(exact, prev, np.clip(idx, 0, m - 1))
-    has_next = exact | (idx < m)
-    bracketed = has_prev & has_next
-    # int64 differences: exact for ns timestamps.
-    d_prev = t - ht[prev]
-    d_next = ht[nxt] - t
-    span = ht[nxt] - ht[prev]
-    w = np.zeros(n)
-    np.divide(d_prev, span, out=w, where=bracketed & (span > 0))
-    wv = w.reshape((n,) + (1,) * (hv.ndim - 1))
-    value = hv[prev] + wv * (hv[nxt] - hv[prev])
-    # Before the oldest reading: the oldest value (age d_next); after the newest: hold.
-    age = np.where(bracketed, np.minimum(d_prev, d_next), np.where(has_prev, d_prev, d_next))
-    value = np.where(
-        (bracketed | has_prev).reshape(wv.shape), value, hv[nxt]
-    )
-    missing = ~has_prev & (d_next > staleness_ns)
-    stale = ~missing & (age > staleness_ns)
-    used_prev = has_prev & (~bracketed | (w < 1.0))
-    used_next = ~has_prev | (bracketed & (w > 0.0))
-    out_of_range = (used_prev & bad[prev]) | (used_next & bad[nxt])
-    flags[stale] |= fl.HK_STALE
-    flags[missing] |= fl.HK_MISSING
-    flags[out_of_range & ~missing] |= fl.ENV_OUT_OF_RANGE
-    value = np.where(missing.reshape(wv.shape), np.nan, value)
-    return Aligned(value=value, flags=flags, age_ns=np.where(missing, -1, age).astype(np.int64))
+        if bad.any():
+            used_prev = has_prev & (~bracketed | (w < 1.0))
+            used_next = ~has_prev | (bracketed & (w > 0.0))
+            out_of_range = (used_prev & bad[prev]) | (used_next & bad[nxt])
+            if missing is not None:
+                out_of_range &= ~missing
+            flags[out_of_range] |= fl.ENV_OUT_OF_RANGE
+    if missing is not None and missing.any():
+        flags[missing] |= fl.HK_MISSING
+        value[missing] = np.nan
+        age = np.where(missing, -1, age)
+    return Aligned(value=value, flags=flags, age_ns=age.astype(np.int64, copy=False))
 
 
 class HkSeries:
@@ -261,10 +284,11 @@ class HkSeries:
     def align(self, t_ns, staleness_ns: int, valid_range=None) -> Aligned:
         """:func:`align` against this history; only the readings that can matter are looked at."""
         t = np.asarray(t_ns, dtype=np.int64)
-        if t.size == 0 or self.t_ns.size == 0:
-            return align(t, self.t_ns, self.value, staleness_ns, valid_range)
+        if t.ndim != 1 or staleness_ns < 0 or t.size == 0 or self.t_ns.size == 0:
+            return align(t, self.t_ns, self.value, staleness_ns, valid_range)  # its checks, or nothing to do
         # The newest reading at or before min(t) and the oldest at or after max(t)
         # bound everything align() uses (non-finite readings were dropped on add).
         i0 = max(int(np.searchsorted(self.t_ns, t.min(), side="right")) - 1, 0)
         i1 = min(int(np.searchsorted(self.t_ns, t.max(), side="left")) + 1, self.t_ns.size)
-        return align(t, self.t_ns[i0:i1], self.value[i0:i1], staleness_ns, valid_range)
+        # The history is sorted, strictly increasing and finite (add keeps it so): align()'s checks hold.
+        return _align_checked(t, self.t_ns[i0:i1], self.value[i0:i1], staleness_ns, valid_range)

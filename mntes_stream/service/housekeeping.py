@@ -106,6 +106,9 @@ class Housekeeping:
         self._delays: dict[tuple[int, int], int] = {}  # latest receive minus t_pub_ns per counts stream
         self._offset_ns: int | None = None  # median of _delays, refreshed when a reading arrives
         self._env_cache: dict[tuple, tuple] = {}
+        self._bias_cols: dict[tuple, tuple] = {}  # (board, module, channel bytes) -> (bias channels, rows)
+        self._bracket_key: tuple | None = None  # versions of the required series when _bracket_ns was read
+        self._bracket_ns: int | None = None  # their oldest newest reading (None: one has none)
 
     def note_delay(self, stream: tuple[int, int], delay_ns: int) -> None:
         """One counts chunk's receive time minus its ``t_pub_ns`` (sets the data clock)."""
@@ -181,11 +184,14 @@ class Housekeeping:
         """True when every required sensor has a reading at or after ``t_last_ns``."""
         if t_last_ns is None:
             return True
-        for sensor in self.config.required_hk:
-            newest = self.sensors[sensor].newest_t_ns
-            if newest is None or newest < t_last_ns:
-                return False
-        return True
+        # Asked for every held chunk at every message: the oldest newest reading is kept until a
+        # required series changes (its version), instead of read from each series every time.
+        key = tuple(self.sensors[s].version for s in self.config.required_hk)
+        if key != self._bracket_key:
+            newest = [self.sensors[s].newest_t_ns for s in self.config.required_hk]
+            self._bracket_ns = None if None in newest else min(newest, default=_INT64_MAX)
+            self._bracket_key = key
+        return self._bracket_ns is not None and self._bracket_ns >= t_last_ns
 
     def ages_s(self, now_ns: int) -> dict[str, float]:
         """Age of each scalar sensor's newest reading (sensors never read are absent)."""
@@ -228,15 +234,37 @@ class Housekeeping:
             return None, None
         channels, series = entry
         a = series.align(t, self._bias_staleness_ns, self.config.bias_range_v)
-        n_ch, n = chunk.channels.size, t.size
-        v = np.empty((n_ch, n))
-        col = {int(c): j for j, c in enumerate(channels.tolist())}
-        for r, c in enumerate(chunk.channels.tolist()):
-            j = col.get(int(c))
-            v[r] = self._nominal_bias_v.get(ids[r], np.nan) if j is None else a.value[:, j]
+        cols, has_col, nominal = self._bias_rows(chunk, channels, ids)
+        # Each row is its column of the aligned readings (gathered by index: a copy) or else its nominal bias.
+        v = np.ascontiguousarray(a.value.T[cols]) if has_col is None else np.empty((cols.size, t.size))
+        if has_col is not None:
+            v[has_col] = a.value.T[cols[has_col]]
+            v[~has_col] = nominal[~has_col]
         missing = (a.flags & fl.HK_MISSING) != 0
         flags = a.flags & ~np.uint16(fl.HK_MISSING)
         if missing.any():  # before any bias reading: the nominal bias
-            nominal = np.array([self._nominal_bias_v.get(d, np.nan) for d in ids])[:, None]
             v = np.where(missing[None, :], nominal, v)
-        return v, np.broadcast_to(flags, (n_ch, n))
+        return v, np.broadcast_to(flags, (cols.size, t.size))
+
+    def _bias_rows(self, chunk: CountsChunk, channels: np.ndarray, ids) -> tuple:
+        """Where each row of a chunk finds its bias: column in the module's bias readings, and nominal bias.
+
+        Returns ``cols`` (n_ch,) int (0 for a row without a column), ``has_col`` (n_ch,) bool or None when
+        every row has one, ``nominal`` (n_ch, 1) float (NaN for a detector without parameters). Cached per
+        module and channel list, for as long as the module's bias history keeps its channel list (a new list
+        is a new ``channels`` array: the cache entry's ``is`` check fails and it is made again).
+        """
+        key = (chunk.board, chunk.module, chunk.channels.tobytes())
+        hit = self._bias_cols.get(key)
+        if hit is not None and hit[0] is channels:
+            return hit[1]
+        col = {int(c): j for j, c in enumerate(channels.tolist())}
+        found = [col.get(int(c)) for c in chunk.channels.tolist()]
+        has = np.array([j is not None for j in found], dtype=bool)
+        cols = np.array([0 if j is None else j for j in found], dtype=np.intp)
+        nominal = np.array([self._nominal_bias_v.get(d, np.nan) for d in ids], dtype=np.float64)[:, None]
+        if len(self._bias_cols) > _ENV_CACHE:
+            self._bias_cols.clear()
+        rows = (cols, None if has.all() else has, nominal)
+        self._bias_cols[key] = (channels, rows)
+        return rows
