@@ -1,8 +1,11 @@
 """The ``mntes-stream`` command.
 
 Each module in this package that defines ``register(subparsers)`` adds its
-subcommands; modules import their heavy dependencies inside the handlers so
-``mntes-stream --help`` stays fast.
+subcommands; modules import their heavy dependencies inside the handlers, and
+a command whose arguments need a heavy module (a service's settings class)
+adds them through ``_common.arguments``, when that command is the one run, so
+``mntes-stream --help`` and every command import only what they use
+(tests/test_cli_startup.py).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import sys
 import textwrap
 
 from mntes_stream import __version__
+from mntes_stream.cli._common import CommandParser
 from mntes_stream.errors import MntesError
 
 # `mntes-stream --help` lists the commands in these groups, in this order (docs/cli.md). A command not named
@@ -48,7 +52,9 @@ def _grouped(sub) -> str:
     return "\n".join(lines[1:])
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(lazy: bool = False) -> argparse.ArgumentParser:
+    """The command's parser: every command with every argument, or (``lazy``) each command's arguments
+    added when it parses or prints its help (what :func:`main` runs: one command's arguments built)."""
     parser = argparse.ArgumentParser(
         prog="mntes-stream",
         usage="mntes-stream [-h] [--version] COMMAND ...",
@@ -58,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
                "exit codes (0 done, 1 failed, 2 bad input or config, 130 interrupted).",
     )
     parser.add_argument("--version", action="version", version=f"mntes-stream {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=CommandParser)
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
@@ -68,11 +74,14 @@ def build_parser() -> argparse.ArgumentParser:
             register(sub)
     sub.help = argparse.SUPPRESS  # the flat list; the grouped one is the description below
     parser.description += "\n\n" + _grouped(sub)
+    if not lazy:
+        for command in sub.choices.values():
+            command.filled()
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(lazy=True)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

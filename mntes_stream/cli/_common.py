@@ -2,15 +2,62 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+from typing import TYPE_CHECKING
 
-from mntes_stream.core.params import DetectorParams, table1_params
 from mntes_stream.errors import ConfigError
 
 # Shared with bench/, which sits below cli/: defined once in mntes_stream.options, named here for the commands.
 from mntes_stream.options import add_zenoh_args as add_zenoh_args
 from mntes_stream.options import deprecated_alias as deprecated_alias
 from mntes_stream.options import zenoh_layer as zenoh_layer
+
+if TYPE_CHECKING:  # core.params imports numpy (0.1 s): a command that takes no --params need not pay for it
+    from mntes_stream.core.params import DetectorParams
+
+
+class CommandParser(argparse.ArgumentParser):
+    """A command's parser whose arguments are added when it first parses or prints its help.
+
+    ``mntes-stream COMMAND`` then builds the arguments of COMMAND alone: the
+    others' need their modules' settings classes (the recorder's, the
+    monitor's, every service's summary), whose imports cost more CPU than a
+    short command itself (``convert --help`` took 0.75 s). ``mntes-stream
+    --help`` needs only each command's name and one-line help, given to
+    ``add_parser`` at once.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._fill = None
+
+    def fill_later(self, fill) -> None:
+        self._fill = fill
+
+    def filled(self) -> CommandParser:
+        """This parser with its arguments added (once)."""
+        fill, self._fill = self._fill, None
+        if fill is not None:
+            fill(self)
+        return self
+
+    def parse_known_args(self, args=None, namespace=None):
+        return super(CommandParser, self.filled()).parse_known_args(args, namespace)
+
+    def format_usage(self) -> str:
+        return super(CommandParser, self.filled()).format_usage()
+
+    def format_help(self) -> str:
+        return super(CommandParser, self.filled()).format_help()
+
+
+def arguments(p, fill) -> None:
+    """``fill(p)`` adds the command's arguments: when ``p`` is used (a :class:`CommandParser`), else now."""
+    if isinstance(p, CommandParser):
+        p.fill_later(fill)
+    else:
+        fill(p)
 
 
 def setup_logging(verbose: bool) -> None:
@@ -27,6 +74,8 @@ def add_params_args(parser) -> None:
 
 
 def params_from_args(args) -> DetectorParams:
+    from mntes_stream.core.params import table1_params
+
     if not args.params:
         if args.detector:
             raise ConfigError("--detector needs --params")
@@ -58,7 +107,6 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
     Every flag defaults to None (not given), so a flag overrides a config file
     only where it is given; :func:`settings_from_args` collects them.
     """
-    import argparse
     import typing
 
     from mntes_stream.core.settings import declared, expected

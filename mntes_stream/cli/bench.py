@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
-from mntes_stream.cli._common import print_mapping
+from mntes_stream.cli._common import arguments, print_mapping
 
 
 def _benches():
@@ -25,8 +25,7 @@ def _run(args) -> int:
     return 0
 
 
-def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks (speed, memory, accuracy)")
+def _bench_args(p) -> None:
     bsub = p.add_subparsers(dest="bench", metavar="NAME")
     for name, module in _benches():
         # a module convert_offline is the bench convert-offline (flags are spelled with hyphens too)
@@ -34,3 +33,8 @@ def register(sub) -> None:
         bp.add_argument("--json", action="store_true", help="print one JSON object")
         module.add_arguments(bp)
         bp.set_defaults(func=_run, bench_module=module)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("bench", help="benchmarks (speed, memory, accuracy)")
+    arguments(p, _bench_args)  # every benchmark's module, imported for its flags: `bench` alone needs them

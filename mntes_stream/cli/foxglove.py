@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-from mntes_stream.cli._common import add_zenoh_args, service_config, settings_from_args, setup_logging, zenoh_layer
+from mntes_stream.cli._common import (
+    add_zenoh_args,
+    arguments,
+    service_config,
+    settings_from_args,
+    setup_logging,
+    zenoh_layer,
+)
 
 _SERVICE = ("setup", "bind", "port", "detectors", "per_module", "max_rate_hz", "duration_s")
 
@@ -17,10 +24,19 @@ def run_foxglove(args) -> int:
     return 0
 
 
-def register(sub) -> None:
+def _foxglove_args(p) -> None:
     from mntes_stream.cli._common import add_settings_args
-    from mntes_stream.service.foxglove import FoxgloveConfig
+    from mntes_stream.service.foxglove import FoxgloveConfig  # the service's module: `foxglove` alone needs it
 
+    p.add_argument("--config", metavar="FILE", help="a [foxglove] config (services/foxglove.toml); flags override it")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
+    add_settings_args(p, FoxgloveConfig, _SERVICE, {"duration_s": ("--duration",)})
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (default: warnings only)")
+    add_zenoh_args(p)
+    p.set_defaults(func=run_foxglove)
+
+
+def register(sub) -> None:
     p = sub.add_parser(
         "foxglove",
         help="serve a setup live to the Foxglove app (Foxglove WebSocket protocol)",
@@ -28,9 +44,4 @@ def register(sub) -> None:
         "detectors per module, flag rates by name, housekeeping, converter status) on ws://127.0.0.1:8765 "
         "(open it in Foxglove: Open connection > Foxglove WebSocket). The [foxglove] service of `serve`, with flags.",
     )
-    p.add_argument("--config", metavar="FILE", help="a [foxglove] config (services/foxglove.toml); flags override it")
-    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
-    add_settings_args(p, FoxgloveConfig, _SERVICE, {"duration_s": ("--duration",)})
-    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (default: warnings only)")
-    add_zenoh_args(p)
-    p.set_defaults(func=run_foxglove)
+    arguments(p, _foxglove_args)

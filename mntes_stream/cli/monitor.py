@@ -6,7 +6,14 @@ import argparse
 import dataclasses
 import math
 
-from mntes_stream.cli._common import add_zenoh_args, service_config, settings_from_args, setup_logging, zenoh_layer
+from mntes_stream.cli._common import (
+    add_zenoh_args,
+    arguments,
+    service_config,
+    settings_from_args,
+    setup_logging,
+    zenoh_layer,
+)
 
 _SERVICE = ("setup", "bind", "allowed_hosts", "port", "update_s", "text", "duration_s", "params")
 _VIEW = ("history_s", "long_history_s", "memory_mb", "silent_s", "hk_stale_s")
@@ -63,20 +70,11 @@ def run_monitor(args) -> int:
     return 0
 
 
-def register(sub) -> None:
+def _monitor_args(p) -> None:
     from mntes_stream.cli._common import add_settings_args
-    from mntes_stream.monitor.aggregate import MonitorConfig
+    from mntes_stream.monitor.aggregate import MonitorConfig  # the monitor's modules: `monitor` alone needs them
     from mntes_stream.monitor.service import MonitorServiceConfig
 
-    p = sub.add_parser(
-        "monitor",
-        help="quick-look web page (or --text table) of power, housekeeping and service health",
-        description="Subscribe to mntes/<setup>/{power,hk,status} and serve a live page on 127.0.0.1 "
-        "(time streams over 30 s to 1 h, spectrum with HWP harmonics, focal-plane view by state, power, flag "
-        "rate or noise, housekeeping, service health, a badge that turns red when data stop). "
-        "Works the same on a live converter and on `mntes-stream replay`. The [monitor] service of "
-        "`serve`, with flags.",
-    )
     p.add_argument("--config", metavar="FILE", help="a [monitor] config (services/monitor.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, MonitorServiceConfig, _SERVICE, {"duration_s": ("--duration",)})
@@ -86,3 +84,16 @@ def register(sub) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO (default: warnings only)")
     add_zenoh_args(p)
     p.set_defaults(func=run_monitor)
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "monitor",
+        help="quick-look web page (or --text table) of power, housekeeping and service health",
+        description="Subscribe to mntes/<setup>/{power,hk,status} and serve a live page on 127.0.0.1 "
+        "(time streams over 30 s to 1 h, spectrum with HWP harmonics, focal-plane view by state, power, flag "
+        "rate or noise, housekeeping, service health, a badge that turns red when data stop). "
+        "Works the same on a live converter and on `mntes-stream replay`. The [monitor] service of "
+        "`serve`, with flags.",
+    )
+    arguments(p, _monitor_args)

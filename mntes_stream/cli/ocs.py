@@ -20,13 +20,14 @@ def add_hk_args(p) -> None:
 def hk_fields(args):
     """The :class:`~mntes_stream.g3.ocs_hk.OcsFields` of ``--hk`` / ``--t-bath-field``, or None without ``--hk``."""
     from mntes_stream.errors import ConfigError
-    from mntes_stream.g3.ocs_hk import OcsFields
 
     hk, field = getattr(args, "hk", None), getattr(args, "t_bath_field", None)
     if not hk:
         if field:
             raise ConfigError("--t-bath-field names a field of --hk FILE|DIR: give --hk too")
         return None
+    from mntes_stream.g3.ocs_hk import OcsFields  # with --hk only: its module imports numpy and the messages
+
     if not field:
         raise ConfigError("--hk needs --t-bath-field FULL.FIELD.NAME (e.g. observatory.LS372.feeds.temperatures."
                           "Channel_06_T)")

@@ -12,6 +12,7 @@ from mntes_stream.cli._common import (
     add_quiet,
     add_settings_args,
     add_zenoh_args,
+    arguments,
     service_config,
     settings_from_args,
     setup_logging,
@@ -252,10 +253,8 @@ def _g3_name(path) -> bool:
     return any(str(path).lower().endswith(s) for s in (".g3", ".g3.gz", ".g3.zst", ".g3.bz2"))
 
 
-def register(sub) -> None:
-    p = sub.add_parser("record", help="record mntes/<setup>/** from zenoh into rotated MCAP files",
-                       description="Record every message of a setup into MCAP until SIGINT/SIGTERM (or --duration).")
-    from mntes_stream.service.recorder import RecorderConfig
+def _record_args(p) -> None:
+    from mntes_stream.service.recorder import RecorderConfig  # the recorder's module: `record` alone needs it
 
     p.add_argument("--config", metavar="FILE", help="recorder TOML (services/recorder.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
@@ -264,6 +263,12 @@ def register(sub) -> None:
     add_quiet(p, "warnings only")
     add_zenoh_args(p)
     p.set_defaults(func=run_record)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("record", help="record mntes/<setup>/** from zenoh into rotated MCAP files",
+                       description="Record every message of a setup into MCAP until SIGINT/SIGTERM (or --duration).")
+    arguments(p, _record_args)
 
     p = sub.add_parser("replay", help="re-publish a recorded session onto zenoh",
                        description="Re-publish recorded messages (default: counts and housekeeping) in log-time order, "

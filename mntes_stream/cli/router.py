@@ -8,6 +8,7 @@ import time
 from mntes_stream.cli._common import (
     add_settings_args,
     add_zenoh_args,
+    arguments,
     service_config,
     settings_from_args,
     setup_logging,
@@ -113,19 +114,23 @@ def _coverage_text(b: dict) -> str:
     return " ".join(out)
 
 
-def register(sub) -> None:
-    from mntes_stream.service.router import RouterConfig
+def _router_args(p) -> None:
+    from mntes_stream.service.router import RouterConfig  # the router service's module: `router` alone needs it
 
-    p = sub.add_parser("router", help="run a zenoh router (the hub services connect to as clients)",
-                       description="A zenoh session in router mode, as zenoh's own zenohd: listens on "
-                                   "tcp/127.0.0.1:7447 unless -l says otherwise, joins other routers named with -e. "
-                                   "Recipes: services/README.md. The [router] service of `serve`, with flags.")
     p.add_argument("--config", metavar="FILE", help="a [router] config (services/router.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, RouterConfig, _ROUTER, {"duration_s": ("--duration",)})
     p.add_argument("-q", "--quiet", action="store_true", help="warnings only")
     add_zenoh_args(p)
     p.set_defaults(func=run_router)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("router", help="run a zenoh router (the hub services connect to as clients)",
+                       description="A zenoh session in router mode, as zenoh's own zenohd: listens on "
+                                   "tcp/127.0.0.1:7447 unless -l says otherwise, joins other routers named with -e. "
+                                   "Recipes: services/README.md. The [router] service of `serve`, with flags.")
+    arguments(p, _router_args)
 
     p = sub.add_parser("ps", help="list the live services of a setup (liveliness tokens and heartbeats)",
                        description="Every running service holds a zenoh liveliness token "

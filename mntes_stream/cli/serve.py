@@ -12,7 +12,7 @@ import logging
 import sys
 import threading
 
-from mntes_stream.cli._common import add_zenoh_args, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
 
 
 def _heartbeats(svc, every_s: float, done: threading.Event) -> None:
@@ -116,14 +116,13 @@ def _numbers(text: str | None, flag: str) -> tuple[int, ...] | None:
         raise ConfigError(f"{flag} {text!r}: expected numbers separated by commas, e.g. 0,3") from None
 
 
-def register(sub) -> None:
-    from mntes_stream.service.registry import SERVICES
+def _serve_args(p) -> None:
+    from mntes_stream.service.registry import SERVICES  # every service's class, for its summary: `serve` alone
 
     listed = "; ".join(f"[{name}] {cls.summary}" for name, cls in SERVICES.items())
-    p = sub.add_parser("serve", help="run one service from its config file (services/*.toml)",
-                       description="Run the service a config describes until it ends or SIGINT/SIGTERM, which stop "
-                                   f"it cleanly. The config's main table names the service: {listed}. "
-                                   "`mntes-stream config template SERVICE` prints a service's settings.")
+    p.description = ("Run the service a config describes until it ends or SIGINT/SIGTERM, which stop "
+                     f"it cleanly. The config's main table names the service: {listed}. "
+                     "`mntes-stream config template SERVICE` prints a service's settings.")
     p.add_argument("--config", required=True, metavar="FILE", help="e.g. services/converter.toml")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a setting, e.g. converter.kind=exact (repeatable; VALUE in TOML)")
@@ -139,12 +138,10 @@ def register(sub) -> None:
     add_zenoh_args(p)
     p.set_defaults(func=run_serve)
 
-    p = sub.add_parser("config", help="check or show config files (services, parameters, zenoh JSON5)",
-                       description="check: validate files and directories (service configs, detector parameter "
-                                   "files, zenoh JSON5; in a directory its *.toml and *.json5 files, other files "
-                                   "named are skipped with a note; exit code 2 when any is bad); "
-                                   "show: print the effective config with every default; "
-                                   "template: print a service's defaults (e.g. `config template recorder`).")
+
+def _config_args(p) -> None:
+    from mntes_stream.service.registry import SERVICES
+
     p.add_argument("action", choices=("check", "show", "template"), help="what to do")
     p.add_argument("files", nargs="+", metavar="FILE|DIR|SERVICE",
                    help="check: config files or directories; show: one file; template: service names "
@@ -152,3 +149,16 @@ def register(sub) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="show: override a setting before showing (repeatable)")
     p.set_defaults(func=run_config)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("serve", help="run one service from its config file (services/*.toml)")
+    arguments(p, _serve_args)
+
+    p = sub.add_parser("config", help="check or show config files (services, parameters, zenoh JSON5)",
+                       description="check: validate files and directories (service configs, detector parameter "
+                                   "files, zenoh JSON5; in a directory its *.toml and *.json5 files, other files "
+                                   "named are skipped with a note; exit code 2 when any is bad); "
+                                   "show: print the effective config with every default; "
+                                   "template: print a service's defaults (e.g. `config template recorder`).")
+    arguments(p, _config_args)

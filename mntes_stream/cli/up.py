@@ -24,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 
 
@@ -317,13 +317,10 @@ def run_up(args) -> int:
     return 1 if failed else 0
 
 
-def register(sub) -> None:
-    from mntes_stream.core.convert import CONVERTER_KINDS
+def _up_args(p) -> None:
+    from mntes_stream.core.convert import CONVERTER_KINDS  # core.convert imports numba: `up` alone needs it
     from mntes_stream.io.keys import DEFAULT_SETUP
 
-    p = sub.add_parser("up", help="source + converter + recorder on this machine, embedded defaults",
-                       description="Run a simulated array through the converter into an MCAP recording, printing a "
-                                   "status line per second. Stops after --duration or on Ctrl-C (exit code 130).")
     p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
     p.add_argument("--out", default="mntes-up", metavar="DIR", help="parameters and recordings go here (default ./mntes-up)")
     p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
@@ -346,3 +343,10 @@ def register(sub) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
     add_zenoh_args(p)
     p.set_defaults(func=run_up)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("up", help="source + converter + recorder on this machine, embedded defaults",
+                       description="Run a simulated array through the converter into an MCAP recording, printing a "
+                                   "status line per second. Stops after --duration or on Ctrl-C (exit code 130).")
+    arguments(p, _up_args)
