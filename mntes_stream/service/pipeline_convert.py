@@ -338,6 +338,7 @@ class Encode:
     def __init__(self, books: Books, table_identity: str, kind: str):
         self.books = books
         self._encoder = PowerEncoder(books.config.setup, table_identity, kind)
+        self._keys: dict[tuple[int, int], str] = {}  # power key per stream (bounded by the known modules)
 
     def __call__(self, items: list) -> list:
         out = []
@@ -365,4 +366,8 @@ class Encode:
             c.hk_stale_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_STALE))
             c.hk_missing_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_MISSING))
         books.interval.add(n_ch * n, (t_pub - chunk.t_pub_ns) / 1e6)
-        return keys.power_key(cfg.setup, chunk.board, chunk.module), payload
+        stream = (chunk.board, chunk.module)
+        key = self._keys.get(stream)
+        if key is None:
+            key = self._keys[stream] = keys.power_key(cfg.setup, chunk.board, chunk.module)
+        return key, payload

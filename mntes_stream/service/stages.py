@@ -200,6 +200,7 @@ class Decode:
     def __init__(self, books: Books, modules):
         self.books, self.modules = books, modules
         self._decoder = CountsDecoder()
+        self._keys: dict[str, dict] = {}  # parsed keys (read-only): a stream's key repeats every chunk
 
     def __call__(self, items: list) -> list:
         out, books, setup = [], self.books, self.books.config.setup
@@ -223,11 +224,16 @@ class Decode:
 
     def _one(self, key: str, payload: bytes, t_recv_ns: int, setup: str):
         books = self.books
-        try:
-            info = keys.parse_key(key)
-        except ConfigError as exc:
-            books.bad("wrong_key", str(exc), key)
-            return None
+        info = self._keys.get(key)
+        if info is None:
+            try:
+                info = keys.parse_key(key)
+            except ConfigError as exc:
+                books.bad("wrong_key", str(exc), key)
+                return None
+            if len(self._keys) >= 4096:  # peer-chosen keys only evict, never grow it
+                self._keys.clear()
+            self._keys[key] = info
         if info["setup"] != setup:
             books.bad("wrong_key", f"setup {info['setup']!r} is not {setup!r}", key)
             return None
