@@ -1,6 +1,7 @@
 """The command's start-up stays light: `mntes-stream --help` and `mntes-stream convert --help` build their
-parsers without importing numba, zenoh, mcap or numpy (issue 23: they cost 0.75 CPU s of every command, a third
-of an offline convert's). A fresh interpreter, as a user's shell starts one; no timing, only what is imported."""
+parsers without importing numba, zenoh, mcap or numpy (issue 23: every command's parser built with them took
+0.75 CPU s before any command ran). A fresh interpreter, as a user's shell starts one; no timing, only what is
+imported."""
 
 from __future__ import annotations
 
