@@ -86,6 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from mntes_stream.service.heap import pad_heap
+
+    pad_heap()  # commands move payloads too (convert, record, bench): see service.heap
     try:
         return int(args.func(args) or 0)
     except MntesError as exc:  # said on purpose: bad config, input or data, a dead endpoint

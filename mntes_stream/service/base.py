@@ -313,6 +313,9 @@ class Service(abc.ABC):
 
     def _lifecycle(self, stop, ready, metrics, announce: bool) -> Mapping[str, Any]:
         from mntes_stream.io.transport import Publishers, open_session
+        from mntes_stream.service.heap import pad_heap
+
+        pad_heap()  # a payload per message: the heap grown in steps, not trimmed and faulted in per message
 
         def mark_ready() -> None:
             if ready is not None and not ready.is_set():

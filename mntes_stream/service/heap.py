@@ -1,0 +1,42 @@
+"""The C heap of a process that moves messages: grown and kept in steps, not page by page.
+
+Every message's payload (tens of kB) is a ``bytes`` object from glibc's main
+heap. In a process whose heap is small (one that has not loaded numba's LLVM,
+like the recorder), glibc grows the heap's top for such a payload and trims it
+when it is freed, so every message pays a ``brk`` and the page faults of fresh,
+zeroed pages. Measured (``mntes-stream bench recording``, the recorder's
+per-message path, 2-core VM): 0.042-0.044 CPU s per M samples that way,
+0.025-0.026 with the top padded (``M_TOP_PAD``) by 4-16 MiB. The converter,
+whose heap numba has already grown, is unchanged. Pages of the pad are
+touched only when used. A ``MALLOC_TOP_PAD_`` in the environment wins.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+
+__all__ = ["TOP_PAD_BYTES", "pad_heap"]
+
+TOP_PAD_BYTES = 16 << 20
+_M_TOP_PAD = -2  # glibc's mallopt parameter (malloc.h)
+_padded = False
+
+
+def pad_heap(top_pad_bytes: int = TOP_PAD_BYTES) -> bool:
+    """Ask glibc to grow and keep the heap's top ``top_pad_bytes`` at a time; False where it cannot (no change).
+
+    Idempotent; a no-op off Linux/glibc and when ``MALLOC_TOP_PAD_`` is set.
+    """
+    global _padded
+    if _padded:
+        return True
+    if not sys.platform.startswith("linux") or "MALLOC_TOP_PAD_" in os.environ:
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library (musl has no mallopt)
+    except (OSError, AttributeError):
+        return False
+    _padded = bool(mallopt(_M_TOP_PAD, int(top_pad_bytes)))
+    return _padded
