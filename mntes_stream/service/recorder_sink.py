@@ -81,7 +81,7 @@ class RecorderSink:
         self.writer.write(topic, payload, t_ns, env)
         late = env.late and kind == "power" and not env.problem
         self.coverage.add(topic, env.seq, time.monotonic(), late=late)
-        self.book.add(topic, payload, env, t_ns, late=late)
+        self.book.add(topic, payload, env, t_ns, late=late, kind=kind)
         if kind == "counts":
             if not env.problem:
                 self.samples += env.samples

@@ -63,6 +63,7 @@ class RecordingBook:
         self.ledger = Ledger("recorded")
         self.sequences: dict[str, StreamSequence] = {}  # counts topic -> its tracker
         self._stream_of: dict[str, str] = {}  # counts topic -> ledger stream
+        self._power_stream_of: dict[str, str] = {}  # power topic -> its stream (named once, not per message)
         self.power: dict[str, list[int]] = {}  # stream -> [live, late]
         self.converters: dict[str, dict] = {}  # status service -> its newest ledger and counters
         self.status_topics: dict[str, str] = {}  # status topic -> the service its newest status named
@@ -77,16 +78,23 @@ class RecordingBook:
     def _bounded(self, stream: str, known) -> str:
         return stream if stream in known or len(known) < _MAX_STREAMS else OTHER
 
-    def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None) -> Verdict | None:
+    def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None,
+            kind: str | None = None) -> Verdict | None:
         """Book one recorded message; returns the counts chunk's :class:`~mntes_stream.core.sequence.Verdict`, else None.
 
-        ``late``: whether a power payload is marked late, when the caller read it already (else read here).
+        ``late``: whether a power payload is marked late, when the caller read it already (else read here);
+        ``kind``: the topic's ``keys.kind_of``, when the caller knows it (else found here).
         """
-        kind = keys.kind_of(topic)
+        if kind is None:
+            kind = keys.kind_of(topic)
         if kind == "counts":
             return self._counts(topic, env, t_ns)
         if kind == "power":
-            stream = self._stream(topic)
+            stream = self._power_stream_of.get(topic)
+            if stream is None:
+                stream = self._stream(topic)
+                if stream is not None and len(self._power_stream_of) < _MAX_STREAMS:
+                    self._power_stream_of[topic] = stream
             if stream is not None and not env.problem:
                 cols = self.power.setdefault(self._bounded(stream, self.power), [0, 0])
                 cols[1 if (power_is_late(payload) if late is None else late) else 0] += 1
