@@ -15,7 +15,6 @@ from __future__ import annotations
 import io
 import struct
 import time
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, Schema
+from zlib_ng.zlib_ng import crc32  # zlib's CRC, 9x faster (pyproject.toml)
 
 from mntes_stream.errors import TransportError
 
@@ -203,7 +203,7 @@ def chunk_records(chunk: Chunk, messages: bool = True) -> Iterator[Schema | Chan
         raise TransportError(f"unsupported chunk compression {chunk.compression!r}")
     if len(data) != chunk.uncompressed_size:
         raise TransportError("chunk size does not match its header")
-    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+    if chunk.uncompressed_crc and crc32(data) != chunk.uncompressed_crc:
         raise TransportError("chunk CRC mismatch")
     pos, n = 0, len(data)
     view = memoryview(data)
