@@ -159,12 +159,13 @@ class ConverterPipeline:
 
     # ------------------------------------------------------------------ running the stages
 
-    def _run(self, items: list) -> list[tuple[str, bytes]]:
-        for stage in self.stages:
+    def _run(self, items: list, stages=None, what: str = "batch") -> list[tuple[str, bytes]]:
+        """``items`` through ``stages`` (default all) in order; the ``(key, payload)`` messages that come out."""
+        for stage in self.stages if stages is None else stages:
             try:
                 items = stage(items)
             except Exception as exc:  # noqa: BLE001 - the service must survive its own bugs too
-                self.books.internal(exc, getattr(stage, "name", str(stage)), "batch")
+                self.books.internal(exc, getattr(stage, "name", str(stage)), what)
                 items = [END]  # what the stage held is counted as its chunks' (the ledger shows them pending)
         return [item for item in items if type(item) is tuple]
 
@@ -190,7 +191,7 @@ class ConverterPipeline:
 
     def flush(self) -> list[tuple[str, bytes]]:
         """Convert everything still held (with what housekeeping there is) and emit a final status."""
-        out = self._run([End(force=True)])
+        out = self._run([End(force=True)], self.stages[:-1], "flush")  # one status, the final one below
         out += self.convert_late(len(self._sequence.aside))
         if self.books.now_ns is not None:
             try:
@@ -209,14 +210,8 @@ class ConverterPipeline:
                 self.books.dropped(p.chunk, exc)
         if not ready:
             return []
-        items = ready + [END]
-        for stage in self.stages[3:-1]:  # convert, flags, encode: no new status for late power alone
-            try:
-                items = stage(items)
-            except Exception as exc:  # noqa: BLE001
-                self.books.internal(exc, getattr(stage, "name", str(stage)), "late")
-                return []
-        return [item for item in items if type(item) is tuple]
+        # Convert, flags, encode: no new status for late power alone.
+        return self._run(ready + [END], self.stages[3:-1], "late")
 
     def resume_sequences(self, state: dict) -> int:
         """Continue streams from a previous converter's :meth:`sequence_state` (before any chunk arrives).
