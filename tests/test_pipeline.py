@@ -527,3 +527,20 @@ def test_the_stages_are_one_declared_list_and_running_them_by_hand_is_handle_man
     pipe.stages = pipe.stages[:5] + (enc,) + pipe.stages[6:]
     power, _ = _split(pipe.handle_many(msgs[b:]) + pipe.flush())
     assert power and pipe.ledger_now().totals().pending > 0  # the broken batch's chunks: held in the ledger, not lost
+
+
+@pytest.mark.parametrize("rate_hz", [1569.0117, 1961.265, 2353.518])
+def test_the_sources_housekeeping_brackets_each_chunk_in_its_own_step(rate_hz):
+    """With hk_interval_s the chunk length (as bench stream sets it), no chunk waits a step for its reading,
+    whatever the rounding of the rate's chunk length to ns (it did: every chunk 100 ms late at these rates)."""
+    n = round(0.1 * rate_hz)
+    src = MinimalSource(SourceConfig(modules=2, channels=4, sample_rate_hz=rate_hz, chunk_s=0.1,
+                                     hk_interval_s=n / rate_hz, cycle_s=1.0))
+    conv = make_converter("exact", {p.detector_id: p for p in src.params})
+    pipe = ConverterPipeline(conv, PipelineConfig(setup=src.config.setup), clock=None)
+    lat_ns = []
+    for t_pub, batch in src.batches(T0, 2.0):
+        for key, payload in batch:
+            lat_ns += [decode(p).t_pub_ns - decode(p).source_t_pub_ns
+                       for k, p in pipe.handle(key, payload, t_pub + 1_000_000) if "/power/" in k]
+    assert len(lat_ns) >= 2 * 19 and set(lat_ns) == {1_000_000}  # released as it arrives, every one

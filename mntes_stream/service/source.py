@@ -164,12 +164,18 @@ class MinimalSource:
 
         Each step publishes, at the end of a chunk, the housekeeping read since
         the previous step and then one counts chunk per module (housekeeping
-        first so it is there when the chunk arrives).
+        first so it is there when the chunk arrives). Reading ``i`` is at
+        ``t_start_ns + round(i * hk_interval_s)``, never accumulated step by
+        step, and one due within 1 us of a step's end goes with that step: with
+        ``hk_interval_s`` the chunk length, every chunk's last sample has a
+        reading at or after it in its own step, whatever the rounding to ns
+        (else a chunk would wait a step for its housekeeping).
         """
         cfg = self.config
         rate, n = cfg.sample_rate_hz, cfg.chunk_samples
-        hk_dt_ns = int(round(cfg.hk_interval_s * 1e9))
+        hk_dt_s = float(cfg.hk_interval_s)
         channels = np.arange(cfg.channels, dtype=np.int32)
+        hk_i = 0
         next_hk_ns = int(t_start_ns)
         hk_seq = 0
         step = 0
@@ -180,9 +186,10 @@ class MinimalSource:
                 return
             batch: list[tuple[str, bytes]] = []
             hk_t = []
-            while next_hk_ns <= t_pub_ns:
+            while next_hk_ns <= t_pub_ns + 1000:
                 hk_t.append(next_hk_ns)
-                next_hk_ns += hk_dt_ns
+                hk_i += 1
+                next_hk_ns = int(t_start_ns) + int(round(hk_i * hk_dt_s * 1e9))
             if hk_t:
                 t_arr = np.array(hk_t, dtype=np.int64)
                 t_rel = (t_arr - int(t_start_ns)) / 1e9
