@@ -114,7 +114,7 @@ def test_made_up_modules_get_no_state_and_are_counted(source, converter):
     pipe, got = _run(converter, flood + msgs)
     st = pipe.status()
     assert st.bad_messages["unknown_stream"] == 4000
-    assert set(pipe._streams) <= {(0, 0), (0, 1)} and len(pipe.hk._bias) == 0
+    assert set(pipe._sequence.streams) <= {(0, 0), (0, 1)} and len(pipe.hk._bias) == 0
     assert {(b, m) for b, m, _ in got} == {(0, 0), (0, 1)}
     assert "unknown_stream" in st.last_error
 
@@ -217,7 +217,7 @@ def test_a_checkpoint_stops_below_the_chunks_still_held(source, converter):
         pipe.handle(key, payload, t)
     assert pipe.set_aside
     held = {}
-    for p in pipe._aside:
+    for p in pipe._sequence.aside:
         held[(p.chunk.board, p.chunk.module)] = min(held.get((p.chunk.board, p.chunk.module), p.chunk.seq), p.chunk.seq)
     state = pipe.sequence_state()
     assert set(held) <= set(state)

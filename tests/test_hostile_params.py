@@ -128,7 +128,7 @@ def test_detector_ids_no_stream_can_match_are_said_at_start_and_give_no_stream_s
         for key, payload in batch:
             outs += pipe.handle(key, payload, t_pub)
     st = pipe.status()
-    assert st.bad_messages["unknown_stream"] == 10 and set(pipe._streams) == {(0, 1)}
+    assert st.bad_messages["unknown_stream"] == 10 and set(pipe._sequence.streams) == {(0, 1)}
     assert {k for k, _ in outs if "/power/" in k} == {"mntes/lab/power/0/1"}
 
 

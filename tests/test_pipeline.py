@@ -209,7 +209,7 @@ def test_unknown_channels_are_flagged_nan_and_counted(source, converter):
     assert st.unknown_channel_samples == 20 * len(mixed)
     n_alien = sum(1 for k, _, _ in extra if k.endswith("counts/7/7"))
     assert st.bad_messages["unknown_stream"] == n_alien  # ...and no state: counted at the door, said in last_error
-    assert (7, 7) not in pipe._streams and (7, 7) not in pipe._pace
+    assert (7, 7) not in pipe._sequence.streams and (7, 7) not in pipe._sequence.pace
 
 
 def test_converter_failure_flags_the_chunk_only(source):

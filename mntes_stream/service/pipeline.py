@@ -304,15 +304,3 @@ class ConverterPipeline:
     @last_error.setter
     def last_error(self, text: str) -> None:
         self.books.last_error = text
-
-    @property
-    def _streams(self):
-        return self._sequence.streams
-
-    @property
-    def _pace(self):
-        return self._sequence.pace
-
-    @property
-    def _aside(self):
-        return self._sequence.aside

@@ -358,7 +358,8 @@ class Encode:
         n_ch, n = chunk.counts_i.shape
         t_pub = books.stamp()
         payload = self._encoder.encode(chunk, item.p_opt, item.flags, t_pub, r.late, item.sigma)
-        books.ledger.done((chunk.board, chunk.module), late=r.late)
+        stream = (chunk.board, chunk.module)
+        books.ledger.done(stream, late=r.late)
         c = books.counters
         c.chunks_converted += 1
         c.samples_converted += n_ch * n
@@ -366,7 +367,6 @@ class Encode:
             c.hk_stale_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_STALE))
             c.hk_missing_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_MISSING))
         books.interval.add(n_ch * n, (t_pub - chunk.t_pub_ns) / 1e6)
-        stream = (chunk.board, chunk.module)
         key = self._keys.get(stream)
         if key is None:
             key = self._keys[stream] = keys.power_key(cfg.setup, chunk.board, chunk.module)
