@@ -8,10 +8,11 @@ from the interval's cubics, ``(1 + delta U)^(n-1)`` (a binomial series near
 normal operation. Its own kernel rather than a branch of the conversion
 kernel: the conversion does not pay for it unless asked.
 
-Per-detector record ``rec`` (n_bank, 27), :func:`row_constants`. The
-sample loop runs as vector lanes (branch-free, ``noalias`` pointers, as the
-conversion kernel does); the rare sample needing a branch is done again by
-the scalar reference.
+Per-detector record ``rec`` (n_bank, 27), :func:`row_constants`. A row's
+front end and sigma_P run as vector lanes (branch-free, ``noalias``
+pointers, as the conversion kernel does), its table lookup between them
+sample by sample; the rare sample needing a branch is done again by the
+scalar reference.
 """
 
 from __future__ import annotations
@@ -129,13 +130,18 @@ if numba is not None:
     def _kernel(ci_, cq_, b, v, rows, rec, x, cidx, coef, out_s, out_f):
         """sigma_P into ``out_s`` and LOW_RESPONSIVITY into ``out_f`` (the block's flags), vector lanes.
 
-        Branch-free over every sample of a row (unusable ones computed on a safe R and discarded); a
-        lane that needs a branch (a second lookup step, the exact power beyond the series) is marked
-        and done again by :func:`_sample`.
+        Branch-free over every sample of a row (unusable ones computed on a safe R and discarded), in
+        three passes: front end (vector), table lookup (scalar), sigma_P (vector). A lane that needs a
+        branch (a second lookup step, the exact power beyond the series) is marked and done again by
+        :func:`_sample`.
         """
         n_rows, n_samp = out_s.shape
         s_b, s_v = np.empty(n_samp), np.empty(n_samp)
         marks = np.zeros(n_samp, dtype=np.uint8)
+        # The front end's and the lookup's results per sample, for the next pass.
+        s_c, s_in = np.empty(n_samp, dtype=np.int64), np.empty(n_samp, dtype=np.uint8)
+        s_rc, s_m2, s_w, s_w1, s_uu = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), \
+            np.empty(n_samp)
         for row in range(n_rows):
             d = rows[row]
             if d < 0:
@@ -153,8 +159,10 @@ if numba is not None:
                                                                               q[6], q[7], q[8], q[9], q[10])
             n, c1, c2, gamma, zr, zi, sig, tol = q[11], q[12], q[13], q[14], q[15], q[16], q[17], q[18]
             n_slow = 0
+            # Three passes over the row: the front end (vector), the table lookup (scalar), sigma_P
+            # (vector). Vectorised, the lookup's reads are gathers, a dozen per lane group, which cost
+            # more than the same reads done one by one (as in _kernels._table_kernel).
             for s in range(n_samp):
-                f = out_f[row, s]
                 bs, vs = s_b[s], s_v[s]
                 xi = float(ci_[row, s])
                 xq = float(cq_[row, s])
@@ -162,23 +170,35 @@ if numba is not None:
                 iim = g_re * xq + g_im * xi - m_im * bs
                 m2 = ire * ire + iim * iim
                 r = SQRT2 * vs * ire / m2 - zr
-                inside = ((f & _UNUSABLE) == 0) & (x_lo <= r) & (r <= x_hi)
+                inside = ((out_f[row, s] & _UNUSABLE) == 0) & (x_lo <= r) & (r <= x_hi)
                 rc = r if inside else x_lo
                 cell = int((rc - x_lo) * cpo)
-                j = k0 + cidx[c0 + (cell if cell < n_cells - 1 else n_cells - 1)]
-                j += (j + 1 < last) & (rc >= x[j + 1])
-                more = (j + 1 < last) & (rc >= x[j + 1])
-                u = rc - x[j]
-                w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
-                w1 = coef[j, 1] + u * (2.0 * coef[j, 2] + 3.0 * u * coef[j, 3])
-                uu = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
-                m2c = m2 if inside else 1.0
+                s_c[s] = c0 + (cell if cell < n_cells - 1 else n_cells - 1)
+                s_rc[s], s_m2[s], s_in[s] = rc, (m2 if inside else 1.0), inside
+            for s in range(n_samp):
+                c = s_c[s]
+                if c < 0:  # never (rc is in the table): an early exit keeps the compiler from gathering
+                    break
+                # One lookup step and whether it needed more. Unsigned indices (all are >= 0): numba
+                # wraps a signed index that might be negative, a compare and select on each read.
+                rc = s_rc[s]
+                j = k0 + cidx[np.uint64(c)]
+                j += (j + 1 < last) & (rc >= x[np.uint64(j + 1)])
+                marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])
+                ju = np.uint64(j)
+                u = rc - x[ju]
+                s_w[s] = coef[ju, 0] + u * (coef[ju, 1] + u * (coef[ju, 2] + u * coef[ju, 3]))
+                s_w1[s] = coef[ju, 1] + u * (2.0 * coef[ju, 2] + 3.0 * u * coef[ju, 3])
+                s_uu[s] = coef[ju, 4] + u * (coef[ju, 5] + u * (coef[ju, 6] + u * coef[ju, 7]))
+            for s in range(n_samp):
+                f = out_f[row, s]
+                bs, vs, rc, m2c, uu, inside = s_b[s], s_v[s], s_rc[s], s_m2[s], s_uu[s], s_in[s] != 0
                 xx = (c1 * bs + c2 * bs * bs - gamma * math.sqrt(m2c)) * uu
                 fp = _series(xx, q[19], q[20], q[21], q[22], q[23], q[24], q[25], q[26])
-                sp = sig * _gradient(w, w1, uu, fp, rc, m2c, vs, n, gamma, zr, zi)
+                sp = sig * _gradient(s_w[s], s_w1[s], uu, fp, rc, m2c, vs, n, gamma, zr, zi)
                 out_s[row, s] = sp if inside else math.nan
                 out_f[row, s] = f | (_LOW * (inside & (sp > tol)))
-                slow = inside & (more | ~(abs(xx) <= SERIES_LIMIT))
+                slow = inside & ((marks[s] != 0) | ~(abs(xx) <= SERIES_LIMIT))
                 marks[s] = slow
                 n_slow += slow
             if n_slow:
