@@ -31,47 +31,89 @@ def source():
     return MinimalSource(SRC)
 
 
-def _serve(tmp_path, port: int, source) -> tuple[dict, str]:
-    """Start ``serve`` once, feed it one second of data, return its power by (module, seq) and its log."""
+CONVERTER_TOML = ('[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
+                  '[alignment]\nmax_lag_s = 1e6\n'
+                  '[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+
+
+def _serve(tmp_path, source, attempts: int = 3) -> tuple[dict, str]:
+    """Start ``serve`` once, feed it one second of data, return its power by (module, seq) and its log.
+
+    Each start listens on a port free just before it (a port kept from an earlier start was free, for anyone
+    to take, while no serve ran); one taken between choosing and binding it is retried with another. A serve
+    that exits before it is ready fails the test at once, with its log.
+    """
     log = tmp_path / "serve.log"
-    with open(log, "ab") as f, open_session(loopback(None, [port])) as z:
-        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml"],
-                                stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
-        try:
-            sub = QueueSubscriber(z, ["mntes/lab/power/**", "mntes/lab/provenance"])
-            power: dict = {}
-            deadline = time.monotonic() + 120
-            while not any(isinstance(x, Provenance) for x in power.values()) and time.monotonic() < deadline:
-                item = sub.get(timeout_s=0.1)
-                if item is not None:
-                    power["prov"] = decode(item[1])
-            publish(z, list(source.batches(T0, duration_s=1.0)), speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
-            while len(power) < 21 and time.monotonic() < deadline:
-                item = sub.get(timeout_s=0.1)
-                if item is not None and "/power/" in item[0]:
-                    pw = decode(item[1])
-                    power[(pw.module, pw.seq)] = pw
-            sub.close()
-        finally:
-            proc.terminate()
-            proc.wait(30)
+    for attempt in range(attempts):
+        port = free_tcp_port()
+        (tmp_path / "converter.toml").write_text(CONVERTER_TOML.format(port=port))
+        start = log.stat().st_size if log.exists() else 0
+        power: dict = {}
+        ready = False
+        with open(log, "ab") as f, open_session(loopback(None, [port])) as z:
+            proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml"],
+                                    stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+            try:
+                sub = QueueSubscriber(z, ["mntes/lab/power/**", "mntes/lab/provenance"])
+                deadline = time.monotonic() + 120
+                # Ready: its provenance, asked for (it answers once subscribed) as well as waited for: the one it
+                # publishes at start often goes out before this session has connected (zenoh retries the connect
+                # every 1-4 s), and the next one 10 s later.
+                next_ask = 0.0
+                while not any(isinstance(x, Provenance) for x in power.values()) and proc.poll() is None:
+                    assert time.monotonic() < deadline, "serve not ready after 120 s"
+                    if time.monotonic() >= next_ask:
+                        sub.query(z, keys.provenance_key("lab"), timeout_s=1.0)
+                        next_ask = time.monotonic() + 0.5
+                    item = sub.get(timeout_s=0.1)
+                    if item is not None:
+                        power["prov"] = decode(item[1])
+                ready = "prov" in power and proc.poll() is None
+                if ready:
+                    publish(z, list(source.batches(T0, duration_s=1.0)), speed=0,
+                            wait_keys=[keys.counts_key("lab", 0, 0)])
+                    while len(power) < 21 and time.monotonic() < deadline:
+                        item = sub.get(timeout_s=0.1)
+                        if item is not None and "/power/" in item[0]:
+                            pw = decode(item[1])
+                            power[(pw.module, pw.seq)] = pw
+                sub.close()
+            finally:
+                proc.terminate()
+                proc.wait(30)
+        text = log.read_text()
+        if ready:
+            break
+        this_start = log.read_bytes()[start:].decode(errors="replace")
+        if "cannot open zenoh session" not in this_start or attempt == attempts - 1:
+            raise AssertionError(f"serve exited (code {proc.returncode}) before it was ready:\n{this_start}")
     power.pop("prov", None)
-    return power, log.read_text()
+    return power, text
+
+
+def _same_code(code: str) -> None:
+    """The snapshot key hashes mntes_stream/core/*.py (``build_fingerprint``): a file there saved while this test
+    runs (in a shared work tree) makes the next start build, rightly, instead of loading. Said plainly, not as a
+    miscount of "loaded from the snapshot"."""
+    from mntes_stream.service.snapshot import build_fingerprint
+
+    build_fingerprint.cache_clear()
+    assert build_fingerprint() == code, "mntes_stream/core/*.py changed while this test ran: run it again"
 
 
 def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, caplog):
+    from mntes_stream.service.snapshot import build_fingerprint
+
     dump_params(source.params, tmp_path / "params.toml")
-    port = free_tcp_port()
-    (tmp_path / "converter.toml").write_text(
-        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
-        '[alignment]\nmax_lag_s = 1e6\n'
-        f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
-    first, log1 = _serve(tmp_path, port, source)
+    build_fingerprint.cache_clear()  # this process may have hashed core/ minutes ago (another test): the code now
+    code = build_fingerprint()
+    first, log1 = _serve(tmp_path, source)
     assert "loaded from the snapshot" not in log1 and len(first) == 20
     (snap,) = (tmp_path / "cache").glob("converter-table-*.pickle")
     assert os.stat(snap).st_mode & 0o077 == 0  # private to this user
 
-    second, log2 = _serve(tmp_path, port, source)
+    second, log2 = _serve(tmp_path, source)
+    _same_code(code)
     assert log2.count("loaded from the snapshot") == 1 and "Traceback" not in log2
     assert second.keys() == first.keys()
     for k, pw in second.items():  # (the values themselves: the in-process test below, bit for bit)
@@ -94,7 +136,8 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
     # ... nor a damaged one: serve builds instead and converts everything.
     snap.write_bytes(b"\x80\x05garbage")
     os.chmod(snap, 0o600)
-    fourth, log4 = _serve(tmp_path, port, source)
+    fourth, log4 = _serve(tmp_path, source)
+    _same_code(code)
     # (the log holds every start: the second loaded, this one did not)
     assert log4.count("loaded from the snapshot") == 1 and len(fourth) == 20
     assert "unusable (" in log4.rsplit("loaded from the snapshot", 1)[-1]

@@ -21,8 +21,8 @@ from mcap_helpers import (
 
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import mcap as mio
-from mntes_stream.io.transport import ZenohSettings, open_session
-from mntes_stream.service.replay import ReplayConfig, parse_time, run_replay
+from mntes_stream.io.transport import Publishers, ZenohSettings, open_session
+from mntes_stream.service.replay import ReplayConfig, ReplayService, parse_time, run_replay
 
 
 def _wait_count(directory, n, timeout_s=20.0):
@@ -71,15 +71,36 @@ def test_replay_inputs_as_fast_as_possible_rerecords_identically(session_a, tmp_
     assert rec.seq_gaps == 0 and rec.by_kind == {"counts": 80, "hk": 20}
 
 
-def test_replay_everything_at_double_speed_keeps_pace(session_a, tmp_path):
+def test_replay_everything_at_double_speed_keeps_pace(session_a, tmp_path, monkeypatch):
     src, recorded = session_a
+    # The replay's own pacing: when its schedule starts (setup's last act, once subscribers match, is reading the
+    # clock it schedules from) and when it hands each message to zenoh (puts from this thread; the recorder's run
+    # in its own). The re-recording's log times are the recorder's receive times: a late first receipt (recorder
+    # or zenoh busy) shortens their span even when the replay kept its schedule, so they do not measure its pace.
+    replay_thread, begun, puts = threading.get_ident(), [], []
+    setup, put = ReplayService.setup, Publishers.put
+
+    def timed_setup(self, ctx):
+        setup(self, ctx)
+        begun.append(time.monotonic())
+
+    def timed_put(self, key, payload):
+        if threading.get_ident() == replay_thread:
+            puts.append((time.monotonic(), key, payload))
+        put(self, key, payload)
+
+    monkeypatch.setattr(ReplayService, "setup", timed_setup)
+    monkeypatch.setattr(Publishers, "put", timed_put)
     stats, again, _ = _replay_into(tmp_path, src, speed=2.0, topics=("**",))
     assert [(m.topic, m.payload) for m in again] == [(m.topic, m.payload) for m in recorded]
+    assert [(k, p) for _, k, p in puts] == [(m.topic, m.payload) for m in recorded]
     span_a = (recorded[-1].log_time_ns - recorded[0].log_time_ns) / 1e9
-    span_b = (again[-1].log_time_ns - again[0].log_time_ns) / 1e9
     assert span_a > 0.3
-    # Never ahead of the recorded schedule divided by the speed.
-    assert span_b >= 0.95 * span_a / 2
+    # Never ahead of the recorded schedule divided by the speed: message i goes out no earlier than its recorded
+    # offset / 2 after the schedule began (5 ms: the instants between the replay's clock reading and ours).
+    # A replay 2x too fast is ~0.12 s early by its last message, one as fast as possible ~0.23 s.
+    early = [(m.log_time_ns - recorded[0].log_time_ns) / 1e9 / 2 - (t - begun[0]) for (t, _, _), m in zip(puts, recorded)]
+    assert max(early) <= 0.005, f"a message went out {max(early):.3f} s ahead of the schedule"
     assert stats.recorded_span_s == pytest.approx(span_a, abs=1e-9)
     assert mio.latest_provenance(tmp_path) == provenance_payload("a")
 
