@@ -46,6 +46,7 @@ class _Ready:
     env_flags: np.ndarray
     env_flags_t: np.ndarray
     late: bool = False
+    order: int = 0  # its place in the batch's release order (``Convert``), which ``Flags`` restores
 
 
 @dataclass
@@ -78,9 +79,10 @@ def _layout(group: list[_Ready]) -> tuple | None:
 def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
     """Groups with one row layout, together, in the order each layout first appears.
 
-    A stream's chunks stay in order: within a run they go group by group, and a
-    stream changes layout at most once in a while (its first bias reading),
-    from a run that started earlier to one that starts later.
+    A stream's chunks can change order here: a step whose modules were aligned
+    on both sides of a new housekeeping reading is two groups, each joining the
+    run of its layout, so a stream may be in two runs of one batch. ``Flags``
+    puts the converted chunks back in their release order.
     """
     runs: dict[object, list[list[_Ready]]] = {}
     for k, group in enumerate(groups):
@@ -159,6 +161,7 @@ class Convert:
         out = []
         for item in items:
             if type(item) is _Ready:
+                item.order = len(self._held)
                 self._held.append(item)
                 continue
             if type(item) is End:
@@ -279,19 +282,29 @@ class Flags:
         self._unusable = fl.UNUSABLE | nan_too
 
     def __call__(self, items: list) -> list:
-        out = []
+        out, done = [], []
         for item in items:
             kind = type(item)
             if kind is _Run:
-                self._run(item, out)
+                self._run(item, done)
             elif kind is _Converted and not item.finished:
                 r = item.ready
                 p, f, s = self.finish(item.p_opt, item.flags, r.env_flags, r.known if r.n_unknown else None,
                                       item.sigma)
-                out.append(_Converted(r, p, f, s, True))
+                done.append(_Converted(r, p, f, s, True))
             else:
+                self._in_order(done, out)
                 out.append(item)
+        self._in_order(done, out)
         return out
+
+    @staticmethod
+    def _in_order(done: list, out: list) -> None:
+        """The converted chunks into ``out`` in their release order: each stream's in sequence (see ``_runs``)."""
+        if done:
+            done.sort(key=lambda c: c.ready.order)
+            out += done
+            done.clear()
 
     def _run(self, item: _Run, out: list) -> None:
         run, cols = item.run, item.cols
