@@ -205,6 +205,32 @@ def test_coverage_names_the_converters_shedding_and_counts_late_power():
     assert cov.power_only(5.5) == [] and cov.power_only(6.1) == ["0/2"]
 
 
+def test_coverage_says_when_power_reaches_the_recorder_late_not_that_it_stopped():
+    """Backpressure (a recorder whose intake falls behind; zenoh's BLOCK then slows converter and source): its
+    power still comes, later and later, so the reason says so instead of 'stalled, or does not reach'. Stamps
+    that are old by a constant (a replay of a recording) are not lateness."""
+    conv = Ledger("converted")
+    conv.received("0/1", 20)
+    conv.done("0/1", 20)
+    for offset_s, behind in ((0.0, True), (86_400.0, True), (86_400.0, False)):
+        cov = Coverage(after_s=1.0)
+        cov.converter_status("conv-a", conv.as_dict())
+        for k in range(10):  # counts on time; power 0.2 s later each chunk (its receive lag grows): 1.8 s behind
+            cov.add("mntes/lab/counts/0/1", k, float(k))
+            lag = offset_s + (0.2 * k if behind else 0.01)
+            cov.add("mntes/lab/power/0/1", k, float(k) + 0.01, lag_s=lag)
+            cov.add("mntes/lab/power/0/1", k, float(k) + 0.02, late=True, lag_s=offset_s + 50.0)  # late: not counted
+        for k in range(10, 13):
+            cov.add("mntes/lab/counts/0/1", k, float(k))
+        assert cov.unconverted(12.5) == ["0/1"]
+        why = cov.reason("0/1")
+        assert why.startswith("converter conv-a converted 20 chunks of it by its last status, but no power for 1 s")
+        if behind:
+            assert cov.behind_s("0/1") == pytest.approx(1.8) and "reaches this recorder late: the last 1.8 s" in why
+        else:
+            assert cov.behind_s("0/1") == 0.0 and why.endswith("(stalled, or its power does not reach this recorder)")
+
+
 def test_a_recorded_status_ledger_names_the_shedding_converter():
     """The converter's real status bytes (ledger with shed chunks) -> the recorder's book -> Coverage's reason,
     and the file's mntes.ledger record carries the converter's ledger."""

@@ -24,6 +24,7 @@ log = logging.getLogger("mntes_stream.recorder")
 
 _MAX_RANGES = 64  # missing power ranges remembered per stream (the oldest forgotten first; they stay counted)
 _MAX_STREAMS = 100_000  # streams booked at most (names come from topics any peer may publish)
+_BEHIND_S = 0.5  # power reaching the recorder this much later than it used to: said to be behind
 
 
 class Coverage:
@@ -48,6 +49,9 @@ class Coverage:
         self.gaps: dict[str, int] = {}  # "b/m" -> power chunks missing now while counts came
         self.late: dict[str, int] = {}  # "b/m" -> power chunks that came late (converted after overload)
         self.live: dict[str, int] = {}  # "b/m" -> power chunks converted live
+        # "b/m" -> (least, latest) seconds from a power chunk's publication to its receipt here: their
+        # difference is how far this recorder's intake has fallen behind (a replay's old stamps cancel out).
+        self._lag_s: dict[str, tuple[float, float]] = {}
 
     @staticmethod
     def _stream(topic: str) -> tuple[str, str] | None:
@@ -56,8 +60,9 @@ class Coverage:
             return parts[2], f"{parts[3]}/{parts[4]}"
         return None
 
-    def add(self, topic: str, seq: int | None, t_s: float, late: bool = False) -> None:
-        """Book one message (its topic, envelope ``seq`` if any, receive time; ``late``: a power chunk marked late)."""
+    def add(self, topic: str, seq: int | None, t_s: float, late: bool = False, lag_s: float | None = None) -> None:
+        """Book one message (its topic, envelope ``seq`` if any, receive time; ``late``: a power chunk marked late;
+        ``lag_s``: receive wall time minus the publication time in the message, None if it has none)."""
         what = self._stream(topic)
         if what is None:
             return
@@ -71,6 +76,9 @@ class Coverage:
             self.late[stream] = self.late.get(stream, 0) + 1
         else:
             self.live[stream] = self.live.get(stream, 0) + 1
+            if lag_s is not None:  # late power is late by design: not a sign of this recorder's intake
+                least = self._lag_s.get(stream, (lag_s,))[0]
+                self._lag_s[stream] = (min(least, lag_s), lag_s)
         last = self._power_seq.get(stream)
         if seq is not None and seq != last:
             if last is not None and last < seq <= last + 1000:
@@ -137,9 +145,23 @@ class Coverage:
             elif s.pending and not s.done + s.late:
                 other.append(f"converter {name} holds {s.pending} chunks of it (waiting for housekeeping, or starting)")
             elif s.done + s.late:
-                other.append(f"converter {name} converted {s.done + s.late} chunks of it by its last status, but no "
-                             f"power for {self.after_s:.3g} s (stalled, or its power does not reach this recorder)")
+                why = f"converter {name} converted {s.done + s.late} chunks of it by its last status, but no power " \
+                      f"for {self.after_s:.3g} s "
+                behind = self.behind_s(stream)
+                if behind >= _BEHIND_S:
+                    why += (f"(its power reaches this recorder late: the last {behind:.3g} s later than the "
+                            "earliest did; this recorder or its link is behind, and zenoh's BLOCK congestion "
+                            "control slows the converter and the source: nothing is lost)")
+                else:
+                    why += "(stalled, or its power does not reach this recorder)"
+                other.append(why)
         return other[0] if other else default
+
+    def behind_s(self, stream: str) -> float:
+        """How much later than its earliest the latest live power chunk of ``stream`` reached this recorder
+        (seconds, from each chunk's own publication time; 0 with none)."""
+        least, latest = self._lag_s.get(stream, (0.0, 0.0))
+        return max(latest - least, 0.0)
 
     def unconverted(self, now_s: float) -> list[str]:
         """Streams whose counts came in the last ``after_s`` with no power for ``after_s`` (logged once per reason)."""

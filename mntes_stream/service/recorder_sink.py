@@ -80,7 +80,8 @@ class RecorderSink:
         env = peek_envelope(payload)
         self.writer.write(topic, payload, t_ns, env)
         late = env.late and kind == "power" and not env.problem
-        self.coverage.add(topic, env.seq, time.monotonic(), late=late)
+        lag_s = None if kind != "power" or env.publish_time_ns is None else (t_ns - env.publish_time_ns) / 1e9
+        self.coverage.add(topic, env.seq, time.monotonic(), late=late, lag_s=lag_s)
         self.book.add(topic, payload, env, t_ns, late=late, kind=kind)
         if kind == "counts":
             if not env.problem:
