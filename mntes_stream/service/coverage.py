@@ -101,7 +101,7 @@ class Coverage:
             holes.pop(0)
         missing = hi - lo
         self.gaps[stream] = self.gaps.get(stream, 0) + missing
-        log.warning("stream %s: power again after a gap of %d chunk(s) (seq %d to %d not converted live): %s", stream,
+        log.warning("stream %s: power again after a gap of %d chunk(s) (seq %d to %d never came live): %s", stream,
                     missing, lo, hi - 1, self.reason(stream, "no converter published them"))
 
     def _fill(self, stream: str, seq: int) -> None:
