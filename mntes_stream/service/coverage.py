@@ -150,8 +150,9 @@ class Coverage:
                 behind = self.behind_s(stream)
                 if behind >= _BEHIND_S:
                     why += (f"(its power reaches this recorder late: the last {behind:.3g} s later than the "
-                            "earliest did; this recorder or its link is behind, and zenoh's BLOCK congestion "
-                            "control slows the converter and the source: nothing is lost)")
+                            "earliest did; this recorder or its link is behind: zenoh's BLOCK congestion control "
+                            "slows the converter and the source, and past its block budget, 5 s by default, "
+                            "closes the link and loses what is queued on it)")
                 else:
                     why += "(stalled, or its power does not reach this recorder)"
                 other.append(why)
