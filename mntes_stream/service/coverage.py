@@ -145,8 +145,8 @@ class Coverage:
             elif s.pending and not s.done + s.late:
                 other.append(f"converter {name} holds {s.pending} chunks of it (waiting for housekeeping, or starting)")
             elif s.done + s.late:
-                why = f"converter {name} converted {s.done + s.late} chunks of it by its last status, but no power " \
-                      f"for {self.after_s:.3g} s "
+                why = (f"converter {name} converted {s.done + s.late} chunks of it by its last status, but no power "
+                       f"for {self.after_s:.3g} s ")
                 behind = self.behind_s(stream)
                 if behind >= _BEHIND_S:
                     why += (f"(its power reaches this recorder late: the last {behind:.3g} s later than the "

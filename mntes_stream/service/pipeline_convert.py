@@ -271,7 +271,8 @@ class Flags:
     Applied once per converted block (then sliced into chunks), or per chunk
     converted alone. Books the flag counts and unknown-channel samples. Stale
     housekeeping (the last good reading older than its limit) makes power NaN
-    when ``hk_stale_power = "nan"``.
+    when ``hk_stale_power = "nan"``. The first stage to see chunks one by one
+    again, it puts a batch's chunks back in their release order (see ``_runs``).
     """
 
     name = "flags"
