@@ -16,3 +16,18 @@ Layout (data flows top to bottom; see README "What it is"):
 """
 
 __version__ = "0.1.0"
+
+
+def cache_root() -> str:
+    """The user's cache of mntes-stream: table banks, converter snapshots, compiled kernels.
+
+    ``$MNTES_STREAM_CACHE`` if set, else ``$XDG_CACHE_HOME/mntes-stream`` (``~/.cache/mntes-stream``);
+    never inside the installed package. ``mntes-stream cache`` shows and clears it.
+    """
+    import os
+
+    own = os.environ.get("MNTES_STREAM_CACHE")
+    if own:
+        return os.path.expanduser(own)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "mntes-stream")

@@ -71,3 +71,26 @@ def test_up_runs_until_ctrl_c_and_leaves_a_finished_recording(tmp_path):
     assert any("/provenance" in t for t in counts) and any("/hk/" in t for t in counts)
     first = next(iter(session.iter_messages(["mntes/lab/power/**"])))
     assert isinstance(decode(first.payload), PowerChunk)
+
+
+def test_the_first_up_with_empty_caches_says_what_it_builds_and_compiles(tmp_path):
+    """A first start (no cached tables, no compiled kernels) is not a silence: up names each slow step and its
+    time, then says when power flows; the recorder does not call the converter's own start-up missing power."""
+    import os
+
+    env = {**os.environ, "MNTES_STREAM_CACHE": str(tmp_path / "cache")}
+    env.pop("NUMBA_CACHE_DIR", None)
+    cmd = [sys.executable, "-m", "mntes_stream", "up", "--duration", "3", "--modules", "1", "--channels", "8",
+           "--out", str(tmp_path / "up")]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    compiling = next(i for i, line in enumerate(lines) if "converter: compiling the conversion kernels" in line)
+    assert lines[compiling].endswith("...")
+    took = re.search(r"compiling the conversion kernels .*: done in ([\d.]+) s", done.stdout)
+    assert took and float(took.group(1)) >= 1.0
+    ready = next(i for i, line in enumerate(lines) if re.search(r"ready after [\d.]+ s; power flows", line))
+    assert compiling < ready < next(i for i, line in enumerate(lines) if "power chunks" in line)
+    assert "counts without power" not in done.stderr, done.stderr[-2000:]
+    assert any((tmp_path / "cache" / "numba").rglob("*.nbi")), "the kernels are cached in the user's cache"
+    assert "Traceback" not in done.stderr

@@ -29,7 +29,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "record and replay": ("record", "replay", "inspect", "recover", "convert", "transcode"),
     "export": ("export",),
     "calibrate and validate": ("calib", "params", "tables", "model", "validate", "noise"),
-    "develop": ("simulate", "bench"),
+    "develop": ("simulate", "bench", "cache"),
 }
 
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
+from mntes_stream.core._numba import numba as _numba  # None: the converters' numpy route still works
 
 __all__ = ["N_CONST", "constants", "linear_power", "electrical_power", "baseline_numba", "available"]
 
@@ -78,11 +79,6 @@ def available() -> bool:
     """True when numba is installed (the numpy route is used otherwise)."""
     return _numba is not None
 
-
-try:
-    import numba as _numba
-except ImportError:  # the converters' numpy route still works
-    _numba = None
 
 if _numba is not None:
     from llvmlite import ir as _ir

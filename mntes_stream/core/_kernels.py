@@ -46,6 +46,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
+from mntes_stream.core._numba import numba  # None: the numpy twins above still work
 
 __all__ = ["table_numba", "grid_numba", "table_numpy", "grid_numpy", "front_numpy", "lookup_numpy",
            "row_constants", "compile_kernels", "REC_COLS"]
@@ -307,10 +308,6 @@ def grid_numpy(ci_, cq_, tb, ltb, b, v, hk, rows, phys, dom, ko, x, co, cidx, cp
 
 # --- compiled kernels ----------------------------------------------------------------------
 
-try:
-    import numba
-except ImportError:  # the numpy twins above still work
-    numba = None
 
 if numba is not None:
     from numba.core import compiler as _numba_compiler

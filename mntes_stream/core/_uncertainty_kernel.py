@@ -23,6 +23,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core._kernels import binomials
+from mntes_stream.core._numba import numba  # None: the model route in core.uncertainty still works
 
 SQRT2 = math.sqrt(2.0)
 SERIES_LIMIT = 0.05
@@ -48,12 +49,6 @@ def row_constants(phys, noise, bank_arrays) -> np.ndarray:
             phys[:, 9], phys[:, 10], phys[:, 4], phys[:, 5], np.asarray(noise.sigma_i_a, float),
             np.asarray(noise.tolerance_w, float), *binomials(n - 1.0)]
     return np.ascontiguousarray(np.stack(cols, axis=1)) if len(n) else np.empty((0, 27))
-
-
-try:
-    import numba
-except ImportError:  # the model route in core.uncertainty still works
-    numba = None
 
 
 def available() -> bool:

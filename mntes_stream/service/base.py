@@ -169,6 +169,33 @@ class _Ready:
     def is_set(self) -> bool:
         return self._heartbeat.state == "running"
 
+    def progress(self, text: str) -> None:
+        """What the service is doing before it is ready, for whoever started it (``up`` prints it)."""
+        self._heartbeat.beat(start_phase=text)
+        tell = getattr(self._outer, "progress", None)  # a plain Event has none: nobody listens
+        if tell is not None:
+            tell(text)
+
+
+@contextlib.contextmanager
+def announced(progress: Callable[[str], None], text: str, after_s: float = 1.0):
+    """Say ``text ...`` through ``progress`` once the block has taken ``after_s``, and how long it took.
+
+    A start that is quick says nothing; a slow one (kernels compiling, tables
+    building) says what it does while it does it, not after a silence.
+    """
+    t0 = time.monotonic()
+    timer = threading.Timer(after_s, progress, (f"{text} ...",))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        took_s = time.monotonic() - t0
+        if took_s >= after_s:
+            progress(f"{text}: done in {took_s:.1f} s")
+
 
 @dataclass(frozen=True)
 class Context:
@@ -187,6 +214,8 @@ class Context:
         The service's Prometheus metrics, when ``[metrics] port`` is set.
     mark_ready : callable
         ``mark_ready()`` says the service serves (idempotent).
+    progress : callable
+        ``progress(text)`` says what a slow start is doing ("compiling kernels"), before it is ready.
     """
 
     stop: StopFlag
@@ -195,6 +224,7 @@ class Context:
     publishers: Any
     metrics: Any
     mark_ready: Callable[[], None]
+    progress: Callable[[str], None] = lambda text: None
 
 
 class Service(abc.ABC):
@@ -331,7 +361,8 @@ class Service(abc.ABC):
                 pubs = Publishers(session, history_chunks=self.history_chunks(),
                                   observer=None if metrics is None else metrics.observe)
                 stack.callback(pubs.close)
-            ctx = Context(stopping, self.heartbeat, session, pubs, metrics, mark_ready)
+            ctx = Context(stopping, self.heartbeat, session, pubs, metrics, mark_ready,
+                          getattr(ready, "progress", lambda text: None))
             self.setup(ctx)
             if self.ready_after_setup:
                 mark_ready()

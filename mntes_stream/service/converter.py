@@ -12,9 +12,11 @@ started later still gets it. Stops on SIGINT/SIGTERM, a stop event or
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, fields
 
+from mntes_stream import cache_root
 from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
@@ -22,9 +24,10 @@ from mntes_stream.core.shards import Shard, owned_streams
 from mntes_stream.core.uncertainty import UncertaintySettings
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
+from mntes_stream.io.cache import DEFAULT_MAX_MB
 from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import QueueSubscriber, ZenohSettings, answer
-from mntes_stream.service.base import Service
+from mntes_stream.service.base import Service, announced
 from mntes_stream.service.metrics import MetricsSettings
 from mntes_stream.service.pipeline_config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 
@@ -52,9 +55,11 @@ class ConverterConfig(Settings):
     tables: str = setting("", "table bank file (mntes-stream tables build); '' = build from params at start",
                           path=True)
     table_cache: str = setting(
-        "~/.cache/mntes-stream/tables", "banks built from params, and the converter as built (service/snapshot.py), "
-        "are kept here keyed by parameters, kind and software version, so a restart loads instead of rebuilding "
-        "('' = no cache)", path=True)
+        os.path.join(cache_root(), "tables"), "banks built from params, and the converter as built "
+        "(service/snapshot.py), are kept here keyed by parameters, kind and software version, so a restart loads "
+        "instead of rebuilding ('' = no cache; `mntes-stream cache` shows and clears it)", path=True)
+    table_cache_max_mb: float = setting(DEFAULT_MAX_MB, "the table cache's size cap: after each write the least "
+                                        "recently used entries beyond it are removed", unit="MB", gt=0)
     boards: tuple[int, ...] = setting((), "own these boards only ([] = every board)", ge=0)
     modules: tuple[int, ...] = setting((), "... and these modules ([] = every module)", ge=0)
     shard: str = setting("", "i/N: own the streams (board, module) whose CRC-32 falls in bucket i of N "
@@ -199,6 +204,7 @@ def _cached_bank(cfg: ConverterConfig, params):
     from mntes_stream import __version__
     from mntes_stream.core.tables import TABLE_FORMAT, build_bank, params_identity
     from mntes_stream.errors import MntesError
+    from mntes_stream.io.cache import prune, touch
     from mntes_stream.io.tablefile import load_bank, save_bank
     from mntes_stream.service.snapshot import build_fingerprint
 
@@ -210,6 +216,7 @@ def _cached_bank(cfg: ConverterConfig, params):
         try:
             bank = load_bank(path)  # verifies the content hash: a damaged entry is not used
             log.info("table bank %s from the cache %s", bank.identity[:12], path)
+            touch(path)  # recently used: the last the size cap removes
             return bank
         except MntesError as exc:
             log.warning("table cache entry %s unusable (%s): rebuilding", path, exc)
@@ -217,6 +224,7 @@ def _cached_bank(cfg: ConverterConfig, params):
     try:
         directory.mkdir(parents=True, exist_ok=True)
         save_bank(bank, path)
+        prune(directory, getattr(cfg, "table_cache_max_mb", DEFAULT_MAX_MB) * 1e6, keep=(path,))  # offline: no cap set
     except OSError as exc:  # a read-only home must not stop the converter
         log.warning("cannot write the table cache %s: %s", path, exc)
     return bank
@@ -333,15 +341,22 @@ class ConverterService(Service):
             params, streams, conv = snap
         else:
             params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
-            conv = converter if converter is not None else build_converter(cfg, params)
             if converter is None:
+                n = f"{len(params)} detectors" if params is not None else "the table bank"
+                with announced(ctx.progress, f"building the {cfg.kind} converter for {n} (tables, flag "
+                               f"thresholds; kept in {cfg.table_cache or 'no cache'} for the next start)"):
+                    conv = build_converter(cfg, params)
                 save_snapshot(cfg, snap_key, params, streams, conv)
+            else:
+                conv = converter
         if streams is None and converter is not None:
             from mntes_stream.service.housekeeping import known_modules
 
             modules = known_modules(conv.detector_ids)
             streams = sorted(modules) if modules is not None else None
-        _warm_up(conv)
+        with announced(ctx.progress, "compiling the conversion kernels (after an install or upgrade; cached "
+                       "for the next start)"):
+            _warm_up(conv)
         summary = owns_summary(cfg.shard_parsed, cfg.boards, cfg.modules, streams) if streams is not None else {}
         self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),

@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mntes_stream.io.cache import DEFAULT_MAX_MB, prune, touch
+
 __all__ = ["snapshot_key", "load_snapshot", "save_snapshot", "build_fingerprint"]
 
 log = logging.getLogger("mntes_stream.converter")
@@ -113,6 +115,7 @@ def load_snapshot(cfg):
             return key, None
         with open(path, "rb") as f:
             value = pickle.load(f)
+        touch(path)  # recently used: the last the size cap removes
         params, streams, conv, text = value
         if not hasattr(conv, "convert") or not hasattr(conv, "detector_ids") or not isinstance(text, str):
             raise TypeError(f"not a converter: {type(conv).__name__}")
@@ -144,5 +147,6 @@ def save_snapshot(cfg, key: str | None, params, streams, conv) -> None:
         except BaseException:
             os.unlink(tmp)
             raise
+        prune(path.parent, getattr(cfg, "table_cache_max_mb", DEFAULT_MAX_MB) * 1e6, keep=(path,))
     except (OSError, pickle.PicklingError, TypeError, AttributeError) as exc:
         log.warning("cannot write the converter snapshot %s: %s", path, exc)

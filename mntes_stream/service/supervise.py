@@ -72,6 +72,22 @@ class _ParentWatch(StopFlag):
         return super().is_set() or (self._parent is not None and not self._parent.is_alive())
 
 
+class _ReadyReporting:
+    """The child's ``ready``: the parent's Event, and progress before it is set sent on the results queue."""
+
+    def __init__(self, label: str, ready, results):
+        self._label, self._ready, self._results = label, ready, results
+
+    def set(self) -> None:
+        self._ready.set()
+
+    def is_set(self) -> bool:
+        return self._ready.is_set()
+
+    def progress(self, text: str) -> None:
+        self._results.put((self._label, "progress", text))
+
+
 def child_main(label: str, service, config, stop, ready, results) -> None:
     """Entry of a spawned service process: run ``service`` (a registry name or a Service class) on ``config``.
 
@@ -97,7 +113,7 @@ def child_main(label: str, service, config, stop, ready, results) -> None:
     wall0, cpu0 = time.monotonic(), time.process_time()
     try:
         svc = (service if isinstance(service, type) else service_class(service))(config)
-        result = svc.start(_ParentWatch(stop, multiprocessing.parent_process()), ready)
+        result = svc.start(_ParentWatch(stop, multiprocessing.parent_process()), _ReadyReporting(label, ready, results))
         import resource
 
         result = {**result, "process_cpu_s": time.process_time() - cpu0, "process_wall_s": time.monotonic() - wall0,
@@ -127,6 +143,8 @@ class Services:
         self._stopped: set = set()  # stopped on purpose: not dead
         self.restarts: collections.Counter = collections.Counter()
         self.deaths: dict[str, list[str]] = {}  # label -> why each earlier process of it ended
+        #: ``on_progress(label, text)``: what a starting service says it is doing (None: not shown)
+        self.on_progress = None
 
     def start(self, label: str, service, config, timeout_s: float = 180.0, abort=None) -> None:
         """Start ``service`` (a registry name, or a Service class such as a benchmark's) on ``config`` as
@@ -152,6 +170,7 @@ class Services:
         self.procs[label], self._stops[label], self._readies[label] = proc, stop, ready
         deadline = time.monotonic() + timeout_s
         while not ready.wait(0.1):
+            self._drain(0.0)  # the child's progress, as it comes
             if abort is not None and abort.is_set():
                 raise MntesError(f"{label}: start interrupted")
             if not proc.is_alive() or time.monotonic() > deadline:
@@ -171,6 +190,10 @@ class Services:
                 label, state, value = self.results.get(timeout=timeout_s)
             except queue.Empty:
                 return
+            if state == "progress":
+                if self.on_progress is not None:
+                    self.on_progress(label, value)
+                continue
             self._collected[label] = (state, value)
             timeout_s = 0.05
 
