@@ -50,6 +50,7 @@ def _rates(first: list[dict], second: list[dict]) -> dict[tuple, tuple[str, floa
 
 
 def run_ps(args) -> int:
+    from mntes_stream.core.lag import who_is_behind
     from mntes_stream.io.presence import list_services
     from mntes_stream.io.transport import ZenohSettings, open_session
 
@@ -85,8 +86,9 @@ def run_ps(args) -> int:
         lag = f"{b['latency_p99_ms']:.0f} ms" if isinstance(b.get("latency_p99_ms"), (int, float)) else "-"
         lost = b.get("chunks_lost", "-")
         up = f"{b['uptime_s']:.0f} s" if isinstance(b.get("uptime_s"), (int, float)) else "-"
+        behind = who_is_behind(b.get("latency_p99_ms"), b.get("arrival_p99_ms"))
         extra = "; ".join([x for x in (_owns_text(b.get("owns") or {}), _coverage_text(b)) if x]
-                          + list(b.get("warnings") or []))
+                          + ([f"behind: {behind}"] if behind else []) + list(b.get("warnings") or []))
         print(f"{b['service']:<11} {b['name']:<16} {b.get('state', '?'):<9} {up:>7} {rate:>14} {lag:>8} {lost!s:>6}  "
               f"{b.get('host', '?')}:{b.get('pid', '?')}  {extra}")
     return 0

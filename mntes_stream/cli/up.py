@@ -161,6 +161,7 @@ def _restart_dead(services, budget, stopping, say) -> str | None:
 def run_up(args) -> int:
     import dataclasses
 
+    from mntes_stream.core.lag import who_is_behind
     from mntes_stream.core.ledger import Ledger
     from mntes_stream.errors import MntesError
     from mntes_stream.io import keys
@@ -257,10 +258,13 @@ def run_up(args) -> int:
                     n_files, size = files.now()
                     p50 = "-" if st.latency_p50_ms is None else f"{st.latency_p50_ms:.1f}"
                     p99 = "-" if st.latency_p99_ms is None else f"{st.latency_p99_ms:.1f}"
+                    arr = "-" if st.arrival_p99_ms is None else f"{st.arrival_p99_ms:.1f}"
+                    behind = who_is_behind(st.latency_p99_ms, st.arrival_p99_ms)
                     say(f"  t={st.uptime_s:6.1f} s  power chunks {st.chunks_converted:7d}  "
-                        f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms  "
-                        f"lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
-                        f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}{_restarts(services)}")
+                        f"{st.rate_msamples_per_s * 1e3:7.1f} ksamples/s  latency p50/p99 {p50}/{p99} ms "
+                        f"(arrival p99 {arr})  lost {st.chunks_lost}  bad {sum(st.bad_messages.values())}  "
+                        f"MCAP {n_files} file(s) {size / 1e6:.2f} MB{_flagged(st)}{_restarts(services)}"
+                        f"{f'  BEHIND: {behind}' if behind else ''}")
                 interrupted = stopping.is_set()
                 # Ordered stop: no new data; the converter takes in and converts what is on its
                 # way (its status says when), converts what it still holds and says so in a

@@ -279,7 +279,8 @@ class StatusMessage(MessageBase):
 
     Counters are cumulative since start; ``rate_*`` and ``latency_*`` cover
     the last interval (latency: source publication to power publication;
-    None when no chunk was converted in the interval).
+    arrival: source publication to the converter's receipt, the source's and
+    the link's share of it; None when no chunk was converted or received).
     """
 
     SCHEMA: ClassVar[str] = "mntes.status"
@@ -308,6 +309,8 @@ class StatusMessage(MessageBase):
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
     latency_max_ms: float | None = None
+    arrival_p50_ms: float | None = None
+    arrival_p99_ms: float | None = None
     last_error: str = ""
     owns: dict = field(default_factory=dict)
     chunks_missing: int = 0
@@ -319,10 +322,12 @@ class StatusMessage(MessageBase):
 
     # Absent from statuses of earlier versions of the converter: decoded with their defaults.
     _LATER: ClassVar[frozenset] = frozenset(
-        {"owns", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected", "chunks_set_aside", "ledger"})
+        {"owns", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected", "chunks_set_aside", "ledger",
+         "arrival_p50_ms", "arrival_p99_ms"})
     # The fields by kind (rates >= 0, latencies that may be negative, counters), for readers of statuses too.
     RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
-    LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms")
+    LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms", "arrival_p50_ms",
+                                            "arrival_p99_ms")
     COUNTERS: ClassVar[tuple[str, ...]] = (
         "t_ns", "chunks_received", "chunks_converted", "chunks_pending", "samples_converted", "chunks_lost",
         "chunks_duplicated", "chunks_out_of_order", "hk_received", "hk_stale_samples", "hk_missing_samples",

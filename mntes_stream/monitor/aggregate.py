@@ -30,6 +30,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
+from mntes_stream.core.lag import who_is_behind
 from mntes_stream.core.sequence import StreamSequence
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
@@ -679,17 +680,22 @@ class Aggregator:
             newest power chunk (receive clock), ``threshold_s``,
             ``chunk_interval_s``, ``newest_t_ns`` (sample time of the newest
             data: the recording's clock in a replay), ``lag_s`` (newest sample
-            to receipt), ``shedding`` (``services``, ``shed``, ``set_aside``).
+            to receipt), ``shedding`` (``services``, ``shed``, ``set_aside``),
+            ``behind`` (which process holds a converter's latency, in words;
+            "" when none is behind: ``core.lag``).
         """
         shedding = [x for x in (self._shedding(name, now_ns) for name in self.statuses) if x["shedding"]]
         shed = {"services": [x["service"] for x in shedding], "shed": int(sum(x["chunks_shed"] for x in shedding)),
                 "set_aside": int(sum(x["chunks_set_aside"] for x in shedding))}
+        # Which process holds the latency, from each converter's split of it (core.lag): not always the converter.
+        behind = "; ".join(f"{name}: {who}" for name, (s, _, _) in sorted(self.statuses.items())
+                           if (who := who_is_behind(s.latency_p99_ms, getattr(s, "arrival_p99_ms", None))))
         bufs = [b for b in self.modules.values() if b.last_recv_ns is not None]
         if not bufs:
             return {"state": "shedding" if shedding else "waiting", "age_s": None, "threshold_s": None,
                     "chunk_interval_s": None, "newest_t_ns": None, "replay": False,
                     "stale_chunks": self.config.stale_chunks, "lag_s": None,
-                    "lagging_after_s": self.config.lagging_after_s, "shedding": shed}
+                    "lagging_after_s": self.config.lagging_after_s, "shedding": shed, "behind": behind}
         newest = max(bufs, key=lambda b: b.last_recv_ns)
         recent = [b for b in bufs if newest.last_recv_ns - b.last_recv_ns <= self.config.silent_s * 1e9]
         interval = float(np.median([b.chunk_interval_s() for b in recent]))
@@ -704,7 +710,7 @@ class Aggregator:
             state = "shedding"
         return {"state": state, "age_s": age, "threshold_s": threshold, "chunk_interval_s": interval,
                 "newest_t_ns": newest.newest_t_ns, "replay": bool(newest.replay), "stale_chunks": self.config.stale_chunks,
-                "lag_s": lag, "lagging_after_s": self.config.lagging_after_s, "shedding": shed}
+                "lag_s": lag, "lagging_after_s": self.config.lagging_after_s, "shedding": shed, "behind": behind}
 
     def _shedding(self, name: str, now_ns: int) -> dict:
         """One service's ledger as the page shows it, and whether it is shedding now."""

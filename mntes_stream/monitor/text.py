@@ -22,8 +22,8 @@ def freshness_text(fr: dict) -> str:
         return (f"SHEDDING: {', '.join(sh['services'])} shed {sh['shed']:,} chunks, {sh['set_aside']:,} set aside "
                 "(overload: late power follows; offline convert gives what was shed)")
     if fr["state"] == "lagging":
-        return (f"LAGGING: data {fr['lag_s']:.1f} s old on arrival (> {fr['lagging_after_s']:g} s: a replay through "
-                "a converter, or a converter behind)")
+        why = f"behind: {fr['behind']}" if fr.get("behind") else "a replay through a converter, or a process behind"
+        return f"LAGGING: data {fr['lag_s']:.1f} s old on arrival (> {fr['lagging_after_s']:g} s: {why})"
     if fr["state"] == "waiting":
         return "WAITING: no power received yet"
     if fr["state"] == "stale":

@@ -425,7 +425,8 @@ class ConverterService(Service):
             if key == self._status_key:  # what the status says, in the heartbeat too (ps)
                 st = decode(payload)
                 self.heartbeat.beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost,
-                                    latency_p99_ms=st.latency_p99_ms, bad_messages=sum(st.bad_messages.values()),
+                                    latency_p99_ms=st.latency_p99_ms, arrival_p99_ms=st.arrival_p99_ms,
+                                    bad_messages=sum(st.bad_messages.values()),
                                     samples_per_s=st.rate_msamples_per_s * 1e6)
         if time.monotonic() >= self._next_prov:
             pubs.put(self._prov_key, pipe.provenance_bytes())

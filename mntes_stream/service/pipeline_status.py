@@ -62,7 +62,7 @@ class Status:
         since = self._last_ns if self._last_ns is not None else start
         interval_s = max(now - since, 0) / 1e9
         iv = books.interval
-        lat = np.asarray(iv.latency_ms)
+        lat, arr = np.asarray(iv.latency_ms), np.asarray(iv.arrival_ms)
         c = books.counters
         streams = seq.streams.values()
         led = seq.ledger_now()
@@ -98,6 +98,8 @@ class Status:
             latency_p50_ms=float(np.percentile(lat, 50)) if lat.size else None,
             latency_p99_ms=float(np.percentile(lat, 99)) if lat.size else None,
             latency_max_ms=float(lat.max()) if lat.size else None,
+            arrival_p50_ms=float(np.percentile(arr, 50)) if arr.size else None,
+            arrival_p99_ms=float(np.percentile(arr, 99)) if arr.size else None,
             last_error=books.last_error,
             owns=self.owns_status() if self.owns_status is not None else self._owns,
         )

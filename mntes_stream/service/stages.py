@@ -76,6 +76,7 @@ class Interval:
 
     def reset(self) -> None:
         self.chunks, self.samples, self.latency_ms = 0, 0, []
+        self.arrival_ms = []  # counts chunks received: due (source publication stamp) to receipt
 
     def add(self, samples: int, latency_ms: float) -> None:
         self.chunks += 1
@@ -254,6 +255,7 @@ class Decode:
                 books.bad("unknown_stream", f"board {chunk.board} module {chunk.module}: no detector of it in the "
                                             "parameters (given no state, not converted)", key)
                 return None
+            books.interval.arrival_ms.append((t_recv_ns - chunk.t_pub_ns) / 1e6)
             return Counts(info, chunk, key, t_recv_ns)
         if kind == "hk":
             return Hk(info, HousekeepingChunk.from_bytes(payload), key, t_recv_ns)

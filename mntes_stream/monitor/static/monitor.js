@@ -132,7 +132,7 @@ function refreshBadge() {
   else if (fr.state === "stale") setFresh("stale", `STALE: no data for ${ageText(fr.age_s + since)} (> ${fr.stale_chunks} chunk intervals, ${fmt(fr.threshold_s, 2)} s)`);
   else if (fr.state === "replay") setFresh("replay", `REPLAY · recorded ${utc(fr.newest_t_ns)}`);
   else if (fr.state === "shedding") setFresh("shedding", `SHEDDING · ${fr.shedding.shed.toLocaleString("en")} chunks shed, ${fr.shedding.set_aside.toLocaleString("en")} set aside (${fr.shedding.services.join(", ")})`);
-  else if (fr.state === "lagging") setFresh("lagging", `LAGGING · data ${ageText(fr.lag_s)} old on arrival (replay or converter behind)`);
+  else if (fr.state === "lagging") setFresh("lagging", `LAGGING · data ${ageText(fr.lag_s)} old on arrival (${fr.behind ? "behind: " + fr.behind : "replay, or a process behind"})`);
   else setFresh("live", `LIVE · ${fmt(fr.age_s, 1)} s`);
 }
 setInterval(refreshBadge, 200);
