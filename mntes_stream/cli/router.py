@@ -15,6 +15,7 @@ from mntes_stream.cli._common import (
     zenoh_from_args,
     zenoh_layer,
 )
+from mntes_stream.options import number
 
 _ROUTER = ("setup", "name", "duration_s")
 # Counters whose rate ps shows, first found wins: what "rate" means for each kind of service.
@@ -138,9 +139,9 @@ def register(sub) -> None:
                                    "ps lists them from any host on the zenoh network: state, uptime, rate, lag, "
                                    "lost, what each owns, and its warnings (e.g. a dead connect endpoint).")
     p.add_argument("--setup", default="lab", help="setup name (default lab)")
-    p.add_argument("--interval", type=float, default=0.5, metavar="S",
+    p.add_argument("--interval", type=number(float, "s", ge=0), default=0.5, metavar="S",
                    help="ask twice, S apart, to show rates (0: once, no rates; default 0.5)")
-    p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="how long to wait for answers (default 1)")
+    p.add_argument("--timeout", type=number(float, "s", gt=0), default=1.0, metavar="S", help="how long to wait for answers (default 1)")
     p.add_argument("--json", action="store_true", help="one JSON document")
     add_zenoh_args(p)
     p.set_defaults(func=run_ps)

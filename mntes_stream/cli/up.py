@@ -26,6 +26,7 @@ from pathlib import Path
 
 from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+from mntes_stream.options import number
 
 
 def _pick_source(setup: str, args, zenoh):
@@ -321,23 +322,23 @@ def _up_args(p) -> None:
     from mntes_stream.core.convert import CONVERTER_KINDS  # core.convert imports numba: `up` alone needs it
     from mntes_stream.io.keys import DEFAULT_SETUP
 
-    p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
+    p.add_argument("--duration", type=number(float, "s", ge=0), default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
     p.add_argument("--out", default="mntes-up", metavar="DIR", help="parameters and recordings go here (default ./mntes-up)")
     p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
-    p.add_argument("--modules", type=int, default=4, help="readout modules (default 4)")
-    p.add_argument("--channels", type=int, default=64, help="channels per module (default 64)")
-    p.add_argument("--sample-rate", type=float, default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
+    p.add_argument("--modules", type=number(int, ge=1), default=4, help="readout modules (default 4)")
+    p.add_argument("--channels", type=number(int, ge=1), default=64, help="channels per module (default 64)")
+    p.add_argument("--sample-rate", type=number(float, "Hz", gt=0), default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
                    help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground rate, 20 MHz / 2**17)")
-    p.add_argument("--chunk-s", type=float, default=0.1, help="counts chunk length (s)")
+    p.add_argument("--chunk-s", type=number(float, "s", gt=0), default=0.1, help="counts chunk length (s)")
     p.add_argument("--kind", default="table", choices=CONVERTER_KINDS, help="conversion kind (default table)")
     p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")
     p.add_argument("--json", action="store_true", help="print one JSON document (the services' final statistics) "
                                                        "on stdout; progress goes to stderr")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-second lines")
-    p.add_argument("--metrics-port", type=int, metavar="PORT",
+    p.add_argument("--metrics-port", type=number(int, ge=0, le=65535), metavar="PORT",
                    help="serve every service's Prometheus metrics on http://127.0.0.1:PORT/metrics (0: any free port; "
                         "needs the metrics extra)")
-    p.add_argument("--restarts", type=int, default=3, metavar="N",
+    p.add_argument("--restarts", type=number(int, ge=0), default=3, metavar="N",
                    help="restart a service that dies, at most N times a minute each (0: a death ends the run; "
                         "default 3)")
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
