@@ -78,9 +78,10 @@ def _unrecognized(parser, extra: list[str]) -> str:
     first = next((e for e in extra if e.startswith("-")), None)
     if first is None:
         return text
-    options = [s for a in parser._actions if a.help is not argparse.SUPPRESS for s in a.option_strings]
-    near = _closest(first.split("=", 1)[0], options)
-    return f"{text}; did you mean {near}?" if near else text
+    # Compared without the dashes every long option shares, which would make any two look alike.
+    options = {s.lstrip("-"): s for a in parser._actions if a.help is not argparse.SUPPRESS for s in a.option_strings}
+    near = _closest(first.split("=", 1)[0].lstrip("-"), list(options))
+    return f"{text}; did you mean {options[near]}?" if near else text
 
 
 class CommandParser(OneLineParser):
