@@ -265,8 +265,12 @@ def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:
 # stay as hidden aliases that say, in one line on stderr, what to write instead.
 
 
-def add_quiet(p, what: str = "warnings only, no progress") -> None:
-    p.add_argument("-q", "--quiet", action="store_true", help=what)
+QUIET_HELP = "no progress (bars, start and per-second lines, info logs, detail); warnings, errors and the last line stay"
+
+
+def add_quiet(p) -> None:
+    """``-q``: one meaning for every command (docs/cli.md)."""
+    p.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
 
 
 def add_json(p, what: str = "print the result as one JSON document") -> None:

@@ -220,7 +220,7 @@ def register(sub) -> None:
     f.add_argument("--max-nfev", type=number(int, ge=1), default=200, help="model evaluations per fit before giving up")
     add_overwrite(f, "replace an existing --out file (and its covariance sidecar)")
     add_json(f, "print a JSON summary")
-    add_quiet(f, "no progress bar")
+    add_quiet(f)
     f.set_defaults(func=_fit)
 
     lab = csub.add_parser("lab", help="the lab's IV and bias-step results (sotodlib det_cal HDF5) against the "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mntes_stream.cli._common import add_zenoh_args, print_mapping
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, print_mapping
 from mntes_stream.options import number
 
 _FLAGS = {"setup": "setup", "interface": "interface", "boards": "board", "v2_boards": "v2_board", "sctp": "sctp",
@@ -61,7 +61,7 @@ def register(sub) -> None:
     p.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="magnetic field to publish (default 0)")
     p.add_argument("--bias", action="append", metavar="BOARD/MODULE=V",
                    help="bias table entry, RMS volts; * for any board or module (repeatable)")
-    p.add_argument("-q", "--quiet", action="store_true", help="only the last line")
+    add_quiet(p)
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from datetime import UTC, datetime
 
-from mntes_stream.cli._common import print_mapping
+from mntes_stream.cli._common import add_quiet, print_mapping
 from mntes_stream.errors import ConfigError
 from mntes_stream.options import number
 
@@ -59,8 +59,14 @@ def _framework_export(fmt: str, args, selection: dict):
 
 
 def run_export(args) -> int:
+    from pathlib import Path
+
     from mntes_stream.cli.g3 import g3_sessions_as_mcap
 
+    # Said here in a shell's words (the feeds, a Python API, name their overwrite=True), and before any G3 run
+    # is converted for nothing.
+    if Path(args.out).exists() and not args.overwrite:
+        raise ConfigError(f"{args.out} exists (--overwrite replaces it)")
     with g3_sessions_as_mcap(args):  # a G3 run (SPT-3G) is converted to a temporary recording first
         return _run_export(args)
 
@@ -147,5 +153,5 @@ def register(sub) -> None:
                    "not a hole filled with NaN + GAP (default: feeds.blocks.DEFAULT_MAX_GAP_S, one hour)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_quiet(p)
     p.set_defaults(func=run_export)

@@ -8,7 +8,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, print_mapping
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, print_mapping
 from mntes_stream.options import number
 
 
@@ -154,7 +154,7 @@ def register(sub) -> None:
     p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
     p.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature of a DAQ without one")
     p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
-    p.add_argument("-q", "--quiet", action="store_true", help="only the last line (the ledger)")
+    add_quiet(p)
     from mntes_stream.cli.ocs import add_hk_args
 
     add_hk_args(p)  # --hk, --t-bath-field: the bath from OCS HK files instead of the DAQ's

@@ -24,7 +24,9 @@ def run(args) -> int:
     claim_out(args.out, args.overwrite, inputs=[*files, args.params])
     quiet_spt3g()
     n = write_converter_params(files, args.params, args.out, g3_input_config(args))
-    if not args.quiet or args.json:
+    if args.quiet and not args.json:  # -q: no detail, the last line only
+        print(f"wrote {args.out}: {n} detectors")
+    else:
         print_mapping({"params": args.out, "detectors": n, "run": files[0], "from": args.params}, args.json)
     return 0
 
@@ -48,5 +50,5 @@ def register(sub) -> None:
     p.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="constant field (spt3g has no field source; default 0)")
     add_overwrite(p, "replace an existing --out file")
     add_json(p)
-    add_quiet(p, "print nothing (the file is the result)")
+    add_quiet(p)
     p.set_defaults(func=run)

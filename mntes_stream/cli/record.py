@@ -261,7 +261,7 @@ def _record_args(p) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, RecorderConfig, _RECORD, _RECORD_ALIASES, title="recorder (override the config file)")
     add_json(p, "print the final statistics as JSON")
-    add_quiet(p, "warnings only")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_record)
 
@@ -291,7 +291,7 @@ def register(sub) -> None:
 
     add_hk_args(p)
     add_json(p, "print the statistics as one JSON document")
-    add_quiet(p, "warnings only, no progress bar")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_replay_cmd)
 
@@ -308,7 +308,7 @@ def register(sub) -> None:
                                                     "(default: the pipeline defaults for the recorded setup)")
     add_overwrite(p, "replace an existing OUT file")
     add_json(p, "print the statistics as one JSON document")
-    add_quiet(p, "no progress bar")
+    add_quiet(p)
     from mntes_stream.cli.g3 import add_g3_convert_args
 
     add_g3_convert_args(p)

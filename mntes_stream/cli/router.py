@@ -6,6 +6,7 @@ import json
 import time
 
 from mntes_stream.cli._common import (
+    add_quiet,
     add_settings_args,
     add_zenoh_args,
     arguments,
@@ -121,7 +122,7 @@ def _router_args(p) -> None:
     p.add_argument("--config", metavar="FILE", help="a [router] config (services/router.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, RouterConfig, _ROUTER, {"duration_s": ("--duration",)})
-    p.add_argument("-q", "--quiet", action="store_true", help="warnings only")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_router)
 

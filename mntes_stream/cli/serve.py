@@ -12,7 +12,7 @@ import logging
 import sys
 import threading
 
-from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, setup_logging, zenoh_layer
 from mntes_stream.options import number
 
 
@@ -135,7 +135,7 @@ def _serve_args(p) -> None:
     p.add_argument("--heartbeat-s", type=number(float, "s", ge=0), default=10.0, metavar="S",
                    help="log the service's heartbeat this often (0: never; default 10)")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
-    p.add_argument("-q", "--quiet", action="store_true", help="warnings only")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_serve)
 

@@ -183,6 +183,6 @@ def register(sub) -> None:
                                                   "(default 0)")
     add_overwrite(p, "replace an existing --out file")
     add_json(p)
-    add_quiet(p, "no progress bar or start line")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run)

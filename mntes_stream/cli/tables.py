@@ -38,8 +38,7 @@ def _build(args) -> int:
     with tqdm(total=len(params), unit="det", desc=f"tables ({args.kind})", disable=args.quiet) as bar:
         bank = build_bank(params, kind=args.kind, domain=domain, progress=bar.update, **options)
     save_bank(bank, args.out)
-    if not args.quiet:
-        print(f"wrote {args.out}: {len(bank)} detectors, {bank.nbytes / 2**20:.1f} MiB, identity {bank.identity}")
+    print(f"wrote {args.out}: {len(bank)} detectors, {bank.nbytes / 2**20:.1f} MiB, identity {bank.identity}")
     return 0
 
 
@@ -73,7 +72,7 @@ def register(sub) -> None:
     b.add_argument("--n-b-nodes", type=number(int, ge=4), help="grid: uniform B nodes across --b-field-t (default 7)")
     b.add_argument("--n-power", type=number(int, ge=8), help="grid: knots per detector (default 256)")
     add_overwrite(b, "replace an existing --out file")
-    add_quiet(b, "no progress bar or summary")
+    add_quiet(b)
     b.set_defaults(func=_build)
     i = tsub.add_parser("info", help="describe a table file (verifies its hash)")
     i.add_argument("file", metavar="FILE", help="table file (.npz)")

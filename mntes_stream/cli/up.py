@@ -24,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, setup_logging, zenoh_layer
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.options import number
 
@@ -334,7 +334,7 @@ def _up_args(p) -> None:
     p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")
     p.add_argument("--json", action="store_true", help="print one JSON document (the services' final statistics) "
                                                        "on stdout; progress goes to stderr")
-    p.add_argument("-q", "--quiet", action="store_true", help="no per-second lines")
+    add_quiet(p)
     p.add_argument("--metrics-port", type=number(int, ge=0, le=65535), metavar="PORT",
                    help="serve every service's Prometheus metrics on http://127.0.0.1:PORT/metrics (0: any free port; "
                         "needs the metrics extra)")
