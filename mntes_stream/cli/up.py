@@ -159,6 +159,25 @@ def _restart_dead(services, budget, stopping, say) -> str | None:
     return None
 
 
+def monitor_command(setup: str, p_conv: int, p_src: int) -> str:
+    """The exact command that attaches the monitor to this run: the same program the user ran (no venv to
+    guess), both ports (power and status from the converter, housekeeping from the source: zenoh peers do
+    not forward for each other), and the setup unless it is the default."""
+    import shlex
+    import shutil
+
+    from mntes_stream.io.keys import DEFAULT_SETUP
+
+    argv0 = Path(sys.argv[0])
+    if argv0.name == "mntes-stream":  # the console script: bare when it is the one on PATH, else its path
+        on_path = shutil.which("mntes-stream")
+        exe = "mntes-stream" if on_path and Path(on_path).resolve() == argv0.resolve() else shlex.quote(str(argv0.resolve()))
+    else:  # python -m mntes_stream, or main() called in-process
+        exe = f"{shlex.quote(sys.executable)} -m mntes_stream"
+    where = "" if setup == DEFAULT_SETUP else f" --setup {shlex.quote(setup)}"
+    return f"{exe} monitor{where} -e tcp/127.0.0.1:{p_conv} -e tcp/127.0.0.1:{p_src}"
+
+
 def run_up(args) -> int:
     import dataclasses
 
@@ -218,6 +237,7 @@ def run_up(args) -> int:
         f"at {args.sample_rate} Hz -> {args.kind} conversion -> MCAP in {rec_dir}")
     say(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
         f"{'until Ctrl-C' if not args.duration else f'for {args.duration:g} s (Ctrl-C stops earlier)'}")
+    say(f"  monitor, from a second terminal: {monitor_command(setup, p_conv, p_src)}")
     status_key = keys.status_key(setup, conv_cfg.name)
     failed = interrupted = False
     merged = None
