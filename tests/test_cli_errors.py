@@ -207,3 +207,15 @@ def test_a_bad_value_is_blamed_on_where_it_came_from(tmp_path):
     assert res.stderr.startswith("mntes-stream: error: command line --set [converter] kind: expected one of")
     res = _run("config", "show", ROOT / "services" / "converter.toml", "--set", "converter.no_such_key=1")
     assert res.returncode == 2 and "command line --set 'converter.no_such_key=1': [converter] has no setting" in res.stderr
+
+
+def test_docs_cli_examples_are_what_the_command_says(capsys):
+    """docs/cli.md "Argument errors": each `$ mntes-stream ...` line and the error line under it, as written."""
+    import shlex
+
+    text = (ROOT / "docs" / "cli.md").read_text().split("\n## Argument errors\n", 1)[1].split("\n## ", 1)[0]
+    lines = text.split("```\n", 2)[1].splitlines()
+    pairs = [(lines[i], lines[i + 1]) for i in range(0, len(lines) - 1, 2)]
+    assert len(pairs) >= 4 and all(cmd.startswith("$ mntes-stream ") for cmd, _ in pairs), lines
+    for cmd, says in pairs:
+        assert _one_line(capsys, shlex.split(cmd)[2:]) == says, cmd

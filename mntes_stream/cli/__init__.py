@@ -113,8 +113,8 @@ _BAD_PATH = frozenset({errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EACCES, 
 
 
 def _error(what, rc: int) -> int:
-    """One line on stderr, the exit code back."""
-    print(f"mntes-stream: error: {what}", file=sys.stderr)
+    """One line on stderr (a message from below, e.g. zenoh's, may hold newlines), the exit code back."""
+    print(f"mntes-stream: error: {' '.join(str(what).split())}", file=sys.stderr)
     return rc
 
 
