@@ -132,7 +132,7 @@ def register(sub) -> None:
                        "[uncertainty] noise_file reads (docs/uncertainty.md).")
     p.add_argument("run", metavar="RUN", help="recording: an .mcap file, a directory of them, or an `up` folder")
     p.add_argument("--out", metavar="FILE", help="write the noise file (JSON) here")
-    p.add_argument("--duration", type=number(float, "s", gt=0), metavar="S", help="use only the first S seconds of the run")
+    p.add_argument("--duration", type=number(float, "s"), metavar="S", help="use only the first S seconds of the run")
     p.add_argument("--params", metavar="FILE", help="detector parameters for the gains (default: the recorded ones)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--json", action="store_true", help="print the whole noise document as JSON")
