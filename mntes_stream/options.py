@@ -1,4 +1,5 @@
-"""Command-line options shared by ``cli/`` and ``bench/``: zenoh's own flags and hidden deprecated aliases.
+"""Command-line options shared by ``cli/`` and ``bench/``: zenoh's own flags, hidden deprecated aliases and
+numbers checked against their range.
 
 They live here, below both, because ``bench/`` is run by ``cli/bench.py``
 and must not import ``cli/`` back (tests/test_layering.py); ``cli._common``
@@ -7,7 +8,7 @@ names them for the commands. docs/cli.md has the grammar.
 
 from __future__ import annotations
 
-__all__ = ["add_zenoh_args", "deprecated_alias", "zenoh_layer"]
+__all__ = ["add_zenoh_args", "deprecated_alias", "number", "zenoh_layer"]
 
 
 def add_zenoh_args(p) -> None:
@@ -59,3 +60,42 @@ def deprecated_alias(p, old: str, new: str, **kwargs) -> None:
     if base == "store_true":
         kwargs["nargs"] = 0
     p.add_argument(old, action=_Deprecated, help=argparse.SUPPRESS, **kwargs)
+
+
+def number(kind: type = float, unit: str = "", *, ge: float | None = None, gt: float | None = None,
+           le: float | None = None, lt: float | None = None, allow_inf: bool = False):
+    """An argparse ``type``: ``kind`` (int or float) parsed from the text, finite, within the bounds.
+
+    Out of range or not a number, argparse says one line naming the flag and
+    the range in the words of a config file's error (``core.settings``):
+
+    >>> import argparse
+    >>> p = argparse.ArgumentParser(prog="up", exit_on_error=False)
+    >>> _ = p.add_argument("--duration", type=number(float, "s", ge=0))
+    >>> p.parse_args(["--duration", "-1"])
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentError: argument --duration: expected a number (s) >= 0, got '-1'
+    """
+    import argparse
+    import math
+    import operator
+
+    def parse(text: str):
+        from mntes_stream.core.settings import Setting, expected  # when a value is given: no start-up cost
+
+        s = Setting(unit=unit, ge=ge, gt=gt, le=le, lt=lt)
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        ok = value is not None and (math.isfinite(value) or (allow_inf and value == math.inf)) and all(
+            bound is None or test(value, bound) for bound, test in ((ge, operator.ge), (gt, operator.gt),
+                                                                     (le, operator.le), (lt, operator.lt)))
+        if not ok:
+            raise argparse.ArgumentTypeError(f"expected {expected(kind, s)}{' or inf' if allow_inf else ''}, "
+                                             f"got {text!r}")
+        return value
+
+    parse.__name__ = kind.__name__  # argparse's fallback words, should anything else go wrong
+    return parse

@@ -1,7 +1,8 @@
 """Every door of the command line: bad input is one line on stderr and a non-zero exit, never a traceback.
 
-Exit codes: 0 done, 2 an error said on purpose (bad config, arguments, files, data) or an argparse usage
-error, 1 an OS error (a path the command cannot use), 130 Ctrl-C, 141 the reader of stdout went away.
+Exit codes: 0 done, 2 an error said on purpose (bad config, arguments, files, data, a path the command cannot
+use) or an argparse usage error, 1 the command failed at its work (an I/O error, a full disk, a service dying
+too often), 130 Ctrl-C, 141 the reader of stdout went away.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ def test_up_rejects_an_unknown_kind_in_one_line():
 
 def test_up_into_an_unusable_directory_is_one_line(tmp_path):
     res = _run("up", "--out", "/proc/nope", "--duration", "1")
-    assert res.returncode != 0
+    assert res.returncode == 2  # a path the user gave that cannot be used: bad input, as a missing input file is
     line = _one_line_error(res)
     assert line.startswith("mntes-stream: error:") and "/proc/nope" in line
     assert len(res.stderr.strip().splitlines()) == 1
@@ -123,9 +124,9 @@ def test_a_missing_extra_names_it(tmp_path):
 @pytest.mark.parametrize("args, expect", [
     (["replay", "--afap"], "nothing to replay"),
     (["serve", "--config", "services/recorder.toml", "--set", "recorder.flush_interval_s=-1"],
-     "flush_interval_s: expected a number (s) > 0, got -1"),
+     "command line --set [recorder] flush_interval_s: expected a number (s) > 0, got -1"),
     (["serve", "--config", "services/recorder.toml", "--set", "nonsense"], "expected TABLE.KEY=VALUE"),
-    (["record", "--flush-s", "0", "--duration", "1"], "flush_interval_s: expected a number (s) > 0"),
+    (["record", "--flush-s", "0", "--duration", "1"], "argument --flush-interval-s/--flush-s: expected a number (s) > 0"),
     (["serve", "--config", "services/converter.toml", "--cfg", "no-colon"], "expected KEY:VALUE"),
     (["simulate", "--out", "x.mcap", "-e", "tcp/127.0.0.1:1"], "give either --out FILE.mcap or zenoh endpoints"),
 ])

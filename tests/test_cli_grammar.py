@@ -45,9 +45,13 @@ def test_every_flag_has_help_and_wrong_spellings_are_hidden_aliases():
 
 
 def test_quiet_is_dash_q_everywhere_and_writers_take_overwrite():
+    from mntes_stream.cli._common import QUIET_HELP
+
     for path, action in _walk(build_parser()):
-        if "--quiet" in action.option_strings:
+        if "--quiet" in action.option_strings or "-q" in action.option_strings:
             assert "-q" in action.option_strings, f"{' '.join(path)}: --quiet without -q"
+            # -q means one thing (issue 34: it meant three): cli._common.add_quiet, one help text.
+            assert action.help == QUIET_HELP, f"{' '.join(path)}: -q says {action.help!r}"
     writers = {("convert",), ("recover",), ("simulate",), ("export",), ("transcode",), ("params",),
                ("tables", "build"), ("calib", "simulate"), ("calib", "fit")}
     has = {path for path, action in _walk(build_parser()) if "--overwrite" in action.option_strings}
@@ -139,6 +143,13 @@ def test_outputs_are_refused_without_overwrite_and_replaced_with_it(tmp_path, ca
     capsys.readouterr()
     assert main(["convert", str(out), str(out), "--overwrite"]) == 2  # never the input
     assert "the output is one of the inputs" in capsys.readouterr().err and out.stat().st_size > 0
+    # export's writers are a Python API too (overwrite=True); the command speaks shell (issue 34).
+    h5 = tmp_path / "power.h5"
+    h5.write_bytes(b"kept")
+    for fmt in ("hdf5", "toast"):
+        assert main(["export", str(out), "--out", str(h5), "--format", fmt]) == 2
+        assert capsys.readouterr().err.strip() == f"mntes-stream: error: {h5} exists (--overwrite replaces it)"
+    assert h5.read_bytes() == b"kept"
 
 
 def test_old_spellings_still_work_with_one_line(tmp_path, capsys):

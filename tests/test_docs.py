@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -73,11 +74,27 @@ def test_every_relative_link_in_readme_and_docs_resolves():
     assert not dead, "dead links:\n" + "\n".join(dead)
 
 
-def _quick_start_commands() -> list[str]:
-    """The `$ mntes-stream ...` lines of the README's "Quick start", in order."""
+VENV = ".venv/bin/"  # the README's one spelling of the venv's commands (its first block makes .venv)
+
+
+def _quick_start_lines() -> list[str]:
+    """The `$ ...` lines of the README's "Quick start", in order, without their comments."""
     text = (ROOT / "README.md").read_text()
     section = text.split("\n## Quick start\n", 1)[1].split("\n## ", 1)[0]
-    return [ln[2:].split("  #", 1)[0].strip() for ln in section.splitlines() if ln.startswith("$ mntes-stream ")]
+    return [ln[2:].split("  #", 1)[0].strip() for ln in section.splitlines() if ln.startswith("$ ")]
+
+
+def _quick_start_commands() -> list[str]:
+    """The `$ .venv/bin/mntes-stream ...` lines of the README's "Quick start", as `mntes-stream ...`."""
+    return [ln[len(VENV):] for ln in _quick_start_lines() if ln.startswith(VENV + "mntes-stream ")]
+
+
+def test_quick_start_uses_one_venv_spelling():
+    """Issue 34: `.venv/bin/...` then bare `pip`: a user without an activated venv installed the monitor extra
+    into another Python. Every command of the Quick start is the venv's, as the README's first block makes it."""
+    lines = _quick_start_lines()
+    assert lines and all(ln.startswith(VENV) for ln in lines), lines
+    assert any(ln.startswith(VENV + "pip install") and "[monitor]" in ln for ln in lines), lines
 
 
 @pytest.mark.slow
@@ -97,6 +114,9 @@ def test_readme_quick_start_runs_as_written(tmp_path, monkeypatch, capsys):
             m = re.search(r"converter :(\d+), source :(\d+)", line)
             ports = m and m.groups()
         assert ports, "up printed no ports within 60 s"
+        line = up.stdout.readline()
+        assert line.startswith("  monitor, from a second terminal: "), line
+        pasted = line.split(": ", 1)[1].strip()
         while time.monotonic() < deadline:  # as a user would: attach once power flows
             line = up.stdout.readline()
             assert line, "up ended early: " + up.stderr.read()[-2000:]
@@ -104,9 +124,15 @@ def test_readme_quick_start_runs_as_written(tmp_path, monkeypatch, capsys):
                 break
         else:
             raise AssertionError("no power within 60 s of up's start")
-        # The README's ports are an example: put in the ones this up printed.
-        monitor = cmds[2].replace("39175", ports[0]).replace("49485", ports[1]).split()[1:]
-        out = subprocess.run(exe + monitor, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        # up prints the monitor's command to paste (issue 34): the README's, with this run's ports and program.
+        printed = shlex.split(pasted)
+        assert printed[:len(exe)] == exe, pasted
+        readme = cmds[1].replace("39175", ports[0]).replace("49485", ports[1]).split()
+        assert printed[len(exe):] == readme[1:], (pasted, cmds[1])
+        text = cmds[2].replace("39175", ports[0]).replace("49485", ports[1]).split()
+        assert text[1:] == [*printed[len(exe):len(exe) + 1], "--text", "--duration", "5", *printed[len(exe) + 1:]]
+        out = subprocess.run(printed[:len(exe) + 1] + text[2:], cwd=tmp_path, capture_output=True, text=True,
+                             timeout=60)
         assert out.returncode == 0, out.stderr[-2000:]
         # Power from the converter's port and housekeeping from the source's: both connections carried data.
         assert re.search(r"^converter\s+\d", out.stdout, re.M), out.stdout[-2000:]
@@ -129,3 +155,8 @@ def test_readme_quick_start_runs_as_written(tmp_path, monkeypatch, capsys):
     with h5py.File(tmp_path / "power.h5") as f:
         assert sorted(k for k in f if k.startswith("lab_")) == [f"lab_b0m{m}" for m in range(4)]  # up's 4 modules
         assert f["lab_b0m0"]["tod"].shape[0] == 64
+        # docs/feeds.md: table identities are sha256 hex digests (no "sha256:" prefix, issue 34).
+        import json
+
+        ids = json.loads(f["lab_b0m0"].attrs["table_identities"])
+        assert ids and all(re.fullmatch(r"[0-9a-f]{64}", i) for i in ids), ids

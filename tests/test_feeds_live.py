@@ -174,8 +174,12 @@ def test_readme_feeds_examples_run(tmp_path, monkeypatch):
     pub.start()
     assert pub.ready.wait(20)
     ns = {"t0": T0 + 2 * STEP, "t1": T0 + 9 * STEP, "endpoint": f"tcp/127.0.0.1:{port}"}
+    code = _readme_section_code("Feeds for mapmaking")
+    # A fragment says so, and names what it leaves to the reader: exactly what this test gives it (issue 34).
+    said = re.search(r"# A fragment: (.*?) are yours", code, re.S)
+    assert said and set(re.findall(r"\b(t0|t1|endpoint)\b", said.group(1))) == set(ns), code[:300]
     try:
-        exec(compile(_readme_section_code("Feeds for mapmaking"), "docs/feeds.md", "exec"), ns)
+        exec(compile(code, "docs/feeds.md", "exec"), ns)
     finally:
         pub.done.set()
         pub.join(30)

@@ -11,6 +11,7 @@ adds them through ``_common.arguments``, when that command is the one run, so
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import pkgutil
@@ -18,7 +19,7 @@ import sys
 import textwrap
 
 from mntes_stream import __version__
-from mntes_stream.cli._common import CommandParser
+from mntes_stream.cli._common import CommandParser, OneLineParser
 from mntes_stream.errors import MntesError
 
 # `mntes-stream --help` lists the commands in these groups, in this order (docs/cli.md). A command not named
@@ -55,16 +56,18 @@ def _grouped(sub) -> str:
 def build_parser(lazy: bool = False) -> argparse.ArgumentParser:
     """The command's parser: every command with every argument, or (``lazy``) each command's arguments
     added when it parses or prints its help (what :func:`main` runs: one command's arguments built)."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="mntes-stream",
         usage="mntes-stream [-h] [--version] COMMAND ...",
         description="Real-time MNTES conversion of DfMux TES readout to optical power.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="`mntes-stream COMMAND --help` describes a command; docs/cli.md: the flags every command shares, "
-               "exit codes (0 done, 1 failed, 2 bad input or config, 130 interrupted).",
+               "exit codes (0 done, 1 failed at its work, 2 bad arguments, input, config or path, 130 interrupted).",
     )
     parser.add_argument("--version", action="version", version=f"mntes-stream {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=CommandParser)
+    # prog: each command's own is "mntes-stream up", not the whole usage line before it.
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=CommandParser,
+                                prog="mntes-stream")
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
@@ -98,14 +101,20 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `mntes-stream inspect ... | head`: the reader has gone
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
-    except OSError as exc:  # a file or directory the command was told to use
+    except OSError as exc:
         where = f": {exc.filename}" if exc.filename else ""
-        return _error(f"{exc.strerror or exc}{where}", 1)
+        # A path the user gave that cannot be used is bad input (2), as a missing input file is; the
+        # machine failing the command at its work (a full disk, an I/O error) is 1.
+        return _error(f"{exc.strerror or exc}{where}", 2 if exc.errno in _BAD_PATH else 1)
+
+
+_BAD_PATH = frozenset({errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, errno.EROFS, errno.EEXIST,
+                       errno.ENAMETOOLONG, errno.ELOOP})
 
 
 def _error(what, rc: int) -> int:
-    """One line on stderr, the exit code back."""
-    print(f"mntes-stream: error: {what}", file=sys.stderr)
+    """One line on stderr (a message from below, e.g. zenoh's, may hold newlines), the exit code back."""
+    print(f"mntes-stream: error: {' '.join(str(what).split())}", file=sys.stderr)
     return rc
 
 

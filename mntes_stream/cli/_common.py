@@ -17,7 +17,74 @@ if TYPE_CHECKING:  # core.params imports numpy (0.1 s): a command that takes no 
     from mntes_stream.core.params import DetectorParams
 
 
-class CommandParser(argparse.ArgumentParser):
+class OneLineParser(argparse.ArgumentParser):
+    """A parser whose errors are one line on stderr naming the command, with the close spelling suggested.
+
+    argparse prints its usage block before an error (18 lines for ``up``); a
+    shell user needs the command, the argument and what is wrong, as every
+    other error of the command is said (``mntes-stream: error: ...``), and a
+    ``did you mean`` where a command, choice or option is misspelt. Exit code 2.
+    """
+
+    def error(self, message):
+        text = " ".join(str(message).split())
+        if "arguments are required" in text:
+            text += f" (`{self.prog} --help` describes them)"
+        self.exit(2, f"{self.prog}: error: {text}\n")
+
+    def _check_value(self, action, value):
+        # argparse's own check, worded for a shell: the command or choice closest to what was typed.
+        if action.choices is None or value in action.choices:
+            return
+        near = _closest(str(value), [str(c) for c in action.choices])
+        hint = f"; did you mean {near!r}?" if near else ""
+        if isinstance(action, argparse._SubParsersAction):
+            what = {"COMMAND": "command", "NAME": "benchmark"}.get(action.metavar, (action.metavar or "command").lower())
+            raise argparse.ArgumentError(None, f"unknown {what} {value!r}{hint} (`{self.prog} --help` lists them)")
+        listed = ", ".join(repr(c) for c in action.choices)
+        raise argparse.ArgumentError(action, f"invalid choice: {value!r}{hint} (choose from {listed})")
+
+    def parse_args(self, args=None, namespace=None):
+        namespace, extra = self.parse_known_args(args, namespace)
+        if extra:
+            parser = _innermost(self, namespace)
+            parser.error(_unrecognized(parser, extra))
+        return namespace
+
+
+def _closest(word: str, names: list[str]) -> str | None:
+    """The name closest to ``word``: the same in another case, the one it begins, else difflib's nearest."""
+    import difflib
+
+    same = [n for n in names if n.lower() == word.lower()]
+    starts = [n for n in names if len(word) >= 2 and n.startswith(word)]
+    near = same or (starts if len(starts) == 1 else []) or difflib.get_close_matches(word, names, n=1, cutoff=0.6)
+    return near[0] if near else None
+
+
+def _innermost(parser, namespace):
+    """The (sub)command parser ``namespace`` was parsed by: the one whose arguments an unknown one was meant for."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = getattr(namespace, action.dest, None)
+            if chosen in action.choices:
+                return _innermost(action.choices[chosen], namespace)
+    return parser
+
+
+def _unrecognized(parser, extra: list[str]) -> str:
+    """One line for arguments no parser took, with the visible option closest to the first unknown one."""
+    text = f"unrecognized arguments: {' '.join(extra)}"
+    first = next((e for e in extra if e.startswith("-")), None)
+    if first is None:
+        return text
+    # Compared without the dashes every long option shares, which would make any two look alike.
+    options = {s.lstrip("-"): s for a in parser._actions if a.help is not argparse.SUPPRESS for s in a.option_strings}
+    near = _closest(first.split("=", 1)[0].lstrip("-"), list(options))
+    return f"{text}; did you mean {options[near]}?" if near else text
+
+
+class CommandParser(OneLineParser):
     """A command's parser whose arguments are added when it first parses or prints its help.
 
     ``mntes-stream COMMAND`` then builds the arguments of COMMAND alone: the
@@ -121,10 +188,14 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
         canonical = [a for a in extra if a in _CANONICAL]
         flags = [*canonical, *(a for a in extra if a not in _CANONICAL)] if canonical else [generated, *extra]
         default = fields[name].default
-        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else hint
+        many = typing.get_origin(hint) is tuple
+        inner = typing.get_args(hint)[0] if many else _not_none(hint)
+        if not many and inner in (int, float, str):
+            parse = _declared_type(cls, name, hint, s, inner)
+        else:
+            parse = inner if inner in (int, float, str) else str
         if canonical:
-            deprecated_alias(g, generated, canonical[0], dest=name, default=None,
-                             type=inner if inner in (int, float, str) else str)
+            deprecated_alias(g, generated, canonical[0], dest=name, default=None, type=parse)
         text = f"{s.doc} [{expected(hint, s)}; default {default!r}]" if default is not dataclasses.MISSING else s.doc
         text = text.replace("%", "%%")
         if hint is bool:
@@ -132,8 +203,32 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
         elif typing.get_origin(hint) is tuple:
             g.add_argument(*flags, dest=name, nargs="+", type=inner, default=None, metavar=name.upper(), help=text)
         else:
-            g.add_argument(*flags, dest=name, type=inner if inner in (int, float, str) else str, default=None,
+            g.add_argument(*flags, dest=name, type=parse, default=None,
                            metavar=(s.unit or name).upper() if inner in (int, float) else None, help=text)
+
+
+def _not_none(hint):
+    """``T`` for ``T | None``, else ``hint``."""
+    import typing
+
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    return args[0] if len(args) == 1 and len(typing.get_args(hint)) == 2 else hint
+
+
+def _declared_type(cls, name, hint, s, inner):
+    """An argparse ``type`` checking a flag's value against its setting's declaration (range, choices, pattern):
+    a bad one is argparse's one line naming the flag, not an error from deep in the service's config."""
+
+    def parse(text: str):
+        from mntes_stream.core.settings import check_value, expected
+
+        try:
+            return check_value(cls, name, inner(text))
+        except (ValueError, ConfigError):
+            raise argparse.ArgumentTypeError(f"expected {expected(hint, s)}, got {text!r}") from None
+
+    parse.__name__ = inner.__name__
+    return parse
 
 
 def settings_from_args(args, names) -> dict:
@@ -170,8 +265,12 @@ def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:
 # stay as hidden aliases that say, in one line on stderr, what to write instead.
 
 
-def add_quiet(p, what: str = "warnings only, no progress") -> None:
-    p.add_argument("-q", "--quiet", action="store_true", help=what)
+QUIET_HELP = "no progress (bars, start and per-second lines, info logs, detail); warnings, errors and the last line stay"
+
+
+def add_quiet(p) -> None:
+    """``-q``: one meaning for every command (docs/cli.md)."""
+    p.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
 
 
 def add_json(p, what: str = "print the result as one JSON document") -> None:

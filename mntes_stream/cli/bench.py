@@ -26,7 +26,7 @@ def _run(args) -> int:
 
 
 def _bench_args(p) -> None:
-    bsub = p.add_subparsers(dest="bench", metavar="NAME")
+    bsub = p.add_subparsers(dest="bench", metavar="NAME", required=True)
     for name, module in _benches():
         # a module convert_offline is the bench convert-offline (flags are spelled with hyphens too)
         bp = bsub.add_parser(name.replace("_", "-"), help=getattr(module, "HELP", ""))

@@ -8,6 +8,8 @@ import os
 import sys
 from pathlib import Path
 
+from mntes_stream.options import number
+
 _GRIDS = ("full", "small")
 
 
@@ -188,18 +190,18 @@ def register(sub) -> None:
     from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, deprecated_alias
 
     p = sub.add_parser("calib", help="ground calibration: simulate a campaign, fit per-detector parameters")
-    csub = p.add_subparsers(dest="calib_command", metavar="ACTION")
+    csub = p.add_subparsers(dest="calib_command", metavar="ACTION", required=True)
 
     s = csub.add_parser("simulate", help="write a simulated calibration campaign (MCAP) and its truth (TOML)")
-    s.add_argument("--detectors", type=int, default=100, metavar="N", help="number of detectors (default 100)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--detectors", type=number(int, ge=1), default=100, metavar="N", help="number of detectors (default 100)")
+    s.add_argument("--seed", type=number(int, ge=0), default=0, help="random seed (default 0)")
     s.add_argument("--out", required=True, metavar="MCAP", help="campaign file to write")
     s.add_argument("--truth", metavar="TOML", help="write the true parameters here (marked as truth)")
     s.add_argument("--grid", choices=_GRIDS, default="full", help="points per sweep: full (default) or small")
-    s.add_argument("--noise-a", type=float, default=1e-10, metavar="A",
+    s.add_argument("--noise-a", type=number(float, "A", ge=0), default=1e-10, metavar="A",
                    help="noise of each of I and Q per point, in amperes (default 1e-10)")
-    s.add_argument("--board", type=int, default=0, help="board of the simulated detectors (default 0)")
-    s.add_argument("--module", type=int, default=0, help="module of the simulated detectors (default 0)")
+    s.add_argument("--board", type=number(int, ge=0), default=0, help="board of the simulated detectors (default 0)")
+    s.add_argument("--module", type=number(int, ge=0), default=0, help="module of the simulated detectors (default 0)")
     s.add_argument("--overwrite", dest="force", action="store_true", help="replace existing --out and --truth files")
     deprecated_alias(s, "--force", "--overwrite", dest="force", action="store_true")
     s.set_defaults(func=_simulate)
@@ -214,11 +216,11 @@ def register(sub) -> None:
     f.add_argument("--truth", metavar="TOML", help="truth of a simulated campaign: pulls and end-to-end nonlinearity")
     f.add_argument("--converter", default="table", choices=("table", "exact"),
                    help="converter for the end-to-end check (default table)")
-    f.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
-    f.add_argument("--max-nfev", type=int, default=200, help="model evaluations per fit before giving up")
+    f.add_argument("--workers", type=number(int, ge=1), default=min(2, os.cpu_count() or 1), help="worker processes (default 2)")
+    f.add_argument("--max-nfev", type=number(int, ge=1), default=200, help="model evaluations per fit before giving up")
     add_overwrite(f, "replace an existing --out file (and its covariance sidecar)")
     add_json(f, "print a JSON summary")
-    add_quiet(f, "no progress bar")
+    add_quiet(f)
     f.set_defaults(func=_fit)
 
     lab = csub.add_parser("lab", help="the lab's IV and bias-step results (sotodlib det_cal HDF5) against the "
@@ -237,4 +239,3 @@ def register(sub) -> None:
     add_json(i, "print one JSON object")
     i.set_defaults(func=_info)
 
-    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])

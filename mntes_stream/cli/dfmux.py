@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from mntes_stream.cli._common import add_zenoh_args, print_mapping
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, print_mapping
+from mntes_stream.options import number
 
 _FLAGS = {"setup": "setup", "interface": "interface", "boards": "board", "v2_boards": "v2_board", "sctp": "sctp",
           "chunk_samples": "chunk_samples", "duration_s": "duration", "t_bath_k": "t_bath_k",
@@ -46,7 +47,7 @@ def register(sub) -> None:
                                    "restarts, late modules and silent boards are reported, never fatal.")
     p.add_argument("--config", metavar="FILE", help="bridge TOML ([dfmux-bridge], [zenoh]); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
-    p.add_argument("--board", action="append", type=int, metavar="SERIAL",
+    p.add_argument("--board", action="append", type=number(int, ge=0), metavar="SERIAL",
                    help="a V3/V4 board's serial (repeatable; every named board must send)")
     p.add_argument("--v2-board", action="append", metavar="IP=SERIAL",
                    help="a V2 board, which sends no serial: its IP address and serial (repeatable)")
@@ -54,13 +55,13 @@ def register(sub) -> None:
     p.add_argument("--sctp", action="append", metavar="HOST",
                    help="read this board by SCTP instead of UDP multicast (repeatable; needs kernel SCTP)")
     p.add_argument("--setup", help="setup name in the keys (default lab)")
-    p.add_argument("--chunk-samples", type=int, help="samples per counts chunk per module (default 16, ~0.1 s)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after this long (default: until Ctrl-C)")
-    p.add_argument("--t-bath-k", type=float, metavar="K", help="bath temperature to publish (default: none)")
-    p.add_argument("--b-field-t", type=float, metavar="T", help="magnetic field to publish (default 0)")
+    p.add_argument("--chunk-samples", type=number(int, ge=1), help="samples per counts chunk per module (default 16, ~0.1 s)")
+    p.add_argument("--duration", type=number(float, "s", ge=0), metavar="S", help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--t-bath-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature to publish (default: none)")
+    p.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="magnetic field to publish (default 0)")
     p.add_argument("--bias", action="append", metavar="BOARD/MODULE=V",
                    help="bias table entry, RMS volts; * for any board or module (repeatable)")
-    p.add_argument("-q", "--quiet", action="store_true", help="only the last line")
+    add_quiet(p)
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import re
 from datetime import UTC, datetime
 
-from mntes_stream.cli._common import print_mapping
+from mntes_stream.cli._common import add_quiet, print_mapping
 from mntes_stream.errors import ConfigError
+from mntes_stream.options import number
 
 _ISO = re.compile(r"^\d{4}-\d{2}-\d{2}[T ]")
 
@@ -58,8 +59,14 @@ def _framework_export(fmt: str, args, selection: dict):
 
 
 def run_export(args) -> int:
+    from pathlib import Path
+
     from mntes_stream.cli.g3 import g3_sessions_as_mcap
 
+    # Said here in a shell's words (the feeds, a Python API, name their overwrite=True), and before any G3 run
+    # is converted for nothing.
+    if Path(args.out).exists() and not args.overwrite:
+        raise ConfigError(f"{args.out} exists (--overwrite replaces it)")
     with g3_sessions_as_mcap(args):  # a G3 run (SPT-3G) is converted to a temporary recording first
         return _run_export(args)
 
@@ -135,16 +142,16 @@ def register(sub) -> None:
     p.add_argument("--end", help="end (exclusive) sample time, same forms as --start")
     p.add_argument("--detectors", action="append", metavar="IDS", help="comma-separated detector ids (repeatable)")
     p.add_argument("--setup", help="only this setup's streams")
-    p.add_argument("--board", type=int, help="only this board")
-    p.add_argument("--module", type=int, help="only this module")
+    p.add_argument("--board", type=number(int, ge=0), help="only this board")
+    p.add_argument("--module", type=number(int, ge=0), help="only this module")
     p.add_argument("--compression", choices=("gzip", "lzf", "none"),
                    help="hdf5, sotodlib, litebird_sim: gzip (default) is readable everywhere; lzf is faster but "
                         "h5py-only")
-    p.add_argument("--block-samples", type=int, help="hdf5: samples per write and per HDF5 chunk (default 8192)")
-    p.add_argument("--max-gap-s", type=float, metavar="S",
+    p.add_argument("--block-samples", type=number(int, ge=1), help="hdf5: samples per write and per HDF5 chunk (default 8192)")
+    p.add_argument("--max-gap-s", type=number(float, "s", ge=0), metavar="S",
                    help="a longer step in time is a segment break (counted, listed in the group's segment_starts), "
                    "not a hole filled with NaN + GAP (default: feeds.blocks.DEFAULT_MAX_GAP_S, one hour)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (no progress bars)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_quiet(p)
     p.set_defaults(func=run_export)

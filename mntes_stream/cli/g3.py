@@ -8,7 +8,8 @@ import json
 import tempfile
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, print_mapping
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, print_mapping
+from mntes_stream.options import number
 
 
 def add_g3_convert_args(p) -> None:
@@ -24,12 +25,12 @@ def add_g3_convert_args(p) -> None:
     g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="G3 input: GcpSlow bath thermometer "
                                                                "(default CryoStatus.UC_Head)")
     g.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="G3 input: its unit (default G3Units)")
-    g.add_argument("--t-bath-default-k", type=float, metavar="K", help="G3 input: bath temperature of a run "
+    g.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="G3 input: bath temperature of a run "
                                                                        "without one")
-    g.add_argument("--b-field-t", type=float, metavar="T", help="G3 input: constant field (spt3g has no field "
+    g.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="G3 input: constant field (spt3g has no field "
                                                                 "source; default 0)")
     g.add_argument("--setup", default=None, help="RUN.g3 -> OUT.mcap: the setup name of the messages (default lab)")
-    g.add_argument("--scan-samples", type=int, default=None, help="RUN.g3 -> OUT.g3 of raw Timepoints: samples per "
+    g.add_argument("--scan-samples", type=number(int, ge=1), default=None, help="RUN.g3 -> OUT.g3 of raw Timepoints: samples per "
                                                                   "Scan frame (default 1000)")
 
 
@@ -144,16 +145,16 @@ def register(sub) -> None:
     p.add_argument("--config", metavar="FILE", help="bridge TOML ([g3-bridge], [g3], [zenoh]); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     p.add_argument("--setup", help="setup name in the keys (default lab)")
-    p.add_argument("--chunk-samples", type=int, help="Timepoints per counts chunk (default 16, ~0.1 s)")
+    p.add_argument("--chunk-samples", type=number(int, ge=1), help="Timepoints per counts chunk (default 16, ~0.1 s)")
     p.add_argument("--params", metavar="FILE", help="the converter's parameter file: counts published in units of "
                                                     "its gain, so DfMux gain changes apply (default: raw counts)")
     p.add_argument("--boards", type=lambda t: tuple(int(x) for x in t.split(",")), metavar="SERIAL,...",
                    help="only these board serials (one bridge per group of boards; default all)")
-    p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="stop after this long (0: never)")
+    p.add_argument("--duration", dest="duration_s", type=number(float, "s", ge=0), metavar="S", help="stop after this long (0: never)")
     p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
-    p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a DAQ without one")
+    p.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature of a DAQ without one")
     p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
-    p.add_argument("-q", "--quiet", action="store_true", help="only the last line (the ledger)")
+    add_quiet(p)
     from mntes_stream.cli.ocs import add_hk_args
 
     add_hk_args(p)  # --hk, --t-bath-field: the bath from OCS HK files instead of the DAQ's
@@ -172,7 +173,7 @@ def add_simulate_g3_args(p) -> None:
                    help="collated Scan frames (spt3g's DfMuxCollator; default) or raw DAQ Timepoint frames")
     g.add_argument("--exact-counts", action="store_true",
                    help="scans: unrounded float64 counts (checks against the truth below DfMux count resolution)")
-    g.add_argument("--nuller-gain", type=int, default=None, help="DfMux nuller gain setting (0-15; default 2)")
+    g.add_argument("--nuller-gain", type=number(int, ge=0, le=15), default=None, help="DfMux nuller gain setting (0-15; default 2)")
     g.add_argument("--gain-step", action="append", default=[], metavar="S:GAIN",
                    help="the operator sets the nuller gain to GAIN at S seconds (repeatable)")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from mntes_stream.cli._common import add_params_args, params_from_args
+from mntes_stream.options import number
 
 _ROWS = [
     ("Optical loading", "p_opt_w", 1e12, "pW"),
@@ -62,11 +63,11 @@ def run(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("model", help="print a detector's assumed and derived parameters (paper Table 1)")
     add_params_args(p)
-    p.add_argument("--tune-r-frac", type=float, metavar="X", help="re-tune the bias to R = X R_n first")
-    p.add_argument("--v-thev-v", type=float, metavar="V", help="bias voltage (RMS, volts) instead of the file's")
-    p.add_argument("--p-opt-w", type=float, metavar="W", help="optical loading (default: the detector's nominal)")
-    p.add_argument("--t-bath-k", type=float, metavar="K", help="bath temperature (default: nominal)")
-    p.add_argument("--b-field-t", type=float, default=0.0, metavar="T", help="magnetic field (default 0)")
+    p.add_argument("--tune-r-frac", type=number(float, gt=0, lt=1), metavar="X", help="re-tune the bias to R = X R_n first")
+    p.add_argument("--v-thev-v", type=number(float, "V", gt=0), metavar="V", help="bias voltage (RMS, volts) instead of the file's")
+    p.add_argument("--p-opt-w", type=number(float, "W", ge=0), metavar="W", help="optical loading (default: the detector's nominal)")
+    p.add_argument("--t-bath-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature (default: nominal)")
+    p.add_argument("--b-field-t", type=number(float, "T"), default=0.0, metavar="T", help="magnetic field (default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--figure", metavar="PNG", help="write paper Figure 1 (parameter dependence)")
     p.add_argument("--response-figure", metavar="PNG", help="write paper Figure 2 (response and inverse)")

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import sys
 
+from mntes_stream.cli._common import add_quiet
+from mntes_stream.options import number
+
 HELP = "estimate the white readout noise per channel from a recording's counts (a dark run): a noise file"
 
 
@@ -113,14 +116,14 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(doc, indent=1))
         return 0
-    if not args.quiet:
-        vals = list(doc["readout_noise_a"].values())
-        rng = f"{min(vals):.3g}-{max(vals):.3g} A" if vals else "no gain known: counts only"
-        print(f"noise: {len(doc['channels'])} channels, readout noise per quadrature {rng}, "
-              f"{len(doc['by_module'])} modules" + (f"; wrote {args.out}" if args.out else ""), file=sys.stderr)
-        if doc["without_gain"]:
-            print(f"noise: {len(doc['without_gain'])} channels without parameters (no gain): counts only",
-                  file=sys.stderr)
+    # The summary is the result's last line: -q (no progress; noise has none) keeps it, as every command does.
+    vals = list(doc["readout_noise_a"].values())
+    rng = f"{min(vals):.3g}-{max(vals):.3g} A" if vals else "no gain known: counts only"
+    print(f"noise: {len(doc['channels'])} channels, readout noise per quadrature {rng}, "
+          f"{len(doc['by_module'])} modules" + (f"; wrote {args.out}" if args.out else ""), file=sys.stderr)
+    if doc["without_gain"]:
+        print(f"noise: {len(doc['without_gain'])} channels without parameters (no gain): counts only",
+              file=sys.stderr)
     return 0
 
 
@@ -129,9 +132,9 @@ def register(sub) -> None:
                        "[uncertainty] noise_file reads (docs/uncertainty.md).")
     p.add_argument("run", metavar="RUN", help="recording: an .mcap file, a directory of them, or an `up` folder")
     p.add_argument("--out", metavar="FILE", help="write the noise file (JSON) here")
-    p.add_argument("--duration", type=float, metavar="S", help="use only the first S seconds of the run")
+    p.add_argument("--duration", type=number(float, "s"), metavar="S", help="use only the first S seconds of the run")
     p.add_argument("--params", metavar="FILE", help="detector parameters for the gains (default: the recorded ones)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.add_argument("--json", action="store_true", help="print the whole noise document as JSON")
-    p.add_argument("-q", "--quiet", action="store_true", help="no summary line")
+    add_quiet(p)
     p.set_defaults(func=run)

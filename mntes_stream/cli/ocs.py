@@ -6,6 +6,8 @@ import contextlib
 import tempfile
 from pathlib import Path
 
+from mntes_stream.options import number
+
 
 def add_hk_args(p) -> None:
     """Bath temperature from OCS HK G3 files (the aggregator's), aligned by time."""
@@ -132,9 +134,9 @@ def register(sub) -> None:
                                                                      "observatory.LS372.feeds.temperatures.Channel_06_T")
     p.add_argument("--b-field-field", metavar="FULL.FIELD.NAME", help="magnetic field at the array (T)")
     p.add_argument("--setup", help="setup name in the keys (default lab)")
-    p.add_argument("--stale-s", type=float, metavar="S", help="report a sensor whose newest reading is older "
+    p.add_argument("--stale-s", type=number(float, "s", gt=0), metavar="S", help="report a sensor whose newest reading is older "
                                                              "(default 10)")
-    p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="stop after this long (0: never)")
+    p.add_argument("--duration", dest="duration_s", type=number(float, "s", ge=0), metavar="S", help="stop after this long (0: never)")
     add_json(p, "print the final statistics as one JSON document")
     add_zenoh_args(p)
     p.set_defaults(func=run_bridge)

@@ -10,6 +10,7 @@ as it is (no Python needed; ``g3.files.write_converter_params``).
 from __future__ import annotations
 
 from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, claim_out, print_mapping
+from mntes_stream.options import number
 
 
 def run(args) -> int:
@@ -23,7 +24,9 @@ def run(args) -> int:
     claim_out(args.out, args.overwrite, inputs=[*files, args.params])
     quiet_spt3g()
     n = write_converter_params(files, args.params, args.out, g3_input_config(args))
-    if not args.quiet or args.json:
+    if args.quiet and not args.json:  # -q: no detail, the last line only
+        print(f"wrote {args.out}: {n} detectors")
+    else:
         print_mapping({"params": args.out, "detectors": n, "run": files[0], "from": args.params}, args.json)
     return 0
 
@@ -43,9 +46,9 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="PARAMS.toml", help="the parameter file to write")
     p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
     p.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="its unit (default G3Units)")
-    p.add_argument("--t-bath-default-k", type=float, metavar="K", help="bath temperature of a run without one")
-    p.add_argument("--b-field-t", type=float, metavar="T", help="constant field (spt3g has no field source; default 0)")
+    p.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature of a run without one")
+    p.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="constant field (spt3g has no field source; default 0)")
     add_overwrite(p, "replace an existing --out file")
     add_json(p)
-    add_quiet(p, "print nothing (the file is the result)")
+    add_quiet(p)
     p.set_defaults(func=run)

@@ -18,6 +18,7 @@ from mntes_stream.cli._common import (
     setup_logging,
     zenoh_layer,
 )
+from mntes_stream.options import number
 
 # ---------------------------------------------------------------------------- record
 
@@ -260,7 +261,7 @@ def _record_args(p) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, RecorderConfig, _RECORD, _RECORD_ALIASES, title="recorder (override the config file)")
     add_json(p, "print the final statistics as JSON")
-    add_quiet(p, "warnings only")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_record)
 
@@ -278,19 +279,19 @@ def register(sub) -> None:
     p.add_argument("--config", metavar="FILE", help="replay TOML (services/replay.toml)")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     speed = p.add_mutually_exclusive_group()
-    speed.add_argument("--speed", type=float, help="multiple of real time (1: real time; 0: as fast as possible)")
+    speed.add_argument("--speed", type=number(float, ge=0), help="multiple of real time (1: real time; 0: as fast as possible)")
     speed.add_argument("--afap", action="store_true", help="as fast as possible (same as --speed 0)")
     p.add_argument("--start", help="seconds after the first message, or an ISO-8601 time")
     p.add_argument("--end", help="seconds after the first message, or an ISO-8601 time")
     sel = p.add_mutually_exclusive_group()
     sel.add_argument("--all", action="store_true", help="replay every topic (power, status, provenance too)")
     sel.add_argument("--topics", nargs="+", metavar="KEYEXPR", help="topics or patterns such as mntes/lab/counts/**")
-    p.add_argument("--wait-s", type=float, help="wait this long for subscribers before starting")
+    p.add_argument("--wait-s", type=number(float, "s", ge=0), help="wait this long for subscribers before starting")
     from mntes_stream.cli.ocs import add_hk_args
 
     add_hk_args(p)
     add_json(p, "print the statistics as one JSON document")
-    add_quiet(p, "warnings only, no progress bar")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_replay_cmd)
 
@@ -307,7 +308,7 @@ def register(sub) -> None:
                                                     "(default: the pipeline defaults for the recorded setup)")
     add_overwrite(p, "replace an existing OUT file")
     add_json(p, "print the statistics as one JSON document")
-    add_quiet(p, "no progress bar")
+    add_quiet(p)
     from mntes_stream.cli.g3 import add_g3_convert_args
 
     add_g3_convert_args(p)

@@ -6,6 +6,7 @@ import json
 import time
 
 from mntes_stream.cli._common import (
+    add_quiet,
     add_settings_args,
     add_zenoh_args,
     arguments,
@@ -15,6 +16,7 @@ from mntes_stream.cli._common import (
     zenoh_from_args,
     zenoh_layer,
 )
+from mntes_stream.options import number
 
 _ROUTER = ("setup", "name", "duration_s")
 # Counters whose rate ps shows, first found wins: what "rate" means for each kind of service.
@@ -122,7 +124,7 @@ def _router_args(p) -> None:
     p.add_argument("--config", metavar="FILE", help="a [router] config (services/router.toml); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, RouterConfig, _ROUTER, {"duration_s": ("--duration",)})
-    p.add_argument("-q", "--quiet", action="store_true", help="warnings only")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_router)
 
@@ -140,9 +142,9 @@ def register(sub) -> None:
                                    "ps lists them from any host on the zenoh network: state, uptime, rate, lag, "
                                    "lost, what each owns, and its warnings (e.g. a dead connect endpoint).")
     p.add_argument("--setup", default="lab", help="setup name (default lab)")
-    p.add_argument("--interval", type=float, default=0.5, metavar="S",
+    p.add_argument("--interval", type=number(float, "s", ge=0), default=0.5, metavar="S",
                    help="ask twice, S apart, to show rates (0: once, no rates; default 0.5)")
-    p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="how long to wait for answers (default 1)")
+    p.add_argument("--timeout", type=number(float, "s", gt=0), default=1.0, metavar="S", help="how long to wait for answers (default 1)")
     p.add_argument("--json", action="store_true", help="one JSON document")
     add_zenoh_args(p)
     p.set_defaults(func=run_ps)

@@ -12,7 +12,8 @@ import logging
 import sys
 import threading
 
-from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, setup_logging, zenoh_layer
+from mntes_stream.options import number
 
 
 def _heartbeats(svc, every_s: float, done: threading.Event) -> None:
@@ -126,15 +127,15 @@ def _serve_args(p) -> None:
     p.add_argument("--config", required=True, metavar="FILE", help="e.g. services/converter.toml")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a setting, e.g. converter.kind=exact (repeatable; VALUE in TOML)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (overrides duration_s)")
+    p.add_argument("--duration", type=number(float, "s", ge=0), metavar="S", help="stop after S seconds (overrides duration_s)")
     p.add_argument("--shard", metavar="I/N", help="converter or recorder: own bucket I of N of the streams (shard)")
     p.add_argument("--boards", metavar="B,B", help="converter: own these boards only (boards)")
     p.add_argument("--modules", metavar="M,M", help="converter: ... and these modules (modules)")
     p.add_argument("--standby", action="store_true", help="converter: run as a hot standby (standby = true)")
-    p.add_argument("--heartbeat-s", type=float, default=10.0, metavar="S",
+    p.add_argument("--heartbeat-s", type=number(float, "s", ge=0), default=10.0, metavar="S",
                    help="log the service's heartbeat this often (0: never; default 10)")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
-    p.add_argument("-q", "--quiet", action="store_true", help="warnings only")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run_serve)
 

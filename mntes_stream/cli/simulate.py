@@ -7,6 +7,7 @@ import sys
 
 from mntes_stream.cli._common import add_zenoh_args, print_mapping
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+from mntes_stream.options import number
 
 
 def _config(args):
@@ -157,17 +158,17 @@ def register(sub) -> None:
 
     add_simulate_g3_args(p)
     p.add_argument("--setup", help="setup name in the keys (default lab, as every service)")
-    p.add_argument("--boards", type=int, help="DfMux boards (default 1)")
-    p.add_argument("--modules", type=int, help="modules per board")
-    p.add_argument("--channels", type=int, help="channels per module (DfMux: 64 or 128)")
-    p.add_argument("--sample-rate", type=float, metavar="HZ", help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux, 20 MHz / 2**17; 19.1 is flight-like)")
+    p.add_argument("--boards", type=number(int, ge=1), help="DfMux boards (default 1)")
+    p.add_argument("--modules", type=number(int, ge=1), help="modules per board")
+    p.add_argument("--channels", type=number(int, ge=1), help="channels per module (DfMux: 64 or 128)")
+    p.add_argument("--sample-rate", type=number(float, "Hz", gt=0), metavar="HZ", help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux, 20 MHz / 2**17; 19.1 is flight-like)")
     hwp = p.add_mutually_exclusive_group()
     hwp.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], help="HWP frequency of a LiteBIRD telescope")
-    hwp.add_argument("--f-hwp", type=float, metavar="HZ", help="HWP rotation frequency")
-    p.add_argument("--seed", type=int, help="random seed of the simulation (default 0)")
-    p.add_argument("--duration", dest="duration_s", type=float, metavar="S", help="seconds of data (live: 0 = forever)")
-    p.add_argument("--chunk-s", type=float, metavar="S", help="chunk length (default 0.1 s)")
-    p.add_argument("--speed", type=float, help="live: multiple of real time (0: as fast as possible)")
+    hwp.add_argument("--f-hwp", type=number(float, "Hz", ge=0), metavar="HZ", help="HWP rotation frequency")
+    p.add_argument("--seed", type=number(int, ge=0), help="random seed of the simulation (default 0)")
+    p.add_argument("--duration", dest="duration_s", type=number(float, "s", ge=0), metavar="S", help="seconds of data (live: 0 = forever)")
+    p.add_argument("--chunk-s", type=number(float, "s", gt=0), metavar="S", help="chunk length (default 0.1 s)")
+    p.add_argument("--speed", type=number(float, ge=0), help="live: multiple of real time (0: as fast as possible)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="any simulator or zenoh setting "
                    "(repeatable; VALUE in TOML), e.g. --set simulator.jupiter_peak_w=0.3e-12 "
                    "--set simulator.latched_per_module=2")
@@ -176,12 +177,12 @@ def register(sub) -> None:
     p.add_argument("--no-truth", action="store_true", help="do not keep the per-sample truth")
     p.add_argument("--perturbed-params-out", metavar="TOML",
                    help="also write the truth with random calibration errors (for robustness studies)")
-    p.add_argument("--error-scale", type=float, help="--perturbed-params-out: calibration errors in units of the "
+    p.add_argument("--error-scale", type=number(float, ge=0), help="--perturbed-params-out: calibration errors in units of the "
                                                      "assumed 1-sigma (default 1)")
-    p.add_argument("--error-seed", type=int, help="--perturbed-params-out: random seed of the calibration errors "
+    p.add_argument("--error-seed", type=number(int, ge=0), help="--perturbed-params-out: random seed of the calibration errors "
                                                   "(default 0)")
     add_overwrite(p, "replace an existing --out file")
     add_json(p)
-    add_quiet(p, "no progress bar or start line")
+    add_quiet(p)
     add_zenoh_args(p)
     p.set_defaults(func=run)

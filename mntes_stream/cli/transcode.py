@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from mntes_stream.options import number
+
 
 def run(args) -> int:
     from mntes_stream.cli._common import claim_out
@@ -36,9 +38,9 @@ def register(sub) -> None:
     p.add_argument("output", metavar="OUT", help="the .mcap file to create")
     p.add_argument("--foxglove", action="store_true", help="add the json channels")
     p.add_argument("--detectors", nargs="+", metavar="ID", help="detector ids to show (default: first per module)")
-    p.add_argument("--per-module", type=int, default=4, metavar="N",
+    p.add_argument("--per-module", type=number(int, ge=0), default=4, metavar="N",
                    help="detectors per module when --detectors is not given (0: all; default 4)")
-    p.add_argument("--max-rate-hz", type=float, default=0.0, metavar="HZ",
+    p.add_argument("--max-rate-hz", type=number(float, "Hz", ge=0), default=0.0, metavar="HZ",
                    help="power samples per second and module at most (default 0: every sample)")
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
                    help="MCAP chunk compression of OUT (default zstd)")

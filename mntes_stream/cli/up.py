@@ -24,8 +24,9 @@ import sys
 import time
 from pathlib import Path
 
-from mntes_stream.cli._common import add_zenoh_args, arguments, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, setup_logging, zenoh_layer
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+from mntes_stream.options import number
 
 
 def _pick_source(setup: str, args, zenoh):
@@ -158,6 +159,25 @@ def _restart_dead(services, budget, stopping, say) -> str | None:
     return None
 
 
+def monitor_command(setup: str, p_conv: int, p_src: int) -> str:
+    """The exact command that attaches the monitor to this run: the same program the user ran (no venv to
+    guess), both ports (power and status from the converter, housekeeping from the source: zenoh peers do
+    not forward for each other), and the setup unless it is the default."""
+    import shlex
+    import shutil
+
+    from mntes_stream.io.keys import DEFAULT_SETUP
+
+    argv0 = Path(sys.argv[0])
+    if argv0.name == "mntes-stream":  # the console script: bare when it is the one on PATH, else its path
+        on_path = shutil.which("mntes-stream")
+        exe = "mntes-stream" if on_path and Path(on_path).resolve() == argv0.resolve() else shlex.quote(str(argv0.resolve()))
+    else:  # python -m mntes_stream, or main() called in-process
+        exe = f"{shlex.quote(sys.executable)} -m mntes_stream"
+    where = "" if setup == DEFAULT_SETUP else f" --setup {shlex.quote(setup)}"
+    return f"{exe} monitor{where} -e tcp/127.0.0.1:{p_conv} -e tcp/127.0.0.1:{p_src}"
+
+
 def run_up(args) -> int:
     import dataclasses
 
@@ -221,6 +241,7 @@ def run_up(args) -> int:
         f"at {args.sample_rate} Hz -> {args.kind} conversion -> MCAP in {rec_dir}")
     say(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
         f"{'until Ctrl-C' if not args.duration else f'for {args.duration:g} s (Ctrl-C stops earlier)'}")
+    say(f"  monitor, from a second terminal: {monitor_command(setup, p_conv, p_src)}")
     status_key = keys.status_key(setup, conv_cfg.name)
     failed = interrupted = False
     merged = None
@@ -329,23 +350,23 @@ def _up_args(p) -> None:
     from mntes_stream.core.convert import CONVERTER_KINDS  # core.convert imports numba: `up` alone needs it
     from mntes_stream.io.keys import DEFAULT_SETUP
 
-    p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
+    p.add_argument("--duration", type=number(float, "s", ge=0), default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
     p.add_argument("--out", default="mntes-up", metavar="DIR", help="parameters and recordings go here (default ./mntes-up)")
     p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
-    p.add_argument("--modules", type=int, default=4, help="readout modules (default 4)")
-    p.add_argument("--channels", type=int, default=64, help="channels per module (default 64)")
-    p.add_argument("--sample-rate", type=float, default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
+    p.add_argument("--modules", type=number(int, ge=1), default=4, help="readout modules (default 4)")
+    p.add_argument("--channels", type=number(int, ge=1), default=64, help="channels per module (default 64)")
+    p.add_argument("--sample-rate", type=number(float, "Hz", gt=0), default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
                    help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground rate, 20 MHz / 2**17)")
-    p.add_argument("--chunk-s", type=float, default=0.1, help="counts chunk length (s)")
+    p.add_argument("--chunk-s", type=number(float, "s", gt=0), default=0.1, help="counts chunk length (s)")
     p.add_argument("--kind", default="table", choices=CONVERTER_KINDS, help="conversion kind (default table)")
     p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")
     p.add_argument("--json", action="store_true", help="print one JSON document (the services' final statistics) "
                                                        "on stdout; progress goes to stderr")
-    p.add_argument("-q", "--quiet", action="store_true", help="no per-second lines")
-    p.add_argument("--metrics-port", type=int, metavar="PORT",
+    add_quiet(p)
+    p.add_argument("--metrics-port", type=number(int, ge=0, le=65535), metavar="PORT",
                    help="serve every service's Prometheus metrics on http://127.0.0.1:PORT/metrics (0: any free port; "
                         "needs the metrics extra)")
-    p.add_argument("--restarts", type=int, default=3, metavar="N",
+    p.add_argument("--restarts", type=number(int, ge=0), default=3, metavar="N",
                    help="restart a service that dies, at most N times a minute each (0: a death ends the run; "
                         "default 3)")
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
+from mntes_stream.options import number
 
 
 def run_range(args) -> int:
@@ -89,16 +90,16 @@ def register(sub) -> None:
     p.add_argument("--quick", action="store_true", help="shorter runs and fewer draws (well under a minute)")
     p.add_argument("--out", default="validation", metavar="DIR", help="report directory (default: ./validation)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
-    p.add_argument("--seed", type=int, default=0, help="simulation seed")
+    p.add_argument("--seed", type=number(int, ge=0), default=0, help="simulation seed")
     p.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], default="LFT",
                    help="HWP frequency: LFT 0.77, MFT 0.65, HFT 1.02 Hz (default LFT)")
-    p.add_argument("--sample-rate", type=float, default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
+    p.add_argument("--sample-rate", type=number(float, "Hz", gt=0), default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
                    help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground, 20 MHz / 2**17); 19.1 is flight-like")
     p.add_argument("--range", action="store_true",
                    help="instead: sweep P_opt 0-3 P_sat, bath, field and bias for every transition model and "
                         "conversion kind; flagged fraction and worst unflagged error per region, and a PNG")
-    p.add_argument("--samples", type=int, default=60_000, help="--range: samples per transition model")
-    p.add_argument("--readout-noise", type=float, default=2e-12, metavar="A",
+    p.add_argument("--samples", type=number(int, ge=2), default=60_000, help="--range: samples per transition model")
+    p.add_argument("--readout-noise", type=number(float, "A", ge=0), default=2e-12, metavar="A",
                    help="--range: also sweep with this white readout noise per quadrature (A rms), declared to "
                         "the converters, with sigma_P and LOW_RESPONSIVITY; errors against the true power "
                         "(default 2e-12: 2 counts at 1e-12 A/count; 0 skips)")

@@ -16,7 +16,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from mntes_stream.core.settings import declared, document_tables, to_table
+from mntes_stream.core.settings import check_value, declared, document_tables, to_table
 from mntes_stream.errors import ConfigError
 
 __all__ = ["read_toml", "service_of", "apply_overrides", "load_service_config", "config_of", "with_zenoh", "file_kind",
@@ -70,8 +70,13 @@ def apply_overrides(doc: dict, items: Iterable[str], service=None) -> dict:
         if not sep or not dot or not table or not key:
             raise ConfigError(f"--set {item!r}: expected TABLE.KEY=VALUE, e.g. recorder.directory=/data")
         value = _parse_value(text.strip())
-        if service is not None and _is_path(service.Config, service.name, table, key):
-            value = [os.path.abspath(v) for v in value] if isinstance(value, list) else os.path.abspath(str(value))
+        if service is not None:
+            # Checked here, so a bad value is blamed on the command line, not on the file it would go into.
+            holder = _holder(service.Config, service.name, table, key, item)
+            if not isinstance(value, dict):  # an inline table is a sub-table: build() checks its keys
+                check_value(holder, key, value, f"command line --set [{table}]")
+            if declared({f.name: f for f in dataclasses.fields(holder)}[key]).path:
+                value = [os.path.abspath(v) for v in value] if isinstance(value, list) else os.path.abspath(str(value))
         target = doc.setdefault(table, {})
         if not isinstance(target, dict):
             raise ConfigError(f"--set {item!r}: {table} is not a table")
@@ -79,21 +84,25 @@ def apply_overrides(doc: dict, items: Iterable[str], service=None) -> dict:
     return doc
 
 
-def _is_path(cls, main: str, table: str, key: str) -> bool:
+def _holder(cls, main: str, table: str, key: str, item: str) -> type:
+    """The settings class that declares ``table.key`` in a ``[main]`` document (a ConfigError naming the
+    command line's ``item`` when none does)."""
     import typing
 
     tables = document_tables(cls, main)
     if table not in tables:
-        return False
+        raise ConfigError(f"command line --set {item!r}: a [{main}] config has no table [{table}] "
+                          f"(tables: {', '.join(tables)})")
     sub = cls if table == main else typing.get_type_hints(cls)[tables[table]]
     for f in dataclasses.fields(sub):
-        if f.name == key:
-            return declared(f).path
+        if f.name == key and f.init:
+            return sub
         if declared(f).flatten:
             inner = typing.get_type_hints(sub)[f.name]
-            if any(g.name == key and declared(g).path for g in dataclasses.fields(inner)):
-                return True
-    return False
+            if any(g.name == key and g.init for g in dataclasses.fields(inner)):
+                return inner
+    known = sorted(f.name for f in dataclasses.fields(sub) if f.init)
+    raise ConfigError(f"command line --set {item!r}: [{table}] has no setting {key!r} (known: {known})")
 
 
 def load_service_config(path: str | Path, overrides: Iterable[str] = ()):
