@@ -177,7 +177,7 @@ def _up_killing(victim: str, tmp_path: Path, duration_s: float) -> tuple[int, di
             err.append(line)
             if m := re.search(rf"{victim} :(\d+)", line):
                 port = int(m.group(1))
-            if re.search(r"t=\s+2\.\d s  power chunks", line):
+            if re.search(r"t=\s+[2-9]\.\d s  power chunks", line):
                 break
         os.kill(_pid_of(victim, port), signal.SIGKILL)
         out, rest = p.communicate(timeout=90)
