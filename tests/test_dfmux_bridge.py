@@ -168,7 +168,10 @@ def test_lab_recipe_as_written(netns, tmp_path):
 
     import h5py
 
-    from mntes_stream.core.flags import HK_MISSING, HK_STALE
+    from mntes_stream.core.flags import HK_MISSING, HK_STALE, SATURATED, UNUSABLE
+    from mntes_stream.core.ids import parse_detector_id
+    from mntes_stream.core.sim import CHANNEL_SATURATED
+    from mntes_stream.dfmux.detectors import DetectorBoard
 
     if importlib.util.find_spec("ocs") is None or importlib.util.find_spec("autobahn") is None:
         pytest.skip("the ocs extra (ocs, autobahn) is not installed")
@@ -207,7 +210,24 @@ def test_lab_recipe_as_written(netns, tmp_path):
     assert re.search(rf"^\s*{m[2]}\s+mntes/lab/hk/t_bath$", out, re.M), where
     shown = [float(v) for v in re.findall(r"housekeeping: t_bath (\d+\.\d+) mK", logs["monitor.log"])]
     assert shown and all(80 < v < 120 for v in shown) and len(set(shown)) > 1, shown  # the agent's walk near 0.1 K
-    with h5py.File(tmp_path / "lab.h5", "r") as f:
-        flags = [f[g]["flags"][()] for g in f if "flags" in f[g]]  # one group a module
+    assert proc.returncode == 0, where
+    # the synthetic board's detectors: 15 a module in the transition, the 16th saturated (loading 3 x P_sat)
+    assert re.search(r"^states: transition 120  saturated 8  superconducting 0  flagged 0", out, re.M), where
+    with h5py.File(tmp_path / "lab.h5", "r") as f:  # one group a module
+        groups = [([d.decode() if isinstance(d, bytes) else str(d) for d in f[g]["detectors"][()]], f[g]["tod"][()],
+                   f[g]["flags"][()]) for g in f if "flags" in f[g]]
+    flags = [fl for _, _, fl in groups]
     assert sum(fl.size for fl in flags) == 39040
+    truth = {p.detector_id: p for p in DetectorBoard(10, 8, 16).params}  # the sender's detectors (same arguments)
+    kinds = {ch.channel: ch.kind for ch in DetectorBoard(10, 1, 16).sim.channels}
+    for dets, tod, fl in groups:
+        for det, p, f in zip(dets, tod, fl):
+            assert np.array_equal(np.isfinite(p), (f & UNUSABLE) == 0), det
+            ok = f == 0
+            if kinds[parse_detector_id(det)[2]] == CHANNEL_SATURATED:
+                assert np.all(f & SATURATED), det
+                continue
+            assert ok.mean() >= 0.9, (det, np.unique(f, return_counts=True))
+            # its loading; the bath is OCS's walk, a few mK from the detectors' 0.1 K: G_bath dT ~ 6 pW/K x 5 mK
+            assert abs(np.median(p[ok]) - truth[det].p_opt_w) < 0.1 * truth[det].p_opt_w, det
     assert not any(np.any(fl & (HK_MISSING | HK_STALE)) for fl in flags), "samples without a fresh OCS reading"

@@ -127,7 +127,7 @@ def inside(spec: dict) -> dict:
                 done.wait(0.05)
 
         threading.Thread(target=sample_cpu, daemon=True).start()
-        cmd = [sys.executable, "-m", "mntes_stream.dfmux.sender", "--wait-listener", "60",
+        cmd = [sys.executable, "-m", "mntes_stream.dfmux.sender", "--counts", "checkable", "--wait-listener", "60",
                "--duration", str(spec.get("duration_s", 1.0))]
         for text in spec["boards"]:
             cmd += ["--board", text]
