@@ -37,7 +37,7 @@ from mntes_stream.errors import MntesError
 __all__ = ["main", "parse_board", "multicast_socket", "detector_boards"]
 
 # Detector counts are simulated ahead by a thread, 64 samples (0.42 s) at a time: the send clock never waits
-# for the simulator, which takes ~0.2 of a core for 128 detectors.
+# for the simulator, which takes about a quarter of a core for 128 detectors.
 BLOCK_SAMPLES = 64
 
 
