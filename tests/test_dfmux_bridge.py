@@ -86,6 +86,44 @@ def test_assembler_v4_missing_block_is_rail():
     assert asm.invalid_samples == 128
 
 
+def test_detector_board_is_the_simulators_detectors_with_one_bias_a_module():
+    """The sender's detectors: the simulator's, named as the bridge publishes them, one bias per module (stated
+    exactly as the bridge's --bias), in the transition at it (R/R_n 0.4-0.95) but the saturated ones, counts
+    in the 24-bit word and x 256 in the packets; the same arguments give the same detectors."""
+    from mntes_stream.core import model
+    from mntes_stream.core.params import ParamArray
+    from mntes_stream.core.sim import CHANNEL_OK, CHANNEL_SATURATED
+    from mntes_stream.dfmux.bridge import bias_table
+    from mntes_stream.dfmux.detectors import COUNTS_MAX, DetectorBoard
+
+    board = DetectorBoard(10, 8, 16)
+    assert [p.detector_id for p in board.params] == [f"b10m{m}c{c:03d}" for m in range(8) for c in range(16)]
+    v = np.array([p.v_thev_v for p in board.params]).reshape(8, 16)
+    assert np.all(v == board.bias_v[:, None]) and np.ptp(board.bias_v) > 0
+    args = board.bias_args()
+    assert args[0::2] == ["--bias"] * 8 and bias_table(args[1::2]) == [(10, m, float(x)) for m, x in
+                                                                        enumerate(board.bias_v)]
+    blk, ci, cq = board.next_counts(200)
+    kinds = np.array([ch.kind for ch in board.sim.channels])
+    assert set(kinds) == {CHANNEL_OK, CHANNEL_SATURATED} and np.sum(kinds == CHANNEL_SATURATED) == 8
+    ok = kinds == CHANNEL_OK
+    assert np.all(blk.truth_state == model.STATE_TRANSITION)  # the saturated ones on the arctan's tail
+    pa = ParamArray.from_params(list(board.params))
+    op = model.solve_operating_point(pa, blk.truth_p_opt_w, blk.truth_t_bath_k[None, :], 0.0, blk.truth_v_thev_v,
+                                     sequential=True)
+    r_frac = op.r_ohm / np.asarray(pa.transition.r_n_ohm)
+    assert 0.4 < r_frac[ok].min() and r_frac[ok].max() < 0.95, (r_frac[ok].min(), r_frac[ok].max())
+    assert r_frac[~ok].min() > 0.99  # loading 3 x P_sat: (almost) normal
+    assert np.all(blk.truth_t_bath_k == 0.1) and np.all(blk.truth_b_field_t == 0)
+    assert ci.dtype == np.int32 and ci.shape == (8, 16, 200) and max(np.abs(ci).max(), np.abs(cq).max()) < COUNTS_MAX
+    raw = PacketBuilder(3, 10, 8, 16).packets(0, T0, counts=(ci[:, :, 0], cq[:, :, 0]))
+    rec = np.frombuffer(b"".join(raw), dtype=header_dtype(16))
+    assert np.array_equal(rec["s"][:, 0::2], ci[:, :, 0] * 256) and np.array_equal(rec["s"][:, 1::2], cq[:, :, 0] * 256)
+    again = DetectorBoard(10, 8, 16)
+    assert again.params == board.params and np.array_equal(again.next_counts(200)[1], ci)
+    assert DetectorBoard(11, 8, 16).params[0].transition != board.params[0].transition  # each board its own
+
+
 def test_bad_settings_are_one_line_errors(capsys):
     """Checked before spt3g is loaded: rc 2, one line, no traceback."""
     from mntes_stream.cli import main
@@ -137,6 +175,73 @@ def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
     assert r["hk_messages"] > 0
 
 
+def test_bridge_carries_the_detectors_power(netns, tmp_path):
+    """The synthetic board's detectors (the simulator's) through packets, spt3g's collector and the bridge: the
+    published counts are the simulator's, the published bias is the sender's, and the counts converted with the
+    sender's parameter file give the simulator's optical power within the readout noise (its own prediction:
+    sigma_P = sigma_I / |dI/dP|); the saturated channel is flagged."""
+    import math
+
+    from mntes_stream.bench.dfmux import run_netns
+    from mntes_stream.core import model
+    from mntes_stream.core.convert import EnvironmentBlock, ExactConverter
+    from mntes_stream.core.flags import SATURATED
+    from mntes_stream.core.params import ParamArray
+    from mntes_stream.core.sim import CHANNEL_SATURATED
+    from mntes_stream.dfmux.detectors import DetectorBoard
+    from mntes_stream.io.messages import decode
+    from mntes_stream.io.paramfile import load_params
+
+    n_mod, n_ch = 8, 8  # a V3 board sends 8 modules (spt3g's collector waits for all 8)
+    board = DetectorBoard(12, n_mod, n_ch)  # what the sender simulates for --board 3:12:8:8 (seed 0)
+    spec = {"boards": [f"3:12:{n_mod}:{n_ch}"], "duration_s": 1.0, "verify": False, "bias": board.bias_args(),
+            "sender_args": ["--counts", "detector", "--params-out", str(tmp_path / "p.toml")],
+            "messages_out": str(tmp_path / "m.npz")}
+    r = run_netns(spec, timeout_s=90)
+    assert r["bridge_rc"] == 0 and r["samples_missing"] == 0 and r["samples_unexpected"] == 0, r
+    assert r["sender"]["bias_v"] == {f"12/{m}": float(v) for m, v in enumerate(board.bias_v)}
+    with np.load(tmp_path / "m.npz") as z:
+        cut = np.cumsum(np.r_[0, z["sizes"]])
+        msgs = [(str(k), decode(z["payloads"][a:b].tobytes())) for k, a, b in zip(z["keys"], cut[:-1], cut[1:])]
+    bias = {(m.board, m.module): m.value for k, m in msgs if "/hk/bias/" in k}
+    assert set(bias) == {(12, m) for m in range(n_mod)} and all(np.all(v == board.bias_v[m]) for (_, m), v in bias.items())
+    assert {float(m.value[0]) for k, m in msgs if k.endswith("/hk/t_bath")} == {0.1}
+    n = r["sender"]["samples"]
+    blk, ci, cq = board.next_counts(n)  # the truth, sample by sample
+    params = load_params(tmp_path / "p.toml")
+    assert list(params) == [p.detector_id for p in board.params]
+    conv = ExactConverter(list(params.values()))
+    pa = ParamArray.from_params(list(board.params))
+    v = np.repeat(board.bias_v, n_ch)[:, None]
+    op = model.solve_operating_point(pa, blk.truth_p_opt_w, 0.1, 0.0, v, sequential=True)
+    sigma_i = board.config.nei_a_rthz * math.sqrt(board.sim.fs / 2)  # per quadrature, A
+    sigma_p = sigma_i / np.abs(model.small_signal(pa, op.r_ohm, 0.1, 0.0, v).di_dp_a_per_w)
+    kinds = [ch.kind for ch in board.sim.channels]
+    zs = []
+    for k, m in msgs:
+        if "/counts/" not in k:
+            continue
+        ks = (m.times_ns() - r["sender"]["t0_ns"]) // SAMPLE_NS
+        rows = slice(n_ch * m.module, n_ch * (m.module + 1))
+        assert np.array_equal(m.counts_i, ci[m.module][:, ks]) and np.array_equal(m.counts_q, cq[m.module][:, ks])
+        ids = [f"b12m{m.module}c{c:03d}" for c in m.channels]
+        env = EnvironmentBlock(t_bath_k=np.full(ks.size, 0.1), b_field_t=np.zeros(ks.size),
+                               v_thev_v=bias[(12, m.module)].ravel())
+        pb = conv.convert(ids, m.counts_i, m.counts_q, env)
+        for c in range(n_ch):
+            if kinds[rows][c] == CHANNEL_SATURATED:
+                assert np.all(pb.flags[c] & SATURATED)
+                continue
+            assert np.all(pb.flags[c] == 0)
+            z = (pb.p_opt_w[c] - blk.truth_p_opt_w[rows][c, ks]) / sigma_p[rows][c, ks]
+            assert np.all(np.abs(z) < 6), (ids[c], np.abs(z).max())
+            zs.append(z)
+    z = np.concatenate(zs)
+    assert z.size == n_mod * (n_ch - 1) * n  # every sample of every tuned channel
+    # the error is the readout noise the simulator added, seen in power: its spread as predicted, no bias
+    assert 0.85 < np.std(z) < 1.15 and abs(np.mean(z)) < 0.1, (np.std(z), np.mean(z))
+
+
 def _crossbar() -> str | None:
     """crossbar as tests/test_ocs_bridge.py finds it: $MNTES_CROSSBAR, .crossbar/bin/crossbar, PATH."""
     import os
@@ -168,7 +273,10 @@ def test_lab_recipe_as_written(netns, tmp_path):
 
     import h5py
 
-    from mntes_stream.core.flags import HK_MISSING, HK_STALE
+    from mntes_stream.core.flags import HK_MISSING, HK_STALE, SATURATED, UNUSABLE
+    from mntes_stream.core.ids import parse_detector_id
+    from mntes_stream.core.sim import CHANNEL_SATURATED
+    from mntes_stream.dfmux.detectors import DetectorBoard
 
     if importlib.util.find_spec("ocs") is None or importlib.util.find_spec("autobahn") is None:
         pytest.skip("the ocs extra (ocs, autobahn) is not installed")
@@ -207,7 +315,24 @@ def test_lab_recipe_as_written(netns, tmp_path):
     assert re.search(rf"^\s*{m[2]}\s+mntes/lab/hk/t_bath$", out, re.M), where
     shown = [float(v) for v in re.findall(r"housekeeping: t_bath (\d+\.\d+) mK", logs["monitor.log"])]
     assert shown and all(80 < v < 120 for v in shown) and len(set(shown)) > 1, shown  # the agent's walk near 0.1 K
-    with h5py.File(tmp_path / "lab.h5", "r") as f:
-        flags = [f[g]["flags"][()] for g in f if "flags" in f[g]]  # one group a module
+    assert proc.returncode == 0, where
+    # the synthetic board's detectors: 15 a module in the transition, the 16th saturated (loading 3 x P_sat)
+    assert re.search(r"^states: transition 120  saturated 8  superconducting 0  flagged 0", out, re.M), where
+    with h5py.File(tmp_path / "lab.h5", "r") as f:  # one group a module
+        groups = [([d.decode() if isinstance(d, bytes) else str(d) for d in f[g]["detectors"][()]], f[g]["tod"][()],
+                   f[g]["flags"][()]) for g in f if "flags" in f[g]]
+    flags = [fl for _, _, fl in groups]
     assert sum(fl.size for fl in flags) == 39040
+    truth = {p.detector_id: p for p in DetectorBoard(10, 8, 16).params}  # the sender's detectors (same arguments)
+    kinds = {ch.channel: ch.kind for ch in DetectorBoard(10, 1, 16).sim.channels}
+    for dets, tod, fl in groups:
+        for det, p, f in zip(dets, tod, fl):
+            assert np.array_equal(np.isfinite(p), (f & UNUSABLE) == 0), det
+            ok = f == 0
+            if kinds[parse_detector_id(det)[2]] == CHANNEL_SATURATED:
+                assert np.all(f & SATURATED), det
+                continue
+            assert ok.mean() >= 0.9, (det, np.unique(f, return_counts=True))
+            # its loading; the bath is OCS's walk, a few mK from the detectors' 0.1 K: G_bath dT ~ 6 pW/K x 5 mK
+            assert abs(np.median(p[ok]) - truth[det].p_opt_w) < 0.1 * truth[det].p_opt_w, det
     assert not any(np.any(fl & (HK_MISSING | HK_STALE)) for fl in flags), "samples without a fresh OCS reading"

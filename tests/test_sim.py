@@ -124,6 +124,19 @@ def test_bias_tuning_and_channel_kinds():
         assert math.isclose(float(model.solve_operating_point(p, p.p_opt_w).r_ohm), 0.7 * p.r_normal_ohm, rel_tol=1e-9)
 
 
+def test_one_bias_per_module_is_the_median_of_its_tuned_biases():
+    cfg = SimConfig(modules=3, channels=5, latched_per_module=0)
+    own = np.array([p.v_thev_v for p in ArraySimulator(cfg).truth_params]).reshape(3, 5)
+    shared = ArraySimulator(cfg.replace(bias_per_module=True))
+    v = np.array([p.v_thev_v for p in shared.truth_params]).reshape(3, 5)
+    assert np.all(v == np.median(own, axis=1)[:, None]) and np.ptp(own[0]) > 0
+    blk = shared.next_block(20)
+    assert np.all(blk.truth_v_thev_v == np.repeat(v[:, 0], 5)[:, None] * shared.bias_factor(blk.t_ns)[None, :])
+    # the detectors themselves are the same: only their bias differs
+    assert [p.replace(v_thev_v=0.0) for p in shared.truth_params] == \
+        [p.replace(v_thev_v=0.0) for p in ArraySimulator(cfg).truth_params]
+
+
 def test_exact_inverse_recovers_truth_within_quantisation():
     cfg = SimConfig.noise_free(channels=3, hwp_2f_w=50e-15, jupiter_peak_w=0.6e-12, jupiter_t_s=2.0,
                                b_field_amp_t=30e-6, b_field_period_s=4.0, t_bath_wander_k=0.5e-3,

@@ -98,7 +98,10 @@ def inside(spec: dict) -> dict:
     """In the namespace: subscriber, bridge, sender; every counts sample checked against what was sent.
 
     ``spec``: ``boards`` (sender specs VERSION:SERIAL:MODULES[:CHANNELS[:SOURCE_IP]]), ``duration_s``,
-    ``skip``/``restart`` (sender flags), ``bridge_args`` (more bridge flags), ``verify`` (check values).
+    ``skip``/``restart`` (sender flags), ``bridge_args`` (more bridge flags), ``verify`` (check values),
+    ``sender_args`` (more sender flags, e.g. ``--counts detector``: then give ``verify`` False), ``bias`` (the
+    bridge's ``--bias`` flags; default ``*=3e-6``), ``messages_out`` (a path: every message received, an
+    ``.npz`` of ``keys``, ``sizes`` and the ``payloads`` end to end, for the caller to decode).
     """
     import numpy as np
 
@@ -114,7 +117,8 @@ def inside(spec: dict) -> dict:
             (str(s.key_expr), s.payload.to_bytes(), time.monotonic())))
         bridge = subprocess.Popen(
             [sys.executable, "-m", "mntes_stream", "dfmux-bridge", "--interface", "127.0.0.1", *_board_flags(spec),
-             "-e", f"tcp/127.0.0.1:{_PORT}", "--t-bath-k", "0.1", "--bias", "*=3e-6", *spec.get("bridge_args", [])],
+             "-e", f"tcp/127.0.0.1:{_PORT}", "--t-bath-k", "0.1", *spec.get("bias", ["--bias", "*=3e-6"]),
+             *spec.get("bridge_args", [])],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         cpu: list = []
         done = threading.Event()
@@ -127,7 +131,7 @@ def inside(spec: dict) -> dict:
                 done.wait(0.05)
 
         threading.Thread(target=sample_cpu, daemon=True).start()
-        cmd = [sys.executable, "-m", "mntes_stream.dfmux.sender", "--wait-listener", "60",
+        cmd = [sys.executable, "-m", "mntes_stream.dfmux.sender", "--counts", "checkable", "--wait-listener", "60",
                "--duration", str(spec.get("duration_s", 1.0))]
         for text in spec["boards"]:
             cmd += ["--board", text]
@@ -135,6 +139,7 @@ def inside(spec: dict) -> dict:
             cmd += ["--skip", text]
         for serial in spec.get("restart", []):
             cmd += ["--restart", str(serial)]
+        cmd += spec.get("sender_args", [])
         snd = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         if snd.returncode:
             bridge.kill()
@@ -163,6 +168,10 @@ def inside(spec: dict) -> dict:
         done.set()
         time.sleep(0.3)
         sub.undeclare()
+    if spec.get("messages_out"):
+        np.savez(spec["messages_out"], keys=np.array([k for k, _, _ in got]),
+                 sizes=np.array([len(p) for _, p, _ in got]),
+                 payloads=np.frombuffer(b"".join(p for _, p, _ in got), dtype=np.uint8))
     counts = [(k, p, t) for k, p, t in got if "/counts/" in k]
     seen: dict = {}
     wrong = 0

@@ -119,6 +119,8 @@ class SimConfig(Settings):
     latched_bias_factor: float = setting(0.25, "x tuned bias", gt=0)
     bistable_per_module: int = setting(0, "channels per module biased into the bistable window, starting latched",
                                        ge=0)
+    bias_per_module: bool = setting(False, "one bias for every channel of a module (the median of their tuned "
+                                    "biases), as a per-module bias table gives it; False: each channel its own")
     # --- optical signals ---------------------------------------------------------------
     f_hwp_hz: float = setting(HWP_FREQUENCIES_HZ["LFT"], "half-wave-plate rotation frequency (LFT by default)", unit="Hz", ge=0)
     hwp_1f_w: float = setting(0.0, "HWP-synchronous signal at 1 f_HWP", unit="W")
@@ -625,6 +627,8 @@ class ArraySimulator:
             ))
         v_tuned = np.ravel(model.tune_bias_v(ParamArray.from_params(params), c.r_frac,
                                              b_field_t=c.b_field_t))
+        if c.bias_per_module:  # channels in order (board, module, channel): a module is a row here
+            v_tuned = np.repeat(np.median(v_tuned.reshape(-1, c.channels), axis=1), c.channels)
         is_lat = np.array([ch.kind == CHANNEL_LATCHED for ch in self.channels])
         is_sat = np.array([ch.kind == CHANNEL_SATURATED for ch in self.channels])
         v_set = np.where(is_lat, c.latched_bias_factor * v_tuned, v_tuned)

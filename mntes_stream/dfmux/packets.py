@@ -116,13 +116,17 @@ class PacketBuilder:
     def n_packets(self) -> int:
         return int(self._rec.size)
 
-    def packets(self, k: int, t_ns: int, seq: int | None = None) -> list[bytes]:
+    def packets(self, k: int, t_ns: int, seq: int | None = None, counts=None) -> list[bytes]:
         """The board's packets for sample number ``k`` at ``t_ns`` (``seq``: the packets' sequence number,
-        ``k`` by default)."""
+        ``k`` by default). ``counts``: ``(I, Q)`` of shape (modules, channels), within the 24-bit word;
+        None: :func:`synthetic_counts`."""
         rec = self._rec
         rec["seq"] = k if seq is None else seq
         rec["ts"] = irig_words(np.array([t_ns]))[0]
-        i, q = _values(self.serial, self._mod[:, None], self._ch, k)
+        if counts is None:
+            i, q = _values(self.serial, self._mod[:, None], self._ch, k)
+        else:  # a V4 module's channels are its blocks' in order: one packet a block
+            i, q = (np.asarray(c).reshape(self.n_packets, self.nchan) for c in counts)
         rec["s"][:, 0::2] = i * 256  # the collector divides by 256
         rec["s"][:, 1::2] = q * 256
         raw = rec.tobytes()

@@ -4,23 +4,41 @@ Run it as its own process (``python -m mntes_stream.dfmux.sender``): spt3g's
 ``DfMuxCollector.Stop()`` holds the GIL until one more datagram arrives, so
 a sender in the bridge's process could never wake it. Multicast leaves on
 ``--interface`` only (``IP_MULTICAST_IF``) with TTL 0: it never crosses a
-router, and on 127.0.0.1 it stays on this machine. The counts are
-:func:`~mntes_stream.dfmux.packets.synthetic_counts` of (board, module,
-channel, sample number), so a receiver can check every value; the last line
-on stdout is a JSON summary (``t0_ns``, samples and packets sent per board).
+router, and on 127.0.0.1 it stays on this machine.
+
+Counts (``--counts``):
+
+- ``detector`` (default): the array simulator's detectors behind each board
+  (:mod:`.detectors`), with their bias, optical signal and noise: what a
+  converter turns into power. ``--params-out`` writes their parameter file
+  (ids as the bridge publishes them), ``--bias-args`` prints the bridge's
+  ``--bias`` arguments for their bias and sends nothing.
+- ``checkable``: :func:`~mntes_stream.dfmux.packets.synthetic_counts` of
+  (board, module, channel, sample number), so a receiver can check every
+  value (no detector could produce them).
+
+The last line on stdout is a JSON summary (``t0_ns``, samples and packets
+sent per board, ``late_s`` the most a sample went out behind its time).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import queue
 import socket
 import sys
+import threading
 import time
 
 from mntes_stream.dfmux.packets import GROUP, PORT, SAMPLE_NS, PacketBuilder
+from mntes_stream.errors import MntesError
 
-__all__ = ["main", "parse_board", "multicast_socket"]
+__all__ = ["main", "parse_board", "multicast_socket", "detector_boards"]
+
+# Detector counts are simulated ahead by a thread, 64 samples (0.42 s) at a time: the send clock never waits
+# for the simulator, which takes about a quarter of a core for 128 detectors.
+BLOCK_SAMPLES = 64
 
 
 def parse_board(text: str) -> dict:
@@ -83,10 +101,64 @@ def udp_sockets(port: int = PORT) -> list[dict]:
     return out
 
 
+def detector_boards(boards, seed: int = 0) -> list:
+    """A :class:`~mntes_stream.dfmux.detectors.DetectorBoard` per ``--board`` spec (:func:`parse_board`)."""
+    from mntes_stream.dfmux.detectors import DetectorBoard
+
+    return [DetectorBoard(b["serial"], b["modules"], PacketBuilder(b["version"], b["serial"], b["modules"],
+                                                                   b["channels"]).channels, seed)
+            for b in boards]
+
+
+class _Feed:
+    """The detectors' counts sample by sample, simulated ``BLOCK_SAMPLES`` ahead by a thread."""
+
+    def __init__(self, boards, n: int):
+        self._boards = {b.serial: b for b in boards}
+        self._q: queue.Queue = queue.Queue(maxsize=2)
+        self._block: dict = {}
+        self._k0 = self._width = 0
+        threading.Thread(target=self._run, args=(n,), name="detectors", daemon=True).start()
+        self._advance()  # the first block before the first packet
+
+    def _run(self, n: int) -> None:
+        k = 0
+        try:
+            while k < n:
+                m = min(BLOCK_SAMPLES, n - k)
+                self._q.put({s: b.next_counts(m)[1:] for s, b in self._boards.items()})
+                k += m
+        except Exception as exc:  # said by the sending thread, in one line
+            self._q.put(exc)
+
+    def _advance(self) -> None:
+        got = self._q.get()
+        if isinstance(got, Exception):
+            raise got
+        self._k0 += self._width
+        self._block = got
+        self._width = next(iter(got.values()))[0].shape[2]
+
+    def counts(self, serial: int, k: int):
+        """``(I, Q)`` of board ``serial`` at sample ``k`` (non-decreasing), shape (modules, channels)."""
+        while k >= self._k0 + self._width:
+            self._advance()
+        i, q = self._block[serial]
+        return i[:, :, k - self._k0], q[:, :, k - self._k0]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m mntes_stream.dfmux.sender", description=__doc__.split("\n")[0])
     p.add_argument("--board", action="append", type=parse_board, required=True,
                    help="VERSION:SERIAL:MODULES[:CHANNELS[:SOURCE_IP]] (repeatable)")
+    p.add_argument("--counts", choices=("detector", "checkable"), default="detector",
+                   help="detector: the array simulator's detectors, with their bias (default); checkable: a function "
+                        "of (board, module, channel, sample number), for receivers checking every value")
+    p.add_argument("--seed", type=int, default=0, help="detector counts: with each serial, the simulator's seed")
+    p.add_argument("--params-out", metavar="TOML", help="detector counts: write the detectors' parameter file "
+                   "(ids b<serial>m<module>c<channel>, as dfmux-bridge publishes them)")
+    p.add_argument("--bias-args", action="store_true", help="detector counts: print dfmux-bridge's --bias arguments "
+                   "for the detectors' bias (one line) and send nothing")
     p.add_argument("--interface", default="127.0.0.1", help="address of the interface to send on")
     p.add_argument("--duration", type=float, default=1.0, help="seconds of data to send")
     p.add_argument("--flat-out", action="store_true", help="send as fast as possible, not at the DfMux rate")
@@ -99,19 +171,41 @@ def main(argv=None) -> int:
     p.add_argument("--wait-listener", type=float, default=0.0, metavar="S",
                    help="first wait up to S seconds for a UDP socket on port 9876 here (a collector listening)")
     args = p.parse_args(argv)
+    detectors = args.counts == "detector"
+    if not detectors and (args.params_out or args.bias_args):
+        p.error("--params-out and --bias-args are for --counts detector")
+    n = max(1, round(args.duration * 1e9 / SAMPLE_NS))
+    try:
+        return _send(args, detector_boards(args.board, args.seed) if detectors else None, n)
+    except (MntesError, OSError) as exc:
+        print(f"sender: {exc}", file=sys.stderr)
+        return 2
+
+
+def _send(args, dets, n: int) -> int:
+    if dets is not None and args.params_out:
+        from mntes_stream.io.paramfile import dump_params
+
+        dump_params([p for b in dets for p in b.params], args.params_out, metadata={
+            "source": "python -m mntes_stream.dfmux.sender (truth)", "seed": str(args.seed),
+            "boards": " ".join(f"{b.serial}:{b.modules}x{b.channels}" for b in dets)})
+    if dets is not None and args.bias_args:
+        print(" ".join(a for b in dets for a in b.bias_args()))
+        return 0
     time.sleep(args.wait)
     if args.wait_listener and not wait_listener(args.wait_listener):
         print(f"sender: nothing listens on UDP port {PORT} after {args.wait_listener:g} s", file=sys.stderr)
         return 1
     boards = [(PacketBuilder(b["version"], b["serial"], b["modules"], b["channels"]),
                multicast_socket(args.interface, b["source"])) for b in args.board]
-    n = max(1, round(args.duration * 1e9 / SAMPLE_NS))
+    feed = _Feed(dets, n) if dets is not None else None
     t0_ns = args.start_ns or (time.time_ns() // SAMPLE_NS + 1) * SAMPLE_NS
     skips = {}
     for serial, k0, k1 in args.skip:
         skips.setdefault(serial, []).append((k0, k1))
     sent = {b.serial: 0 for b, _ in boards}
     packets = 0
+    late_s = 0.0
     dest = (GROUP, PORT)
     t_wall0 = time.monotonic()
     for k in range(n):
@@ -119,19 +213,25 @@ def main(argv=None) -> int:
             delay = t_wall0 + k * SAMPLE_NS / 1e9 - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            late_s = max(late_s, -delay)
         for b, sock in boards:
+            counts = feed.counts(b.serial, k) if feed is not None else None  # a skipped sample is simulated too
             spans = skips.get(b.serial, ())
             if any(k0 <= k < k1 for k0, k1 in spans):
                 continue
             seq = k
             if b.serial in args.restart and spans and k >= spans[0][1]:
                 seq = k - spans[0][1]
-            for raw in b.packets(k, t0_ns + k * SAMPLE_NS, seq):
+            for raw in b.packets(k, t0_ns + k * SAMPLE_NS, seq, counts):
                 sock.sendto(raw, dest)
                 packets += 1
             sent[b.serial] += 1
     wall = time.monotonic() - t_wall0
-    print(json.dumps({"t0_ns": t0_ns, "samples": n, "sent": sent, "packets": packets, "wall_s": round(wall, 3)}))
+    summary = {"t0_ns": t0_ns, "samples": n, "sent": sent, "packets": packets, "wall_s": round(wall, 3),
+               "late_s": round(late_s, 4), "counts": args.counts}
+    if dets is not None:
+        summary["bias_v"] = {f"{b.serial}/{m}": float(v) for b in dets for m, v in enumerate(b.bias_v)}
+    print(json.dumps(summary))
     return 0
 
 
