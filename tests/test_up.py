@@ -89,8 +89,9 @@ def test_the_first_up_with_empty_caches_says_what_it_builds_and_compiles(tmp_pat
     assert lines[compiling].endswith("...")
     took = re.search(r"compiling the conversion kernels .*: done in ([\d.]+) s", done.stdout)
     assert took and float(took.group(1)) >= 1.0
-    ready = next(i for i, line in enumerate(lines) if re.search(r"ready after [\d.]+ s; power flows", line))
-    assert compiling < ready < next(i for i, line in enumerate(lines) if "power chunks" in line)
+    ready = next(i for i, line in enumerate(lines) if re.search(r"ready after [\d.]+ s; the source publishes", line))
+    first = next(i for i, line in enumerate(lines) if re.search(r"^  first power [\d.]+ s after the start$", line))
+    assert compiling < ready < first and ready < next(i for i, line in enumerate(lines) if "power chunks" in line)
     assert "counts without power" not in done.stderr, done.stderr[-2000:]
     assert any((tmp_path / "cache" / "numba").rglob("*.nbi")), "the kernels are cached in the user's cache"
     assert "Traceback" not in done.stderr

@@ -250,7 +250,9 @@ def run_up(args) -> int:
             services.start("recorder", "recorder", rec_cfg, abort=stopping)
             services.start("converter", "converter", conv_cfg, abort=stopping)
             services.start("source", src_service, src_cfg, abort=stopping)
-            say(f"  recorder, converter and source ready after {time.monotonic() - t_start:.1f} s; power flows")
+            say(f"  recorder, converter and source ready after {time.monotonic() - t_start:.1f} s; the source "
+                "publishes once its subscribers are connected")
+            first_power = True
             if metrics:
                 merged = _serve_merged(args, metrics, say)
             with open_session(layered(loopback(None, [p_rec, p_conv, p_src]))) as session:
@@ -274,6 +276,9 @@ def run_up(args) -> int:
                         continue
                     st = StatusMessage.from_bytes(item[1])
                     last_ledger = st.ledger
+                    if first_power and st.chunks_converted:
+                        first_power = False
+                        say(f"  first power {time.monotonic() - t_start:.1f} s after the start")
                     if args.quiet:
                         continue
                     n_files, size = files.now()
