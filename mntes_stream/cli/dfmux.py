@@ -7,7 +7,7 @@ from mntes_stream.cli._common import add_zenoh_args, print_mapping
 _FLAGS = {"setup": "setup", "interface": "interface", "boards": "board", "v2_boards": "v2_board", "sctp": "sctp",
           "chunk_samples": "chunk_samples", "duration_s": "duration", "t_bath_k": "t_bath_k",
           "b_field_t": "b_field_t", "bias": "bias", "board_hosts": "board_host", "hk_every_s": "hk_every",
-          "hk_stale_s": "hk_stale", "board_hk": "board_hk"}
+          "hk_timeout_s": "hk_timeout", "hk_stale_s": "hk_stale", "board_hk": "board_hk"}
 
 
 def run_bridge(args) -> int:
@@ -66,6 +66,8 @@ def register(sub) -> None:
                    help="where that board's tuber answers, if not at iceboard<serial>.local:80 (repeatable)")
     p.add_argument("--hk-every", type=float, metavar="S", help="read each board's housekeeping this often "
                    "(default 10 s)")
+    p.add_argument("--hk-timeout", type=float, metavar="S", help="a board's tuber reply must come within this "
+                   "(default 5 s)")
     p.add_argument("--hk-stale", type=float, metavar="S", help="a board's last good housekeeping holds this long, "
                    "then its samples are flagged HK_STALE (default 60 s)")
     p.add_argument("--no-board-hk", dest="board_hk", action="store_false", default=None,

@@ -302,8 +302,12 @@ class BoardHkTracker:
                                                "failing": False, "t_ns": None, "t_wall": None,
                                                "named_channels": 0, "gains": {}})
 
-    def add(self, item) -> list[tuple[str, bytes]]:
-        """One reading or failure -> messages to publish now."""
+    def add(self, item, t_floor_ns: int = 0) -> list[tuple[str, bytes]]:
+        """One reading or failure -> messages to publish now.
+
+        ``t_floor_ns``: the newest sample time already published. A change is stamped at the board's time
+        stamp or just after that sample, whichever is later: counts already published are converted with
+        what was in force, and the recorded readings say exactly what each sample was converted with."""
         st = self._board(item.serial)
         if isinstance(item, BoardFailure):
             st["failures"] += 1
@@ -315,6 +319,7 @@ class BoardHkTracker:
                 self.events.append(f"board {item.serial}: {item.text}{held}")
             return []
         out = []
+        t_ns = max(int(item.t_ns), int(t_floor_ns) + 1)
         if st["failing"]:
             self.events.append(f"board {item.serial}: housekeeping read again after {st['failures']} failure(s)")
         st.update(reads=st["reads"] + 1, failing=False, stale=False, t_ns=item.t_ns, t_wall=item.t_wall,
@@ -329,10 +334,10 @@ class BoardHkTracker:
                     self.names[det] = name
             if before is not None and before.gains != mr.gains:
                 self._change(f"board {item.serial} module {m}: gains {before.gains} -> {mr.gains} at "
-                             f"{item.t_ns} ns")
+                             f"{t_ns} ns")
             st["gains"][m] = mr.gains
-            out += self._bias(item.serial, m, item.t_ns, before, mr)
-            out += self._flags(item.serial, m, item.t_ns, mr.flags)
+            out += self._bias(item.serial, m, t_ns, before, mr)
+            out += self._flags(item.serial, m, t_ns, mr.flags)
         return out
 
     def _change(self, text: str) -> None:
@@ -390,16 +395,17 @@ class BoardHkTracker:
         self._flags_sent[key] = flags
         return self.pub.board_flags(board, m, self.modules[key].channels, t_ns, flags)
 
-    def check_stale(self, now_wall: float | None = None) -> list[tuple[str, bytes]]:
+    def check_stale(self, t_floor_ns: int = 0, now_wall: float | None = None) -> list[tuple[str, bytes]]:
         """Boards whose last good housekeeping is older than ``stale_s``: HK_STALE on their modules' channels
-        from the data time it went stale (its time stamp + ``stale_s``)."""
+        from the data time it went stale (its time stamp + ``stale_s``, or just after the newest sample
+        published, ``t_floor_ns``, if later)."""
         now_wall = time.monotonic() if now_wall is None else now_wall
         out = []
         for serial, st in self.boards.items():
             if st["stale"] or st["t_wall"] is None or now_wall - st["t_wall"] <= self.stale_s:
                 continue
             st["stale"] = True
-            t_ns = int(st["t_ns"] + self.stale_s * 1e9)
+            t_ns = max(int(st["t_ns"] + self.stale_s * 1e9), int(t_floor_ns) + 1)
             self.events.append(f"board {serial}: no good housekeeping for {self.stale_s:g} s: its samples are "
                                f"flagged HK_STALE from {t_ns} ns until it answers again")
             for (b, m), mr in sorted(self.modules.items()):

@@ -351,15 +351,17 @@ class DfMuxBridgeService(Service):
             poller.start()
 
     def _board_hk(self) -> list:
-        """Messages from the boards' housekeeping read since the last call (never waits for a board)."""
+        """Messages from the boards' housekeeping read since the last call (never waits for a board); stamped
+        no earlier than just after the newest sample received (its chunk goes out after them)."""
         out = []
+        floor = self._asm.t_newest_ns or 0
         for poller in self._pollers:
             while True:
                 try:
-                    out += self._tracker.add(poller.results.get_nowait())
+                    out += self._tracker.add(poller.results.get_nowait(), floor)
                 except queue.Empty:
                     break
-        return out + self._tracker.check_stale()
+        return out + self._tracker.check_stale(floor)
 
     def step(self, ctx) -> bool:
         self._waited = self._step(self._readout, self._asm, self._hk, ctx.publishers, ctx.stop, self._waited)
