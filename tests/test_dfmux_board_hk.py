@@ -41,6 +41,55 @@ def test_board_hosts_and_tracker_are_checked():
             parse_hosts([bad])
 
 
+def _cli(*argv) -> subprocess.CompletedProcess:
+    """The command in its own process: spt3g 1.0.2 there, never so3g's bundled copy the test session loads."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    return subprocess.run([sys.executable, "-m", "mntes_stream", *argv], env=env, capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_params_keyed_by_board_names_apply(tmp_path):
+    """A lab's parameter file keyed by the names its hardware map stores on the board: ``params --from-board``
+    reads the board (a stand-in on loopback) and writes the converter's file keyed by detector id, each gain
+    sqrt 2 x the board's amps per count (spt3g's counts_to_rms_amps through the G3 path's params_for_wiring),
+    the file's phase and physics kept; the board's unnamed channels and named ones the file lacks have none;
+    an unreachable board is one line."""
+    if importlib.util.find_spec("spt3g") is None:
+        pytest.skip("spt3g not installed (the g3 extra)")
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.dfmux.standin import BoardState, StandInBoard, channel_name
+    from mntes_stream.io.paramfile import dump_params, load_params
+
+    board = StandInBoard(BoardState(SERIAL, named_modules=2), "127.0.0.1", 0)
+    port = board.address[1]
+    named = {channel_name(SERIAL, m, c): table1_params(channel_name(SERIAL, m, c), v_thev_v=2e-6 + 1e-9 * c)
+             for m in (0, 1) for c in range(0, 64, 2)}
+    try:
+        dump_params(list(named.values()), tmp_path / "lab.toml")
+        r = _cli("params", "--from-board", f"{SERIAL}=127.0.0.1:{port}", "--params", str(tmp_path / "lab.toml"),
+                 "--out", str(tmp_path / "ids.toml"), "--json")
+        assert r.returncode == 0, r.stderr
+        out = json.loads(r.stdout)
+        assert out["detectors"] == 64 and out["without_parameters"] == 512 - 64, out
+    finally:
+        board.close()
+    got = load_params(tmp_path / "ids.toml")
+    assert sorted(got) == sorted(f"b{SERIAL}m{m}c{c:03d}" for m in (0, 1) for c in range(0, 64, 2))
+    # the board's gain (not the file's 1e-12 A): spt3g's ICE chain at nuller gain 2, 6.3-6.9e-11 A peak per
+    # count with the channel's frequency (1.6-4.2 MHz); the file's phase (real) kept
+    g = np.array([p.gain_a_per_count for p in got.values()])
+    assert np.all(g.imag == 0) and np.all((g.real > 6.3e-11) & (g.real < 6.9e-11)), g
+    for m in (0, 1):
+        for c in range(0, 64, 2):
+            assert got[f"b{SERIAL}m{m}c{c:03d}"].v_thev_v == named[channel_name(SERIAL, m, c)].v_thev_v
+    r = _cli("params", "--from-board", f"{SERIAL}=127.0.0.1:{port}", "--params", str(tmp_path / "lab.toml"),
+             "--out", str(tmp_path / "x.toml"))
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(err) == 1, r.stderr
+    assert f"board {SERIAL}: housekeeping from 127.0.0.1:{port} not read: connection refused" in err[0], err
+
+
 @pytest.fixture(scope="module")
 def netns():
     if importlib.util.find_spec("spt3g") is None:

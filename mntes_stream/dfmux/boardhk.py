@@ -35,7 +35,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
 
 __all__ = ["BoardPoller", "BoardReading", "BoardFailure", "ModuleReading", "BoardHkTracker", "read_board",
-           "parse_hosts", "channel_flags", "TUNED_STATES"]
+           "read_once", "board_params", "parse_hosts", "channel_flags", "TUNED_STATES"]
 
 log = logging.getLogger("mntes_stream.dfmux")
 
@@ -131,6 +131,8 @@ class BoardReading:
     modules: dict
     named_channels: int
     t_wall: float = field(default_factory=time.monotonic)
+    wiring: object = field(default=None, repr=False)  # g3.mapping.Wiring: the board's names both ways
+    snap: object = field(default=None, repr=False)    # g3.mapping.HkSnapshot of this reply
 
 
 @dataclass(frozen=True)
@@ -205,7 +207,33 @@ def read_board(client, serial: int, ip: str, previous=None) -> tuple[BoardReadin
             r_normal_ohm=np.array([h[3].rnormal / core.G3Units.ohm for h in hk]),
             r_frac=np.array([h[3].rfrac_achieved for h in hk]), loop_gain=np.array([h[3].loopgain for h in hk]),
             gains={"carrier": int(mod.carrier_gain), "nuller": int(mod.nuller_gain)})
-    return BoardReading(serial, snap.t_ns, modules, n_named), snap
+    return BoardReading(serial, snap.t_ns, modules, n_named, wiring=wiring, snap=snap), snap
+
+
+def read_once(serial: int, host: str | None = None, port: int = 80, timeout_s: float = 5.0) -> BoardReading:
+    """One board's housekeeping now (ConfigError naming the board if it cannot be read)."""
+    from mntes_stream.errors import ConfigError
+
+    where = f"{host or f'iceboard{serial:04d}.local'}:{port}"
+    try:
+        ip = socket.gethostbyname(host or f"iceboard{serial:04d}.local")
+        return read_board(_tuber_client()(ip, port, timeout_s), serial, ip)[0]
+    except Exception as exc:  # noqa: BLE001 - one line naming the board
+        raise ConfigError(f"board {serial}: housekeeping from {where} not read: {_why(exc)}") from None
+
+
+def board_params(params: dict, readings) -> tuple[dict, list[str]]:
+    """Detector parameters keyed by detector id for the boards' channels, from ``params`` keyed by the boards'
+    mapped names (or by detector id), each gain the board's amps per count (the G3 path's
+    ``params_for_wiring``); and the names without parameters."""
+    from mntes_stream.g3.mapping import params_for_wiring
+
+    out, missing = {}, []
+    for r in readings:
+        got, miss = params_for_wiring(params, r.wiring, r.snap)
+        out.update(got)
+        missing += miss
+    return out, missing
 
 
 def _why(exc: BaseException) -> str:
