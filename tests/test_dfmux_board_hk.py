@@ -41,6 +41,55 @@ def test_board_hosts_and_tracker_are_checked():
             parse_hosts([bad])
 
 
+def _reading(t_ns, amplitude=1.0, state="tuned", r_normal=1.0, r_frac=0.73, loop_gain=9.9):
+    from mntes_stream.core import flags as fl
+    from mntes_stream.dfmux.boardhk import BoardReading, ModuleReading
+
+    ch = np.arange(4, dtype=np.int32)
+    states = (state, "tuned", "overbiased", "")
+    mr = ModuleReading(ch, ("Lab.a", "Lab.b", "b10m0c002", "b10m0c003"), np.full(4, 3e-6 * amplitude),
+                       np.full(4, 4.5e-11), np.array([0, 0, fl.UNTUNED, fl.RAILED], dtype=fl.FLAG_DTYPE), states,
+                       np.array([r_normal, 1.0, 1.0, np.nan]), np.array([r_frac, 0.73, 0.73, np.nan]),
+                       np.array([loop_gain, 9.9, 9.9, np.nan]), {"carrier": 3, "nuller": 2})
+    return BoardReading(10, t_ns, {0: mr}, 2)
+
+
+def test_tracker_bias_steps_flags_stale_and_tuning():
+    """The tracker alone (readings made by hand): the first reading publishes bias and flags; a retune is a
+    step (old value 1 ns before, new at the stamp, never before a sample already published); the tuning
+    check names the detector off its parameters; a failure is one event; stale flags every channel."""
+    from mntes_stream.core import flags as fl
+    from mntes_stream.core.params import table1_params
+    from mntes_stream.dfmux.boardhk import BoardFailure, BoardHkTracker
+    from mntes_stream.dfmux.publish import HkPublisher
+    from mntes_stream.io.messages import decode
+
+    pub = HkPublisher("lab", 0.1, 0.0, [(10, None, 3.3e-6)], bias_every_s=60.0)
+    params = {"Lab.a": table1_params("Lab.a"), "b10m0c002": table1_params("b10m0c002")}
+    tr = BoardHkTracker(pub, stale_s=2.0, bias_tolerance=0.05, params=params)
+    t0 = 1_800_000_000 * 10**9
+    msgs = {k: decode(v) for k, v in tr.add(_reading(t0, r_normal=2.0), t_floor_ns=t0 - 10)}
+    assert set(msgs) == {"mntes/lab/hk/bias/10/0", "mntes/lab/hk/readout_flags/10/0"}
+    np.testing.assert_array_equal(msgs["mntes/lab/hk/readout_flags/10/0"].value, [[0, 0, fl.UNTUNED, fl.RAILED]])
+    assert tr.bias_disagree == {"10/0": {"configured_v": 3.3e-6, "board_v": 3e-6, "relative": 0.1}}
+    assert set(tr.tuning_disagree) == {"b10m0c000"} and set(tr.tuning_disagree["b10m0c000"]) == {"r_normal_ohm"}
+    assert sum("tuned unlike their parameters (e.g. b10m0c000: r_normal_ohm 2 on the board" in e
+               for e in tr.events) == 1, tr.events
+    # a retune read 1 s later, after samples up to t0 + 1.5 s were published: the step just after them
+    out = [decode(v) for _, v in tr.add(_reading(t0 + 10**9, amplitude=0.9), t_floor_ns=t0 + 15 * 10**8)]
+    (bias,) = out
+    np.testing.assert_array_equal(bias.t_ns, [t0 + 15 * 10**8, t0 + 15 * 10**8 + 1])
+    np.testing.assert_allclose(bias.value[1] / bias.value[0], 0.9)
+    assert tr.tuning_disagree == {}  # R_normal agrees now
+    tr.add(BoardFailure(10, "housekeeping from x:80 not read: tuber timed out"))
+    tr.add(BoardFailure(10, "housekeeping from x:80 not read: tuber timed out"))
+    assert sum("tuber timed out" in e for e in tr.events) == 1 and tr.status()["board_hk_failures"] == 2
+    assert tr.check_stale(t0, now_wall=tr.boards[10]["t_wall"] + 1.0) == []
+    (stale,) = [decode(v) for _, v in tr.check_stale(t0, now_wall=tr.boards[10]["t_wall"] + 2.5)]
+    assert stale.t_ns[0] == t0 + 3 * 10**9 and np.all(stale.value.astype(int) & fl.HK_STALE)
+    assert tr.check_stale(t0, now_wall=tr.boards[10]["t_wall"] + 5) == []  # said once
+
+
 def _cli(*argv) -> subprocess.CompletedProcess:
     """The command in its own process: spt3g 1.0.2 there, never so3g's bundled copy the test session loads."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),

@@ -7,7 +7,8 @@ from mntes_stream.cli._common import add_zenoh_args, print_mapping
 _FLAGS = {"setup": "setup", "interface": "interface", "boards": "board", "v2_boards": "v2_board", "sctp": "sctp",
           "chunk_samples": "chunk_samples", "duration_s": "duration", "t_bath_k": "t_bath_k",
           "b_field_t": "b_field_t", "bias": "bias", "board_hosts": "board_host", "hk_every_s": "hk_every",
-          "hk_timeout_s": "hk_timeout", "hk_stale_s": "hk_stale", "board_hk": "board_hk"}
+          "hk_timeout_s": "hk_timeout", "hk_stale_s": "hk_stale", "board_hk": "board_hk",
+          "params": "params"}
 
 
 def run_bridge(args) -> int:
@@ -70,6 +71,8 @@ def register(sub) -> None:
                    "(default 5 s)")
     p.add_argument("--hk-stale", type=float, metavar="S", help="a board's last good housekeeping holds this long, "
                    "then its samples are flagged HK_STALE (default 60 s)")
+    p.add_argument("--params", metavar="FILE", help="detector parameters (keyed by detector id or the boards' "
+                   "names): the boards' R_normal, R_frac achieved and loop gain are checked against them")
     p.add_argument("--no-board-hk", dest="board_hk", action="store_false", default=None,
                    help="do not read the boards' housekeeping (bias from --bias only)")
     p.add_argument("-q", "--quiet", action="store_true", help="only the last line")

@@ -41,6 +41,10 @@ log = logging.getLogger("mntes_stream.dfmux")
 
 # The tuning states that are an operating point (spt3g's HkChannelInfo.state; "" = the board says nothing).
 TUNED_STATES = frozenset({"tuned", ""})
+# The board's tuning results against the detector parameters' (model.describe at the nominal operating point):
+# beyond these, a disagreement reported per detector. R_normal relative; R_frac achieved absolute; loop gain
+# relative (it moves with the optical load, so only a gross mismatch is said).
+TUNING_TOLERANCES = {"r_normal_ohm": ("relative", 0.10), "r_frac": ("absolute", 0.10), "loop_gain": ("relative", 0.5)}
 
 
 def parse_hosts(entries) -> dict[int, tuple[str, int]]:
@@ -310,9 +314,12 @@ class BoardHkTracker:
         are flagged HK_STALE from that data time on, until it answers again.
     bias_tolerance : float
         Relative difference between a configured bias and the board's beyond which the bridge warns.
+    params : dict, optional
+        Detector parameters keyed by detector id or the boards' mapped names: the board's R_normal, R_frac
+        achieved and loop gain are checked against them (``TUNING_TOLERANCES``).
     """
 
-    def __init__(self, publisher, stale_s: float = 60.0, bias_tolerance: float = 0.02):
+    def __init__(self, publisher, stale_s: float = 60.0, bias_tolerance: float = 0.02, params=None):
         self.pub = publisher
         self.stale_s = float(stale_s)
         self.bias_tolerance = float(bias_tolerance)
@@ -324,6 +331,8 @@ class BoardHkTracker:
         self.changes: list[str] = []
         self.bias_disagree: dict[str, dict] = {}
         self.names: dict[str, str] = {}  # detector id -> the board's mapped name
+        self.tuning_disagree: dict[str, dict] = {}
+        self._expected = {key: _expected_tuning(p) for key, p in (params or {}).items()}
 
     def _board(self, serial: int) -> dict:
         return self.boards.setdefault(serial, {"reads": 0, "failures": 0, "last_error": None, "stale": False,
@@ -365,8 +374,40 @@ class BoardHkTracker:
                              f"{t_ns} ns")
             st["gains"][m] = mr.gains
             out += self._bias(item.serial, m, t_ns, before, mr)
+            if self._expected:
+                self._check_tuning(item.serial, m, mr)
             out += self._flags(item.serial, m, t_ns, mr.flags)
         return out
+
+    def _check_tuning(self, board: int, m: int, mr) -> None:
+        """The board's R_normal, R_frac achieved and loop gain against the parameters', per detector."""
+        new = []
+        for row, (c, name) in enumerate(zip(mr.channels.tolist(), mr.names)):
+            det = detector_id(board, m, c)
+            want = self._expected.get(name, self._expected.get(det))
+            if want is None:
+                continue
+            got = {"r_normal_ohm": mr.r_normal_ohm[row], "r_frac": mr.r_frac[row], "loop_gain": mr.loop_gain[row]}
+            off = {}
+            for q, (kind, tol) in TUNING_TOLERANCES.items():
+                b, e = float(got[q]), float(want[q])
+                if not (np.isfinite(b) and np.isfinite(e)):
+                    continue
+                d = abs(b - e) / abs(e) if kind == "relative" else abs(b - e)
+                if d > tol:
+                    off[q] = {"board": round(b, 6), "params": round(e, 6)}
+            if off:
+                if det not in self.tuning_disagree:
+                    new.append(det)
+                self.tuning_disagree[det] = off
+            else:
+                self.tuning_disagree.pop(det, None)
+        if new:
+            first = self.tuning_disagree[new[0]]
+            self.events.append(f"board {board} module {m}: {len(new)} detector(s) tuned unlike their parameters "
+                               f"(e.g. {new[0]}: " + ", ".join(f"{q} {v['board']:g} on the board, {v['params']:g} "
+                                                               "in the parameters" for q, v in first.items())
+                               + "; see status tuning_disagree)")
 
     def _change(self, text: str) -> None:
         self.changes.append(text)
@@ -453,4 +494,17 @@ class BoardHkTracker:
         return {"board_hk": boards, "board_hk_failures": sum(st["failures"] for st in self.boards.values()),
                 "bias_disagree": dict(sorted(self.bias_disagree.items())), "readout_flagged": flagged,
                 "hk_changes": self.changes[-20:], "hk_changes_total": len(self.changes),
-                "board_names": len(self.names)}
+                "board_names": len(self.names), "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
+                "tuning_disagree_total": len(self.tuning_disagree)}
+
+
+def _expected_tuning(p) -> dict:
+    """What the parameters say the board's tuning should show: R_normal, and R_frac and loop gain at the
+    nominal operating point (``core.model.describe``)."""
+    from mntes_stream.core import model
+
+    try:
+        d = model.describe(p)
+    except Exception:  # noqa: BLE001 - parameters without an operating point: R_normal only
+        d = {}
+    return {"r_normal_ohm": p.r_normal_ohm, "r_frac": d.get("r_frac", np.nan), "loop_gain": d.get("loop_gain", np.nan)}

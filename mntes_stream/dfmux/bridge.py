@@ -75,6 +75,9 @@ class DfMuxBridgeSettings(Settings):
     hk_timeout_s: float = setting(5.0, "a board's tuber reply must come within this (spt3g: 5 s)", unit="s", gt=0)
     hk_stale_s: float = setting(60.0, "a board's last good housekeeping holds this long; then its samples are "
                                 "flagged HK_STALE until it answers again", unit="s", gt=0)
+    params: str = setting("", "detector parameters (TOML, keyed by detector id or the boards' mapped names): the "
+                          "boards' R_normal, R_frac achieved and loop gain are checked against them (10 %, 0.1, "
+                          "50 %) and disagreements reported per detector")
     bias_tolerance: float = setting(0.02, "a configured bias differing from the board's by more than this "
                                     "(relative, median over the module) is a warning and a status field", ge=0)
     silent_s: float = setting(2.0, "a module (or board) without samples this long is reported silent", unit="s",
@@ -333,7 +336,12 @@ class DfMuxBridgeService(Service):
         unknown = sorted(set(hosts) - set(b.boards))
         if unknown:
             raise ConfigError(f"dfmux-bridge: --board-host for board(s) {unknown}, not named by --board")
-        self._tracker = BoardHkTracker(self._hk, b.hk_stale_s, b.bias_tolerance)
+        params = None
+        if b.params:
+            from mntes_stream.io.paramfile import load_params
+
+            params = load_params(b.params)
+        self._tracker = BoardHkTracker(self._hk, b.hk_stale_s, b.bias_tolerance, params)
         self._pollers = [BoardPoller(s, *hosts.get(s, (None, 80)), every_s=b.hk_every_s, timeout_s=b.hk_timeout_s)
                          for s in (b.boards if b.board_hk else ())]
         self._said_hk = 0
