@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_dfmux_bridge import netns  # noqa: F401 - the fixture: spt3g and a private network namespace
 
 SERIAL = 10
 DURATION_S = 8.0
@@ -140,14 +141,9 @@ def test_params_keyed_by_board_names_apply(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def netns():
-    if importlib.util.find_spec("spt3g") is None:
-        pytest.skip("spt3g not installed (the g3 extra)")
-    from mntes_stream.bench.dfmux import netns_reason
-
-    reason = netns_reason()
-    if reason:
-        pytest.skip(reason)
+def netns_mount(request):
+    """A private network namespace (``netns``) and mount namespace can be made here."""
+    request.getfixturevalue("netns")
     r = subprocess.run(["unshare", "-n", "-m", "true"], capture_output=True, timeout=10)
     if r.returncode:
         pytest.skip(f"unshare -n -m not permitted: {r.stderr.decode(errors='replace').strip()[:100]}")
@@ -280,7 +276,7 @@ def _recorded(rec: Path):
     return bias, flags, power, status
 
 
-def test_board_housekeeping_end_to_end(netns, tmp_path):
+def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
     """Retune module 3 (carrier x 0.9) mid-run: its recorded bias steps by 0.9, the other modules' stay; the
     converter's power of module 3 is the model's inverse at the recorded bias of each sample (the new one after
     the step); a latched channel and a railed carrier flag their samples UNTUNED and RAILED; the board that
