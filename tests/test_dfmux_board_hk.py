@@ -99,6 +99,42 @@ def _cli(*argv) -> subprocess.CompletedProcess:
                           timeout=120)
 
 
+_POLL = """
+import json, sys, time
+from mntes_stream.dfmux.boardhk import BoardPoller
+from mntes_stream.dfmux.standin import BoardState, StandInBoard
+
+board = StandInBoard(BoardState(10), "127.0.0.1", 0)
+poller = BoardPoller(10, "127.0.0.1", board.address[1], every_s=0.2, timeout_s=0.5)
+poller.start()
+out = [type(poller.results.get(timeout=30)).__name__]
+for mode in sys.argv[1:]:
+    board.board.apply({"mode": mode})
+    while True:  # the first result after the change
+        r = poller.results.get(timeout=30)
+        if type(r).__name__ == "BoardFailure" or mode == "ok":
+            break
+    out.append(getattr(r, "text", type(r).__name__))
+print(json.dumps(out))
+"""
+
+
+def test_a_board_answering_garbage_or_hanging_is_one_reason():
+    """The poller against a real stand-in (loopback): a reply that is not JSON and a board that never answers
+    are failures with their reason, and it reads again when the board answers."""
+    if importlib.util.find_spec("spt3g") is None:
+        pytest.skip("spt3g not installed (the g3 extra)")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    r = subprocess.run([sys.executable, "-c", _POLL, "garbage", "hang", "ok"], env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    first, garbage, hang, ok = json.loads(r.stdout.strip().splitlines()[-1])
+    assert first == "BoardReading" and ok == "BoardReading"
+    assert "not read: answered garbage (JSONDecodeError" in garbage, garbage
+    assert hang.endswith("not read: tuber timed out"), hang
+
+
 def test_params_keyed_by_board_names_apply(tmp_path):
     """A lab's parameter file keyed by the names its hardware map stores on the board: ``params --from-board``
     reads the board (a stand-in on loopback) and writes the converter's file keyed by detector id, each gain
