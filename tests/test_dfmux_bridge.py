@@ -133,6 +133,11 @@ def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
     assert "160 module samples never received" in last, last
     text = "\n".join(r["bridge_stdout"])
     assert "board 11: up to 20 samples missing" in text and "board 5 stopped sending" in text, text
+    # no tuber answers here (no /etc/hosts entry, no network): one line per board, counted, counts unaffected
+    for serial in (10, 11):
+        assert text.count(f"board {serial}: housekeeping from iceboard{serial:04d}.local:80 not read: name does not "
+                          "resolve") == 1, text
+    assert "board housekeeping reads failed" in last, last
     assert "spt3g 1.0.2" in r["bridge_stdout"][0]
     assert r["hk_messages"] > 0
 
