@@ -65,7 +65,7 @@ def run(args) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("params", help="the converter's parameter file for a G3 run (detector ids, the run's gain)",
+    p = sub.add_parser("params", help="the converter's parameter file for a G3 run or IceBoards (detector ids, their gain)",
                        description="Write the detector parameters of PARAMS (keyed by bolometer name or detector id) "
                                    "for the bolometers wired in a G3 run, keyed by detector id, each gain the DfMux "
                                    "amps per count of the run's first housekeeping: the file `serve` (converter), "
