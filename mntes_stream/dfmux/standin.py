@@ -15,7 +15,9 @@ effect, ``t_ns``):
 - ``{"rail": {"module": M, "what": "carrier"|"nuller"|"demod"}}`` or
   ``{"rail": {"module": M, "channel": C}}`` (the channel's DAN);
 - ``{"mode": "ok"|"hang"|"garbage"}``: answer, never answer (a tuber
-  timeout), or answer bytes that are not JSON.
+  timeout), or answer bytes that are not JSON;
+- ``{}``: nothing (every reply also says how many housekeeping dumps the
+  board has answered, ``dumps``).
 
 ``python -m mntes_stream.dfmux.standin --board SERIAL[=HOST[:PORT]]`` serves
 one board per address (default: what ``iceboard<serial>.local`` resolves
@@ -93,7 +95,7 @@ class BoardState:
                 if change["mode"] not in ("ok", "hang", "garbage"):
                     raise ValueError(f"mode {change['mode']!r}")
                 self.mode = change["mode"]
-            else:
+            elif change:
                 raise ValueError(f"unknown change {sorted(change)}")
             return time.time_ns()
 
@@ -154,7 +156,8 @@ class _Handler(BaseHTTPRequestHandler):
             return
         if self.path == "/standin":
             try:
-                self._reply(json.dumps({"ok": True, "t_ns": board.apply(calls)}).encode())
+                t_ns = board.apply(calls)
+                self._reply(json.dumps({"ok": True, "t_ns": t_ns, "dumps": board.dumps}).encode())
             except (KeyError, TypeError, ValueError, IndexError) as exc:
                 self._reply(json.dumps({"ok": False, "error": str(exc)}).encode(), 400)
             return
