@@ -256,7 +256,7 @@ def inside(workdir: str) -> dict:
         start("bridge", py + ["mntes_stream", "dfmux-bridge", "--interface", "127.0.0.1", "--board", str(SERIAL),
                               "--t-bath-k", "0.1", "--bias", f"{SERIAL}/7=4e-6", "--bias", f"{SERIAL}/*=3e-6",
                               "--hk-every", str(HK_EVERY_S), "--hk-stale", str(HK_STALE_S), "--hk-timeout", "0.5",
-                              "--json"] + z,
+                              "--params", "params.toml", "--json"] + z,
               stdout=open(work / "bridge.json", "w"))
         sender = subprocess.Popen(py + ["mntes_stream.dfmux.sender", "--board", f"3:{SERIAL}:8:{CHANNELS}",
                                         "--wait-listener", "60", "--duration", str(DURATION_S)],
@@ -278,6 +278,9 @@ def inside(workdir: str) -> dict:
         if sender.returncode:
             raise SystemExit(f"sender failed: {snd_err[-500:]}")
         out["sender"] = json.loads(snd_out.strip().splitlines()[-1])
+        ps = subprocess.run(py + ["mntes_stream", "ps", "--json", "--timeout", "3"] + z, cwd=work,
+                            capture_output=True, text=True, timeout=60)
+        out["ps"] = json.loads(ps.stdout) if ps.returncode == 0 else ps.stderr
         time.sleep(0.5)
         procs["bridge"].send_signal(signal.SIGTERM)
         procs["bridge"].wait(timeout=30)
@@ -431,6 +434,15 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
     assert result["bias_disagree"][f"{SERIAL}/7"]["configured_v"] == 4e-6
     assert any("module 3: bias changed (median ratio 0.9)" in c for c in result["hk_changes"]), result["hk_changes"]
     assert result["readout_flagged"][f"{SERIAL}/2"] == ["hk_stale", "railed"], result["readout_flagged"]
+    # tuning against the parameters: the stand-in's R_normal 2 Ohm, the parameters' 1 Ohm (Table 1), every
+    # detector with parameters named in the status, one line per module
+    assert result["tuning_disagree_total"] == 8 * CHANNELS, result["tuning_disagree_total"]
+    assert result["tuning_disagree"][f"b{SERIAL}m3c000"]["r_normal_ohm"] == {"board": 2.0, "params": 1.0}
+    assert bridge_log.count("detector(s) tuned unlike their parameters") == 8, where
+    # ps sees it live: the bridge's warnings and status fields
+    (live,) = [b for b in r["ps"]["services"] if b["service"] == "dfmux-bridge"]
+    assert live["board_hk"][str(SERIAL)]["stale"] is True and live["tuning_disagree_total"] == 8 * CHANNELS, live
+    assert any("no good housekeeping" in w for w in live["warnings"]), live["warnings"]
 
 
 if __name__ == "__main__":

@@ -372,7 +372,7 @@ class BoardHkTracker:
             if before is not None and before.gains != mr.gains:
                 self._change(f"board {item.serial} module {m}: gains {before.gains} -> {mr.gains} at "
                              f"{t_ns} ns")
-            st["gains"][m] = mr.gains
+            st["gains"][str(m)] = mr.gains  # str keys: the status goes out as msgpack (ps), JSON
             out += self._bias(item.serial, m, t_ns, before, mr)
             if self._expected:
                 self._check_tuning(item.serial, m, mr)
