@@ -94,7 +94,9 @@ def test_bad_settings_are_one_line_errors(capsys):
              (["--board", "3"], "give --interface"),
              (["--board", "3", "--interface", "10.255.255.1"], "cannot join 239.192.0.2"),
              (["--board", "3", "--interface", "127.0.0.1", "--bias", "3/x=1"], "bias entry"),
-             (["--v2-board", "nohost=3", "--interface", "127.0.0.1"], "expected IP=SERIAL")]
+             (["--v2-board", "nohost=3", "--interface", "127.0.0.1"], "expected IP=SERIAL"),
+             (["--board", "3", "--interface", "127.0.0.1", "--board-host", "3=h:x"], "expected SERIAL=HOST[:PORT]"),
+             (["--board", "3", "--interface", "127.0.0.1", "--board-host", "4=h"], "not named by --board")]
     for argv, text in cases:
         assert main(["dfmux-bridge", *argv, "--duration", "1"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
