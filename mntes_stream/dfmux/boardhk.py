@@ -14,9 +14,11 @@ One :class:`BoardPoller` thread per board reads at a fixed cadence and
 hands :class:`BoardReading` or :class:`BoardFailure` to the bridge through a
 queue: the packet path never waits for a board. :class:`BoardHkTracker`
 turns them into housekeeping messages: ``bias/<board>/<module>`` when it
-changes (the old value 1 ns before the board's time stamp and the new one
-at it, as the G3 path publishes a step) and ``readout_flags/<board>/<module>``
-(UNTUNED, RAILED, HK_STALE per channel) when they change.
+changes (the old value 1 ns before the new one, as the G3 path publishes a
+step) and every ``bias_every_s``, and ``readout_flags/<board>/<module>``
+(UNTUNED, RAILED, HK_STALE per channel) when they change; each change
+stamped at the board's time stamp, or just after the newest sample already
+published if that is later; events, and the status fields of the bridge.
 """
 
 from __future__ import annotations
