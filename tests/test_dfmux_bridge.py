@@ -132,7 +132,9 @@ def test_bad_settings_are_one_line_errors(capsys):
              (["--board", "3"], "give --interface"),
              (["--board", "3", "--interface", "10.255.255.1"], "cannot join 239.192.0.2"),
              (["--board", "3", "--interface", "127.0.0.1", "--bias", "3/x=1"], "bias entry"),
-             (["--v2-board", "nohost=3", "--interface", "127.0.0.1"], "expected IP=SERIAL")]
+             (["--v2-board", "nohost=3", "--interface", "127.0.0.1"], "expected IP=SERIAL"),
+             (["--board", "3", "--interface", "127.0.0.1", "--board-host", "3=h:x"], "expected SERIAL=HOST[:PORT]"),
+             (["--board", "3", "--interface", "127.0.0.1", "--board-host", "4=h"], "not named by --board")]
     for argv, text in cases:
         assert main(["dfmux-bridge", *argv, "--duration", "1"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
@@ -171,6 +173,11 @@ def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
     assert "160 module samples never received" in last, last
     text = "\n".join(r["bridge_stdout"])
     assert "board 11: up to 20 samples missing" in text and "board 5 stopped sending" in text, text
+    # no tuber answers here (no /etc/hosts entry, no network): one line per board, counted, counts unaffected
+    for serial in (10, 11):
+        assert text.count(f"board {serial}: housekeeping from iceboard{serial:04d}.local:80 not read: name does not "
+                          "resolve") == 1, text
+    assert "board housekeeping reads failed" in last, last
     assert "spt3g 1.0.2" in r["bridge_stdout"][0]
     assert r["hk_messages"] > 0
 

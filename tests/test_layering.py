@@ -118,7 +118,7 @@ CONTRACTS: dict[str, set[str]] = {
     "foxglove": {"core", "io"},  # json channels; its service is service/foxglove.py
     "service": {"core", "io", "foxglove"},  # the registry names the services above it as "module:Class"
     "monitor": _SERVICE_PLUGIN,
-    "dfmux": _SERVICE_PLUGIN,
+    "dfmux": _SERVICE_PLUGIN | {"g3"},  # board housekeeping: the G3 path's wiring and bias (g3.mapping)
     "g3": _SERVICE_PLUGIN,
     "ocs": _SERVICE_PLUGIN | {"g3"},  # OCS HK files are G3 files: g3.ocs_hkfile, g3.ocs_hk
     "feeds": {"core", "io", "g3"},

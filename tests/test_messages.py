@@ -56,7 +56,7 @@ def hk_chunks(draw):
     t = np.cumsum(np.array(draw(st.lists(st.integers(1, 10**10), min_size=n, max_size=n)), dtype=np.int64))
     extra = {}
     width = None
-    if sensor == "bias":
+    if sensor in m.PER_CHANNEL_SENSORS:
         ch = draw(channels())
         width = ch.size
         extra = {"board": draw(SMALL), "module": draw(SMALL), "channels": ch}

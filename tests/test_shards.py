@@ -90,7 +90,8 @@ def test_a_shard_loads_only_its_detectors_and_subscribes_only_to_its_keys(array)
     assert len(params) == 4 * len(streams)
     subs = subscriptions(cfg, streams)
     assert subs[:2] == ["mntes/lab/hk/t_bath", "mntes/lab/hk/b_field"]
-    assert sorted(subs[2:]) == sorted([f"mntes/lab/hk/bias/{b}/{m}" for b, m in streams]
+    assert sorted(subs[2:]) == sorted([f"mntes/lab/hk/{s}/{b}/{m}" for b, m in streams
+                                       for s in ("bias", "readout_flags")]
                                       + [f"mntes/lab/counts/{b}/{m}" for b, m in streams])
     # boards and modules narrow it further; nothing left is an error, said in one line.
     assert owned_params(ConverterConfig(params=str(tmp / "params.toml"), boards=(1,), modules=(2,)))[1] == [(1, 2)]

@@ -7,7 +7,9 @@ from mntes_stream.options import number
 
 _FLAGS = {"setup": "setup", "interface": "interface", "boards": "board", "v2_boards": "v2_board", "sctp": "sctp",
           "chunk_samples": "chunk_samples", "duration_s": "duration", "t_bath_k": "t_bath_k",
-          "b_field_t": "b_field_t", "bias": "bias"}
+          "b_field_t": "b_field_t", "bias": "bias", "board_hosts": "board_host", "hk_every_s": "hk_every",
+          "hk_timeout_s": "hk_timeout", "hk_stale_s": "hk_stale", "board_hk": "board_hk",
+          "params": "params"}
 
 
 def run_bridge(args) -> int:
@@ -60,7 +62,20 @@ def register(sub) -> None:
     p.add_argument("--t-bath-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature to publish (default: none)")
     p.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="magnetic field to publish (default 0)")
     p.add_argument("--bias", action="append", metavar="BOARD/MODULE=V",
-                   help="bias table entry, RMS volts; * for any board or module (repeatable)")
+                   help="bias table entry, RMS volts; * for any board or module (repeatable); a fallback: a module's "
+                        "bias comes from its board's housekeeping once read")
+    p.add_argument("--board-host", action="append", metavar="SERIAL=HOST[:PORT]",
+                   help="where that board's tuber answers, if not at iceboard<serial>.local:80 (repeatable)")
+    p.add_argument("--hk-every", type=number(float, "s", gt=0), metavar="S", help="read each board's housekeeping this often "
+                   "(default 10 s)")
+    p.add_argument("--hk-timeout", type=number(float, "s", gt=0), metavar="S", help="a board's tuber reply must come within this "
+                   "(default 5 s)")
+    p.add_argument("--hk-stale", type=number(float, "s", gt=0), metavar="S", help="a board's last good housekeeping holds this long, "
+                   "then its samples are flagged HK_STALE (default 60 s)")
+    p.add_argument("--params", metavar="FILE", help="detector parameters (keyed by detector id or the boards' "
+                   "names): the boards' R_normal, R_frac achieved and loop gain are checked against them")
+    p.add_argument("--no-board-hk", dest="board_hk", action="store_false", default=None,
+                   help="do not read the boards' housekeeping (bias from --bias only)")
     add_quiet(p)
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     add_zenoh_args(p)

@@ -24,6 +24,8 @@ PHASE_RESIDUAL = 1 << 9     # quadrature the model does not explain beyond its n
 LATCHED = 1 << 10           # with SUPERCONDUCTING: R above the bottom, the TES latched resistive (loop gain <= 0)
 NONLINEAR = 1 << 11         # baseline (linear, electrical) differs from the physics model by more than its tolerance
 LOW_RESPONSIVITY = 1 << 12  # sigma_P (readout noise through the local responsivity) above its tolerance (core.uncertainty)
+UNTUNED = 1 << 13           # the board's housekeeping says the channel is not tuned (latched, overbiased, untuned...)
+RAILED = 1 << 14            # the board's housekeeping says the channel's DAN, or its module's carrier/nuller/demod, railed
 
 NAMES = {
     SATURATED: "saturated",
@@ -39,6 +41,8 @@ NAMES = {
     LATCHED: "latched",
     NONLINEAR: "nonlinear",
     LOW_RESPONSIVITY: "low_responsivity",
+    UNTUNED: "untuned",
+    RAILED: "railed",
 }
 
 # Flags after which the power value is not usable (NaN in the output). PHASE_RESIDUAL and
@@ -46,7 +50,7 @@ NAMES = {
 # LOW_RESPONSIVITY is a warning too; core.uncertainty drops the value where its settings say so
 # (low_responsivity_unusable), so the bit keeps one meaning in every file.
 UNUSABLE = (SATURATED | SUPERCONDUCTING | LATCHED | OUT_OF_TABLE | HK_MISSING | INVALID_INPUT | UNKNOWN_CHANNEL
-            | GAP)
+            | GAP | UNTUNED | RAILED)
 
 
 def describe(mask: int) -> list[str]:

@@ -5,9 +5,11 @@ named boards) parses the packets and its ``DfMuxBuilder`` collates them into
 Timepoint frames; a thread pulls the frames (``builder.Process`` blocks, the
 GIL released) and the service turns them into the simulator's messages
 (:mod:`.assemble`): counts per (board serial, module), ``t_bath`` and
-``b_field`` from constants, ``bias/<board>/<module>`` from a configured
-table. DfMux housekeeping from the boards (their tuber interface) is not
-read: gain stays in the converter's parameters.
+``b_field`` from constants. Each V3/V4 board's own housekeeping is read
+over its tuber interface (:mod:`.boardhk`, a thread per board, off the
+packet path): the bias of every channel as the G3 path derives it, its
+tuning state and rails as readout flags, its mapped names; the configured
+bias table is the fallback while a module has no board housekeeping.
 
 spt3g runs here as the ``spt3g`` package (1.0.2), never so3g's bundled copy:
 the bridge refuses to start in a process that has imported so3g, and says
@@ -64,6 +66,20 @@ class DfMuxBridgeSettings(Settings):
     bias: tuple[str, ...] = setting((), "bias table: BOARD/MODULE=VOLTS_RMS, BOARD/*=..., or *=... (first match "
                                     "wins); modules with no entry: no bias published (the converter's nominal bias)")
     bias_every_s: float = setting(60.0, "republish the bias this often (data time)", unit="s", gt=0)
+    board_hk: bool = setting(True, "read each V3/V4 board's housekeeping (tuber Dfmux._dump_housekeeping, as "
+                             "spt3g's HousekeepingConsumer): bias, gains, tuning state, rails, mapped names")
+    board_hosts: tuple[str, ...] = setting((), "SERIAL=HOST[:PORT] per board whose tuber is not at "
+                                           "iceboard<serial>.local:80 (labs without mDNS)")
+    hk_every_s: float = setting(10.0, "read each board's housekeeping this often (spt3g's "
+                                "PeriodicHousekeepingCollector: every 15200 samples, 100 s)", unit="s", gt=0)
+    hk_timeout_s: float = setting(5.0, "a board's tuber reply must come within this (spt3g: 5 s)", unit="s", gt=0)
+    hk_stale_s: float = setting(60.0, "a board's last good housekeeping holds this long; then its samples are "
+                                "flagged HK_STALE until it answers again", unit="s", gt=0)
+    params: str = setting("", "detector parameters (TOML, keyed by detector id or the boards' mapped names): the "
+                          "boards' R_normal, R_frac achieved and loop gain are checked against them (10 %, 0.1, "
+                          "50 %) and disagreements reported per detector")
+    bias_tolerance: float = setting(0.02, "a configured bias differing from the board's by more than this "
+                                    "(relative, median over the module) is a warning and a status field", ge=0)
     silent_s: float = setting(2.0, "a module (or board) without samples this long is reported silent", unit="s",
                               gt=0)
     wait_subscribers_s: float = setting(5.0, "wait this long for subscribers to the first keys", unit="s", ge=0)
@@ -311,9 +327,24 @@ class DfMuxBridgeService(Service):
         from mntes_stream.dfmux.publish import HkPublisher
 
         b = self.config.bridge
+        from mntes_stream.dfmux.boardhk import BoardHkTracker, BoardPoller, parse_hosts
+
         self._hk = HkPublisher(b.setup, b.t_bath_k, b.b_field_t, bias_table(b.bias), b.bias_every_s)
         self._asm = Assembler(b.setup, b.chunk_samples)
         self._readout = Readout(b)  # every setting checked before spt3g is loaded
+        hosts = parse_hosts(b.board_hosts)
+        unknown = sorted(set(hosts) - set(b.boards))
+        if unknown:
+            raise ConfigError(f"dfmux-bridge: --board-host for board(s) {unknown}, not named by --board")
+        params = None
+        if b.params:
+            from mntes_stream.io.paramfile import load_params
+
+            params = load_params(b.params)
+        self._tracker = BoardHkTracker(self._hk, b.hk_stale_s, b.bias_tolerance, params)
+        self._pollers = [BoardPoller(s, *hosts.get(s, (None, 80)), every_s=b.hk_every_s, timeout_s=b.hk_timeout_s)
+                         for s in (b.boards if b.board_hk else ())]
+        self._said_hk = 0
         core, dfmux, which = load_spt3g()
         log.info("dfmux-bridge: %s", which)
         self.spt3g = which
@@ -324,6 +355,21 @@ class DfMuxBridgeService(Service):
         self._waited = False
         self._marker_seen = False
         self._readout.start(core, dfmux)
+        for poller in self._pollers:
+            poller.start()
+
+    def _board_hk(self) -> list:
+        """Messages from the boards' housekeeping read since the last call (never waits for a board); stamped
+        no earlier than just after the newest sample received (its chunk goes out after them)."""
+        out = []
+        floor = self._asm.t_newest_ns or 0
+        for poller in self._pollers:
+            while True:
+                try:
+                    out += self._tracker.add(poller.results.get_nowait(), floor)
+                except queue.Empty:
+                    break
+        return out + self._tracker.check_stale(floor)
 
     def step(self, ctx) -> bool:
         self._waited = self._step(self._readout, self._asm, self._hk, ctx.publishers, ctx.stop, self._waited)
@@ -353,6 +399,8 @@ class DfMuxBridgeService(Service):
                 pubs.put(key, payload)
         finally:
             readout.stop()
+            for poller in self._pollers:
+                poller.stop()
         result = self._beat(asm, readout, pubs)
         log.info("dfmux-bridge stopped: %s", result)
         return result
@@ -380,8 +428,8 @@ class DfMuxBridgeService(Service):
                 self._marker_seen = True
                 continue
             chunks += asm.add(t_ns, mods, time.time_ns())
-        out = hk.messages(chunks, asm.t_newest_ns) + [(keys.counts_key(b.setup, c.board, c.module), c.to_bytes())
-                                                      for c in chunks]
+        out = self._board_hk() + hk.messages(chunks, asm.t_newest_ns) + [
+            (keys.counts_key(b.setup, c.board, c.module), c.to_bytes()) for c in chunks]
         if out and not waited and b.wait_subscribers_s > 0:
             waited = True
             pubs.wait_matching([k for k, _ in out], b.wait_subscribers_s, stopping)
@@ -402,12 +450,19 @@ class DfMuxBridgeService(Service):
             self.heartbeat.warn(ev.text)
             log.warning("dfmux-bridge: %s", ev.text)
         self._said = len(asm.events)
+        tracker = self._tracker
+        for text in tracker.events[self._said_hk:]:
+            self.heartbeat.warn(text)
+            log.warning("dfmux-bridge: %s", text)
+        self._said_hk = len(tracker.events)
         counters = {"spt3g": self.spt3g, "timepoints": asm.timepoints, "samples": asm.samples,
                     "invalid_samples": asm.invalid_samples, "out_of_order": asm.out_of_order,
                     "gap_samples": asm.gap_samples, "streams": len(asm.streams), "queued_frames": readout.frames.qsize(),
                     "held_released": self.released,
                     "messages": pubs.messages, "bytes": pubs.bytes,
-                    "events": [e.text for e in asm.events[-20:]], "events_total": len(asm.events),
+                    "events": ([e.text for e in asm.events] + tracker.events)[-20:],
+                    "events_total": len(asm.events) + len(tracker.events),
+                    **tracker.status(),
                     "published": dict(sorted(asm.published.items())), "stream_gaps": asm.stream_gaps,
                     "ledger": led.as_dict(), "lost": led.lost}
         self.heartbeat.beat(**counters)
@@ -426,6 +481,8 @@ def ledger_line(result: dict) -> str:
         text += f"; {result['invalid_samples']} samples invalid (V4 blocks missing)"
     if result.get("held_released") is False:
         text += "; samples spt3g's builder still held at the stop (up to 1000 per board) were not released"
+    if result.get("board_hk_failures"):
+        text += f"; {result['board_hk_failures']} board housekeeping reads failed"
     if result.get("events_total"):
-        text += f"; {result['events_total']} board events (gaps, late, silent: see the log)"
+        text += f"; {result['events_total']} board events (gaps, late, silent, housekeeping: see the log)"
     return text

@@ -1,10 +1,14 @@
-"""The housekeeping the DfMux bridge publishes beside its counts: as the simulator does, from configuration.
+"""The housekeeping the DfMux bridge publishes beside its counts.
 
 ``t_bath`` and ``b_field`` (constants, when configured) with every group of
 counts chunks, stamped at the newest sample, so the converter never waits
-for a reading after a chunk; ``bias/<board>/<module>`` (RMS volts, from the
-configured table) when a module is first seen and every ``bias_every_s``
-of data time after.
+for a reading after a chunk. ``bias/<board>/<module>`` (RMS volts): the
+board's own (:mod:`.boardhk`, :meth:`HkPublisher.board_bias`) once it has
+been read; until then, from the configured table, when a module is first
+seen and every ``bias_every_s`` of data time after. ``readout_flags/<board>/
+<module>``: the board's per-channel flags (:meth:`HkPublisher.board_flags`).
+Per module, readings go out in time order: a board reading stamped before
+the module's last published one is moved just after it.
 """
 
 from __future__ import annotations
@@ -39,7 +43,24 @@ class HkPublisher:
         self._seq: dict[str, int] = {}
         self._t_scalar = -1
         self._t_bias: dict[tuple[int, int], int] = {}
+        self._t_sent: dict[str, int] = {}  # per-channel sensor key -> its last reading's time
+        self._from_board: set[tuple[int, int]] = set()
         self.readings = 0
+
+    def configured_bias(self, board: int, module: int) -> float | None:
+        """The bias table's value for a module (None: no entry)."""
+        return self._bias_of(board, module)
+
+    def board_bias(self, board: int, module: int, channels, t_ns, volts) -> list[tuple[str, bytes]]:
+        """The board's bias readings of a module (``t_ns`` shape (n,), ``volts`` (n, n_ch)); from now on the
+        table is not used for it."""
+        self._from_board.add((board, module))
+        return [self._msg("bias", t_ns, volts, "V", board=board, module=module, channels=channels)]
+
+    def board_flags(self, board: int, module: int, channels, t_ns: int, flags) -> list[tuple[str, bytes]]:
+        """The board's readout flags of a module's channels, from ``t_ns`` on."""
+        return [self._msg("readout_flags", [t_ns], np.asarray(flags, dtype=float)[None, :], "flags", board=board,
+                          module=module, channels=channels)]
 
     def _bias_of(self, board: int, module: int) -> float | None:
         for b, m, v in self.bias:
@@ -47,12 +68,16 @@ class HkPublisher:
                 return v
         return None
 
-    def _msg(self, sensor: str, t_ns: int, value, unit: str, **where) -> tuple[str, bytes]:
+    def _msg(self, sensor: str, t_ns, value, unit: str, **where) -> tuple[str, bytes]:
         sk = keys.hk_sensor(sensor, where.get("board"), where.get("module"))
         seq = self._seq.get(sk, 0)
         self._seq[sk] = seq + 1
-        self.readings += 1
-        msg = HousekeepingChunk(setup=self.setup, sensor=sensor, seq=seq, t_ns=np.array([t_ns], dtype=np.int64),
+        t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+        if "channels" in where:  # in time order per module: after the last reading sent (a table's, say)
+            t = t + max(0, self._t_sent.get(sk, -1) + 1 - int(t[0]))
+            self._t_sent[sk] = int(t[-1])
+        self.readings += t.size
+        msg = HousekeepingChunk(setup=self.setup, sensor=sensor, seq=seq, t_ns=t,
                                 value=np.asarray(value, dtype=float), unit=unit, **where)
         return keys.hk_key(self.setup, sk), msg.to_bytes()
 
@@ -67,6 +92,8 @@ class HkPublisher:
             out += [self._msg(s, t, [v], u) for s, v, u in self.scalars]
         for c in chunks:
             key = (c.board, c.module)
+            if key in self._from_board:
+                continue
             last = self._t_bias.get(key)
             if last is not None and t - last < self.bias_every_ns:
                 continue

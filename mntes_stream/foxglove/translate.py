@@ -77,7 +77,7 @@ SCHEMAS: dict[str, dict] = {
     "mntes.foxglove.hk": _schema(
         "mntes.foxglove.hk",
         "one housekeeping reading (from mntes.hk): value for t_bath (K) and b_field (T), value_by_detector for bias (V RMS)",
-        {"sensor": {"type": "string"}, "unit": {"enum": ["K", "T", "V"]}, "value": _NUMBER_OR_NULL,
+        {"sensor": {"type": "string"}, "unit": {"enum": ["K", "T", "V", "flags"]}, "value": _NUMBER_OR_NULL,
          "board": {"type": "integer", "minimum": 0}, "module": {"type": "integer", "minimum": 0},
          "value_by_detector": {"type": "object", "additionalProperties": _NUMBER_OR_NULL}},
         ["sensor", "unit"]),
@@ -182,13 +182,14 @@ class FoxgloveView:
         return out
 
     def hk(self, msg: HousekeepingChunk) -> list[JsonMessage]:
-        sensor = msg.sensor if msg.sensor != "bias" else f"bias/{msg.board}/{msg.module}"
+        per_channel = msg.channels is not None
+        sensor = f"{msg.sensor}/{msg.board}/{msg.module}" if per_channel else msg.sensor
         topic = f"/mntes/{msg.setup}/hk/{sensor}"
         out = []
-        ids = detector_ids_for(msg.board, msg.module, msg.channels) if msg.sensor == "bias" else ()
+        ids = detector_ids_for(msg.board, msg.module, msg.channels) if per_channel else ()
         for k, tk in enumerate(msg.t_ns.tolist()):
             body = {"timestamp": _stamp(tk), "t_ns": tk, "sensor": sensor, "unit": msg.unit}
-            if msg.sensor == "bias":
+            if per_channel:
                 body.update(board=msg.board, module=msg.module,
                             value_by_detector={d: _num(v) for d, v in zip(ids, msg.value[k].tolist())})
             else:

@@ -105,7 +105,14 @@ class Wiring:
         config = config or G3InputConfig()
         if "WiringMap" not in frame:
             raise SchemaError("G3 Wiring frame without a WiringMap")
-        wm = frame["WiringMap"]
+        system = str(frame["ReadoutSystem"]) if "ReadoutSystem" in frame else config.readout_system
+        tf = str(frame["DfMuxTransferFunction"]) if "DfMuxTransferFunction" in frame else config.transfer_function
+        return cls.from_map(frame["WiringMap"], system, tf, boards)
+
+    @classmethod
+    def from_map(cls, wm, system: str, transfer_function: str, boards=()) -> Wiring:
+        """From a ``DfMuxWiringMap`` (a Wiring frame's, or one spt3g's ``WiringFromJSON`` built from the
+        boards' housekeeping); only the bolometers on ``boards`` when given."""
         rows = sorted((int(m.board_serial), int(m.module), int(m.channel), str(name)) for name, m in wm.items())
         if boards:
             rows = [r for r in rows if r[0] in set(boards)]
@@ -115,9 +122,7 @@ class Wiring:
         ids = tuple(detector_id(*t) for t in zip(b, m, c))
         if len(set(ids)) != len(ids):
             raise SchemaError("G3 wiring map maps two bolometers to one readout channel")
-        system = str(frame["ReadoutSystem"]) if "ReadoutSystem" in frame else config.readout_system
-        tf = str(frame["DfMuxTransferFunction"]) if "DfMuxTransferFunction" in frame else config.transfer_function
-        return cls(tuple(names), np.array(b), np.array(m), np.array(c), ids, system, tf, wm,
+        return cls(tuple(names), np.array(b), np.array(m), np.array(c), ids, system, transfer_function, wm,
                    {n: k for k, n in enumerate(names)}, {d: k for k, d in enumerate(ids)})
 
     def __len__(self) -> int:

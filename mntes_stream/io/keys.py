@@ -42,8 +42,13 @@ def bias_sensor(board: int, module: int) -> str:
 
 
 def hk_sensor(sensor: str, board: int | None = None, module: int | None = None) -> str:
-    """The key's sensor part for a housekeeping message (bias readings are per module)."""
-    return bias_sensor(board, module) if sensor == "bias" else sensor
+    """The key's sensor part for a housekeeping message (per-channel sensors are per module:
+    ``bias/<board>/<module>``, ``readout_flags/<board>/<module>``)."""
+    if sensor == "bias":
+        return bias_sensor(board, module)
+    if sensor == "readout_flags":
+        return f"readout_flags/{int(board)}/{int(module)}"
+    return sensor
 
 
 def power_key(setup: str, board: int | str = "*", module: int | str = "*") -> str:

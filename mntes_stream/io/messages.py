@@ -27,6 +27,7 @@ from mntes_stream.io.message_base import MessageBase, detector_ids_for, unpack_p
 __all__ = [
     "REASONS",
     "SENSOR_UNITS",
+    "PER_CHANNEL_SENSORS",
     "SAMPLE_RATE_RANGE_HZ",
     "CountsChunk",
     "HousekeepingChunk",
@@ -40,7 +41,10 @@ __all__ = [
 
 # Why a message was rejected; the keys of StatusMessage.bad_messages.
 REASONS = SCHEMA_REASONS
-SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V"}
+SENSOR_UNITS = {"t_bath": "K", "b_field": "T", "bias": "V", "readout_flags": "flags"}
+# Per channel of one (board, module): bias (RMS volts) and the board's readout flags (a flags.v1 bitmask held
+# from each reading to the next: tuning state, rails, housekeeping gone stale).
+PER_CHANNEL_SENSORS = frozenset({"bias", "readout_flags"})
 
 # --- messages --------------------------------------------------------------------------
 
@@ -114,15 +118,16 @@ class HousekeepingChunk(MessageBase):
     Attributes
     ----------
     setup : str
-    sensor : {"t_bath", "b_field", "bias"}
+    sensor : {"t_bath", "b_field", "bias", "readout_flags"}
     seq : int
     t_ns : ndarray of int64, shape (n,), strictly increasing
-    value : ndarray of float64, shape (n,), or (n, n_ch) for bias
-        Non-finite entries mark failed readings.
+    value : ndarray of float64, shape (n,), or (n, n_ch) per channel (``PER_CHANNEL_SENSORS``)
+        Non-finite entries mark failed readings. ``readout_flags``: each channel's flags.v1 bits from that
+        reading until the next (a step, never interpolated).
     unit : str
-        ``SENSOR_UNITS[sensor]`` ("K", "T", "V": SI, bias is RMS volts).
-    board, module : int, bias only
-    channels : ndarray of int32, shape (n_ch,), bias only
+        ``SENSOR_UNITS[sensor]`` ("K", "T", "V": SI, bias is RMS volts; "flags" for readout_flags).
+    board, module : int, per-channel sensors only
+    channels : ndarray of int32, shape (n_ch,), per-channel sensors only
     """
 
     SCHEMA: ClassVar[str] = "mntes.hk"
@@ -148,18 +153,18 @@ class HousekeepingChunk(MessageBase):
         t = fc.as_array(self.t_ns, "t_ns", "<i8", 1)
         if t.size and (int(t.min()) < 0 or np.any(np.diff(t) <= 0)):
             raise SchemaError("t_ns must be >= 0 and strictly increasing")
-        per_channel = self.sensor == "bias"
+        per_channel = self.sensor in PER_CHANNEL_SENSORS
         v = fc.as_array(self.value, "value", "<f8", 2 if per_channel else 1)
         if v.shape[0] != t.size:
             raise SchemaError(f"value has {v.shape[0]} rows for {t.size} times")
         if per_channel:
             if self.board is None or self.module is None or self.channels is None:
-                raise SchemaError("bias readings need board, module and channels")
+                raise SchemaError(f"{self.sensor} readings need board, module and channels")
             object.__setattr__(self, "board", fc.as_int(self.board, "board"))
             object.__setattr__(self, "module", fc.as_int(self.module, "module"))
             ch = fc.as_channels(self.channels)
             if v.shape[1] != ch.size:
-                raise SchemaError(f"bias value has {v.shape[1]} columns for {ch.size} channels")
+                raise SchemaError(f"{self.sensor} value has {v.shape[1]} columns for {ch.size} channels")
             object.__setattr__(self, "channels", ch)
         elif self.board is not None or self.module is not None or self.channels is not None:
             raise SchemaError(f"{self.sensor} readings take no board/module/channels")

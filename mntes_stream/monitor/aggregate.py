@@ -533,7 +533,7 @@ class Aggregator:
         """One :class:`~mntes_stream.io.messages.HousekeepingChunk`."""
         if chunk.sensor in self.hk:
             self.hk[chunk.sensor].add(chunk.t_ns, chunk.value, chunk.unit, t_recv_ns)
-        else:
+        elif chunk.sensor == "bias":  # readout_flags show on the samples they flag (the power's flags)
             self.bias_readings += int(chunk.t_ns.size)
 
     def add_status(self, status, t_recv_ns: int) -> None:

@@ -256,7 +256,7 @@ def subscriptions(cfg: ConverterConfig, streams=None) -> list[str]:
     setup = cfg.setup
     if streams is not None and cfg.partial:
         hk = [keys.hk_key(setup, s) for s in SCALAR_SENSORS]
-        hk += [keys.hk_key(setup, keys.bias_sensor(b, m)) for b, m in streams]
+        hk += [keys.hk_key(setup, keys.hk_sensor(s, b, m)) for b, m in streams for s in ("bias", "readout_flags")]
         return hk + [keys.counts_key(setup, b, m) for b, m in streams]
     boards = [str(b) for b in cfg.boards] or ["*"]
     modules = [str(m) for m in cfg.modules] or ["*"]

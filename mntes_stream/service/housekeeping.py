@@ -33,6 +33,7 @@ _ENV_CACHE = 1024  # aligned (times, sensor) results kept: every module of a ste
 # The converters need these above zero (log of the bath temperature, R from V / I): 0 K or 0 V is a
 # failed read or a switched-off supply, never an operating point, whatever the acceptance range says.
 _POSITIVE = frozenset({"t_bath", "bias"})
+_FLAG_BITS = int(sum(fl.NAMES))  # every bit flags.v1 defines
 
 
 def ns(seconds: float) -> int | float:
@@ -96,13 +97,15 @@ class Housekeeping:
         self._nominal_bias_v = nominal_bias_v
         self._modules = modules
         self._accept = {"t_bath": config.t_bath_accept_k, "b_field": config.b_field_accept_t,
-                        "bias": config.bias_accept_v}
+                        "bias": config.bias_accept_v, "readout_flags": (0, _FLAG_BITS)}
         self._staleness_ns = ns(config.hk_staleness_s)
         self._bias_staleness_ns = ns(config.bias_staleness_s)
         self._retention_ns = ns(config.hk_retention_s)
         self._ahead_ns = ns(config.hk_max_ahead_s)
         self.sensors: dict[str, HkSeries] = {s: HkSeries(None, self._retention_ns) for s in SCALAR_SENSORS}
         self._bias: dict[tuple[int, int], tuple[np.ndarray, HkSeries]] = {}
+        # (board, module) -> (channels, times list, values list of uint16 (n_ch,)): readout flags, a step
+        self._readout: dict[tuple[int, int], tuple[np.ndarray, list, list]] = {}
         self._delays: dict[tuple[int, int], int] = {}  # latest receive minus t_pub_ns per counts stream
         self._offset_ns: int | None = None  # median of _delays, refreshed when a reading arrives
         self._env_cache: dict[tuple, tuple] = {}
@@ -125,7 +128,7 @@ class Housekeeping:
         """Keep a chunk's readings; returns ``(reason, detail)`` of each kind of reading dropped (none: []).
 
         Rejected whole: more than ``max_hk_readings`` readings (``too_large``),
-        bias of a module the parameters do not know (``unknown_stream``).
+        bias or readout flags of a module the parameters do not know (``unknown_stream``).
         Rejected (``hk_range``): readings that are not finite, outside the
         sensor's acceptance range, or (bias, bath temperature) not above zero;
         a bias row is rejected when any of its channels is. Dropped
@@ -137,8 +140,8 @@ class Housekeeping:
         cfg = self.config
         if hk.t_ns.size > cfg.max_hk_readings:
             return [("too_large", f"{hk.t_ns.size} readings in one message (at most {cfg.max_hk_readings})")]
-        if hk.sensor == "bias" and self._modules is not None and (hk.board, hk.module) not in self._modules:
-            return [("unknown_stream", f"bias of board {hk.board} module {hk.module}: not in the parameters")]
+        if hk.channels is not None and self._modules is not None and (hk.board, hk.module) not in self._modules:
+            return [("unknown_stream", f"{hk.sensor} of board {hk.board} module {hk.module}: not in the parameters")]
         now = self.data_clock(t_recv_ns)
         t_ns, value = hk.t_ns, hk.value
         lo_v, hi_v = self._accept[hk.sensor]
@@ -147,6 +150,8 @@ class Housekeeping:
             ok = np.isfinite(value) & (value >= lo_v) & (value <= hi_v)
             if positive:
                 ok &= value > 0
+            if hk.sensor == "readout_flags":  # whole flags.v1 bits only
+                ok &= (value == np.round(value)) & ((np.nan_to_num(value).astype(np.int64) & ~_FLAG_BITS) == 0)
         good = ok if ok.ndim == 1 else ok.all(axis=1)
         problems = []
         if not good.all():
@@ -158,7 +163,8 @@ class Housekeeping:
         return problems + self._keep(hk, t_ns, value, now)
 
     def _keep(self, hk: HousekeepingChunk, t_ns: np.ndarray, value: np.ndarray, now: int) -> list[tuple[str, str]]:
-        lo = now - self._retention_ns if self._delays and hk.sensor != "bias" else _INT64_MIN
+        held = hk.channels is not None  # a setting or a state holds: bias and readout flags are never too old
+        lo = now - self._retention_ns if self._delays and not held else _INT64_MIN
         ok = (t_ns >= max(lo, _INT64_MIN)) & (t_ns <= min(now + self._ahead_ns, _INT64_MAX))
         problem = []
         if not ok.all():
@@ -168,7 +174,9 @@ class Housekeeping:
             t_ns, value = t_ns[ok], value[ok]
         if t_ns.size == 0:  # nothing left: above all, a bias history is not reset by a message it never uses
             return problem
-        if hk.sensor == "bias":
+        if hk.sensor == "readout_flags":
+            self._keep_readout(hk, t_ns, value, now)
+        elif hk.sensor == "bias":
             module = (hk.board, hk.module)
             entry = self._bias.get(module)
             if entry is None or not np.array_equal(entry[0], hk.channels):
@@ -179,6 +187,45 @@ class Housekeeping:
         else:
             self.sensors[hk.sensor].add(t_ns, value, now_ns=now)
         return problem
+
+    def _keep_readout(self, hk: HousekeepingChunk, t_ns: np.ndarray, value: np.ndarray, now: int) -> None:
+        module = (hk.board, hk.module)
+        entry = self._readout.get(module)
+        if entry is None or not np.array_equal(entry[0], hk.channels):
+            entry = self._readout[module] = (hk.channels.copy(), [], [])
+        _, times, values = entry
+        for tk, row in zip(t_ns.tolist(), value.astype(np.uint16)):
+            k = int(np.searchsorted(np.asarray(times, dtype=np.int64), tk))
+            if k < len(times) and times[k] == tk:
+                values[k] = row
+            else:
+                times.insert(k, tk)
+                values.insert(k, row)
+        # Bounded: readings older than the retention behind the data clock go, but the one in force then.
+        cut = int(np.searchsorted(np.asarray(times, dtype=np.int64), now - self._retention_ns, side="right")) - 1
+        if cut > 0:
+            del times[:cut], values[:cut]
+
+    def readout_flags(self, chunk: CountsChunk, t: np.ndarray) -> np.ndarray | None:
+        """The board's readout flags in force at each sample, shape (n_ch, n_samp) uint16; None: none read.
+
+        Before the module's first reading, and on a channel the readings do not list, no bits."""
+        entry = self._readout.get((chunk.board, chunk.module))
+        if entry is None or not entry[1]:
+            return None
+        channels, times, values = entry
+        idx = np.searchsorted(np.asarray(times, dtype=np.int64), t, side="right") - 1
+        table = np.vstack([np.zeros((1, channels.size), dtype=np.uint16), np.stack(values)])  # row 0: before any
+        col = {int(c): j for j, c in enumerate(channels.tolist())}
+        cols = np.array([col.get(int(c), -1) for c in chunk.channels.tolist()], dtype=np.intp)
+        out = table[idx + 1][:, np.clip(cols, 0, None)].T.astype(fl.FLAG_DTYPE)
+        out[cols < 0] = 0
+        return out
+
+    def nominal_bias(self, ids, n_samp: int) -> np.ndarray:
+        """Each detector's nominal bias (NaN without parameters) at every sample, shape (n_ch, n_samp)."""
+        v = np.array([self._nominal_bias_v.get(d, np.nan) for d in ids], dtype=np.float64)
+        return np.repeat(v[:, None], n_samp, axis=1)
 
     def bracketed(self, t_last_ns: int | None) -> bool:
         """True when every required sensor has a reading at or after ``t_last_ns``."""

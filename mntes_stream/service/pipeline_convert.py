@@ -129,6 +129,12 @@ class Environment:
         env_flags_t = f_tb | f_b
         ids, known, n_unknown = self.rows_for(chunk)
         v_bias, f_bias = self.hk.bias(chunk, t, ids)
+        f_board = self.hk.readout_flags(chunk, t)
+        if f_board is not None:  # the board's own flags (dfmux-bridge): per row, so the bias is per row too
+            if v_bias is None:
+                v_bias, f_bias = self.hk.nominal_bias(ids, t.size), f_board
+            else:
+                f_bias = f_bias | f_board
         env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
         return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
 

@@ -114,7 +114,7 @@ def derived_channel(payload: bytes) -> tuple[str, str, int] | None:
             if not isinstance(sensor, str) or "/" in sensor or "*" in sensor:
                 return None
             b, m = msg.get("board"), msg.get("module")
-            if sensor == "bias" and not (_is_int(b) and _is_int(m)):
+            if sensor in ("bias", "readout_flags") and not (_is_int(b) and _is_int(m)):
                 return None
             key = keys.hk_key(setup, keys.hk_sensor(sensor, b, m))
         elif kind == "status":
