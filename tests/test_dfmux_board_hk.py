@@ -258,7 +258,7 @@ def inside(workdir: str) -> dict:
                               "--hk-every", str(HK_EVERY_S), "--hk-stale", str(HK_STALE_S), "--hk-timeout", "0.5",
                               "--params", "params.toml", "--json"] + z,
               stdout=open(work / "bridge.json", "w"))
-        sender = subprocess.Popen(py + ["mntes_stream.dfmux.sender", "--board", f"3:{SERIAL}:8:{CHANNELS}",
+        sender = subprocess.Popen(py + ["mntes_stream.dfmux.sender", "--board", f"3:{SERIAL}:8:{CHANNELS}", "--counts", "checkable",
                                         "--wait-listener", "60", "--duration", str(DURATION_S)],
                                   cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         board = "127.0.0.1:80"
