@@ -12,6 +12,7 @@ from mntes_stream.core.leakage import (
     STATUS_TOO_SHORT,
     leakage_between,
     leakage_of,
+    median_nl,
     refine_f_hwp,
 )
 from mntes_stream.core.sim import ArraySimulator, SimConfig
@@ -135,3 +136,36 @@ def test_on_the_simulator_with_the_hwp_off_there_is_no_2f_line():
     mn = validation._convert(validation.default_converter_factory("exact", params), blk, sim.detector_ids)[0]
     for i in range(3):
         assert leakage_between(t, lin[i], mn[i], cfg.f_hwp_hz).status == STATUS_NO_2F
+
+
+def test_a_planet_crossing_with_flagged_samples_is_left_out_of_the_difference():
+    # A 0.8 pW Gaussian crossing, its top flagged (NaN) in one conversion: edges the fit cannot absorb.
+    t, d, _ = _series(seconds=40.0)
+    planet = 0.8e-12 * np.exp(-0.5 * ((t - 20.0) / 0.42) ** 2)
+    p_ref = P0_W + d + planet
+    p_x = p_ref + 0.4e12 * (d + planet) ** 2
+    p_x[np.abs(t - 20.0) < 0.3] = np.nan
+    r = leakage_between(t, p_x, p_ref, F_HWP_HZ)
+    assert r.n_masked > FS_HZ  # more than a second around the crossing
+    assert r.nl_per_w == pytest.approx(0.8e12, rel=0.01)
+    kept = leakage_between(t, p_x, p_ref, F_HWP_HZ, clip=np.inf)
+    # Kept, the crossing's edges swamp both lines: no 2f line above their noise, or a far larger sigma.
+    assert kept.n_masked == 0
+    assert kept.status == STATUS_NO_2F or kept.sigma_nl_per_w > 10 * r.sigma_nl_per_w
+
+
+def test_the_median_is_a_number_when_resolved_and_a_bound_when_not():
+    t, d, rng = _series(seconds=15.0)
+    resolved, noisy = [], []
+    for k in range(9):
+        p_ref = P0_W + d
+        noise = 1e-17 * rng.standard_normal(t.size)
+        resolved.append(leakage_between(t, p_ref + (0.3e12 + 0.05e12 * k) * d**2 + noise, p_ref, F_HWP_HZ))
+        noisy.append(leakage_between(t, p_ref + 1e-15 * rng.standard_normal(t.size), p_ref, F_HWP_HZ))
+    m = median_nl(resolved)
+    assert m.resolved and m.value_per_pw == pytest.approx(2 * 0.5, rel=0.01) and m.n_resolved == 9
+    n = median_nl(noisy)
+    assert not n.resolved and n.value_per_pw is None and n.n_detectors == 9
+    # The bound covers the truth (0) and is of the order of the per-detector noise, not far above it.
+    assert 0 < n.bound_per_pw < 3 * n.detector_sigma_per_pw
+    assert median_nl([]).n_detectors == 0 and median_nl([]).bound_per_pw is None

@@ -66,6 +66,8 @@ __all__ = [
     "refine_f_hwp",
     "leakage_between",
     "leakage_of",
+    "Median",
+    "median_nl",
 ]
 
 STATUS_OK = "ok"
@@ -110,6 +112,7 @@ class Leakage:
     nl_per_w: float | None = None           # signed in-phase eps = f''/f'
     sigma_nl_per_w: float | None = None
     nl_quadrature_per_w: float | None = None
+    n_masked: int = 0                       # samples left out as a transient of the difference
 
     @property
     def nl_per_pw(self) -> float | None:
@@ -182,6 +185,11 @@ def fit_lines(t_s, p_w, f_hwp_hz: float, harmonics=(1, 2, 4), n_side: int = 16) 
     dict
         ``{h: Line}``.
     """
+    return _fit(t_s, p_w, f_hwp_hz, harmonics, n_side)[0]
+
+
+def _fit(t_s, p_w, f_hwp_hz: float, harmonics, n_side: int) -> tuple[dict[int, Line], np.ndarray]:
+    """:func:`fit_lines` and the fit's residual, shape (n,)."""
     t = np.asarray(t_s, dtype=float)
     x = np.asarray(p_w, dtype=float)
     # The model of validation.harmonic_amplitudes (offset, trend, harmonics 1-6), solved here for this
@@ -198,7 +206,26 @@ def fit_lines(t_s, p_w, f_hwp_hz: float, harmonics=(1, 2, 4), n_side: int = 16) 
     coef = np.linalg.solve(design.T @ design, design.T @ x)
     resid = x - design @ coef
     amp = {h: complex(coef[2 + 2 * k], -coef[3 + 2 * k]) for k, h in enumerate(_HARMONICS)}
-    return {h: Line(amp[h], _side_noise(t, resid, h * f_hwp_hz, f_hwp_hz, n_side)) for h in harmonics}
+    return {h: Line(amp[h], _side_noise(t, resid, h * f_hwp_hz, f_hwp_hz, n_side)) for h in harmonics}, resid
+
+
+def _transients(t: np.ndarray, resid: np.ndarray, clip: float, pad_s: float) -> np.ndarray:
+    """Samples to leave out, shape (n,) bool: beyond ``clip`` robust sigmas of the residual, +-``pad_s`` around.
+
+    A planet crossing (or a saturation) makes the two conversions differ by up to ~0.3 pW for a second,
+    against fW of 2f: its edges, where flagged samples drop out, would spread over every frequency.
+    """
+    mad = float(np.median(np.abs(resid - np.median(resid))))
+    if not mad > 0:
+        return np.zeros(t.size, dtype=bool)
+    hit = np.abs(resid) > clip * 1.4826 * mad
+    if not hit.any():
+        return hit
+    edges = t[hit]
+    k = np.searchsorted(edges, t)  # the nearest hit on each side
+    left = np.abs(t - edges[np.clip(k - 1, 0, edges.size - 1)])
+    right = np.abs(edges[np.clip(k, 0, edges.size - 1)] - t)
+    return np.minimum(left, right) <= pad_s
 
 
 def refine_f_hwp(t_s, p_w, f_guess_hz: float, span_bins: float = 3.0) -> float:
@@ -243,10 +270,10 @@ def refine_f_hwp(t_s, p_w, f_guess_hz: float, span_bins: float = 3.0) -> float:
     return float(grid[i] + np.clip(shift, -1.0, 1.0) * step)
 
 
-def _result(t, ref_lines, lines_4f, f_hwp_hz, min_snr_2f, gain_ref=None) -> Leakage:
+def _result(t, ref_lines, lines_4f, f_hwp_hz, min_snr_2f, gain_ref=None, n_masked=0) -> Leakage:
     window_s = float(np.ptp(t)) + float(np.median(np.diff(t)))
     l2 = ref_lines[2]
-    base = dict(f_hwp_hz=float(f_hwp_hz), window_s=window_s, n_samples=int(t.size),
+    base = dict(f_hwp_hz=float(f_hwp_hz), window_s=window_s, n_samples=int(t.size), n_masked=int(n_masked),
                 line_1f=ref_lines[1], line_2f=l2, line_4f=lines_4f[4])
     if not l2.snr >= min_snr_2f:
         return Leakage(status=STATUS_NO_2F, **base)
@@ -272,7 +299,7 @@ def _short(t, f_hwp_hz) -> Leakage | None:
 
 
 def leakage_between(t_s, p_a_w, p_b_w, f_hwp_hz: float, *, min_snr_2f: float = 10.0,
-                    n_side: int = 16) -> Leakage:
+                    n_side: int = 16, clip: float = 8.0, pad_s: float = 1.0) -> Leakage:
     """Effective nonlinearity of ``p_a`` relative to the reference ``p_b`` (module docstring).
 
     Parameters
@@ -286,6 +313,10 @@ def leakage_between(t_s, p_a_w, p_b_w, f_hwp_hz: float, *, min_snr_2f: float = 1
         HWP rotation frequency (the 2f line is at twice it).
     min_snr_2f : float
         The reference's 2f line must stand this many sigma above its noise.
+    clip, pad_s : float
+        Transients of the difference (a planet crossing, a saturation: ``|residual|`` beyond
+        ``clip`` robust sigmas) are left out with ``pad_s`` either side (``n_masked``), then
+        both series are fitted again; ``clip = inf`` keeps every sample.
 
     Returns
     -------
@@ -297,9 +328,16 @@ def leakage_between(t_s, p_a_w, p_b_w, f_hwp_hz: float, *, min_snr_2f: float = 1
     short = _short(t, f_hwp_hz)
     if short is not None:
         return short
+    diff, resid = _fit(t, a - b, f_hwp_hz, (2, 4), n_side)
+    drop = _transients(t, resid, clip, pad_s) if math.isfinite(clip) else np.zeros(t.size, dtype=bool)
+    if drop.any():
+        t, a, b = t[~drop], a[~drop], b[~drop]
+        short = _short(t, f_hwp_hz)
+        if short is not None:
+            return short
+        diff = fit_lines(t, a - b, f_hwp_hz, (2, 4), n_side)
     ref = fit_lines(t, b, f_hwp_hz, (1, 2), n_side)
-    diff = fit_lines(t, a - b, f_hwp_hz, (2, 4), n_side)
-    return _result(t, ref, diff, f_hwp_hz, min_snr_2f, gain_ref=diff[2].amplitude_w)
+    return _result(t, ref, diff, f_hwp_hz, min_snr_2f, gain_ref=diff[2].amplitude_w, n_masked=int(drop.sum()))
 
 
 def leakage_of(t_s, p_w, f_hwp_hz: float, *, min_snr_2f: float = 10.0, n_side: int = 16) -> Leakage:
@@ -314,3 +352,47 @@ def leakage_of(t_s, p_w, f_hwp_hz: float, *, min_snr_2f: float = 10.0, n_side: i
         return short
     lines = fit_lines(t, x, f_hwp_hz, (1, 2, 4), n_side)
     return _result(t, lines, lines, f_hwp_hz, min_snr_2f)
+
+
+@dataclass(frozen=True)
+class Median:
+    """The median effective nonlinearity over detectors (pW^-1), or a bound on it.
+
+    ``value_per_pw`` is the median of ``|nl|`` over the detectors measured (status ok) when
+    most of them resolve their own (``|nl| > 3 sigma``), else None: a median of ``|noise|``
+    would be a noise floor, not a nonlinearity. ``sigma_per_pw`` is the median's 1-sigma,
+    ``1.2533 median(sigma) / sqrt(n)`` (a median of n Gaussian estimates).
+    ``bound_per_pw`` (3 sigma) holds either way: the detectors' true values have a mean
+    square ``mean(nl^2 - sigma^2)`` (the noise's variance taken out), bounded by 3 standard
+    errors of that mean, and no median of ``|x|`` exceeds ``sqrt(2)`` times its rms
+    (Markov: ``P(x^2 >= 2 rms^2) <= 1/2``). ``detector_sigma_per_pw``: the median
+    per-detector 1-sigma (the resolution of one detector).
+    """
+
+    value_per_pw: float | None
+    sigma_per_pw: float | None
+    bound_per_pw: float | None
+    detector_sigma_per_pw: float | None
+    n_detectors: int
+    n_resolved: int
+
+    @property
+    def resolved(self) -> bool:
+        return self.value_per_pw is not None
+
+
+def median_nl(results) -> Median:
+    """:class:`Median` of a sequence of :class:`Leakage` (those without a number are left out)."""
+    ok = [r for r in results if r.nl_per_w is not None]
+    if not ok:
+        return Median(None, None, None, None, 0, 0)
+    n = len(ok)
+    n_resolved = sum(r.resolved for r in ok)
+    nl = np.array([r.nl_per_pw for r in ok])
+    sig = np.array([r.sigma_nl_per_pw for r in ok])
+    excess = nl**2 - sig**2
+    se = float(np.std(excess, ddof=1)) / math.sqrt(n) if n > 1 else float(excess[0] + 2 * sig[0] ** 2)
+    bound = math.sqrt(2.0 * max(float(np.mean(excess)) + 3.0 * se, 0.0))
+    sigma = 1.2533 * float(np.median(sig)) / math.sqrt(n)
+    value = float(np.median(np.abs(nl))) if 2 * n_resolved > n else None
+    return Median(value, sigma, bound, float(np.median(sig)), n, n_resolved)
