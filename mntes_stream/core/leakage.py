@@ -363,8 +363,8 @@ class Median:
     would be a noise floor, not a nonlinearity. ``sigma_per_pw`` is the median's 1-sigma,
     ``1.2533 median(sigma) / sqrt(n)`` (a median of n Gaussian estimates).
     ``bound_per_pw`` (3 sigma) holds either way: the detectors' true values have a mean
-    square ``mean(nl^2 - sigma^2)`` (the noise's variance taken out), bounded by 3 standard
-    errors of that mean, and no median of ``|x|`` exceeds ``sqrt(2)`` times its rms
+    square ``mean(nl^2 - sigma^2)`` (the noise's variance taken out; taken as 0 when negative),
+    bounded by it plus 3 standard errors, and no median of ``|x|`` exceeds ``sqrt(2)`` times its rms
     (Markov: ``P(x^2 >= 2 rms^2) <= 1/2``). ``detector_sigma_per_pw``: the median
     per-detector 1-sigma (the resolution of one detector).
     """
@@ -392,7 +392,8 @@ def median_nl(results) -> Median:
     sig = np.array([r.sigma_nl_per_pw for r in ok])
     excess = nl**2 - sig**2
     se = float(np.std(excess, ddof=1)) / math.sqrt(n) if n > 1 else float(excess[0] + 2 * sig[0] ** 2)
-    bound = math.sqrt(2.0 * max(float(np.mean(excess)) + 3.0 * se, 0.0))
+    # A negative mean (noise over-estimated, or a fluctuation) never lowers the bound below 3 standard errors.
+    bound = math.sqrt(2.0 * (max(float(np.mean(excess)), 0.0) + 3.0 * max(se, 0.0)))
     sigma = 1.2533 * float(np.median(sig)) / math.sqrt(n)
     value = float(np.median(np.abs(nl))) if 2 * n_resolved > n else None
     return Median(value, sigma, bound, float(np.median(sig)), n, n_resolved)
