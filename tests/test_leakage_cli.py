@@ -58,8 +58,11 @@ def test_linear_within_20_percent_of_the_true_nonlinearity_and_mntes_below_the_r
     import matplotlib.image
 
     assert matplotlib.image.imread(png).shape[0] > 200
+    # The figure is not replaced without --overwrite (before any conversion); --f-hwp must be positive.
+    assert main(argv) == 2 and "--overwrite replaces it" in capsys.readouterr().err
+    assert main(argv[:2] + ["--f-hwp", "0"]) == 2 and "--f-hwp must be > 0" in capsys.readouterr().err
     # The text form says the same in words.
-    assert main(argv[:-1] + ["-q"]) == 0
+    assert main(argv[:-1] + ["--overwrite", "-q"]) == 0
     text = capsys.readouterr().out
     assert "linear conversion (against MNTES, same counts): median 0." in text and "below the requirement" in text
 

@@ -234,9 +234,12 @@ def _table(res: dict) -> str:
 
 def run(args) -> int:
     from mntes_stream.cli._common import claim_out
+    from mntes_stream.errors import ConfigError
 
+    if args.f_hwp is not None and not args.f_hwp > 0:
+        raise ConfigError(f"--f-hwp must be > 0 Hz, got {args.f_hwp}")
     if args.png:
-        claim_out(args.png, True, inputs=[args.recording])
+        claim_out(args.png, args.overwrite, inputs=[args.recording])
     res = measure(args.recording, truth_path=args.truth, f_hwp_hz=args.f_hwp, params=args.params,
                   progress=not (args.quiet or args.json))
     if args.png:
@@ -256,7 +259,7 @@ def run(args) -> int:
 
 
 def register(sub) -> None:
-    from mntes_stream.cli._common import add_json, add_quiet, arguments
+    from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, arguments
 
     p = sub.add_parser(
         "leakage", help="HWP 2f -> 4f nonlinearity per detector on a recording: linear conversion vs MNTES",
@@ -277,6 +280,7 @@ def register(sub) -> None:
                                                         "(a simulate recording: its .params.toml)")
         p.add_argument("--png", metavar="FILE", help="draw the figure: per detector, linear vs MNTES against "
                                                      "the 0.014 pW^-1 requirement")
+        add_overwrite(p, "replace an existing --png file")
         add_json(p, "print the result as one JSON document")
         add_quiet(p, "the summary only, no table or progress")
         p.set_defaults(func=run)
