@@ -89,8 +89,8 @@ def test_with_the_hwp_off_it_says_there_is_no_2f_line(tmp_path, capsys):
     assert capsys.readouterr().out.startswith("no 2f line to measure (no HWP comb in the power spectrum)")
 
 
-def test_convert_takes_kind_on_mcap_from_the_flag_or_the_config(tmp_path, capsys):
-    _simulate(tmp_path / "r.mcap", 2, "latched_per_module=0", "saturated_per_module=0", channels=3)
+def test_convert_takes_kind_on_mcap_from_the_flag_or_the_config(tmp_path, capsys, caplog):
+    _simulate(tmp_path / "r.mcap", 2, channels=4)  # one of them latched: no linear baseline
     capsys.readouterr()
     params = str(tmp_path / "r.params.toml")
     assert main(["convert", str(tmp_path / "r.mcap"), str(tmp_path / "lin.mcap"), "--params", params,
@@ -110,4 +110,15 @@ def test_convert_takes_kind_on_mcap_from_the_flag_or_the_config(tmp_path, capsys
     ex = RecordedPower(tmp_path / "ex.mcap").read()
     (name,) = lin
     assert lin[name].detectors == ex[name].detectors
-    assert abs(lin[name].p_opt_w - ex[name].p_opt_w).max() > 1e-17  # a different conversion of the same counts
+    import numpy as np
+
+    from mntes_stream.core.flags import UNKNOWN_CHANNEL
+
+    # The latched detector is left out of the linear baseline, said once, its power NaN + UNKNOWN_CHANNEL.
+    left = [d for k, d in enumerate(lin[name].detectors) if np.all(lin[name].flags[k] & UNKNOWN_CHANNEL)]
+    assert left == ["b0m0c003"] and np.all(np.isnan(lin[name].p_opt_w[3]))
+    assert any("linear baseline: 1 detector(s)" in r.getMessage() and "b0m0c003" in r.getMessage()
+               for r in caplog.records)
+    both = np.isfinite(lin[name].p_opt_w) & np.isfinite(ex[name].p_opt_w)
+    assert both[:2].all()  # c002 is saturated: flagged, NaN in both
+    assert abs(lin[name].p_opt_w - ex[name].p_opt_w)[both].max() > 1e-17  # another conversion of the same counts

@@ -53,36 +53,6 @@ def _truth_rows(truth: dict, detectors, t_ns):
     return out
 
 
-def _linear_params(rec, params, tmp) -> tuple[str, list[str]]:
-    """A parameter file for the linear baseline: the detectors it can linearise (in the transition at
-    their nominal operating point; a latched or saturated one has no linear baseline), and those left out."""
-    import tomllib
-
-    from mntes_stream.core import model
-    from mntes_stream.errors import ConfigError
-    from mntes_stream.io.mcap import Session
-    from mntes_stream.io.paramfile import dump_params, load_params, parse_params
-    from mntes_stream.service.offline import recorded_calibrations
-
-    if params is not None:
-        pdict = load_params(params)
-    else:
-        cals = recorded_calibrations(Session(rec))
-        if not cals or not cals[-1][1].params_toml:
-            raise ConfigError(f"{rec}: no recorded detector parameters (a simulate recording: give --params "
-                              "RUN.params.toml)")
-        pdict = parse_params(tomllib.loads(cals[-1][1].params_toml), "recorded provenance")
-    keep, left = [], []
-    for q in pdict.values():
-        op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
-        (keep if int(op.state) == model.STATE_TRANSITION else left).append(q)
-    if not keep:
-        raise ConfigError(f"{rec}: no detector is in the transition at its nominal operating point: no linear baseline")
-    path = f"{tmp}/linear.params.toml"
-    dump_params(keep, path, {"source": "mntes-stream leakage: the detectors a linear conversion can take"})
-    return path, sorted(q.detector_id for q in left)
-
-
 def _bound(r):
     """A 3-sigma upper limit on |nl| (pW^-1) where the value is not resolved, else None."""
     if r.nl_per_w is None or r.resolved:
@@ -101,6 +71,7 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
 
     import numpy as np
 
+    from mntes_stream.core import flags
     from mntes_stream.core.leakage import REQUIREMENT_PER_PW, leakage_between, median_nl
     from mntes_stream.errors import ConfigError
     from mntes_stream.feeds.recorded import RecordedPower
@@ -115,15 +86,15 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
         if mntes_kind in _BASELINES:  # a recording made with a baseline: MNTES is the reference here
             mntes_out.unlink()
             mntes_kind = convert_recording(rec, mntes_out, params=params, progress=progress, kind="table").converter_kind
-        lin_params, no_baseline = _linear_params(rec, params, tmp)
-        convert_recording(rec, Path(tmp) / "linear.mcap", params=lin_params, progress=progress, kind="linear")
+        # Detectors the linear baseline cannot take (latched) come out NaN + UNKNOWN_CHANNEL (offline.build_converter).
+        convert_recording(rec, Path(tmp) / "linear.mcap", params=params, progress=progress, kind="linear")
         mntes = RecordedPower(mntes_out).read()
         linear = RecordedPower(Path(tmp) / "linear.mcap").read()
     streams = sorted(set(mntes) & set(linear))
     if not streams:
         raise ConfigError(f"{rec}: no power came out of the recording's counts")
     t0_ns = min(int(mntes[s].t_ns[0]) for s in streams if mntes[s].t_ns.size)
-    per_stream = []
+    per_stream, no_baseline = [], set()
     for s in streams:
         m, lin = mntes[s], linear[s]
         common, im, il = np.intersect1d(m.t_ns, lin.t_ns, return_indices=True)
@@ -134,6 +105,10 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
         for j, d in enumerate(dets):
             if d in rows_l:
                 p_l[j] = np.asarray(lin.p_opt_w)[rows_l[d], il]
+                if np.all(np.asarray(lin.flags)[rows_l[d]] & flags.UNKNOWN_CHANNEL):
+                    no_baseline.add(d)
+            else:
+                no_baseline.add(d)
         per_stream.append((s, dets, common, p_m, p_l))
     # One f_HWP for the recording (one HWP), from the longest stream.
     s, dets, t_ns, p_m, _ = max(per_stream, key=lambda x: x[2].size)
@@ -145,7 +120,7 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
         for j, d in enumerate(dets):
             row = {"detector": d, "stream": s}
             if d in no_baseline:
-                row["status"] = "no_linear_baseline"  # not in the transition at its nominal operating point
+                row["status"] = "no_linear_baseline"  # latched: not in the transition at its nominal operating point
                 rows.append(row)
                 continue
             if f_hz is None:
@@ -175,7 +150,7 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
         "requirement_per_pw": REQUIREMENT_PER_PW, "truth": str(truth_path) if truth_path else None,
         "detectors_total": len(rows), "detectors_measured": n_ok,
         "detectors_no_2f_line": sum(r.get("status") == "no_2f_line" for r in rows),
-        "detectors_no_linear_baseline": len([d for d in no_baseline if any(r["detector"] == d for r in rows)]),
+        "detectors_no_linear_baseline": len(no_baseline),
         "median_linear_nl_per_pw": _num(med_l.value_per_pw), "median_linear_nl_sigma_per_pw": _num(med_l.sigma_per_pw, 3),
         "median_linear_nl_bound_per_pw": None if med_l.resolved else _num(med_l.bound_per_pw, 3),
         "linear_detector_sigma_per_pw": _num(med_l.detector_sigma_per_pw, 3), "linear_resolved": med_l.n_resolved,

@@ -242,7 +242,7 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
     -------
     converter, params dict, params source (str), tables source (str)
     """
-    from mntes_stream.core.convert import make_converter
+    from mntes_stream.core.convert import BASELINE_KINDS, baseline_can_take, make_converter
     from mntes_stream.io.paramfile import load_params, parse_params
 
     recorded_kind = provenance.converter_kind if provenance is not None else "table"
@@ -274,6 +274,16 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         return conv, (pdict if params is not None else bank.params_by_id()), psrc or "the table file", str(tables)
     if pdict is None:
         raise ConfigError("the recording has no provenance with detector parameters: give --params (and --tables)")
+    if kind != recorded_kind and kind in BASELINE_KINDS and snap is None:
+        # A baseline asked for on a recording: a latched or normal detector has no linearisation. It is left
+        # out (its power NaN + UNKNOWN_CHANNEL, as any detector without parameters), said once, not fatal.
+        left = sorted(d for d, q in pdict.items() if not baseline_can_take(q))
+        if left and len(left) == len(pdict):
+            raise ConfigError(f"no detector is in the transition at its nominal operating point: no {kind} baseline")
+        if left:
+            log.warning("%s baseline: %d detector(s) not in the transition at their nominal operating point left out "
+                        "(power NaN, UNKNOWN_CHANNEL): %s", kind, len(left), ", ".join(left[:8]) + (" ..." if len(left) > 8 else ""))
+            pdict = {d: q for d, q in pdict.items() if d not in left}
     if snap is None and cache:
         from types import SimpleNamespace
 
