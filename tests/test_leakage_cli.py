@@ -122,3 +122,13 @@ def test_convert_takes_kind_on_mcap_from_the_flag_or_the_config(tmp_path, capsys
     both = np.isfinite(lin[name].p_opt_w) & np.isfinite(ex[name].p_opt_w)
     assert both[:2].all()  # c002 is saturated: flagged, NaN in both
     assert abs(lin[name].p_opt_w - ex[name].p_opt_w)[both].max() > 1e-17  # another conversion of the same counts
+
+
+def test_a_file_that_is_not_a_truth_is_one_line(hwp_on, tmp_path, capsys):
+    import numpy as np
+
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    for bad in (hwp_on / "run.params.toml", tmp_path / "one.npy"):
+        assert main(["leakage", str(hwp_on / "run.mcap"), "--truth", str(bad), "-q"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not a simulator truth file" in err[0], err
