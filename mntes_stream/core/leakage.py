@@ -40,9 +40,12 @@ Noise: each line's complex amplitude is a least-squares fit (offset, trend,
 harmonics 1-6 of f_HWP; flagged samples left out) and its 1-sigma per
 quadrature is measured from the fit's residual at ``n_side`` independent
 frequencies beside the line (steps of 1/window, away from every harmonic), so
-coloured noise and non-stationary signals (a planet crossing) count as they
-are at that frequency. A 2f line weaker than ``min_snr_2f`` sigma is no line:
-the result then has ``status = "no_2f_line"`` and no number.
+coloured noise counts as it is at that frequency. In :func:`leakage_between`,
+transients of the difference (a planet crossing, whose flagged top leaves
+edges that spread over every frequency) are left out first. A 2f line weaker
+than ``min_snr_2f`` sigma is no line: the result then has
+``status = "no_2f_line"`` and no number. :func:`median_nl` sums detectors up:
+a median, or a 3-sigma bound where they do not resolve their own.
 """
 
 from __future__ import annotations
