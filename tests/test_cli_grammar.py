@@ -108,8 +108,8 @@ def test_an_option_that_does_not_apply_is_an_error(tmp_path, capsys):
     rec = tmp_path / "rec.mcap"
     rec.write_bytes(b"")  # never read: the options are refused first
     for argv, says in (
-            (["convert", str(rec), str(tmp_path / "o.mcap"), "--kind", "linear"], "--kind does not apply to "
-                                                                                   "REC.mcap -> OUT.mcap"),
+            (["convert", str(tmp_path / "run.g3"), str(tmp_path / "o.mcap"), "--kind", "linear"],
+             "--kind does not apply to RUN.g3 -> OUT.mcap"),
             (["convert", str(rec), str(tmp_path / "o.mcap"), "--setup", "x", "--wiring", "w.g3"],
              "--wiring, --setup do not apply"),
             (["simulate", "--out", str(tmp_path / "s.mcap"), "--duration", "1", "--layout", "timepoints"],

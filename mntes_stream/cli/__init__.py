@@ -29,7 +29,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
                 "ocs-bridge"),
     "record and replay": ("record", "replay", "inspect", "recover", "convert", "transcode"),
     "export": ("export",),
-    "calibrate and validate": ("calib", "params", "tables", "model", "validate", "noise"),
+    "calibrate and validate": ("calib", "params", "tables", "model", "validate", "leakage", "noise"),
     "develop": ("simulate", "bench", "cache"),
 }
 

@@ -18,8 +18,9 @@ def add_g3_convert_args(p) -> None:
                                             "and MntesFlags to every Scan frame; RUN.g3 -> OUT.mcap converts through "
                                             "the live pipeline; REC.mcap -> OUT.g3 writes the power as Scan frames")
     g.add_argument("--kind", default=None, choices=("table", "grid", "exact", "linear", "electrical"),
-                   help="RUN.g3 -> OUT.g3 only: converter kind (default table; electrical needs no --params: minus "
-                        "spt3g's electrical power). MCAP output converts with the recorded kind or that of --tables")
+                   help="RUN.g3 -> OUT.g3: converter kind (default table; electrical needs no --params: minus "
+                        "spt3g's electrical power); REC.mcap -> OUT.mcap: instead of the recorded kind (or the "
+                        "--config's [converter] kind), e.g. linear: the linear baseline of the same counts")
     g.add_argument("--wiring", metavar="RUN.g3", help="REC.mcap -> OUT.g3: a G3 file whose wiring map names the "
                                                       "bolometers (default: detector ids as names)")
     g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="G3 input: GcpSlow bath thermometer "
@@ -38,14 +39,14 @@ def refuse_inapplicable(args, g3_in: bool, g3_out: bool) -> None:
     """Options given to a conversion they do not apply to: one ConfigError naming them."""
     from mntes_stream.errors import ConfigError
 
-    applies = {"--kind": g3_in and g3_out, "--wiring": g3_out and not g3_in, "--t-bath-key": g3_in,
+    applies = {"--kind": g3_in == g3_out, "--wiring": g3_out and not g3_in, "--t-bath-key": g3_in,
                "--t-bath-unit": g3_in, "--t-bath-default-k": g3_in, "--b-field-t": g3_in,
                "--setup": g3_in and not g3_out, "--scan-samples": g3_in and g3_out}
     given = [flag for flag, ok in applies.items() if getattr(args, flag[2:].replace("-", "_")) is not None and not ok]
     if given:
         what = {(True, True): "RUN.g3 -> OUT.g3", (True, False): "RUN.g3 -> OUT.mcap",
                 (False, True): "REC.mcap -> OUT.g3", (False, False): "REC.mcap -> OUT.mcap"}[(g3_in, g3_out)]
-        hint = "; the recorded converter kind (or that of --tables) is used" if "--kind" in given and not g3_in else ""
+        hint = "; the recorded converter kind is used" if "--kind" in given and not g3_in else ""
         raise ConfigError(f"{', '.join(given)} do{'es' if len(given) == 1 else ''} not apply to {what} "
                           f"(convert --help says which conversion takes which option){hint}")
 

@@ -224,21 +224,32 @@ def run_convert(args) -> int:
     claim_out(args.output, args.overwrite, inputs=[args.input])
 
     pipeline = uncertainty = None
+    kind = args.kind
     if args.config:
+        import tomllib
+
         from mntes_stream.service.converter import ConverterService
 
         conf = service_config(ConverterService, args.config, (), {}, None)
         pipeline = conf.pipeline
         uncertainty = conf.uncertainty if conf.sigma_p else None  # sigma_P as that converter publishes it
+        with open(args.config, "rb") as f:  # a kind the file sets is applied (the default is the recorded one)
+            if kind is None and "kind" in tomllib.load(f).get("converter", {}):
+                kind = conf.kind
     if _g3_name(args.input) or _g3_name(args.output):  # SPT-3G G3 in or out (mntes_stream.g3)
         from mntes_stream.cli.g3 import run_g3_convert
 
         return run_g3_convert(args, pipeline)
+    if kind is not None and args.tables:
+        from mntes_stream.errors import ConfigError
+
+        raise ConfigError("--tables sets the converter kind: give --kind (or a config's kind) or --tables, not both")
     from mntes_stream.cli.ocs import recording_with_hk
 
     with recording_with_hk(args, args.input) as source:  # --hk: bath temperature from OCS HK files
         stats = convert_recording(source, args.output, tables=args.tables, params=args.params,
-                                  pipeline_config=pipeline, progress=not args.quiet, uncertainty=uncertainty)
+                                  pipeline_config=pipeline, progress=not args.quiet, uncertainty=uncertainty,
+                                  kind=kind)
     if stats.damaged:  # on stderr too: a convert in a script must not pass over it
         import sys
 

@@ -75,6 +75,8 @@ __all__ = [
     "PowerBlock",
     "Converter",
     "make_converter",
+    "BASELINE_KINDS",
+    "baseline_can_take",
     "ExactConverter",
     "LinearConverter",
     "ElectricalConverter",
@@ -409,6 +411,21 @@ NONLINEAR_MARGIN_W = 1e-18
 NONLINEAR_CHECKS = ("table", "exact")
 
 
+BASELINE_KINDS = ("linear", "electrical")
+
+
+def _nominal_in_transition(q: DetectorParams):
+    """The nominal operating point (``p_opt_w``, ``t_bath_k``, no field, ``v_thev_v``) if in the transition, else None."""
+    op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
+    return op if int(op.state) == model.STATE_TRANSITION else None
+
+
+def baseline_can_take(q: DetectorParams) -> bool:
+    """Whether a baseline (linear, electrical) can linearise this detector: its nominal operating point is
+    in the transition (not latched, not normal)."""
+    return _nominal_in_transition(q) is not None
+
+
 class _Baseline(_Base):
     """Linear baselines: built at each detector's nominal operating point, env ignored.
 
@@ -444,8 +461,8 @@ class _Baseline(_Base):
         super().__init__(params, params_identity(params, extra), readout_noise_a)
         self._nominal = []
         for q in self.params:
-            op = model.solve_operating_point(q, q.p_opt_w, q.t_bath_k, 0.0, q.v_thev_v)
-            if int(op.state) != model.STATE_TRANSITION:
+            op = _nominal_in_transition(q)
+            if op is None:
                 raise ConfigError(f"{q.detector_id}: nominal operating point is not in the transition")
             self._nominal.append(op)
         # The linearisation's domain: the environment of ``domain`` and the R range its states reach.

@@ -217,7 +217,7 @@ def _load_snapshot(cache: str, kind: str, params, text: str | None):
 
 
 def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
-                    table_cache=...):
+                    table_cache=..., kind: str | None = None):
     """The converter (and its parameters) for a recording.
 
     Parameters
@@ -228,6 +228,9 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         Detector parameter TOML replacing the recorded parameters.
     tables : path, optional
         Table bank file; its kind becomes the converter kind.
+    kind : str, optional
+        Converter kind (``core.convert``: ``linear`` for the linear baseline of the same counts)
+        instead of the recorded one; not with ``tables`` (a table file sets its own kind).
     table_cache : path, optional
         Where banks built from parameters are kept, as the live converter
         keeps them (``...``: its default, ``~/.cache/mntes-stream/tables``;
@@ -239,10 +242,13 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
     -------
     converter, params dict, params source (str), tables source (str)
     """
-    from mntes_stream.core.convert import make_converter
+    from mntes_stream.core.convert import BASELINE_KINDS, baseline_can_take, make_converter
     from mntes_stream.io.paramfile import load_params, parse_params
 
-    kind = provenance.converter_kind if provenance is not None else "table"
+    recorded_kind = provenance.converter_kind if provenance is not None else "table"
+    if kind is not None and tables is not None:
+        raise ConfigError("a table file sets the converter kind: give the kind or the tables, not both")
+    kind = kind or recorded_kind
     cache = _cache_dir(table_cache) if tables is None and kind in ("table", "grid") else ""
     text = provenance.params_toml if params is None and provenance is not None else None
     key, snap = _load_snapshot(cache, kind, params, text) if cache and (params is not None or text) else (None, None)
@@ -268,6 +274,16 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         return conv, (pdict if params is not None else bank.params_by_id()), psrc or "the table file", str(tables)
     if pdict is None:
         raise ConfigError("the recording has no provenance with detector parameters: give --params (and --tables)")
+    if kind != recorded_kind and kind in BASELINE_KINDS and snap is None:
+        # A baseline asked for on a recording: a latched or normal detector has no linearisation. It is left
+        # out (its power NaN + UNKNOWN_CHANNEL, as any detector without parameters), said once, not fatal.
+        left = sorted(d for d, q in pdict.items() if not baseline_can_take(q))
+        if left and len(left) == len(pdict):
+            raise ConfigError(f"no detector is in the transition at its nominal operating point: no {kind} baseline")
+        if left:
+            log.warning("%s baseline: %d detector(s) not in the transition at their nominal operating point left out "
+                        "(power NaN, UNKNOWN_CHANNEL): %s", kind, len(left), ", ".join(left[:8]) + (" ..." if len(left) > 8 else ""))
+            pdict = {d: q for d, q in pdict.items() if d not in left}
     if snap is None and cache:
         from types import SimpleNamespace
 
@@ -280,8 +296,8 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
     elif snap is None:
         conv = make_converter(kind, pdict)
     tsrc = f"rebuilt from the parameters ({kind})" if kind in ("table", "grid") else "none (analytic)"
-    if (provenance is not None and params is None and kind in ("table", "grid") and provenance.table_identity
-            and str(conv.identity) != provenance.table_identity):
+    if (provenance is not None and params is None and kind == recorded_kind and kind in ("table", "grid")
+            and provenance.table_identity and str(conv.identity) != provenance.table_identity):
         raise ConfigError(
             f"tables rebuilt from the recorded parameters have identity {str(conv.identity)[:16]}, the recording used "
             f"{provenance.table_identity[:16]} (other build options?): give the table file with --tables"
@@ -291,7 +307,7 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
 
 def convert_recording(source, output: str | Path, *, tables=None, params=None, pipeline_config=None,
                       progress: bool = True, table_cache=..., batch_s: float = 1.0,
-                      uncertainty=None, compression: str = _COMPRESSION) -> OfflineStats:
+                      uncertainty=None, compression: str = _COMPRESSION, kind: str | None = None) -> OfflineStats:
     """Re-convert the recorded counts and housekeeping of ``source`` into ``output`` (MCAP).
 
     Parameters
@@ -324,6 +340,9 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         ``[converter] sigma_p = true`` and this ``[uncertainty]`` table publishes them.
     compression : {"lz4", "zstd", "none"}
         The output's chunk compression (default lz4: the cheapest to write and read; zstd: smaller files).
+    kind : str, optional
+        Convert with this converter kind (e.g. ``linear``: the linear baseline of the same counts) and the
+        recorded parameters, instead of each calibration's recorded kind (see :func:`build_converter`).
     """
     from collections import Counter
 
@@ -354,13 +373,13 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         if len(calibrations) > 1:
             log.warning("the recording holds %d calibrations (changed at log times %s); the given %s replace all of them",
                         len(calibrations), [t for t, _ in calibrations[1:]], "tables" if tables is not None else "parameters")
-        plan = [(None, build_converter(prov, params=params, tables=tables, table_cache=table_cache))]
+        plan = [(None, build_converter(prov, params=params, tables=tables, table_cache=table_cache, kind=kind))]
     else:
         built: dict[tuple, tuple] = {}  # a calibration that comes back is not rebuilt
         plan = []
         for k, (t_ns, p) in enumerate(calibrations):
             if _calibration(p) not in built:
-                built[_calibration(p)] = build_converter(p, table_cache=table_cache)
+                built[_calibration(p)] = build_converter(p, table_cache=table_cache, kind=kind)
             plan.append((t_ns if k else None, built[_calibration(p)]))
         log.info("the calibration changed %d time(s) during the recording: each part converted with its own", len(plan) - 1)
     converter, pdict, psrc, tsrc = plan[-1][1]

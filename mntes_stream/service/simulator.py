@@ -180,7 +180,15 @@ class TruthRecorder:
 
 def load_truth(path: str | Path) -> dict:
     """Read a truth file written by :class:`TruthRecorder` (arrays by name)."""
-    with np.load(path, allow_pickle=False) as z:
+    import zipfile
+
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (ValueError, EOFError, zipfile.BadZipFile) as exc:  # a text file, a truncated archive
+        raise ConfigError(f"{path}: not a simulator truth file ({type(exc).__name__})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):  # a .npy: one array
+        raise ConfigError(f"{path}: not a simulator truth file (one array, not an .npz)")
+    with z:
         out = {k: z[k] for k in z.files}
     if str(out.get("note")) != TRUTH_NOTE:
         raise ConfigError(f"{path}: not a simulator truth file")
