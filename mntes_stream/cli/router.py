@@ -105,12 +105,17 @@ def _owns_text(owns: dict) -> str:
 
 
 def _coverage_text(b: dict) -> str:
-    """What a recorder says of the streams it sees: counts without power, power gaps."""
+    """What a recorder says of the streams it sees: counts without power, power gaps, counts recorded without
+    power (the open holes, with their numbers)."""
     out = []
     if b.get("unconverted"):
         out.append("unconverted=" + ",".join(b["unconverted"]))
     if b.get("power_gaps"):
         out.append("power_gaps=" + ",".join(f"{s}:{n}" for s, n in sorted(b["power_gaps"].items())))
+    if b.get("unpowered"):  # counts recorded without power, below the newest power: a hole while it is open
+        seqs = b.get("unpowered_seqs") or {}
+        out.append("unpowered=" + ",".join(f"{s}:{n}" + (f"({seqs[s]})" if s in seqs else "")
+                                           for s, n in sorted(b["unpowered"].items())))
     return " ".join(out)
 
 

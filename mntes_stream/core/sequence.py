@@ -36,7 +36,7 @@ import bisect
 import collections
 import enum
 
-__all__ = ["StreamSequence", "Verdict"]
+__all__ = ["SeqRanges", "StreamSequence", "Verdict", "format_ranges"]
 
 MAX_RECENT = 256  # numbers remembered to spot duplicates
 MAX_MISSING = 4096  # a longer jump is a restart; skipped numbers remembered (as ranges) for late arrivals
@@ -161,3 +161,145 @@ class StreamSequence:
         self._missing.clear()
         self._period = None
         self._last_t = None  # the new run's times may be anywhere relative to the old one's
+
+
+MAX_SEQ_RANGES = 1024  # ranges a SeqRanges keeps; numbers that would open more are counted, not placed
+
+
+class SeqRanges:
+    """A set of sequence numbers, as sorted disjoint ``[lo, hi)`` ranges (bounded).
+
+    What a recording holds of a stream (its counts chunks, its power chunks) is
+    a few long runs of numbers: a number next to a range extends it in O(1) at
+    the end (the usual case) and O(log n) elsewhere. At most ``max_ranges``
+    ranges are kept; a number that would open one more is counted in
+    ``untracked`` (so a fragmented or forged stream cannot grow memory) and the
+    readers say so.
+
+    >>> r = SeqRanges()
+    >>> [r.add(n) for n in (0, 1, 2, 5, 6, 2)]
+    [True, True, True, True, True, False]
+    >>> r.ranges(), r.count
+    ([(0, 3), (5, 7)], 5)
+    >>> other = SeqRanges.from_list([[1, 2], [6, 9]])
+    >>> r.minus(other)
+    [(0, 1), (2, 3), (5, 6)]
+    """
+
+    __slots__ = ("_lo", "_hi", "count", "untracked", "max_ranges")
+
+    def __init__(self, max_ranges: int = MAX_SEQ_RANGES):
+        self._lo: list[int] = []
+        self._hi: list[int] = []
+        self.count = 0  # numbers held in the ranges
+        self.untracked = 0  # numbers not placed: the range budget was spent
+        self.max_ranges = int(max_ranges)
+
+    def add(self, seq: int) -> bool:
+        """Add one number; False if it was there already."""
+        seq = int(seq)
+        los, his = self._lo, self._hi
+        if his and seq == his[-1]:  # the next number of a stream: the last range grows
+            his[-1] += 1
+            self.count += 1
+            return True
+        i = bisect.bisect_right(los, seq) - 1
+        if i >= 0 and seq < his[i]:
+            return False
+        left = i >= 0 and his[i] == seq
+        right = i + 1 < len(los) and los[i + 1] == seq + 1
+        if left and right:
+            his[i] = his[i + 1]
+            del los[i + 1], his[i + 1]
+        elif left:
+            his[i] += 1
+        elif right:
+            los[i + 1] = seq
+        elif len(los) >= self.max_ranges:
+            self.untracked += 1
+            return True
+        else:
+            los.insert(i + 1, seq)
+            his.insert(i + 1, seq + 1)
+        self.count += 1
+        return True
+
+    def _take(self, ranges) -> None:
+        for lo, hi in ranges:
+            if len(self._lo) >= self.max_ranges:
+                self.untracked += hi - lo
+                continue
+            self._lo.append(lo)
+            self._hi.append(hi)
+            self.count += hi - lo
+
+    def ranges(self) -> list[tuple[int, int]]:
+        """The ``[lo, hi)`` ranges, in order."""
+        return list(zip(self._lo, self._hi))
+
+    @property
+    def newest(self) -> int | None:
+        """The highest number held (None when empty)."""
+        return self._hi[-1] - 1 if self._hi else None
+
+    def minus(self, other: SeqRanges, below: int | None = None) -> list[tuple[int, int]]:
+        """The ``[lo, hi)`` ranges of numbers here and not in ``other`` (only those below ``below``, if given)."""
+        out: list[tuple[int, int]] = []
+        theirs = other.ranges()
+        j = 0
+        for lo, hi in self.ranges():
+            if below is not None:
+                hi = min(hi, below)
+            while lo < hi:
+                while j < len(theirs) and theirs[j][1] <= lo:
+                    j += 1
+                if j == len(theirs) or theirs[j][0] >= hi:
+                    out.append((lo, hi))
+                    break
+                if theirs[j][0] > lo:
+                    out.append((lo, theirs[j][0]))
+                lo = theirs[j][1]
+        return out
+
+    def to_list(self) -> list[list[int]]:
+        """``[[lo, hi], ...]`` (JSON)."""
+        return [[lo, hi] for lo, hi in zip(self._lo, self._hi)]
+
+    @classmethod
+    def from_list(cls, ranges, untracked: int = 0, max_ranges: int = MAX_SEQ_RANGES) -> SeqRanges:
+        """The set of :meth:`to_list` ranges (in any order, overlapping or not) and ``untracked`` numbers."""
+        out = cls(max_ranges)
+        out._take(_union([(int(lo), int(hi)) for lo, hi in ranges if int(hi) > int(lo)], []))
+        out.untracked += int(untracked)
+        return out
+
+    def union(self, other: SeqRanges) -> SeqRanges:
+        """A new set: the numbers of both (``untracked`` summed)."""
+        out = SeqRanges(max(self.max_ranges, other.max_ranges))
+        out._take(_union(self.ranges(), other.ranges()))
+        out.untracked += self.untracked + other.untracked
+        return out
+
+
+def _union(a, b) -> list[tuple[int, int]]:
+    """Sorted disjoint ``[lo, hi)`` ranges covering those of ``a`` and ``b`` (touching ranges joined)."""
+    out: list[list[int]] = []
+    for lo, hi in sorted([*a, *b]):
+        if out and lo <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], hi)
+        else:
+            out.append([lo, hi])
+    return [(lo, hi) for lo, hi in out]
+
+
+def format_ranges(ranges, most: int = 8) -> str:
+    """``[lo, hi)`` ranges as inclusive text, the first ``most`` of them: ``"seq 0-97, 120"`` (``"... and N more
+    ranges"`` beyond).
+
+    >>> format_ranges([(0, 98), (120, 121), (130, 140)], most=2)
+    'seq 0-97, 120 and 1 more range'
+    """
+    ranges = list(ranges)
+    text = ", ".join(f"{lo}-{hi - 1}" if hi - lo > 1 else f"{lo}" for lo, hi in ranges[:most])
+    more = len(ranges) - most
+    return f"seq {text}" + (f" and {more} more range{'s' if more > 1 else ''}" if more > 0 else "")

@@ -291,6 +291,9 @@ class Sequence:
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
         # ... and for good: older chunks (history from the sources' caches) were converted before the restart.
         self._floor: dict[tuple[int, int], tuple[int, int]] = {}
+        # Streams not continued from a checkpoint: the lowest number this converter took (status ``began_at``).
+        # A converter started after the sources' history moved past a stream's first chunks never sees those.
+        self.began: dict[tuple[int, int], int] = {}
 
     def __call__(self, items: list) -> list:
         out = []
@@ -348,6 +351,14 @@ class Sequence:
         s = self.streams.get(stream_id)
         if s is None:
             s = self.streams[stream_id] = StreamSequence()
+            if stream_id not in self._resumed:
+                self.began[stream_id] = seq
+                if seq > 0:
+                    log.info("%s: the first chunk this converter takes is seq %d (no checkpoint): what came before "
+                             "is not converted here; a recorder that holds their counts says so, and offline "
+                             "`convert` of its recording gives their power", key, seq)
+        elif seq < self.began.get(stream_id, seq):  # history that reached this converter after a newer chunk
+            self.began[stream_id] = seq
         expected = s.next
         floor = self._floor.get(stream_id) if self._floor else None
         if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
