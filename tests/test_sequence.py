@@ -77,3 +77,46 @@ def test_memory_is_bounded_whatever_numbers_a_peer_sends():
     assert len(s._missing) <= _MAX_RANGES and len(s._recent) <= MAX_RECENT and len(s._recent_t) <= MAX_RECENT
     # Every jump of more than the time allows was a reset: nothing counted lost.
     assert s.lost == 0 and s.resets >= 49_000
+
+
+def _ranges_of(numbers) -> list[tuple[int, int]]:
+    """[lo, hi) runs of a set of numbers, computed here without SeqRanges."""
+    out: list[list[int]] = []
+    for n in sorted(set(numbers)):
+        if out and n == out[-1][1]:
+            out[-1][1] += 1
+        else:
+            out.append([n, n + 1])
+    return [(a, b) for a, b in out]
+
+
+@settings(max_examples=80, deadline=None)
+@given(a=st.lists(st.integers(0, 300), max_size=300), b=st.lists(st.integers(0, 300), max_size=300),
+       below=st.one_of(st.none(), st.integers(0, 320)))
+def test_seq_ranges_hold_exactly_the_numbers_added(a, b, below):
+    from mntes_stream.core.sequence import SeqRanges
+
+    ra, rb = SeqRanges(), SeqRanges()
+    assert [ra.add(n) for n in a] == [n not in a[:i] for i, n in enumerate(a)]  # False: there already
+    for n in b:
+        rb.add(n)
+    assert ra.ranges() == _ranges_of(a) and ra.count == len(set(a)) and ra.untracked == 0
+    assert ra.newest == (max(a) if a else None)
+    want = {n for n in set(a) - set(b) if below is None or n < below}
+    assert ra.minus(rb, below) == _ranges_of(want)
+    assert ra.union(rb).ranges() == _ranges_of(set(a) | set(b))
+    again = SeqRanges.from_list(ra.to_list()[::-1])  # read back in any order
+    assert again.ranges() == ra.ranges() and again.count == ra.count
+
+
+def test_seq_ranges_are_bounded_and_say_what_they_could_not_place():
+    from mntes_stream.core.sequence import SeqRanges, format_ranges
+
+    r = SeqRanges(max_ranges=4)
+    for n in range(0, 40, 2):  # every other number: a range each
+        r.add(n)
+    assert len(r.ranges()) == 4 and r.count == 4 and r.untracked == 16
+    r.add(1)  # joins two kept ranges: still placed
+    assert r.ranges()[0] == (0, 3) and r.count == 5
+    assert format_ranges([(0, 98)]) == "seq 0-97"
+    assert format_ranges([(0, 1), (5, 9), (12, 13)], most=2) == "seq 0, 5-8 and 1 more range"
