@@ -203,12 +203,10 @@ def cost_line(stats: dict) -> str:
 
 def _open_holes(book) -> dict:
     """The heartbeat's (``ps``) view of counts recorded without power, below each stream's newest power: ``unpowered``
-    (stream -> chunks) and ``unpowered_seqs`` (stream -> its first ranges, as text)."""
+    (stream -> chunks) and ``unpowered_seqs`` (stream -> its first ranges, as text); empty when none."""
     from mntes_stream.core.sequence import format_ranges
 
-    holes = book.unpowered(open_only=True)
-    if not holes:
-        return {}
+    holes = book.unpowered(open_only=True)  # always both keys: the heartbeat keeps what a beat does not name
     return {"unpowered": {s: h["count"] for s, h in holes.items()},
             "unpowered_seqs": {s: format_ranges(h["ranges"], 4) for s, h in list(holes.items())[:64]}}
 

@@ -265,16 +265,17 @@ def unpowered_line(holes: dict, most_streams: int = 8) -> str:
     total = sum(h["count"] for h in holes.values())
     parts = []
     for stream, h in list(holes.items())[:most_streams]:
-        text = f"{stream} {format_ranges(h['ranges'], 4)}" if h["ranges"] else f"{stream}"
-        if h.get("untracked"):
-            text += f" (+ up to {h['untracked']} not placed: too fragmented)"
-        if h.get("restarted"):
-            text += " (its numbering restarted: before and after are merged)"
-        parts.append(text)
+        parts.append(f"{stream} {format_ranges(h['ranges'], 4)}{_notes(h)}" if h["ranges"] else f"{stream}{_notes(h)}")
     more = len(holes) - most_streams
     return (f"{total} counts chunk(s) recorded without power ({'; '.join(parts)}"
             f"{f'; and {more} more stream(s)' if more > 0 else ''}): offline `mntes-stream convert` of this "
             "recording gives their power")
+
+
+def _notes(h: dict) -> str:
+    """What makes a stream's counts without power a bound rather than exact (see :func:`unpowered`)."""
+    return "".join([f" (+ up to {h['untracked']} not placed: too fragmented)" if h.get("untracked") else "",
+                    " (its numbering restarted: before and after are merged)" if h.get("restarted") else ""])
 
 
 def _converter_line(c: dict) -> str:
@@ -342,9 +343,7 @@ class RecordingLedger:
             out.append(f"  counts without power: {sum(h['count'] for h in self.unpowered.values())} chunk(s) never "
                        "converted in this recording; offline `mntes-stream convert` of it gives their power:")
             for s, h in self.unpowered.items():
-                extra = "".join([f" (+ up to {h['untracked']} not placed: too fragmented)" if h.get("untracked") else "",
-                                 " (its numbering restarted: before and after merged)" if h.get("restarted") else ""])
-                out.append(f"    {s}: {h['count']} chunk(s), {format_ranges(h['ranges'], 16)}{extra}")
+                out.append(f"    {s}: {h['count']} chunk(s), {format_ranges(h['ranges'], 16)}{_notes(h)}")
         else:
             out.append("  counts without power: none (every recorded counts chunk has its power)")
         out.append(f"  ({self.lost_means})")
