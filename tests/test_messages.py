@@ -292,7 +292,7 @@ def test_every_status_field_is_checked_by_exactly_one_rule():
 
     S = m.StatusMessage
     ruled = list(S.RATES + S.LATENCIES + S.COUNTERS) + [
-        "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns", "ledger", "began_at"]
+        "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns", "ledger", "began_at", "conflicts"]
     assert sorted(ruled) == sorted(f.name for f in fields(S))
 
 

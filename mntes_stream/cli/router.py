@@ -85,7 +85,7 @@ def run_ps(args) -> int:
         lag = f"{b['latency_p99_ms']:.0f} ms" if isinstance(b.get("latency_p99_ms"), (int, float)) else "-"
         lost = b.get("chunks_lost", "-")
         up = f"{b['uptime_s']:.0f} s" if isinstance(b.get("uptime_s"), (int, float)) else "-"
-        extra = "; ".join([x for x in (_owns_text(b.get("owns") or {}), _coverage_text(b)) if x]
+        extra = "; ".join([x for x in (_owns_text(b.get("owns") or {}), _coverage_text(b), _conflict_text(b)) if x]
                           + list(b.get("warnings") or []))
         print(f"{b['service']:<11} {b['name']:<16} {b.get('state', '?'):<9} {up:>7} {rate:>14} {lag:>8} {lost!s:>6}  "
               f"{b.get('host', '?')}:{b.get('pid', '?')}  {extra}")
@@ -102,6 +102,12 @@ def _owns_text(owns: dict) -> str:
         text += " CONFLICT with " + ",".join(sorted({n for s in owns.get("claimed_also_by", ()) for n in
                                                        s.partition(":")[2].split(",") if n}))
     return text
+
+
+def _conflict_text(b: dict) -> str:
+    """Streams two or more publishers send side by side (a converter's or recorder's ``conflicts``)."""
+    c = b.get("conflicts") or {}
+    return ("CONFLICT publishers " + ",".join(f"{s}:{n}" for s, n in sorted(c.items()))) if c else ""
 
 
 def _coverage_text(b: dict) -> str:

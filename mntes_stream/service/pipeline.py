@@ -181,7 +181,7 @@ class ConverterPipeline:
         chunks are then converted together, so the power is the same as from
         :meth:`handle` called per message, for less work per chunk.
         """
-        return self._run([(k, p, t) for k, p, t in items] + [END])
+        return self._run([tuple(item) for item in items] + [END])  # (key, payload, t_recv_ns[, source])
 
     def tick(self, t_now_ns: int) -> list[tuple[str, bytes]]:
         """Let time pass without a message: release chunks that waited long enough, status when due."""

@@ -86,6 +86,7 @@ class Status:
             chunks_set_aside=len(seq.aside),
             ledger=led.as_dict(),
             began_at={str(StreamKey(*k)): v for k, v in seq.began.items() if v > 0},
+            conflicts={str(StreamKey(*k)): n for k, n in seq.conflicts.items()},
             chunks_duplicated=sum(s.duplicated for s in streams),
             chunks_out_of_order=sum(s.out_of_order for s in streams),
             hk_received=c.hk_received,

@@ -142,7 +142,9 @@ class RecorderStats:
     ``receive_cpu_s_per_msamples`` the same for the receive thread alone;
     ``unpowered`` per stream the counts chunks recorded without their power
     (``count``, ``ranges`` of numbers ``[lo, hi)``: ``io.mcap.ledger.unpowered``)
-    and ``ledger_note`` that in words, for the closing line.
+    ``conflicts`` the streams two or more publishers sent side by side (each
+    one's chunks numbered apart: ``core.sequence.PublisherSequences``); and
+    ``ledger_note`` both in words, for the closing line.
     """
 
     messages: int
@@ -173,6 +175,7 @@ class RecorderStats:
     cpu_s_per_msamples: float | None = None
     receive_cpu_s_per_msamples: float | None = None
     unpowered: dict | None = None
+    conflicts: dict | None = None
     ledger_note: str = ""
 
     def final_line(self) -> str:
@@ -280,7 +283,8 @@ class RecorderService(Service):
             # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
             # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
             self._sub = QueueSubscriber(ctx.session, [config.subscription], maxsize=config.queue_messages,
-                                        max_bytes=int(config.queue_mb * 1e6), recover="history")
+                                        max_bytes=int(config.queue_mb * 1e6), recover="history",
+                                        sources=True)  # each message's publisher: two on one stream told apart
             # A converter's provenance, answered on request, is recorded from the start too (only that:
             # the heartbeat queryables under alive/ answer a wider query, and are not data).
             self._sub.query(ctx.session, keys.provenance_key(config.setup))
@@ -319,7 +323,8 @@ class RecorderService(Service):
                 "writer_queue_full": writer.queue_full, **sink.coverage.summary(time.monotonic()),
                 "ledger_line": led.line(), "chunks_recorded": t.done, "chunks_missing": t.missing,
                 "chunks_duplicate": t.duplicate, "chunks_lost": t.lost,
-                "cpu_s_per_msamples": sink.cpu()["cpu_s_per_msamples"], **_open_holes(book)}
+                "cpu_s_per_msamples": sink.cpu()["cpu_s_per_msamples"], **_open_holes(book),
+                "conflicts": book.conflicts()}
 
     def finish(self, ctx) -> dict:
         sink, sub = self._sink, self._sub
@@ -340,7 +345,7 @@ class RecorderService(Service):
             error = error or exc
         if error is not None:
             raise _failed(error) from error
-        from mntes_stream.io.mcap.ledger import unpowered_line
+        from mntes_stream.io.mcap.ledger import conflict_line, unpowered_line
 
         led = book.ledger_now()
         holes = book.unpowered()
@@ -373,7 +378,8 @@ class RecorderService(Service):
             writer_wait_s=round(writer.wait_s, 3),
             writer_queue_high_water=writer.queue_high_water,
             unpowered=holes,
-            ledger_note=f"; WARNING {unpowered_line(holes)}" if holes else "",
+            conflicts=book.conflicts(),
+            ledger_note="".join(f"; WARNING {x}" for x in (unpowered_line(holes), conflict_line(book.conflicts())) if x),
             **sink.cpu(),
         )
         log.info("recorder stopped: %s", stats)

@@ -68,8 +68,9 @@ class RecorderSink:
         self.cpu0_s = time.process_time()
         self.thread_cpu0_s = time.thread_time()  # the receive thread's: a sink is fed by the thread that made it
 
-    def add(self, topic: str, payload: bytes, t_ns: int) -> None:
-        """One received message: header, books, hand-over to the writer (waits while its queue is full)."""
+    def add(self, topic: str, payload: bytes, t_ns: int, source: str | None = None) -> None:
+        """One received message (``source``: its publisher's zenoh id, if known): header, books, hand-over to the
+        writer (waits while its queue is full)."""
         if self._mine is not None and not self._mine(topic):
             return
         kind = self._kinds.get(topic)
@@ -82,7 +83,7 @@ class RecorderSink:
         late = env.late and kind == "power" and not env.problem
         lag_s = None if kind != "power" or env.publish_time_ns is None else (t_ns - env.publish_time_ns) / 1e9
         self.coverage.add(topic, env.seq, time.monotonic(), late=late, lag_s=lag_s)
-        self.book.add(topic, payload, env, t_ns, late=late, kind=kind)
+        self.book.add(topic, payload, env, t_ns, late=late, kind=kind, source=source)
         if kind == "counts":
             if not env.problem:
                 self.samples += env.samples

@@ -25,13 +25,13 @@ from dataclasses import dataclass
 import msgpack
 
 from mntes_stream.core.ledger import LOST_MEANS, OTHER, Ledger, stream_order
-from mntes_stream.core.sequence import SeqRanges, StreamSequence, Verdict, format_ranges
+from mntes_stream.core.sequence import PublisherSequences, SeqRanges, Verdict, format_ranges
 from mntes_stream.errors import MntesError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.envelope import Envelope, peek_envelope
 
 __all__ = ["LEDGER_METADATA", "RecordingBook", "RecordingLedger", "power_is_late", "recompute_ledger", "recording_ledger",
-           "seqs_from_dict", "unpowered", "unpowered_line"]
+           "conflict_line", "seqs_from_dict", "unpowered", "unpowered_line"]
 
 LEDGER_METADATA = "mntes.ledger"
 _MAX_STREAMS = 100_000  # streams booked by name at most; more (made-up topics) go to core.ledger.OTHER
@@ -67,7 +67,7 @@ class RecordingBook:
     def __init__(self, setup: str | None = None):
         self.setup = setup
         self.ledger = Ledger("recorded")
-        self.sequences: dict[str, StreamSequence] = {}  # counts topic -> its tracker
+        self.sequences: dict[str, PublisherSequences] = {}  # counts topic -> its tracker (per publisher, if several)
         self._stream_of: dict[str, str] = {}  # counts topic -> ledger stream
         self._power_stream_of: dict[str, str] = {}  # power topic -> its stream (named once, not per message)
         self.power: dict[str, list[int]] = {}  # stream -> [live, late]
@@ -88,16 +88,17 @@ class RecordingBook:
         return stream if stream in known or len(known) < _MAX_STREAMS else OTHER
 
     def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None,
-            kind: str | None = None) -> Verdict | None:
+            kind: str | None = None, source: str | None = None) -> Verdict | None:
         """Book one recorded message; returns the counts chunk's :class:`~mntes_stream.core.sequence.Verdict`, else None.
 
         ``late``: whether a power payload is marked late, when the caller read it already (else read here);
-        ``kind``: the topic's ``keys.kind_of``, when the caller knows it (else found here).
+        ``kind``: the topic's ``keys.kind_of``, when the caller knows it (else found here); ``source``: the
+        publisher (zenoh id) when the transport says it (two on one stream are numbered apart: ``conflicts``).
         """
         if kind is None:
             kind = keys.kind_of(topic)
         if kind == "counts":
-            return self._counts(topic, env, t_ns)
+            return self._counts(topic, env, t_ns, source)
         if kind == "power":
             stream = self._power_stream_of.get(topic)
             if stream is None:
@@ -119,7 +120,7 @@ class RecordingBook:
                 self.status_topics[topic] = service
         return None
 
-    def _counts(self, topic: str, env: Envelope, t_ns: int) -> Verdict | None:
+    def _counts(self, topic: str, env: Envelope, t_ns: int, source: str | None = None) -> Verdict | None:
         stream = self._stream_of.get(topic)
         if stream is None:
             stream = self._stream(topic)
@@ -134,10 +135,10 @@ class RecordingBook:
             return None
         seq = self.sequences.get(topic)
         if seq is None:
-            seq = StreamSequence()
+            seq = PublisherSequences()
             if len(self.sequences) < _MAX_STREAMS:
                 self.sequences[topic] = seq
-        verdict = seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
+        verdict = seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns, source)
         if verdict is Verdict.DUPLICATE:
             self.ledger.duplicate(stream)
             return verdict
@@ -193,6 +194,10 @@ class RecordingBook:
             self.ledger.set_missing(stream, n)
         return self.ledger
 
+    def conflicts(self) -> dict[str, int]:
+        """Streams two or more publishers send side by side -> how many (``core.sequence.PublisherSequences``)."""
+        return {self._stream_of.get(t, OTHER): s.publishers for t, s in self.sequences.items() if s.conflict}
+
     def seqs_dict(self) -> dict[str, dict]:
         """Per stream, the ranges of the counts and power numbers recorded (JSON-ready; :func:`seqs_from_dict`)."""
         out = {}
@@ -219,6 +224,7 @@ class RecordingBook:
             "power": json.dumps(self.power, separators=(",", ":")),
             "converters": json.dumps(self.converters, separators=(",", ":")),
             "seqs": json.dumps(self.seqs_dict(), separators=(",", ":")),
+            "conflicts": json.dumps(self.conflicts(), separators=(",", ":")),
         }
         for name, entry in sorted(self.converters.items()):
             out[f"converter.{name}"] = _converter_line(entry)
@@ -272,6 +278,16 @@ def unpowered_line(holes: dict, most_streams: int = 8) -> str:
             "recording gives their power")
 
 
+def conflict_line(conflicts: dict, most: int = 8) -> str:
+    """Streams two or more publishers sent side by side, in one clause ("" when none)."""
+    if not conflicts:
+        return ""
+    items = sorted(conflicts.items(), key=lambda kv: stream_order(kv[0]))
+    names = ", ".join(f"{s} by {n}" for s, n in items[:most]) + (", ..." if len(items) > most else "")
+    return (f"{len(items)} counts stream(s) sent by more than one publisher side by side ({names}): two sources or "
+            "bridges on one setup? Each one's chunks are numbered apart, a chunk two send is a duplicate")
+
+
 def _notes(h: dict) -> str:
     """What makes a stream's counts without power a bound rather than exact (see :func:`unpowered`)."""
     return "".join([f" (+ up to {h['untracked']} not placed: too fragmented)" if h.get("untracked") else "",
@@ -293,7 +309,8 @@ class RecordingLedger:
     ``source`` is ``metadata`` (the recorder's ``mntes.ledger`` at close) or
     ``recomputed`` (from the recorded messages; ``note`` says why);
     ``unpowered`` the counts chunks recorded without power, per stream (:func:`unpowered`; None: the metadata of
-    an earlier recorder, which kept no numbers);
+    an earlier recorder, which kept no numbers); ``conflicts`` the streams the recorder saw sent by more than
+    one publisher side by side (a file's messages do not name their publisher: recomputed, none is found);
     ``recorder`` the counts streams (verb ``recorded``); ``power`` per stream
     ``[live, late]`` power chunks recorded; ``converters`` each converter's
     newest recorded status (``ledger`` as a dict, and its counters).
@@ -307,11 +324,12 @@ class RecordingLedger:
     runs: int = 1
     lost_means: str = LOST_MEANS
     unpowered: dict | None = None
+    conflicts: dict | None = None
 
     def as_dict(self) -> dict:
         return {"source": self.source, "note": self.note, "runs": self.runs, "lost_means": self.lost_means,
                 "recorder": self.recorder.as_dict(), "recorder_line": self.recorder.line(), "power": self.power,
-                "converters": self.converters, "unpowered": self.unpowered,
+                "converters": self.converters, "unpowered": self.unpowered, "conflicts": self.conflicts,
                 "converter_lines": {n: Ledger.from_dict(c.get("ledger") or {}).line() for n, c in self.converters.items()}}
 
     def lines(self) -> list[str]:
@@ -346,6 +364,8 @@ class RecordingLedger:
                 out.append(f"    {s}: {h['count']} chunk(s), {format_ranges(h['ranges'], 16)}{_notes(h)}")
         else:
             out.append("  counts without power: none (every recorded counts chunk has its power)")
+        if self.conflicts:
+            out.append(f"  CONFLICT: {conflict_line(self.conflicts)}")
         out.append(f"  ({self.lost_means})")
         return out
 
@@ -398,7 +418,7 @@ def _from_metadata(records) -> RecordingLedger:
     recorder = Ledger("recorded")
     power: dict[str, list[int]] = {}
     converters: dict[str, dict] = {}
-    counts, pw, restarted = {}, {}, set()
+    counts, pw, restarted, conflicts = {}, {}, set(), {}
     numbered = all("seqs" in d for d in last.values())
     for d in last.values():
         recorder.merge(Ledger.from_dict(json.loads(d["recorder"]), "recorded"))
@@ -415,7 +435,9 @@ def _from_metadata(records) -> RecordingLedger:
                 for s, r in theirs.items():
                     mine[s] = mine[s].union(r) if s in mine else r
             restarted |= r_run
+        for s, n in json.loads(d.get("conflicts") or "{}").items():
+            conflicts[s] = max(conflicts.get(s, 0), int(n))
     lost_means = next(iter(last.values())).get("lost_means", LOST_MEANS)
     return RecordingLedger("metadata", recorder, power, converters, runs=len(last), lost_means=lost_means,
-                           unpowered=unpowered(counts, pw, restarted) if numbered else None)
+                           unpowered=unpowered(counts, pw, restarted) if numbered else None, conflicts=conflicts)
 
