@@ -271,7 +271,10 @@ class Sequence:
     """:class:`Counts` to :class:`Pending`: each chunk's sequence number booked per ``(board, module)`` stream.
 
     ``core.sequence``: lost, late and duplicates (dropped) counted, a restarted
-    stream resynchronised (``bad_messages["seq_reset"]``, not lost). Under a
+    stream resynchronised (``bad_messages["seq_reset"]``, not lost); two
+    publishers sending one stream side by side numbered apart and reported
+    (``conflicts``, ``PublisherSequences``); a stream not taken from its first
+    chunk nor from a checkpoint: the lowest number taken (``began``). Under a
     real overload (``overloaded``, set by the live service), a chunk further
     behind its own stream's pace than ``max_lag_s`` is set aside (``aside``)
     for late conversion, the oldest shed beyond ``set_aside_bytes``.
