@@ -292,5 +292,16 @@ def test_every_status_field_is_checked_by_exactly_one_rule():
 
     S = m.StatusMessage
     ruled = list(S.RATES + S.LATENCIES + S.COUNTERS) + [
-        "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns", "ledger"]
+        "setup", "service", "last_error", "bad_messages", "flag_counts", "hk_age_s", "owns", "ledger", "began_at", "conflicts"]
     assert sorted(ruled) == sorted(f.name for f in fields(S))
+
+
+def test_a_status_says_from_which_seq_a_converter_began_only_when_it_did_not_begin_at_the_start():
+    base = dict(setup="lab", service="c", t_ns=1, uptime_s=0.0, interval_s=1.0)
+    plain = m.StatusMessage(**base)
+    assert "began_at" not in msgpack.unpackb(plain.to_bytes())  # the bytes of before
+    began = m.StatusMessage(**base, began_at={"0/1": 196})
+    assert m.StatusMessage.from_bytes(began.to_bytes()).began_at == {"0/1": 196}
+    schema_check.validate_payload(began.to_bytes())  # status.v1.json declares it
+    with pytest.raises(SchemaError):
+        m.StatusMessage(**base, began_at={"0/1": "x"})

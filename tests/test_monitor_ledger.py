@@ -61,7 +61,9 @@ def _status(t_ns: int, shed: int, set_aside: int) -> bytes:
     t = led.totals()
     return StatusMessage("lab", "converter", t_ns, 10.0, 0.2, chunks_received=t.received, chunks_converted=t.done,
                          chunks_lost=t.lost, chunks_shed=shed, chunks_late=5, chunks_set_aside=set_aside,
-                         chunks_missing=3, chunks_pending=set_aside, ledger=led.as_dict()).to_bytes()
+                         chunks_missing=3, chunks_pending=set_aside, ledger=led.as_dict(),
+                         began_at={"0/1": 40},  # it started after 0/1's first 40 chunks left the history
+                         conflicts={"0/0": 2}).to_bytes()  # and two sources send 0/0
 
 
 def test_shedding_state_and_ledger_from_real_status_messages():
@@ -143,6 +145,12 @@ def test_shedding_state_and_ledger_from_real_status_messages():
     # The terminal table: the badge in words, the shed and late columns, the ledger's line and its streams.
     assert "SHEDDING: converter shed 12 chunks, 0 set aside" in text
     assert "ledger converter: received 200 chunks: converted 183, late 5, shed 12 (overload 12)" in text
+    began = ("began 0/1 at seq 40 (no checkpoint): what came before never reached this converter; a recording of the "
+             "counts has them, and offline convert gives their power")
+    assert led["began_line"] == began and f"\n  {began}\n" in text
+    conflict = ("CONFLICT: streams sent by more than one publisher side by side (0/0 by 2): each one's chunks are "
+                "numbered apart; two sources or bridges on one setup?")
+    assert led["conflict_line"] == conflict and f"\n  {conflict}\n" in text
     row = next(line for line in text.splitlines() if line.strip().startswith("0/1 "))
     assert row.split() == ["0/1", "83", "5", "12", "0", "0", "3", "15", "0"]
     conv = next(line for line in text.splitlines() if line.startswith("converter "))

@@ -257,3 +257,58 @@ def test_a_recorded_status_ledger_names_the_shedding_converter():
     meta = book.metadata("run-1", 1)
     assert meta["converter.conv-b"] == "received 40 chunks: converted 30, shed 10 (overload 10); lost 10 of 40"
     assert json.loads(meta["converters"])["conv-b"]["chunks_shed"] == 10
+
+
+def _power_payload(seq: int, module: int = 1) -> bytes:
+    import numpy as np
+
+    from mntes_stream.core.ids import detector_id
+    from mntes_stream.io.messages import PowerChunk
+
+    t0 = 1_700_000_000_000_000_000 + seq * 100_000_000
+    ch = np.arange(4, dtype=np.int32)
+    return PowerChunk(setup="t", board=0, module=module, channels=ch, detector_ids=[detector_id(0, module, c) for c in ch],
+                      seq=seq, t0_ns=t0, sample_rate_hz=80.0, p_opt_w=np.full((4, 8), 1e-12),
+                      flags=np.zeros((4, 8), np.uint16), table_identity="tab", converter_kind="exact",
+                      source_t_pub_ns=t0, t_pub_ns=t0).to_bytes()
+
+
+def test_counts_without_power_are_merged_over_recorder_runs_and_recomputed_for_a_killed_file(tmp_path):
+    """Two recorder runs (a restart: the second records the sources' history again), then a killed one: the
+    counts without power are those no run recorded power for, from the files' mntes.ledger or the messages."""
+    from mcap_helpers import counts_payload
+
+    from mntes_stream.io.mcap.writer import McapFileWriter
+    from mntes_stream.service.recorder import RecorderConfig
+    from mntes_stream.service.recorder_sink import RecorderSink
+
+    def run(counts, power):
+        sink = RecorderSink(RecorderConfig(setup="t", directory=str(tmp_path / "rec")))
+        for seq in counts:
+            sink.add("mntes/t/counts/0/1", counts_payload(seq, module=1), 10**9 + seq)
+            if seq in power:
+                sink.add("mntes/t/power/0/1", _power_payload(seq), 10**9 + seq)
+        sink.writer.close()
+        return sink.book.unpowered()
+
+    # The converter was down for 10-19 and stopped at 25: the first run's file lacks 10-19 and 25-29 ...
+    first = run(range(30), {*range(10), *range(20, 25)})
+    assert first == {"0/1": {"count": 15, "ranges": [[10, 20], [25, 30]]}}
+    # ... the second recorder run (history 25-29 again, the converter back) has power for 25-39.
+    assert run(range(25, 40), set(range(25, 40))) == {}
+    led = recording_ledger(mio.Session(tmp_path / "rec"))
+    assert led.source == "metadata" and led.runs == 2
+    assert led.unpowered == {"0/1": {"count": 10, "ranges": [[10, 20]]}}
+    res = _mntes("inspect", "rec", cwd=tmp_path)
+    assert "    0/1: 10 chunk(s), seq 10-19\n" in res.stdout, res.stdout
+
+    # A killed recorder's file (no mntes.ledger): the same book from its messages.
+    path = tmp_path / "k-000001.mcap"
+    with McapFileWriter(path) as w:
+        for seq in range(12):
+            w.write("mntes/t/counts/0/1", counts_payload(seq, module=1), 10**9 + seq)
+            if seq % 4:
+                w.write("mntes/t/power/0/1", _power_payload(seq), 10**9 + seq)
+    again = recording_ledger(mio.Session(path))
+    assert again.source == "recomputed" and again.unpowered == {"0/1": {"count": 3, "ranges": [[0, 1], [4, 5], [8, 9]]}}
+    assert "0/1: 3 chunk(s), seq 0, 4, 8" in "\n".join(again.lines())

@@ -89,7 +89,7 @@ def run_ps(args) -> int:
         lost = b.get("chunks_lost", "-")
         up = f"{b['uptime_s']:.0f} s" if isinstance(b.get("uptime_s"), (int, float)) else "-"
         behind = who_is_behind(b.get("latency_p99_ms"), b.get("arrival_p99_ms"))
-        extra = "; ".join([x for x in (_owns_text(b.get("owns") or {}), _coverage_text(b)) if x]
+        extra = "; ".join([x for x in (_owns_text(b.get("owns") or {}), _coverage_text(b), _conflict_text(b)) if x]
                           + ([f"behind: {behind}"] if behind else []) + list(b.get("warnings") or []))
         print(f"{b['service']:<11} {b['name']:<16} {b.get('state', '?'):<9} {up:>7} {rate:>14} {lag:>8} {lost!s:>6}  "
               f"{b.get('host', '?')}:{b.get('pid', '?')}  {extra}")
@@ -108,13 +108,24 @@ def _owns_text(owns: dict) -> str:
     return text
 
 
+def _conflict_text(b: dict) -> str:
+    """Streams two or more publishers send side by side (a converter's or recorder's ``conflicts``)."""
+    c = b.get("conflicts") or {}
+    return ("CONFLICT publishers " + ",".join(f"{s}:{n}" for s, n in sorted(c.items()))) if c else ""
+
+
 def _coverage_text(b: dict) -> str:
-    """What a recorder says of the streams it sees: counts without power, power gaps."""
+    """What a recorder says of the streams it sees: counts without power, power gaps, counts recorded without
+    power (the open holes, with their numbers)."""
     out = []
     if b.get("unconverted"):
         out.append("unconverted=" + ",".join(b["unconverted"]))
     if b.get("power_gaps"):
         out.append("power_gaps=" + ",".join(f"{s}:{n}" for s, n in sorted(b["power_gaps"].items())))
+    if b.get("unpowered"):  # counts recorded without power, below the newest power: a hole while it is open
+        seqs = b.get("unpowered_seqs") or {}
+        out.append("unpowered=" + ",".join(f"{s}:{n}" + (f"({seqs[s]})" if s in seqs else "")
+                                           for s, n in sorted(b["unpowered"].items())))
     return " ".join(out)
 
 

@@ -62,7 +62,9 @@ def run_serve(args) -> int:
         print(json.dumps(result, indent=2, default=str))
     if isinstance(result, dict) and result.get("ledger_line"):  # the last line: what happened to every chunk
         label = " ".join(x for x in (service.name, getattr(config, "name", "")) if x)
-        print(f"{label}: {result['ledger_line']}", file=sys.stderr if args.json else sys.stdout)
+        # ... and what a recording lacks (the recorder's ledger_note: counts recorded without power)
+        print(f"{label}: {result['ledger_line']}{result.get('ledger_note') or ''}",
+              file=sys.stderr if args.json else sys.stdout)
     return 0
 
 

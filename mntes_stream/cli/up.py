@@ -138,9 +138,13 @@ def _recorded_ledger(files: _Files, processes: int) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an unfinished file is expected here: its recorder was killed
         session = Session(files.paths(), warn=False)
-        led = recompute_ledger(session).recorder
+        whole = recompute_ledger(session)
+    from mntes_stream.io.mcap.ledger import unpowered_line
+
+    led, holes = whole.recorder, whole.unpowered or {}
     return {"messages": sum(f.messages for f in session.files), "ledger": led.as_dict(),
-            "ledger_line": f"{led.line()} (over {processes} recorder processes, recomputed from the files)"}
+            "ledger_line": f"{led.line()} (over {processes} recorder processes, recomputed from the files)",
+            "unpowered": holes, "ledger_note": f"; WARNING {unpowered_line(holes)}" if holes else ""}
 
 
 def _restart_dead(services, budget, stopping, say) -> str | None:
@@ -339,7 +343,7 @@ def run_up(args) -> int:
         f"converted; {recorded} into {n_files} MCAP file(s), {size / 1e6:.2f} MB: "
         f"{', '.join(rec.get('files', [])) or ', '.join(str(f) for f in files.paths()) or '-'}")
     if rec.get("ledger_line"):
-        say(f"  recorder counts: {rec['ledger_line']}")
+        say(f"  recorder counts: {rec['ledger_line']}{rec.get('ledger_note') or ''}")
     # The last line is the converter's ledger: what happened to every chunk (lost = never received + shed + rejected).
     say(f"  converter: {conv.get('ledger_line') or 'no final statistics (it did not stop cleanly): see its log'}")
     if args.json:

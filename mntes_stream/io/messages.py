@@ -324,11 +324,13 @@ class StatusMessage(MessageBase):
     chunks_rejected: int = 0
     chunks_set_aside: int = 0
     ledger: dict = field(default_factory=dict)
+    began_at: dict = field(default_factory=dict)
+    conflicts: dict = field(default_factory=dict)
 
     # Absent from statuses of earlier versions of the converter: decoded with their defaults.
     _LATER: ClassVar[frozenset] = frozenset(
         {"owns", "chunks_missing", "chunks_shed", "chunks_late", "chunks_rejected", "chunks_set_aside", "ledger",
-         "arrival_p50_ms", "arrival_p99_ms"})
+         "arrival_p50_ms", "arrival_p99_ms", "began_at", "conflicts"})
     # The fields by kind (rates >= 0, latencies that may be negative, counters), for readers of statuses too.
     RATES: ClassVar[tuple[str, ...]] = ("uptime_s", "interval_s", "rate_chunks_per_s", "rate_msamples_per_s")
     LATENCIES: ClassVar[tuple[str, ...]] = ("latency_p50_ms", "latency_p99_ms", "latency_max_ms", "arrival_p50_ms",
@@ -362,10 +364,15 @@ class StatusMessage(MessageBase):
         )
         object.__setattr__(self, "owns", _owns_map(self.owns))
         object.__setattr__(self, "ledger", _ledger_map(self.ledger))
+        object.__setattr__(self, "began_at", _count_map(self.began_at, "began_at"))
+        object.__setattr__(self, "conflicts", _count_map(self.conflicts, "conflicts"))
 
     def _body(self) -> dict:
-        # Optional latencies travel as nil (the schema allows null), not absent; an unsharded converter says no owns.
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "owns" or self.owns}
+        # Optional latencies travel as nil (the schema allows null), not absent; an unsharded converter says no owns,
+        # one that took every stream from its first chunk (or from a checkpoint) no began_at, and one whose streams
+        # each come from one publisher no conflicts.
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if f.name not in ("owns", "began_at", "conflicts") or getattr(self, f.name)}
 
     @classmethod
     def _from_map(cls, msg: dict):

@@ -299,6 +299,16 @@ class Publishers:
         self._pubs.clear()
 
 
+def _item(sample) -> tuple[str, bytes, int]:
+    return str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+
+
+def _item_with_source(sample) -> tuple[str, bytes, int, str | None]:
+    info = sample.source_info
+    return (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns(),
+            str(info.source_id.zid) if info is not None else None)
+
+
 class QueueSubscriber:
     """Subscribe to key expressions; samples come out as ``(key, bytes, t_recv_ns)``.
 
@@ -316,15 +326,22 @@ class QueueSubscriber:
       taken. Key expressions are read in the order given, so a batch that put
       housekeeping before counts is read that way too. A full channel blocks
       zenoh's receive path: back-pressure as above.
+
+    ``sources=True``: items are ``(key, bytes, t_recv_ns, source)``, ``source``
+    the zenoh id of the session that published the sample (its source info,
+    which zenoh's ``AdvancedPublisher`` sets: ``io/history.py``), None when the
+    sample has none; two publishers on one key tell apart by it
+    (``core.sequence.PublisherSequences``).
     """
 
     def __init__(self, session, key_exprs: Iterable[str], maxsize: int = 4096, stop=None, mode: str = "callback",
-                 max_bytes: int = 0, recover: str = ""):
+                 max_bytes: int = 0, recover: str = "", sources: bool = False):
         if mode not in ("callback", "channel"):
             raise ConfigError(f"QueueSubscriber mode must be 'callback' or 'channel', got {mode!r}")
         if max_bytes and mode != "callback":
             raise ConfigError("QueueSubscriber max_bytes needs mode='callback'")
         self.mode = mode
+        self._item = _item_with_source if sources else _item
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)
         # Payload bytes queued, bounded by max_bytes (0: by count only): a queue of big messages
         # must not hold gigabytes. Full means the callback waits, as for a full count.
@@ -354,7 +371,7 @@ class QueueSubscriber:
                 raise TransportError(f"cannot subscribe to {expr!r}: {exc}") from None
 
     def _on_sample(self, sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        item = self._item(sample)
         if self.max_bytes and not self._reserve(len(item[1])):
             self.dropped_on_close += 1
             return
@@ -406,7 +423,7 @@ class QueueSubscriber:
             sample = sub.try_recv()
             if sample is not None:
                 self.received += 1
-                return str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+                return self._item(sample)
         return None
 
     def get(self, timeout_s: float | None = None):
@@ -455,7 +472,7 @@ class QueueSubscriber:
                     break
                 n += 1
                 self.received += 1
-                yield str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+                yield self._item(sample)
 
     def qsize(self) -> int:
         return self._queue.qsize()
@@ -467,7 +484,7 @@ class QueueSubscriber:
             if self.mode == "channel":
                 # Empty zenoh's channel first: a full one would hold up its receive thread.
                 while (sample := sub.try_recv()) is not None:
-                    self._leftover.append((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+                    self._leftover.append(self._item(sample))
             with contextlib.suppress(Exception):
                 sub.undeclare()
         self._subs.clear()

@@ -553,7 +553,9 @@ class Aggregator:
         self.statuses[status.service] = (status, int(t_recv_ns), rate)
         # Reduced once per status, not per tick: a ledger may list thousands of streams.
         self._ledgers[status.service] = ledger_view(getattr(status, "ledger", None) or {},
-                                                    self.config.max_ledger_streams)
+                                                    self.config.max_ledger_streams,
+                                                    getattr(status, "began_at", None) or {},
+                                                    getattr(status, "conflicts", None) or {})
         self._shed_watch.observe(status.service, int(getattr(status, "chunks_shed", 0) or 0), int(t_recv_ns))
 
     def add_bad(self, reason: str) -> None:

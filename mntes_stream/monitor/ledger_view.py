@@ -7,14 +7,17 @@ shows, per converter and per stream, the columns converted, late, shed,
 rejected, duplicate, never received, lost (``never received + shed +
 rejected``: :data:`~mntes_stream.core.ledger.LOST_MEANS`) and pending, and a
 converter is *shedding* while it holds chunks set aside or its shed count grew
-within the last ``shedding_recent_s``.
+within the last ``shedding_recent_s``. A converter that took some streams
+neither from their first chunk nor from a checkpoint (status ``began_at``:
+it started, or restarted, after their first chunks left the sources' history)
+is said with the numbers it began at (``began_line``).
 """
 
 from __future__ import annotations
 
 from mntes_stream.core.ledger import LOST_MEANS, StreamLedger, stream_order, summary_line
 
-__all__ = ["COLUMNS", "LOST_MEANS", "ShedWatch", "ledger_view", "row_of"]
+__all__ = ["COLUMNS", "LOST_MEANS", "ShedWatch", "began_line", "conflict_text", "ledger_view", "row_of"]
 
 #: Columns of a row, in the order the page and the table show them.
 COLUMNS = ("converted", "late", "shed", "rejected", "duplicate", "never_received", "lost", "pending")
@@ -34,7 +37,29 @@ def _parse(columns) -> StreamLedger | None:
         return None
 
 
-def ledger_view(ledger: dict, max_streams: int) -> dict | None:
+def began_line(began_at: dict, most: int = 8) -> str:
+    """What a converter's ``began_at`` says, in one line ("" when empty)."""
+    if not began_at:
+        return ""
+    items = sorted(began_at.items(), key=lambda kv: stream_order(str(kv[0])))
+    text = ", ".join(f"{s} at seq {n}" for s, n in items[:most])
+    more = f" and {len(items) - most} more" if len(items) > most else ""
+    return (f"began {text}{more} (no checkpoint): what came before never reached this converter; a recording of "
+            "the counts has them, and offline convert gives their power")
+
+
+def conflict_text(conflicts: dict, most: int = 8) -> str:
+    """What a converter's ``conflicts`` says, in one line ("" when empty)."""
+    if not conflicts:
+        return ""
+    items = sorted(conflicts.items(), key=lambda kv: stream_order(str(kv[0])))
+    text = ", ".join(f"{s} by {n}" for s, n in items[:most]) + (", ..." if len(items) > most else "")
+    return (f"CONFLICT: streams sent by more than one publisher side by side ({text}): each one's chunks are "
+            "numbered apart; two sources or bridges on one setup?")
+
+
+def ledger_view(ledger: dict, max_streams: int, began_at: dict | None = None,
+                conflicts: dict | None = None) -> dict | None:
     """The ledger of one status, reduced for the page.
 
     Parameters
@@ -43,13 +68,19 @@ def ledger_view(ledger: dict, max_streams: int) -> dict | None:
         A status's ``ledger`` (stream -> columns).
     max_streams : int
         Streams listed at most: those with something lost, shed or rejected first, then in order.
+    began_at : dict, optional
+        A status's ``began_at`` (stream -> the first sequence number the converter took).
+    conflicts : dict, optional
+        A status's ``conflicts`` (stream -> publishers sending it side by side).
 
     Returns
     -------
     dict or None
         None for an empty ledger (a converter of an earlier version); else ``totals`` and ``streams``
         (rows of :func:`row_of` plus ``stream``), ``streams_total``, ``unreadable`` (streams whose
-        columns could not be read), ``line`` (the one-line summary) and ``lost_means``.
+        columns could not be read), ``line`` (the one-line summary), ``lost_means`` and ``began_line``
+        (:func:`began_line`; "" when the converter began every stream at its start) and ``conflict_line``
+        (:func:`conflict_text`).
     """
     if not ledger:
         return None
@@ -64,7 +95,8 @@ def ledger_view(ledger: dict, max_streams: int) -> dict | None:
         rows.append({"stream": str(stream), **row_of(s)})
     rows.sort(key=lambda r: (-(r["lost"] + r["shed"] > 0), stream_order(r["stream"])))
     return {"totals": row_of(total), "streams": rows[:max_streams], "streams_total": len(rows),
-            "unreadable": unreadable, "line": summary_line(total, "converted"), "lost_means": LOST_MEANS}
+            "unreadable": unreadable, "line": summary_line(total, "converted"), "lost_means": LOST_MEANS,
+            "began_line": began_line(began_at or {}), "conflict_line": conflict_text(conflicts or {})}
 
 
 class ShedWatch:

@@ -99,6 +99,9 @@ def ledger_lines(services: list[dict], max_listed: int = 12) -> list[str]:
         if not led:
             continue
         out.append(f"ledger {s['service']}: {led['line']}")
+        for line in (led.get("conflict_line"), led.get("began_line")):
+            if line:
+                out.append(f"  {line}")
         rows = led["streams"][:max_listed]
         if not rows:
             continue

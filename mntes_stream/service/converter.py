@@ -378,7 +378,7 @@ class ConverterService(Service):
         # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
         # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
         self._sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=ctx.stop, mode="callback",
-                                    recover="history")
+                                    recover="history", sources=True)  # each chunk's publisher: two on one key
         try:
             # Provenance on request too: a recorder started later asks instead of waiting for the next one.
             answer(session, self._prov_key, pipe.provenance_bytes())
@@ -427,7 +427,7 @@ class ConverterService(Service):
                 self.heartbeat.beat(**pipe.counters.as_dict(), chunks_lost=st.chunks_lost,
                                     latency_p99_ms=st.latency_p99_ms, arrival_p99_ms=st.arrival_p99_ms,
                                     bad_messages=sum(st.bad_messages.values()),
-                                    samples_per_s=st.rate_msamples_per_s * 1e6)
+                                    samples_per_s=st.rate_msamples_per_s * 1e6, conflicts=st.conflicts)
         if time.monotonic() >= self._next_prov:
             pubs.put(self._prov_key, pipe.provenance_bytes())
             self._next_prov = time.monotonic() + cfg.provenance_interval_s

@@ -176,12 +176,15 @@ class ConverterPipeline:
     def handle_many(self, items) -> list[tuple[str, bytes]]:
         """Process received ``(key, payload, t_recv_ns)`` messages in order; returns the messages to publish.
 
+        An item may carry a fourth element, its publisher (``QueueSubscriber(sources=True)``): chunks of one
+        stream from two publishers side by side are then numbered apart (``core.sequence.PublisherSequences``).
+
         One batch through the stages: each message is decoded, booked and held
         or released as :meth:`handle` would, message by message; the released
         chunks are then converted together, so the power is the same as from
         :meth:`handle` called per message, for less work per chunk.
         """
-        return self._run([(k, p, t) for k, p, t in items] + [END])
+        return self._run([tuple(item) for item in items] + [END])  # (key, payload, t_recv_ns[, source])
 
     def tick(self, t_now_ns: int) -> list[tuple[str, bytes]]:
         """Let time pass without a message: release chunks that waited long enough, status when due."""

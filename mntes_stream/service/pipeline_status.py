@@ -9,6 +9,7 @@ import numpy as np
 
 from mntes_stream import __version__
 from mntes_stream.core import flags as fl
+from mntes_stream.core.shards import StreamKey
 from mntes_stream.io import keys
 from mntes_stream.io.messages import Provenance, StatusMessage
 from mntes_stream.service.housekeeping import ns
@@ -84,6 +85,8 @@ class Status:
             chunks_rejected=tot.rejected_total,
             chunks_set_aside=len(seq.aside),
             ledger=led.as_dict(),
+            began_at={str(StreamKey(*k)): v for k, v in seq.began.items() if v > 0},
+            conflicts={str(StreamKey(*k)): n for k, n in seq.conflicts.items()},
             chunks_duplicated=sum(s.duplicated for s in streams),
             chunks_out_of_order=sum(s.out_of_order for s in streams),
             hk_received=c.hk_received,

@@ -139,7 +139,12 @@ class RecorderStats:
     room (``writer_wait_s`` in all; nothing is dropped); ``cpu_s`` the
     process's CPU (every thread), ``samples`` the counts samples recorded and
     ``cpu_s_per_msamples`` the one per million of the other;
-    ``receive_cpu_s_per_msamples`` the same for the receive thread alone.
+    ``receive_cpu_s_per_msamples`` the same for the receive thread alone;
+    ``unpowered`` per stream the counts chunks recorded without their power
+    (``count``, ``ranges`` of numbers ``[lo, hi)``: ``io.mcap.ledger.unpowered``)
+    ``conflicts`` the streams two or more publishers sent side by side (each
+    one's chunks numbered apart: ``core.sequence.PublisherSequences``); and
+    ``ledger_note`` both in words, for the closing line.
     """
 
     messages: int
@@ -169,6 +174,9 @@ class RecorderStats:
     samples: int = 0
     cpu_s_per_msamples: float | None = None
     receive_cpu_s_per_msamples: float | None = None
+    unpowered: dict | None = None
+    conflicts: dict | None = None
+    ledger_note: str = ""
 
     def final_line(self) -> str:
         """The ledger in one line: what ``record`` prints last."""
@@ -177,7 +185,7 @@ class RecorderStats:
 
 def final_line(stats: dict) -> str:
     """The recorder's ledger in one line, from its statistics as a dict (``RecorderStats`` or a child's summary)."""
-    line = f"ledger: counts {stats.get('ledger_line') or 'received 0 chunks'}"
+    line = f"ledger: counts {stats.get('ledger_line') or 'received 0 chunks'}{stats.get('ledger_note') or ''}"
     only = list(stats.get("power_only") or ())
     if only:
         line += (f"; WARNING power without its counts for {len(only)} stream(s) ({', '.join(only[:8])}"
@@ -194,6 +202,16 @@ def cost_line(stats: dict) -> str:
         line += (f"; the writer's queue was full {stats['writer_queue_full']} time(s): receiving waited "
                  f"{stats.get('writer_wait_s', 0.0):.1f} s (back-pressure, nothing dropped)")
     return line
+
+
+def _open_holes(book) -> dict:
+    """The heartbeat's (``ps``) view of counts recorded without power, below each stream's newest power: ``unpowered``
+    (stream -> chunks) and ``unpowered_seqs`` (stream -> its first ranges, as text); empty when none."""
+    from mntes_stream.core.sequence import format_ranges
+
+    holes = book.unpowered(open_only=True)  # always both keys: the heartbeat keeps what a beat does not name
+    return {"unpowered": {s: h["count"] for s, h in holes.items()},
+            "unpowered_seqs": {s: format_ranges(h["ranges"], 4) for s, h in list(holes.items())[:64]}}
 
 
 def run_recorder(config: RecorderConfig, stop=None, ready=None) -> RecorderStats:
@@ -265,7 +283,8 @@ class RecorderService(Service):
             # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
             # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
             self._sub = QueueSubscriber(ctx.session, [config.subscription], maxsize=config.queue_messages,
-                                        max_bytes=int(config.queue_mb * 1e6), recover="history")
+                                        max_bytes=int(config.queue_mb * 1e6), recover="history",
+                                        sources=True)  # each message's publisher: two on one stream told apart
             # A converter's provenance, answered on request, is recorded from the start too (only that:
             # the heartbeat queryables under alive/ answer a wider query, and are not data).
             self._sub.query(ctx.session, keys.provenance_key(config.setup))
@@ -304,7 +323,8 @@ class RecorderService(Service):
                 "writer_queue_full": writer.queue_full, **sink.coverage.summary(time.monotonic()),
                 "ledger_line": led.line(), "chunks_recorded": t.done, "chunks_missing": t.missing,
                 "chunks_duplicate": t.duplicate, "chunks_lost": t.lost,
-                "cpu_s_per_msamples": sink.cpu()["cpu_s_per_msamples"]}
+                "cpu_s_per_msamples": sink.cpu()["cpu_s_per_msamples"], **_open_holes(book),
+                "conflicts": book.conflicts()}
 
     def finish(self, ctx) -> dict:
         sink, sub = self._sink, self._sub
@@ -325,7 +345,12 @@ class RecorderService(Service):
             error = error or exc
         if error is not None:
             raise _failed(error) from error
+        from mntes_stream.io.mcap.ledger import conflict_line, unpowered_line
+
         led = book.ledger_now()
+        holes = book.unpowered()
+        if holes:
+            log.warning("recording lacks %s", unpowered_line(holes))
         trackers = [*sink.sequences.values(), *book.sequences.values()]
         now = time.monotonic()
         self.stats = stats = RecorderStats(
@@ -352,6 +377,9 @@ class RecorderService(Service):
             writer_queue_full=writer.queue_full,
             writer_wait_s=round(writer.wait_s, 3),
             writer_queue_high_water=writer.queue_high_water,
+            unpowered=holes,
+            conflicts=book.conflicts(),
+            ledger_note="".join(f"; WARNING {x}" for x in (unpowered_line(holes), conflict_line(book.conflicts())) if x),
             **sink.cpu(),
         )
         log.info("recorder stopped: %s", stats)

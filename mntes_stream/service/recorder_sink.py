@@ -14,7 +14,7 @@ import os
 import socket
 import time
 
-from mntes_stream.core.sequence import StreamSequence
+from mntes_stream.core.sequence import PublisherSequences
 from mntes_stream.core.shards import Shard
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.background import BackgroundMcapWriter
@@ -60,7 +60,7 @@ class RecorderSink:
         # this thread, at the hand-over where the file ends, so it counts exactly what the file holds.
         self.writer.closing_metadata = lambda file_seq: {LEDGER_METADATA: self.book.metadata(self.run, file_seq)}
         self.coverage = Coverage(config.unconverted_after_s)
-        self.sequences: dict[str, StreamSequence] = {}  # topics other than counts (the book tracks those)
+        self.sequences: dict[str, PublisherSequences] = {}  # topics other than counts (the book tracks those)
         self.by_kind: dict[str, int] = {}
         self.samples = 0  # counts samples (channels x samples of every valid counts chunk)
         self._kinds: dict[str, str] = {}
@@ -68,8 +68,9 @@ class RecorderSink:
         self.cpu0_s = time.process_time()
         self.thread_cpu0_s = time.thread_time()  # the receive thread's: a sink is fed by the thread that made it
 
-    def add(self, topic: str, payload: bytes, t_ns: int) -> None:
-        """One received message: header, books, hand-over to the writer (waits while its queue is full)."""
+    def add(self, topic: str, payload: bytes, t_ns: int, source: str | None = None) -> None:
+        """One received message (``source``: its publisher's zenoh id, if known): header, books, hand-over to the
+        writer (waits while its queue is full)."""
         if self._mine is not None and not self._mine(topic):
             return
         kind = self._kinds.get(topic)
@@ -82,7 +83,7 @@ class RecorderSink:
         late = env.late and kind == "power" and not env.problem
         lag_s = None if kind != "power" or env.publish_time_ns is None else (t_ns - env.publish_time_ns) / 1e9
         self.coverage.add(topic, env.seq, time.monotonic(), late=late, lag_s=lag_s)
-        self.book.add(topic, payload, env, t_ns, late=late, kind=kind)
+        self.book.add(topic, payload, env, t_ns, late=late, kind=kind, source=source)
         if kind == "counts":
             if not env.problem:
                 self.samples += env.samples
@@ -97,8 +98,8 @@ class RecorderSink:
         if env.seq is not None and kind != "counts":
             seq = self.sequences.get(topic)
             if seq is None:
-                seq = self.sequences[topic] = StreamSequence()
-            seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
+                seq = self.sequences[topic] = PublisherSequences()
+            seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns, source)
         self.writer.rotate_if_full()  # after booking: the closing ledger of a full file counts its last message
 
     def cpu(self) -> dict:

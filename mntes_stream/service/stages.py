@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mntes_stream.core.ledger import OTHER, Ledger
-from mntes_stream.core.sequence import StreamSequence, Verdict
+from mntes_stream.core.sequence import PublisherSequences, Verdict
 from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
 from mntes_stream.io.lean import CountsDecoder
@@ -158,6 +158,7 @@ class Counts:
     chunk: CountsChunk
     key: str
     t_recv_ns: int
+    source: str | None = None  # the publisher (zenoh id), when the transport says it
 
 
 @dataclass(frozen=True)
@@ -209,11 +210,11 @@ class Decode:
             if type(item) is not tuple:
                 out.append(item)
                 continue
-            key, payload, t_recv_ns = item
+            key, payload, t_recv_ns = item[:3]
             key, t_recv_ns = str(key), int(t_recv_ns)
             books.advance(t_recv_ns)
             try:
-                decoded = self._one(key, payload, t_recv_ns, setup)
+                decoded = self._one(key, payload, t_recv_ns, setup, item[3] if len(item) > 3 else None)
             except SchemaError as exc:
                 books.bad(exc.reason, str(exc), key)
                 decoded = None
@@ -223,7 +224,7 @@ class Decode:
             out.append(decoded if decoded is not None else Tick(t_recv_ns))
         return out
 
-    def _one(self, key: str, payload: bytes, t_recv_ns: int, setup: str):
+    def _one(self, key: str, payload: bytes, t_recv_ns: int, setup: str, source: str | None = None):
         books = self.books
         info = self._keys.get(key)
         if info is None:
@@ -256,7 +257,7 @@ class Decode:
                                             "parameters (given no state, not converted)", key)
                 return None
             books.interval.arrival_ms.append((t_recv_ns - chunk.t_pub_ns) / 1e6)
-            return Counts(info, chunk, key, t_recv_ns)
+            return Counts(info, chunk, key, t_recv_ns, source)
         if kind == "hk":
             return Hk(info, HousekeepingChunk.from_bytes(payload), key, t_recv_ns)
         books.bad("wrong_key", f"the converter does not consume {kind!r} messages", key)
@@ -272,7 +273,10 @@ class Sequence:
     """:class:`Counts` to :class:`Pending`: each chunk's sequence number booked per ``(board, module)`` stream.
 
     ``core.sequence``: lost, late and duplicates (dropped) counted, a restarted
-    stream resynchronised (``bad_messages["seq_reset"]``, not lost). Under a
+    stream resynchronised (``bad_messages["seq_reset"]``, not lost); two
+    publishers sending one stream side by side numbered apart and reported
+    (``conflicts``, ``PublisherSequences``); a stream not taken from its first
+    chunk nor from a checkpoint: the lowest number taken (``began``). Under a
     real overload (``overloaded``, set by the live service), a chunk further
     behind its own stream's pace than ``max_lag_s`` is set aside (``aside``)
     for late conversion, the oldest shed beyond ``set_aside_bytes``.
@@ -282,7 +286,8 @@ class Sequence:
 
     def __init__(self, books: Books, modules, set_aside_bytes: int):
         self.books, self.modules = books, modules
-        self.streams: dict[tuple[int, int], StreamSequence] = {}
+        self.streams: dict[tuple[int, int], PublisherSequences] = {}
+        self.conflicts: dict[tuple[int, int], int] = {}  # streams two publishers send side by side -> publishers
         self.pace: dict[tuple[int, int], DelayFloor] = {}
         self.overloaded = False
         self.aside: collections.deque[Pending] = collections.deque()
@@ -293,6 +298,9 @@ class Sequence:
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
         # ... and for good: older chunks (history from the sources' caches) were converted before the restart.
         self._floor: dict[tuple[int, int], tuple[int, int]] = {}
+        # Streams not continued from a checkpoint: the lowest number this converter took (status ``began_at``).
+        # A converter started after the sources' history moved past a stream's first chunks never sees those.
+        self.began: dict[tuple[int, int], int] = {}
 
     def __call__(self, items: list) -> list:
         out = []
@@ -315,7 +323,7 @@ class Sequence:
         books.ledger.received(stream)
         t = self._times(chunk)
         t_first = int(t[0]) if t.size else chunk.t_pub_ns
-        verdict = self._sequence(stream, chunk.seq, t_first, item.key)
+        verdict = self._sequence(stream, chunk.seq, t_first, item.key, item.source)
         if verdict is Verdict.DUPLICATE:
             books.ledger.duplicate(stream)
             return None
@@ -345,18 +353,33 @@ class Sequence:
             t.setflags(write=False)
         return t
 
-    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str) -> Verdict:
-        """Book-keep a sequence number; the tracker's verdict (``DUPLICATE``: drop it)."""
+    def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str,
+                  source: str | None = None) -> Verdict:
+        """Book-keep a sequence number of ``source`` (a publisher); the tracker's verdict (``DUPLICATE``: drop it)."""
         s = self.streams.get(stream_id)
         if s is None:
-            s = self.streams[stream_id] = StreamSequence()
+            s = self.streams[stream_id] = PublisherSequences()
+            if stream_id not in self._resumed:
+                self.began[stream_id] = seq
+                if seq > 0:
+                    log.info("%s: the first chunk this converter takes is seq %d (no checkpoint): what came before "
+                             "is not converted here; a recorder that holds their counts says so, and offline "
+                             "`convert` of its recording gives their power", key, seq)
+        elif seq < self.began.get(stream_id, seq):  # history that reached this converter after a newer chunk
+            self.began[stream_id] = seq
         expected = s.next
         floor = self._floor.get(stream_id) if self._floor else None
         if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
             s.duplicated += 1  # converted by the converter that ran before this restart (its checkpoint says so)
             return Verdict.DUPLICATE
         resumed = self._resumed.pop(stream_id, None) if self._resumed else None
-        verdict = s.observe(seq, t_first_ns)
+        verdict = s.observe(seq, t_first_ns, source)
+        if s.conflict and self.conflicts.get(stream_id) != s.publishers:
+            self.conflicts[stream_id] = s.publishers
+            self.books.last_error = (f"conflict: {s.publishers} publishers send {key} side by side (two sources or "
+                                     "bridges on one setup?): each one's chunks are numbered apart, a chunk two "
+                                     "send is a duplicate")
+            log.warning("%s", self.books.last_error)
         if resumed is not None and seq > resumed[0] and t_first_ns > resumed[1]:  # newer data, later numbers
             missed = seq - resumed[0]  # (a gap too long for the tracker is a reset there, but missed all the same)
             self.books.counters.chunks_missed_while_down += missed
@@ -374,7 +397,7 @@ class Sequence:
             stream = (int(stream[0]), int(stream[1]))
             if stream in self.streams or (self.modules is not None and stream not in self.modules):
                 continue
-            s = self.streams[stream] = StreamSequence()
+            s = self.streams[stream] = PublisherSequences()
             s.observe(int(seq), int(t_ns))
             self._resumed[stream] = self._floor[stream] = (s.next, int(t_ns))
         return len(self._resumed)

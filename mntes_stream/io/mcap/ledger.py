@@ -4,7 +4,12 @@ The recorder books every message it writes in a :class:`RecordingBook`: the
 counts chunks of each stream (``core.ledger.Ledger("recorded")``: recorded,
 duplicate, malformed, never received from the stream's sequence numbers), the
 power chunks (converted live or late), and the newest status of every converter
-(its own ledger: converted, late, shed, rejected). At the close of each file the
+(its own ledger: converted, late, shed, rejected). The sequence numbers of
+each stream's recorded counts and power chunks are kept as ranges
+(``core.sequence.SeqRanges``), so the counts chunks recorded without their
+power (a converter that started late, or was restarted past the sources'
+history) are named by number: :meth:`RecordingBook.unpowered`, the
+``unpowered`` of every summary. At the close of each file the
 book is written as the metadata record ``mntes.ledger`` (:meth:`RecordingBook.metadata`;
 strings only, as MCAP metadata is), covering the recorder's run up to that file.
 :func:`recording_ledger` reads it back for ``inspect``, or, when a file has
@@ -20,12 +25,13 @@ from dataclasses import dataclass
 import msgpack
 
 from mntes_stream.core.ledger import LOST_MEANS, OTHER, Ledger, stream_order
-from mntes_stream.core.sequence import StreamSequence, Verdict
+from mntes_stream.core.sequence import PublisherSequences, SeqRanges, Verdict, format_ranges
 from mntes_stream.errors import MntesError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.envelope import Envelope, peek_envelope
 
-__all__ = ["LEDGER_METADATA", "RecordingBook", "RecordingLedger", "power_is_late", "recompute_ledger", "recording_ledger"]
+__all__ = ["LEDGER_METADATA", "RecordingBook", "RecordingLedger", "power_is_late", "recompute_ledger", "recording_ledger",
+           "conflict_line", "seqs_from_dict", "unpowered", "unpowered_line"]
 
 LEDGER_METADATA = "mntes.ledger"
 _MAX_STREAMS = 100_000  # streams booked by name at most; more (made-up topics) go to core.ledger.OTHER
@@ -61,12 +67,15 @@ class RecordingBook:
     def __init__(self, setup: str | None = None):
         self.setup = setup
         self.ledger = Ledger("recorded")
-        self.sequences: dict[str, StreamSequence] = {}  # counts topic -> its tracker
+        self.sequences: dict[str, PublisherSequences] = {}  # counts topic -> its tracker (per publisher, if several)
         self._stream_of: dict[str, str] = {}  # counts topic -> ledger stream
         self._power_stream_of: dict[str, str] = {}  # power topic -> its stream (named once, not per message)
         self.power: dict[str, list[int]] = {}  # stream -> [live, late]
         self.converters: dict[str, dict] = {}  # status service -> its newest ledger and counters
         self.status_topics: dict[str, str] = {}  # status topic -> the service its newest status named
+        self.counts_seqs: dict[str, SeqRanges] = {}  # stream -> the numbers of its counts chunks recorded
+        self.power_seqs: dict[str, SeqRanges] = {}  # stream -> the numbers of its power chunks recorded (live, late)
+        self.restarted: set[str] = set()  # streams whose numbering started over (a source restarted)
 
     def _stream(self, topic: str) -> str | None:
         parts = topic.split("/")
@@ -79,16 +88,17 @@ class RecordingBook:
         return stream if stream in known or len(known) < _MAX_STREAMS else OTHER
 
     def add(self, topic: str, payload: bytes, env: Envelope, t_ns: int, late: bool | None = None,
-            kind: str | None = None) -> Verdict | None:
+            kind: str | None = None, source: str | None = None) -> Verdict | None:
         """Book one recorded message; returns the counts chunk's :class:`~mntes_stream.core.sequence.Verdict`, else None.
 
         ``late``: whether a power payload is marked late, when the caller read it already (else read here);
-        ``kind``: the topic's ``keys.kind_of``, when the caller knows it (else found here).
+        ``kind``: the topic's ``keys.kind_of``, when the caller knows it (else found here); ``source``: the
+        publisher (zenoh id) when the transport says it (two on one stream are numbered apart: ``conflicts``).
         """
         if kind is None:
             kind = keys.kind_of(topic)
         if kind == "counts":
-            return self._counts(topic, env, t_ns)
+            return self._counts(topic, env, t_ns, source)
         if kind == "power":
             stream = self._power_stream_of.get(topic)
             if stream is None:
@@ -96,15 +106,21 @@ class RecordingBook:
                 if stream is not None and len(self._power_stream_of) < _MAX_STREAMS:
                     self._power_stream_of[topic] = stream
             if stream is not None and not env.problem:
-                cols = self.power.setdefault(self._bounded(stream, self.power), [0, 0])
+                stream = self._bounded(stream, self.power)
+                cols = self.power.setdefault(stream, [0, 0])
                 cols[1 if (power_is_late(payload) if late is None else late) else 0] += 1
+                if env.seq is not None:
+                    seqs = self.power_seqs.get(stream)
+                    if seqs is None:
+                        seqs = self.power_seqs[stream] = SeqRanges()
+                    seqs.add(env.seq)
         elif kind == "status" and env.schema == "mntes.status" and not env.problem:
             service = self.status(payload)
             if service is not None and (topic in self.status_topics or len(self.status_topics) < _MAX_CONVERTERS):
                 self.status_topics[topic] = service
         return None
 
-    def _counts(self, topic: str, env: Envelope, t_ns: int) -> Verdict | None:
+    def _counts(self, topic: str, env: Envelope, t_ns: int, source: str | None = None) -> Verdict | None:
         stream = self._stream_of.get(topic)
         if stream is None:
             stream = self._stream(topic)
@@ -119,15 +135,31 @@ class RecordingBook:
             return None
         seq = self.sequences.get(topic)
         if seq is None:
-            seq = StreamSequence()
+            seq = PublisherSequences()
             if len(self.sequences) < _MAX_STREAMS:
                 self.sequences[topic] = seq
-        verdict = seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns)
+        verdict = seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns, source)
         if verdict is Verdict.DUPLICATE:
             self.ledger.duplicate(stream)
-        else:
-            self.ledger.done(stream)
+            return verdict
+        self.ledger.done(stream)
+        seqs = self.counts_seqs.get(stream)
+        if seqs is None:
+            seqs = self.counts_seqs[stream] = SeqRanges()
+        seqs.add(env.seq)
+        if verdict is Verdict.RESET:
+            self.restarted.add(stream)
         return verdict
+
+    def unpowered(self, open_only: bool = False) -> dict[str, dict]:
+        """Per stream, the counts chunks recorded without their power: ``count``, ``ranges`` (``[lo, hi)``),
+        ``untracked`` (numbers the bounded ranges could not place: the count is then a bound), ``restarted``.
+
+        ``open_only``: only the numbers below the newest power recorded of the stream (a hole while power flows
+        after it), streams without any power left out (no converter yet: ``Coverage.unconverted`` says those);
+        else every counts chunk without power, the tail included (what the recording lacks now).
+        """
+        return unpowered(self.counts_seqs, self.power_seqs, self.restarted, open_only)
 
     def status(self, payload: bytes) -> str | None:
         """A converter's status message: keep the newest of each service (its ledger and counters).
@@ -162,6 +194,23 @@ class RecordingBook:
             self.ledger.set_missing(stream, n)
         return self.ledger
 
+    def conflicts(self) -> dict[str, int]:
+        """Streams two or more publishers send side by side -> how many (``core.sequence.PublisherSequences``)."""
+        return {self._stream_of.get(t, OTHER): s.publishers for t, s in self.sequences.items() if s.conflict}
+
+    def seqs_dict(self) -> dict[str, dict]:
+        """Per stream, the ranges of the counts and power numbers recorded (JSON-ready; :func:`seqs_from_dict`)."""
+        out = {}
+        for stream in sorted(set(self.counts_seqs) | set(self.power_seqs), key=stream_order):
+            c, p = self.counts_seqs.get(stream, SeqRanges()), self.power_seqs.get(stream, SeqRanges())
+            d = {"counts": c.to_list(), "power": p.to_list()}
+            if c.untracked or p.untracked:
+                d["untracked"] = [c.untracked, p.untracked]
+            if stream in self.restarted:
+                d["restarted"] = True
+            out[stream] = d
+        return out
+
     def metadata(self, run: str, file_seq: int) -> dict[str, str]:
         """The ``mntes.ledger`` record of this run up to and including file ``file_seq``."""
         led = self.ledger_now()
@@ -174,10 +223,75 @@ class RecordingBook:
             "recorder_line": led.line(),
             "power": json.dumps(self.power, separators=(",", ":")),
             "converters": json.dumps(self.converters, separators=(",", ":")),
+            "seqs": json.dumps(self.seqs_dict(), separators=(",", ":")),
+            "conflicts": json.dumps(self.conflicts(), separators=(",", ":")),
         }
         for name, entry in sorted(self.converters.items()):
             out[f"converter.{name}"] = _converter_line(entry)
         return out
+
+
+def unpowered(counts_seqs: dict, power_seqs: dict, restarted=(), open_only: bool = False) -> dict[str, dict]:
+    """Counts without power per stream, from the ranges of numbers recorded (see :meth:`RecordingBook.unpowered`)."""
+    out = {}
+    empty = SeqRanges()
+    for stream, c in counts_seqs.items():
+        p = power_seqs.get(stream, empty)
+        if open_only and p.newest is None:
+            continue
+        holes = c.minus(p, below=p.newest if open_only else None)
+        untracked = c.untracked + p.untracked
+        if holes or untracked:
+            d = {"count": sum(hi - lo for lo, hi in holes), "ranges": [[lo, hi] for lo, hi in holes]}
+            if untracked:
+                d["untracked"] = untracked
+            if stream in restarted:
+                d["restarted"] = True
+            out[stream] = d
+    return dict(sorted(out.items(), key=lambda kv: stream_order(kv[0])))
+
+
+def seqs_from_dict(d: dict) -> tuple[dict, dict, set]:
+    """The counts and power ranges per stream (and the restarted streams) of :meth:`RecordingBook.seqs_dict`."""
+    counts, power, restarted = {}, {}, set()
+    for stream, v in (d or {}).items():
+        cu, pu = (v.get("untracked") or [0, 0])[:2]
+        counts[stream] = SeqRanges.from_list(v.get("counts") or (), cu)
+        power[stream] = SeqRanges.from_list(v.get("power") or (), pu)
+        if v.get("restarted"):
+            restarted.add(stream)
+    return counts, power, restarted
+
+
+def unpowered_line(holes: dict, most_streams: int = 8) -> str:
+    """What a recording lacks, in one clause: the counts chunks without power per stream, their numbers, and that
+    offline ``convert`` gives their power ("" when there are none)."""
+    if not holes:
+        return ""
+    total = sum(h["count"] for h in holes.values())
+    parts = []
+    for stream, h in list(holes.items())[:most_streams]:
+        parts.append(f"{stream} {format_ranges(h['ranges'], 4)}{_notes(h)}" if h["ranges"] else f"{stream}{_notes(h)}")
+    more = len(holes) - most_streams
+    return (f"{total} counts chunk(s) recorded without power ({'; '.join(parts)}"
+            f"{f'; and {more} more stream(s)' if more > 0 else ''}): offline `mntes-stream convert` of this "
+            "recording gives their power")
+
+
+def conflict_line(conflicts: dict, most: int = 8) -> str:
+    """Streams two or more publishers sent side by side, in one clause ("" when none)."""
+    if not conflicts:
+        return ""
+    items = sorted(conflicts.items(), key=lambda kv: stream_order(kv[0]))
+    names = ", ".join(f"{s} by {n}" for s, n in items[:most]) + (", ..." if len(items) > most else "")
+    return (f"{len(items)} counts stream(s) sent by more than one publisher side by side ({names}): two sources or "
+            "bridges on one setup? Each one's chunks are numbered apart, a chunk two send is a duplicate")
+
+
+def _notes(h: dict) -> str:
+    """What makes a stream's counts without power a bound rather than exact (see :func:`unpowered`)."""
+    return "".join([f" (+ up to {h['untracked']} not placed: too fragmented)" if h.get("untracked") else "",
+                    " (its numbering restarted: before and after are merged)" if h.get("restarted") else ""])
 
 
 def _converter_line(c: dict) -> str:
@@ -194,6 +308,9 @@ class RecordingLedger:
 
     ``source`` is ``metadata`` (the recorder's ``mntes.ledger`` at close) or
     ``recomputed`` (from the recorded messages; ``note`` says why);
+    ``unpowered`` the counts chunks recorded without power, per stream (:func:`unpowered`; None: the metadata of
+    an earlier recorder, which kept no numbers); ``conflicts`` the streams the recorder saw sent by more than
+    one publisher side by side (a file's messages do not name their publisher: recomputed, none is found);
     ``recorder`` the counts streams (verb ``recorded``); ``power`` per stream
     ``[live, late]`` power chunks recorded; ``converters`` each converter's
     newest recorded status (``ledger`` as a dict, and its counters).
@@ -206,11 +323,13 @@ class RecordingLedger:
     note: str = ""
     runs: int = 1
     lost_means: str = LOST_MEANS
+    unpowered: dict | None = None
+    conflicts: dict | None = None
 
     def as_dict(self) -> dict:
         return {"source": self.source, "note": self.note, "runs": self.runs, "lost_means": self.lost_means,
                 "recorder": self.recorder.as_dict(), "recorder_line": self.recorder.line(), "power": self.power,
-                "converters": self.converters,
+                "converters": self.converters, "unpowered": self.unpowered, "conflicts": self.conflicts,
                 "converter_lines": {n: Ledger.from_dict(c.get("ledger") or {}).line() for n, c in self.converters.items()}}
 
     def lines(self) -> list[str]:
@@ -236,6 +355,17 @@ class RecordingLedger:
             c = Ledger.from_dict({s: conv[s]}).streams[s] if s in conv else None
             out.append(f"  {s:<12}{r.done if r else 0:>10}{r.missing if r else 0:>11}{r.duplicate if r else 0:>6}"
                        f"{p[0]:>8}{p[1]:>6}{c.shed_total if c else 0:>10}{c.rejected_total if c else 0:>9}")
+        if self.unpowered is None:
+            out.append("  counts without power: unknown (ledger metadata of an earlier recorder, without numbers)")
+        elif self.unpowered:
+            out.append(f"  counts without power: {sum(h['count'] for h in self.unpowered.values())} chunk(s) never "
+                       "converted in this recording; offline `mntes-stream convert` of it gives their power:")
+            for s, h in self.unpowered.items():
+                out.append(f"    {s}: {h['count']} chunk(s), {format_ranges(h['ranges'], 16)}{_notes(h)}")
+        else:
+            out.append("  counts without power: none (every recorded counts chunk has its power)")
+        if self.conflicts:
+            out.append(f"  CONFLICT: {conflict_line(self.conflicts)}")
         out.append(f"  ({self.lost_means})")
         return out
 
@@ -274,7 +404,8 @@ def recompute_ledger(session, note: str = "") -> RecordingLedger:
                 book.add(m.topic, m.payload, peek_envelope(m.payload), m.log_time_ns)
     except MntesError as exc:  # what was read so far is still booked; the rest is said
         note = f"{note}; reading stopped: {exc}" if note else f"reading stopped: {exc}"
-    return RecordingLedger("recomputed", book.ledger_now(), book.power, book.converters, note=note)
+    return RecordingLedger("recomputed", book.ledger_now(), book.power, book.converters, note=note,
+                           unpowered=book.unpowered())
 
 
 def _from_metadata(records) -> RecordingLedger:
@@ -287,6 +418,8 @@ def _from_metadata(records) -> RecordingLedger:
     recorder = Ledger("recorded")
     power: dict[str, list[int]] = {}
     converters: dict[str, dict] = {}
+    counts, pw, restarted, conflicts = {}, {}, set(), {}
+    numbered = all("seqs" in d for d in last.values())
     for d in last.values():
         recorder.merge(Ledger.from_dict(json.loads(d["recorder"]), "recorded"))
         for s, (live, late) in json.loads(d.get("power") or "{}").items():
@@ -296,6 +429,15 @@ def _from_metadata(records) -> RecordingLedger:
         for name, c in json.loads(d.get("converters") or "{}").items():
             if name not in converters or int(c.get("t_ns", 0)) > int(converters[name].get("t_ns", 0)):
                 converters[name] = c
+        if numbered:  # runs of recorders (restarted, or shards): a chunk with its power in any run has it
+            c_run, p_run, r_run = seqs_from_dict(json.loads(d["seqs"]))
+            for mine, theirs in ((counts, c_run), (pw, p_run)):
+                for s, r in theirs.items():
+                    mine[s] = mine[s].union(r) if s in mine else r
+            restarted |= r_run
+        for s, n in json.loads(d.get("conflicts") or "{}").items():
+            conflicts[s] = max(conflicts.get(s, 0), int(n))
     lost_means = next(iter(last.values())).get("lost_means", LOST_MEANS)
-    return RecordingLedger("metadata", recorder, power, converters, runs=len(last), lost_means=lost_means)
+    return RecordingLedger("metadata", recorder, power, converters, runs=len(last), lost_means=lost_means,
+                           unpowered=unpowered(counts, pw, restarted) if numbered else None, conflicts=conflicts)
 

@@ -336,7 +336,9 @@ function ledgerTable(service, led) {
   const more = led.streams_total - led.streams.length;
   return `<h3 class="ledger">ledger of ${esc(service)}: ${esc(led.line)}</h3>` +
     `<table class="ledger"><tr><th>stream</th>${head}</tr>${body}</table>` +
-    `${more > 0 ? `<p>+${more} more streams</p>` : ""}<p class="note">${esc(led.lost_means)}</p>`;
+    `${more > 0 ? `<p>+${more} more streams</p>` : ""}` +
+    [led.conflict_line, led.began_line].filter((x) => x).map((x) => `<p class="bad-cell">${esc(x)}</p>`).join("") +
+    `<p class="note">${esc(led.lost_means)}</p>`;
 }
 
 async function draw(msg) {
