@@ -312,3 +312,22 @@ def test_counts_without_power_are_merged_over_recorder_runs_and_recomputed_for_a
     again = recording_ledger(mio.Session(path))
     assert again.source == "recomputed" and again.unpowered == {"0/1": {"count": 3, "ranges": [[0, 1], [4, 5], [8, 9]]}}
     assert "0/1: 3 chunk(s), seq 0, 4, 8" in "\n".join(again.lines())
+
+
+def test_coverage_gives_a_streams_first_counts_their_grace_and_names_a_converter_not_yet_announced():
+    """The first seconds of any start (issue 34): a stream's counts come before its first power; that is no
+    missing power until after_s has passed since its first counts, and before any converter's provenance or
+    status the reason says none has announced itself yet, not that none publishes it."""
+    cov = Coverage(after_s=2.0)
+    cov.add("mntes/lab/counts/0/0", 0, 10.0)
+    cov.add("mntes/lab/counts/0/0", 1, 10.1)
+    assert cov.unconverted(10.1) == [] and cov.unconverted(11.9) == []  # before: warned at once, with no power yet
+    cov.add("mntes/lab/counts/0/0", 2, 12.1)
+    assert cov.unconverted(12.1) == ["0/0"]
+    assert cov.summary(12.1)["unconverted_why"] == {
+        "0/0": "no converter has announced itself yet (one is starting, or none runs)"}
+    cov.add("mntes/lab/provenance", None, 12.2)  # a converter's provenance: it runs
+    assert cov.reason("0/0") == "no converter publishes it"
+    assert cov.summary(12.3)["unconverted_why"] == {"0/0": "no converter publishes it"}
+    cov.add("mntes/lab/power/0/0", 0, 12.4)
+    assert cov.unconverted(12.5) == []

@@ -39,6 +39,8 @@ class Coverage:
     def __init__(self, after_s: float = 2.0):
         self.after_s = float(after_s)
         self._counts_t: dict[str, float] = {}  # "b/m" -> last counts receive time
+        self._counts_first_t: dict[str, float] = {}  # "b/m" -> first counts receive time: the grace starts there
+        self.converter_seen = False  # a converter's provenance or status came: before, none has announced itself
         self._power_t: dict[str, float] = {}
         self._power_first_t: dict[str, float] = {}
         self._power_seq: dict[str, int] = {}
@@ -65,12 +67,15 @@ class Coverage:
         ``lag_s``: receive wall time minus the publication time in the message, None if it has none)."""
         what = self._stream(topic)
         if what is None:
+            if topic.endswith("/provenance"):
+                self.converter_seen = True
             return
         kind, stream = what
         if stream not in self._counts_t and stream not in self._power_t and len(self._power_t) + len(self._counts_t) >= _MAX_STREAMS:
             return
         if kind == "counts":
             self._counts_t[stream] = t_s
+            self._counts_first_t.setdefault(stream, t_s)
             return
         if late:
             self.late[stream] = self.late.get(stream, 0) + 1
@@ -123,6 +128,7 @@ class Coverage:
 
     def converter_status(self, service: str, ledger: dict | None, set_aside: int = 0) -> None:
         """The newest status of a converter: its ledger (stream -> columns) and the chunks it holds set aside."""
+        self.converter_seen = True
         if service in self._converters or len(self._converters) < 1000:
             self._converters[str(service)] = (dict(ledger or {}), int(set_aside or 0))
 
@@ -171,9 +177,12 @@ class Coverage:
             if now_s - t_counts > self.after_s:
                 continue  # the stream itself stopped: nothing to convert
             t_power = self._power_t.get(stream)
-            if t_power is None or now_s - t_power > self.after_s:
+            # No power yet: only after after_s of counts (a stream's first counts come before its first power).
+            since = self._counts_first_t.get(stream, t_counts) if t_power is None else t_power
+            if now_s - since > self.after_s:
                 out.append(stream)
-                why = self.reason(stream)
+                why = self.reason(stream) if self.converter_seen else (
+                    "no converter has announced itself yet (one is starting, or none runs)")
                 if self._said.get(stream) != why:
                     self._said[stream] = why
                     log.warning("stream %s: counts without power for %.3g s: %s", stream, self.after_s, why)
