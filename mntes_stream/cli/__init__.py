@@ -92,6 +92,11 @@ def main(argv: list[str] | None = None) -> int:
     from mntes_stream.service.heap import pad_heap
 
     pad_heap()  # commands move payloads too (convert, record, bench): see service.heap
+    import warnings
+
+    # A warning is one line, as an error is (Python's own format adds the file, line and source line).
+    warnings.showwarning = lambda message, category, filename, lineno, file=None, line=None: print(
+        f"mntes-stream: warning: {message}", file=sys.stderr, flush=True)
     try:
         return int(args.func(args) or 0)
     except MntesError as exc:  # said on purpose: bad config, input or data, a dead endpoint

@@ -107,6 +107,8 @@ def run_inspect(args) -> int:
         s = Session(args.files)
     meta = s.metadata()
     out = {
+        "sessions": [{"session": sid, "files": [str(p) for p in ps]} for sid, ps in s.sessions],
+        "session": s.session,
         "files": [dataclasses.asdict(f) for f in s.files],
         "complete": s.complete,
         "start_ns": s.start_ns,
@@ -132,6 +134,12 @@ def run_inspect(args) -> int:
     if args.json:
         print(json.dumps(out, indent=2))
     else:
+        if len(s.sessions) > 1:  # two runs into one folder: never one observation with a hole between them
+            print(f"{len(s.sessions)} recording sessions here; this is the newest, {s.session} (give another's "
+                  "files to read it):")
+            for sid, ps in s.sessions:
+                print(f"  session {sid or 'unnamed (written before sessions were named)'}: {len(ps)} file(s), "
+                      f"{' '.join(str(p) for p in ps)}")
         _print_inspect(s, out, meta, checks)
         print("\n".join(ledger.lines()))
     if damaged:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Message, Schema
+from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from zlib_ng.zlib_ng import crc32  # zlib's CRC, 9x faster (pyproject.toml)
 
 from mntes_stream.errors import TransportError
@@ -442,3 +442,38 @@ def index_file(path: Path) -> FileIndex:
         if not index_from_summary(idx, f):
             index_by_scan(idx, f)
     return idx
+
+
+def file_session(path) -> str:
+    """The recording session of a file (its ``mntes.recording`` metadata's ``session``; "" when it has none).
+
+    Reads only the records at the start of the file, where the writer puts that metadata.
+    """
+    from mcap.stream_reader import StreamReader
+
+    from mntes_stream.io.mcap.envelope import RECORDING_METADATA
+
+    try:
+        with open(path, "rb") as f:
+            for k, rec in enumerate(StreamReader(f, skip_magic=False).records):
+                if isinstance(rec, Metadata) and rec.name == RECORDING_METADATA:
+                    return str(rec.metadata.get("session", ""))
+                if k > 16:
+                    break
+    except Exception:  # noqa: BLE001 - not MCAP, damaged at its start: no session to tell
+        pass
+    return ""
+
+
+def killed_session(path) -> str:
+    """The session of ``path`` if its writer did not finish it (no closing magic: killed), else ""."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            if f.tell() >= len(_MAGIC) * 2:
+                f.seek(-len(_MAGIC), 2)
+                if f.read() == _MAGIC:
+                    return ""
+    except OSError:
+        return ""
+    return file_session(path)

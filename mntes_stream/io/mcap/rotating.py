@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numbers
 import re
+import secrets
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -12,6 +13,7 @@ from mntes_stream.core.checks import finite_float
 from mntes_stream.errors import ConfigError, TransportError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.envelope import RECORDING_METADATA, Envelope, peek_envelope, writer_description
+from mntes_stream.io.mcap.recovery import killed_session
 from mntes_stream.io.mcap.writer import McapFileWriter
 
 
@@ -76,6 +78,10 @@ class RotatingMcapWriter:
         pattern = re.compile(re.escape(prefix) + r"-(\d+)\.mcap$")
         existing = [int(m.group(1)) for p in self.directory.iterdir() if (m := pattern.match(p.name))]
         self._seq = max(existing, default=0)
+        # One id for every file of a recording session: readers keep two runs into one folder apart
+        # (io/mcap/session.py). A recorder restarted after a crash (the newest file unfinished) continues it.
+        self.session_id = (killed_session(self.directory / f"{prefix}-{self._seq:06d}.mcap") if existing else "") or \
+            f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{secrets.token_hex(3)}"
         self.files: list[Path] = []
         self.messages = 0
         self.messages_closed = 0  # messages in files finished (closed) so far
@@ -136,6 +142,7 @@ class RotatingMcapWriter:
             file_seq=str(self._seq),
             previous_file=self.files[-1].name if self.files else "",
             flush_interval_s=str(self.flush_interval_s),
+            session=self.session_id,
             **self._extra,
         )
         self.files.append(path)  # before it opens: a disk too full to start it is said with its name

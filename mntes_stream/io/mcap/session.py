@@ -21,6 +21,7 @@ from mntes_stream.io.mcap.recovery import (
     chunk_records,
     damage_at,
     damage_line,
+    file_session,
     index_file,
     read_record,
 )
@@ -107,8 +108,23 @@ def topic_matcher(topics: str | Iterable[str] | None):
     return lambda t: t in exact or any(p.match(t) for p in patterns)
 
 
+class SessionsWarning(UserWarning):
+    """The files given hold more than one recording session: the newest is read."""
+
+
+def _name(source) -> str:
+    return str(source) if isinstance(source, (str, Path)) else "the files given"
+
+
 class Session:
     """One recorded session: a file, a directory, or several (rotated) files.
+
+    Every file a recorder writes names its session (``mntes.recording``
+    metadata; a recorder restarted after a crash continues the session of
+    the file it left unfinished). Files of several sessions in one folder
+    (two ``up`` runs into one ``--out``) are never read as one: the newest
+    session is read, with a :class:`SessionsWarning` naming them all, unless
+    ``session`` names one (an id or a unique prefix) or is ``"all"``.
 
     Indexing happens at construction: a finished file is indexed from its
     summary; an unfinished one by walking its records (every complete chunk
@@ -119,11 +135,37 @@ class Session:
     ----------
     source : path, directory, or iterable of paths
     warn : bool
-        Emit a :class:`TruncatedFileWarning` per unfinished file.
+        Emit a :class:`TruncatedFileWarning` per unfinished file, and a :class:`SessionsWarning`.
+    session : str, optional
+        The recording session to read: its id or a unique prefix, ``"all"``; default the newest.
     """
 
-    def __init__(self, source, *, warn: bool = True):
-        self._index = [index_file(p) for p in session_files(source)]
+    def __init__(self, source, *, warn: bool = True, session: str | None = None):
+        files = session_files(source)
+        groups: dict[str, list[Path]] = {}
+        for p in files:
+            groups.setdefault(file_session(p), []).append(p)
+        #: ``[(session id, files)]`` found in ``source`` in the files' order (a folder's by name: oldest first;
+        #: "": files of no named session)
+        self.sessions = list(groups.items())
+        if session == "all" or len(self.sessions) == 1:
+            chosen = files
+        elif session is None:
+            chosen = self.sessions[-1][1]
+            if warn:
+                found = ", ".join(f"{sid or 'unnamed'} ({len(ps)} file(s))" for sid, ps in self.sessions)
+                warnings.warn(f"{len(self.sessions)} recording sessions in {_name(source)}: {found}; reading the "
+                              f"newest, {self.sessions[-1][0]} (to read another, give its files: `mntes-stream inspect` "
+                              "lists them)", SessionsWarning, stacklevel=2)
+        else:
+            match = [ps for sid, ps in self.sessions if sid == session or (session and sid.startswith(session))]
+            if len(match) != 1:
+                raise TransportError(f"{'no' if not match else 'more than one'} recording session {session!r} in "
+                                     f"{_name(source)}; it has {', '.join(sid or 'unnamed' for sid, _ in self.sessions)}")
+            chosen = match[0]
+        #: the session read ("all" for every one, "" for files of no named session)
+        self.session = "all" if session == "all" and len(self.sessions) > 1 else file_session(chosen[0])
+        self._index = [index_file(p) for p in chosen]
         self.files = [ix.info() for ix in self._index]
         # Damaged chunks of unfinished files are known now; a finished file's when a read finds them.
         self.damage: list[DamagedChunk] = [d for ix in self._index for d in ix.damage()]
