@@ -27,6 +27,7 @@ from mntes_stream.io.mcap.recovery import (
     FileIndex,
     chunk_records,
     damage_at,
+    framing_damage,
     index_file,
     read_record,
 )
@@ -102,7 +103,7 @@ def _reconstructed(ix: FileIndex) -> tuple[str, ...]:
 
 def _check(ix: FileIndex, found: list[DamagedChunk], bad_records: list[tuple[int, str]], readable: int) -> FileCheck:
     damage = [*ix.damage(), *found]
-    damaged = [(d.offset, d.why) for d in damage] + ([ix.stopped] if ix.stopped else []) + bad_records
+    damaged = [(d.offset, d.why) for d in damage] + ix.bad_records + bad_records
     return FileCheck(str(ix.path), ix.complete, len(ix.chunks) + len(ix.damaged), tuple(sorted(damaged)), readable,
                      tuple(sorted(damage, key=lambda d: d.offset)), sum(ix.unlabelled.values()), _reconstructed(ix))
 
@@ -115,6 +116,8 @@ def verify_file(path: str | Path) -> FileCheck:
     ix = index_file(Path(path))
     found, bad, readable = [], [], 0
     with open(ix.path, "rb") as f:
+        if ix.complete:
+            bad += framing_damage(ix, f)
         readable += sum(m.channel_id in ix.channels for m in ix.loose)
         for ref, records, why in _chunks(ix, f):
             if records is None:
@@ -173,6 +176,8 @@ def recover_file(src: str | Path, dst: str | Path, compression: str = "zstd") ->
     kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
     try:
         with out, open(ix.path, "rb") as f:
+            if ix.complete:
+                bad += framing_damage(ix, f)
             w = Writer(out, compression=kinds[compression])
             w.start(profile="", library=f"mntes-stream {__version__} recover")
             schema_ids: dict[int, int] = {}
