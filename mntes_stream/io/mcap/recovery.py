@@ -70,6 +70,8 @@ class FileInfo:
     damaged_chunks: int = 0  # known at indexing (unfinished files); a finished file's are found on reading
     damaged_messages: int = 0  # messages those chunks held, where their message index says
     unlabelled_messages: int = 0  # readable messages whose channel is lost and could not be rebuilt
+    # (byte offset, why) of damaged records that held no lost chunk (a chunk's length field, index records)
+    damaged_records: tuple[tuple[int, str], ...] = ()
 
 
 def _utc(t_ns: int | None) -> str:
@@ -197,7 +199,7 @@ class FileIndex:
             str(self.path), self.complete, self.problem, self.size, self.recovered,
             len(self.chunks), msgs, min(starts, default=None), max(ends, default=None),
             len(self.damaged), sum(sum(d.counts.values()) for d in self.damaged if d.counts),
-            sum(self.unlabelled.values()),
+            sum(self.unlabelled.values()), tuple(self.bad_records),
         )
 
 

@@ -103,7 +103,8 @@ def _reconstructed(ix: FileIndex) -> tuple[str, ...]:
 
 def _check(ix: FileIndex, found: list[DamagedChunk], bad_records: list[tuple[int, str]], readable: int) -> FileCheck:
     damage = [*ix.damage(), *found]
-    damaged = [(d.offset, d.why) for d in damage] + ix.bad_records + bad_records
+    chunks = {d.offset for d in damage}  # a damaged header of a lost chunk is said once, with the chunk
+    damaged = [(d.offset, d.why) for d in damage] + [r for r in ix.bad_records + bad_records if r[0] not in chunks]
     return FileCheck(str(ix.path), ix.complete, len(ix.chunks) + len(ix.damaged), tuple(sorted(damaged)), readable,
                      tuple(sorted(damage, key=lambda d: d.offset)), sum(ix.unlabelled.values()), _reconstructed(ix))
 
