@@ -139,7 +139,7 @@ def _check(tmp_path, original, hits: dict[int, str], lost: set[int]):
     assert res.returncode == 2, res.stdout + res.stderr
     assert "every chunk verified" not in res.stdout and "DAMAGED" in res.stderr
     assert f"{written - lost_msgs} messages readable; LOST {lost_msgs} messages" in res.stdout
-    for k, how in hits.items():
+    for k in hits:
         c = chunks[k]
         if k in lost:  # named: byte offset, messages and topics it held
             line = next(x for x in res.stdout.splitlines() if f"damaged chunk at byte {c.offset}:" in x)
