@@ -23,7 +23,7 @@ from pathlib import Path
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+from mcap.records import Attachment, Channel, Chunk, DataEnd, Header, Message, MessageIndex, Metadata, Schema
 from zlib_ng.zlib_ng import crc32  # zlib's CRC, 9x faster (pyproject.toml)
 
 from mntes_stream.errors import TransportError
@@ -41,6 +41,9 @@ _WINDOW = 1 << 22  # bytes searched at a time when resynchronising
 _ANCHOR = re.compile(rb"\x06.{36}(?:\x00\x00\x00\x00|\x04\x00\x00\x00zstd|\x03\x00\x00\x00lz4)", re.S)
 _TAG = re.compile(rb"\x04\x00\x00\x00zstd|\x03\x00\x00\x00lz4")  # a compressed chunk's compression field
 _INDEX_OPCODE = re.compile(rb"\x07")
+# Records whose fields say how long they are (mcap's own parsers): checked against their length field.
+_WHOLE = {Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
+          Opcode.METADATA: Metadata.read, Opcode.ATTACHMENT: Attachment.read, Opcode.DATA_END: DataEnd.read}
 RECONSTRUCTED = "mntes.reconstructed"
 
 
@@ -165,8 +168,9 @@ class FileIndex:
     unlabelled: dict[int, int] = field(default_factory=dict)
     # (offset, why) of damaged records that held no chunk: a length field, index or loose records skipped
     bad_records: list[tuple[int, str]] = field(default_factory=list)
-    # While scanning: messages per channel of the last chunk read whose message index records are still to come.
-    pending: dict[int, int] = field(default_factory=dict)
+    # While scanning: (log time, offset) of the messages per channel of the chunk just read whose message index
+    # records are still to come; None when no index record is expected.
+    pending: dict[int, list[tuple[int, int]]] | None = None
 
     def damage(self) -> tuple[DamagedChunk, ...]:
         """Every damaged chunk found so far, with topics named where the channels are known."""
@@ -203,8 +207,13 @@ class FileIndex:
         )
 
 
-def chunk_records(chunk: Chunk, messages: bool = True) -> Iterator[Schema | Channel | Message]:
-    """Decompress one chunk (checking its CRC) and yield its records."""
+def chunk_records(chunk: Chunk, messages: bool = True, offsets: list[int] | None = None
+                  ) -> Iterator[Schema | Channel | Message]:
+    """Decompress one chunk (checking its CRC) and yield its records.
+
+    ``offsets`` gets the offset of each message record yielded in the
+    uncompressed chunk (what its message index records point to).
+    """
     if chunk.compression == "zstd":
         import zstandard
 
@@ -232,6 +241,8 @@ def chunk_records(chunk: Chunk, messages: bool = True) -> Iterator[Schema | Chan
             raise TransportError("chunk record overruns the chunk")
         if opcode == Opcode.MESSAGE:
             if messages:
+                if offsets is not None:
+                    offsets.append(body_start - 9)
                 yield Message.read(ReadDataStream(io.BytesIO(view[body_start:pos])), length)
         elif opcode == Opcode.CHANNEL:
             yield Channel.read(ReadDataStream(io.BytesIO(view[body_start:pos])))
@@ -285,11 +296,11 @@ def _chunk_times(body: bytes) -> tuple[int | None, int | None]:
 
 
 def _index_count(body: bytes) -> tuple[int, int] | None:
-    """``(channel id, messages)`` of a message index record's body, or None if it is too short."""
+    """``(channel id, messages)`` of a message index record's body, or None if it is too short or not whole pairs."""
     if len(body) < _INDEX_HEAD.size:
         return None
     cid, nbytes = _INDEX_HEAD.unpack_from(body)
-    return cid, nbytes // 16
+    return (cid, nbytes // 16) if nbytes % 16 == 0 else None  # (time, offset) pairs of 16 bytes
 
 
 def damage_at(idx: FileIndex, f, ref: _ChunkRef, why: str) -> DamagedChunk:
@@ -424,6 +435,19 @@ def _trailing_indexes(f, start: int, stop: int) -> tuple[dict[int, int], int, in
     return counts, lo + first, min(times, default=None), max(times, default=None)
 
 
+def _whole(opcode: int, body: bytes) -> str:
+    """Why ``body`` is not exactly one record of kind ``opcode`` ("" when it is): its fields must fill it."""
+    stream = ReadDataStream(io.BytesIO(body))
+    _WHOLE[opcode](stream)
+    if stream.count != len(body):
+        return f"its fields take {stream.count} of its {len(body)} bytes"
+    if opcode == Opcode.ATTACHMENT:
+        (crc,) = struct.unpack_from("<I", body, len(body) - 4)
+        if crc and crc32(body[:-4]) != crc:
+            return "attachment CRC mismatch"
+    return ""
+
+
 def _plausible(f, pos: int, size: int) -> bool:
     """Whether a record can start at ``pos``: the end of the file, or a known opcode with a length that fits
     (a consistent chunk header, a message index whose length matches its entries)."""
@@ -434,12 +458,20 @@ def _plausible(f, pos: int, size: int) -> bool:
     if len(head) < 9:
         return True  # a header cut by the end of the file (a killed writer)
     opcode, length = _RECORD_HEADER.unpack_from(head)
+    if pos + 9 + length > size:
+        return False
     if opcode == Opcode.CHUNK:
         return _chunk_extent(head[9:]) == length
     if opcode == Opcode.MESSAGE_INDEX:
         got = _index_count(head[9:])
-        return got is not None and 6 + 16 * got[1] == length and pos + 9 + length <= size
-    return opcode in _OPCODES and pos + 9 + length <= size
+        return got is not None and 6 + 16 * got[1] == length
+    if opcode in _WHOLE and length <= _WINDOW:
+        f.seek(pos + 9)
+        try:
+            return not _whole(opcode, f.read(length))
+        except Exception:  # mcap raises EndOfFile, struct.error, UnicodeDecodeError...
+            return False
+    return False  # a loose message or a summary record has nothing to check it by
 
 
 def _resync(idx: FileIndex, f, pos: int, why: str, times: tuple[int | None, int | None], chunk: bool) -> int | None:
@@ -456,12 +488,12 @@ def _resync(idx: FileIndex, f, pos: int, why: str, times: tuple[int | None, int 
     if not chunk:
         f.seek(pos)
         chunk = _TAG.search(f.read(min((tail[1] if tail else stop) - pos, _WINDOW))) is not None
-    if not chunk and (idx.chunks or idx.damaged):
-        # In a chunked file the span may only hold the rest of the index records of the chunk read before it
-        # (nothing lost); if other index records end it, or it is longer than those would be, a chunk was in it.
-        rest = sum(9 + _INDEX_HEAD.size + 16 * n for n in idx.pending.values())
-        chunk = (tail[0] != idx.pending) if tail else stop - pos > rest
-    idx.pending = {}
+    if not chunk:
+        # Right after a chunk read whole, the span may only hold the rest of its index records (their sizes are
+        # known: nothing lost); longer, a chunk was in it. Elsewhere, index records ending the span had a chunk.
+        rest = sum(9 + _INDEX_HEAD.size + 16 * len(v) for v in (idx.pending or {}).values())
+        chunk = stop - pos > rest if idx.pending else tail is not None
+    idx.pending = None
     where = (f"bytes {pos}..{stop} skipped, reading resumed at the next valid chunk (byte {q})" if q is not None
              else f"no valid chunk in bytes {pos}..{stop} (the end of the file)")
     if chunk:
@@ -477,7 +509,7 @@ def _resync(idx: FileIndex, f, pos: int, why: str, times: tuple[int | None, int 
 def _scan_chunk(idx: FileIndex, f, pos: int, length: int) -> tuple[int | None, _Damage | None]:
     """Read the chunk record at ``pos``; returns where the next record starts (None: stop) and its damage."""
     size = idx.size
-    idx.pending = {}
+    idx.pending = None
     f.seek(pos + 9)
     head = f.read(_HEAD - 9)
     own = _chunk_extent(head)
@@ -504,16 +536,20 @@ def _scan_chunk(idx: FileIndex, f, pos: int, length: int) -> tuple[int | None, _
     body = f.read(length)
     try:
         chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
-        records = list(chunk_records(chunk))
+        offsets: list[int] = []
+        records = list(chunk_records(chunk, offsets=offsets))
     except Exception as exc:  # a damaged chunk: described, skipped; the framing after it holds
         why = str(exc) or type(exc).__name__
+        if fixed:  # its own fields disagree with its length and its CRC fails: neither can be trusted to frame
+            return _resync(idx, f, pos, f"{fixed}; {why}", times, True), None
         damaged = _Damage(pos, f"{fixed}; {why}" if fixed else why, *times, {})
         idx.damaged.append(damaged)
         idx.problem = f"damaged chunk at byte {pos} skipped ({why})"
         return pos + 9 + length, damaged
     if fixed:
         idx.bad_records.append((pos, f"{fixed}; the chunk was read by its own fields (CRC ok), nothing lost"))
-    counted = 0
+    idx.pending = {}
+    offsets.reverse()
     for rec in records:
         if isinstance(rec, Schema):
             idx.schemas[rec.id] = rec
@@ -523,10 +559,15 @@ def _scan_chunk(idx: FileIndex, f, pos: int, length: int) -> tuple[int | None, _
             if rec.channel_id not in idx.channels:
                 _note_orphan(idx, rec, pos)
             idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
-            idx.pending[rec.channel_id] = idx.pending.get(rec.channel_id, 0) + 1
-            counted += 1
-    if counted:
-        idx.chunks.append(_ChunkRef(chunk.message_start_time, chunk.message_end_time, pos, 9 + length))
+            idx.pending.setdefault(rec.channel_id, []).append((rec.log_time, offsets.pop()))
+    if idx.pending:
+        times = [t for entries in idx.pending.values() for t, _ in entries]
+        span = (min(times), max(times))
+        if (chunk.message_start_time, chunk.message_end_time) != span:  # no CRC covers the header's fields
+            idx.bad_records.append((pos, f"chunk header says its messages span {chunk.message_start_time}.."
+                                         f"{chunk.message_end_time} ns, they span {span[0]}..{span[1]} ns: the header "
+                                         f"is damaged, nothing lost"))
+        idx.chunks.append(_ChunkRef(*span, pos, 9 + length))
     return pos + 9 + length, None
 
 
@@ -552,6 +593,8 @@ def index_by_scan(idx: FileIndex, f) -> None:
             if opcode != Opcode.MESSAGE_INDEX:
                 _close(damaged)
                 damaged = None
+                if opcode in _OPCODES:  # an unknown one is damage: what the resync finds is judged by it
+                    idx.pending = None
             if opcode == Opcode.CHUNK:
                 nxt, damaged = _scan_chunk(idx, f, pos, length)
                 if nxt is None:
@@ -559,7 +602,7 @@ def index_by_scan(idx: FileIndex, f) -> None:
                 pos = idx.recovered = nxt
                 continue
             if opcode not in _OPCODES or (opcode == Opcode.HEADER and pos != len(_MAGIC)):
-                if opcode >= 0x80 and end <= size:  # private records (MCAP spec): skipped
+                if opcode >= 0x80 and end <= size and not idx.pending:  # private records (MCAP spec): skipped
                     pos = idx.recovered = end
                     continue
                 if not (hdr + f.read(size - pos - 9)).strip(b"\0"):  # preallocated by the filesystem
@@ -570,6 +613,15 @@ def index_by_scan(idx: FileIndex, f) -> None:
                     break
                 pos = idx.recovered = nxt
                 continue
+            if opcode == Opcode.MESSAGE_INDEX:  # its own fields say how long it is
+                head = f.read(_INDEX_HEAD.size)
+                own = 6 + _INDEX_HEAD.unpack(head)[1] if len(head) == _INDEX_HEAD.size else None
+                if (own is not None and own != length and own % 16 == 6 and pos + 9 + own <= size
+                        and not _plausible(f, end, size) and _plausible(f, pos + 9 + own, size)):
+                    idx.bad_records.append((pos, f"message index record length field says {length} bytes, its own "
+                                                 f"fields {own}: the length field is damaged"))
+                    length, end = own, pos + 9 + own
+                f.seek(pos + 9)
             if end > size:
                 # A record cut by the end of the file (the writer died), or a damaged length with chunks after it.
                 nxt = next_chunk(f, pos + 1, size)
@@ -590,38 +642,44 @@ def index_by_scan(idx: FileIndex, f) -> None:
                     continue
                 if damaged is not None:
                     damaged.counts[got[0]] = damaged.counts.get(got[0], 0) + got[1]
-                if idx.pending.get(got[0]) == got[1]:
-                    del idx.pending[got[0]]
-            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-                # Records outside chunks (other writers): no CRC; a damaged one is skipped up to the next chunk.
+                elif idx.pending is not None:  # it must point at the messages of the chunk just read
+                    entries = MessageIndex.read(ReadDataStream(io.BytesIO(body))).records
+                    want = idx.pending.pop(got[0], [])
+                    if sorted(entries) != sorted(want):
+                        idx.bad_records.append((pos, f"message index record of channel {got[0]} disagrees with the "
+                                                     f"chunk before it ({len(entries)} entries for its {len(want)} "
+                                                     f"messages of that channel): the index is damaged, nothing lost"))
+            elif opcode in _WHOLE or opcode == Opcode.MESSAGE:
+                # No CRC on these (but an attachment's): a record whose fields do not fill it exactly is damaged,
+                # and so is its length; it is skipped up to the next chunk. A loose message (other writers) has
+                # no fields to check its length against.
+                body = f.read(length)
                 try:
-                    stream = ReadDataStream(io.BytesIO(f.read(length)))
-                    if opcode == Opcode.SCHEMA:
-                        rec = Schema.read(stream)
-                    elif opcode == Opcode.CHANNEL:
-                        rec = Channel.read(stream)
-                    else:
-                        rec = Message.read(stream, length)
+                    rec = Message.read(ReadDataStream(io.BytesIO(body)), length) if opcode == Opcode.MESSAGE else None
+                    why = "" if rec is not None else _whole(opcode, body)
                 except Exception as exc:  # mcap raises EndOfFile, struct.error, UnicodeDecodeError...
-                    why = f"damaged record (opcode {opcode:#x}) ({type(exc).__name__}: {exc})"
-                    nxt = _resync(idx, f, pos, why, (None, None), False)
+                    why = f"{type(exc).__name__}: {exc}"
+                if why:
+                    nxt = _resync(idx, f, pos, f"damaged record (opcode {opcode:#x}) ({why})", (None, None), False)
                     if nxt is None:
                         break
                     pos = idx.recovered = nxt
                     continue
+                if opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                    rec = _WHOLE[opcode](ReadDataStream(io.BytesIO(body)))
                 if opcode == Opcode.SCHEMA:
                     idx.schemas[rec.id] = rec
                 elif opcode == Opcode.CHANNEL:
                     idx.add_channel(rec)
-                else:
+                elif opcode == Opcode.MESSAGE:
                     if rec.channel_id not in idx.channels:
                         _note_orphan(idx, rec, pos)
                     idx.loose.append(rec)
                     idx.counts[rec.channel_id] = idx.counts.get(rec.channel_id, 0) + 1
-            elif opcode == Opcode.ATTACHMENT:
-                idx.attachments.append((pos, 9 + length))
-            elif opcode == Opcode.METADATA:
-                idx.metadata.append((pos, 9 + length))
+                elif opcode == Opcode.ATTACHMENT:
+                    idx.attachments.append((pos, 9 + length))
+                elif opcode == Opcode.METADATA:
+                    idx.metadata.append((pos, 9 + length))
             elif opcode == Opcode.FOOTER:
                 pos = end
                 f.seek(pos)
