@@ -216,32 +216,32 @@ def test_clean_and_cut_files_keep_their_verdicts(original, tmp_path):
     assert res.returncode == 0 and "4096 zero bytes" in res.stdout, res.stdout
 
 
-@pytest.fixture(scope="module")
-def killed_records(tmp_path_factory):
-    """``(bytes, chunk refs, [(opcode, offset, length)] of every record)`` of a killed recording."""
-    path = _record(tmp_path_factory.mktemp("walk"), "kill")
+@pytest.fixture(scope="module", params=["kill", "finish"])
+def walked(request, tmp_path_factory):
+    """``(bytes, chunk refs, [(opcode, offset, length)] of every record of the data section)`` of a recording."""
+    path = _record(tmp_path_factory.mktemp("walk"), request.param)
     data = path.read_bytes()
     recs, pos = [], 8
     while pos + 9 <= len(data):
         op, ln = struct.unpack_from("<BQ", data, pos)
-        if pos + 9 + ln > len(data):
+        if op == 0x0F:  # data end: the summary follows
             break
         recs.append((op, pos, 9 + ln))
         pos += 9 + ln
-    assert pos == len(data)  # killed between records: every record is whole
+    assert (pos == len(data)) == (request.param == "kill")  # killed between records: every record is whole
     return data, sorted(index_file(path).chunks, key=lambda c: c.offset), recs
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(pick=st.integers(0, 10**9), xor=st.integers(1, 255), headers=st.booleans())
-def test_any_damaged_byte_loses_only_its_chunk_and_is_found(killed_records, tmp_path_factory, pick, xor, headers):
+def test_any_damaged_byte_loses_only_its_chunk_and_is_found(walked, tmp_path_factory, pick, xor, headers):
     """One damaged byte anywhere (or in the first 64 bytes of a record, where framing lives): every chunk it
     does not touch is kept, and if it is in a chunk or a message index record (CRC, fields checked against the
     chunk), verifying says DAMAGED."""
     from mntes_stream.io.mcap.repair import verify_file
 
-    data, chunks, recs = killed_records
-    where = [off + j for _, off, ln in recs for j in range(min(ln, 64))] if headers else range(8, len(data))
+    data, chunks, recs = walked
+    where = [off + j for _, off, ln in recs for j in range(min(ln, 64))] if headers else range(8, recs[-1][1] + recs[-1][2])
     k = where[pick % len(where)]
     bad = bytearray(data)
     bad[k] ^= xor
@@ -249,6 +249,6 @@ def test_any_damaged_byte_loses_only_its_chunk_and_is_found(killed_records, tmp_
     path.write_bytes(bytes(bad))
     kept = {c.offset for c in index_file(path).chunks}
     assert {c.offset for c in chunks if not c.offset <= k < c.offset + c.length} <= kept
-    op = next(op for op, off, ln in recs if off <= k < off + ln)
+    op = next((op for op, off, ln in recs if off <= k < off + ln), None)
     if op in (0x06, 0x07):
         assert not verify_file(path).ok

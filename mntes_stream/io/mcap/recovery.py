@@ -12,7 +12,6 @@ board, module or sensor, so its key), marked ``mntes.reconstructed``.
 
 from __future__ import annotations
 
-import bisect
 import io
 import re
 import struct
@@ -698,45 +697,6 @@ def _close(damaged: _Damage | None) -> None:
     """A damaged chunk no message index record followed: what it held is unknown, not zero."""
     if damaged is not None and not damaged.counts:
         damaged.counts = None
-
-
-def framing_damage(idx: FileIndex, f) -> list[tuple[int, str]]:
-    """``(offset, why)`` of damaged record headers in the data section of a file indexed from its summary.
-
-    The summary's chunk index reads each chunk at its offset, past a damaged
-    length field or a damaged record between chunks; a reader that walks the
-    file (another MCAP reader, a streaming one) would not get past them. The
-    walk reads record headers only and resumes at the next indexed chunk.
-    """
-    chunks = {c.offset: c.length for c in idx.chunks}
-    starts = sorted(chunks)
-    f.seek(idx.size - len(_MAGIC) - 9 - 20)  # the footer: opcode, length, summary start, summary offset start, CRC
-    footer = f.read(9 + 20)
-    stop = struct.unpack_from("<Q", footer, 9)[0] if len(footer) == 29 and footer[0] == Opcode.FOOTER else 0
-    stop = stop or idx.size - len(_MAGIC) - 9 - 20
-    bad, pos = [], len(_MAGIC)
-    while pos < stop:
-        f.seek(pos)
-        hdr = f.read(9)
-        if len(hdr) < 9:
-            break
-        opcode, length = _RECORD_HEADER.unpack(hdr)
-        end = pos + 9 + length
-        if opcode == Opcode.DATA_END and pos not in chunks:
-            break
-        nxt = next((o for o in starts[bisect.bisect_right(starts, pos):]), stop)
-        if pos in chunks:
-            if opcode != Opcode.CHUNK or 9 + length != chunks[pos]:
-                bad.append((pos, f"chunk record header says opcode {opcode:#x}, {length} bytes; the summary's chunk "
-                                 f"index says opcode {Opcode.CHUNK:#x}, {chunks[pos] - 9} bytes: the header is damaged "
-                                 f"(the chunk is read by the index)"))
-            end = pos + chunks[pos]
-        elif opcode not in _OPCODES and opcode < 0x80 or end > nxt or (opcode == Opcode.HEADER and pos != len(_MAGIC)):
-            bad.append((pos, f"damaged record (opcode {opcode:#x}, {length} bytes); bytes {pos}..{nxt} cannot be "
-                             f"walked, reading resumed at byte {nxt}"))
-            end = nxt
-        pos = end
-    return bad
 
 
 def index_file(path: Path) -> FileIndex:
