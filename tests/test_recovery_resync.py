@@ -12,7 +12,6 @@ verdict is read through the CLI in a subprocess (exit codes, one line per fact).
 from __future__ import annotations
 
 import json
-import signal
 import struct
 import subprocess
 import sys
@@ -23,42 +22,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
+from mcap_helpers import writer_recording
 
 from mntes_stream.io import mcap as mio
 from mntes_stream.io.mcap.recovery import index_file
 
-_RECORD = """
-import sys, time
-from mntes_stream.core.convert import make_converter
-from mntes_stream.io import keys
-from mntes_stream.io.mcap import RotatingMcapWriter
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
-from mntes_stream.service.source import MinimalSource, SourceConfig
-T0 = 1_700_000_000_000_000_000
-src = MinimalSource(SourceConfig(setup="t", modules=2, channels=8))
-params = {p.detector_id: p for p in src.params}
-pipe = ConverterPipeline(make_converter("table", params), PipelineConfig(setup="t"), params=params, clock=None)
-w = RotatingMcapWriter(sys.argv[1], "rec", flush_interval_s=3600, rotate_s=0, rotate_bytes=0)
-w.write(keys.provenance_key("t"), pipe.provenance_bytes(), T0)
-for t_pub, batch in src.batches(T0, 6.0):
-    for key, payload in batch:
-        w.write(key, payload, t_pub + 1_000_000)
-    w.flush()  # one chunk per batch, as the recorder's flush cadence makes them
-if sys.argv[2] == "finish":
-    w.close()
-print(w.messages, flush=True)
-time.sleep(120)  # the killed one never gets its summary
-"""
-
 
 def _record(d: Path, how: str) -> Path:
-    proc = subprocess.Popen([sys.executable, "-c", _RECORD, str(d), how], stdout=subprocess.PIPE, text=True)
-    try:
-        assert int(proc.stdout.readline()) > 0
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
-    return d / "rec-000001.mcap"
+    path, written = writer_recording(d, 6.0, finish=how == "finish")
+    assert written > 0
+    return path
 
 
 @pytest.fixture(scope="module", params=["killed", "finished"])
