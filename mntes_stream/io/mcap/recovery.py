@@ -357,16 +357,17 @@ def _rebuild_channels(idx: FileIndex) -> None:
         idx.add_channel(Channel(id=cid, topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=sid, metadata=meta))
 
 
-def _chunk_extent(head: bytes) -> int | None:
+def _chunk_extent(head: bytes, strict: bool = True) -> int | None:
     """The byte length of a chunk record's body by its own fields (``head``: the body's first bytes).
 
-    None when those fields make no sense (compression unknown, start after end).
+    None when those fields make no sense (compression unknown; ``strict``:
+    start after end, which no chunk found by searching may have).
     """
     if len(head) < _CHUNK_FIXED.size:
         return None
     start_ns, end_ns, _, _, clen = _CHUNK_FIXED.unpack_from(head)
     at = _CHUNK_FIXED.size + clen
-    if clen > 8 or len(head) < at + 8 or start_ns > end_ns:
+    if clen > 8 or len(head) < at + 8 or (strict and start_ns > end_ns):
         return None
     try:
         if head[_CHUNK_FIXED.size:at].decode() not in _COMPRESSIONS:
@@ -511,7 +512,7 @@ def _scan_chunk(idx: FileIndex, f, pos: int, length: int) -> tuple[int | None, _
     idx.pending = None
     f.seek(pos + 9)
     head = f.read(_HEAD - 9)
-    own = _chunk_extent(head)
+    own = _chunk_extent(head, strict=False)  # its CRC is checked: damaged times are found against its messages
     times = _chunk_times(head)
     times = times if times[0] is not None and times[0] <= times[1] else (None, None)
     if own == length and pos + 9 + length > size:
@@ -604,7 +605,7 @@ def index_by_scan(idx: FileIndex, f) -> None:
                 if opcode >= 0x80 and end <= size and not idx.pending:  # private records (MCAP spec): skipped
                     pos = idx.recovered = end
                     continue
-                if not (hdr + f.read(size - pos - 9)).strip(b"\0"):  # preallocated by the filesystem
+                if _zeros_to_end(f, pos, size):  # preallocated by the filesystem, never written
                     idx.problem = f"file ends with {size - pos} zero bytes from byte {pos} (never written)"
                     break
                 nxt = _resync(idx, f, pos, f"not a record (opcode {opcode:#x}, {length} bytes)", (None, None), False)
@@ -691,6 +692,15 @@ def index_by_scan(idx: FileIndex, f) -> None:
     finally:
         _close(damaged)
         _rebuild_channels(idx)
+
+
+def _zeros_to_end(f, pos: int, size: int) -> bool:
+    """Whether every byte from ``pos`` to the end of the file is zero."""
+    f.seek(pos)
+    while block := f.read(_WINDOW):
+        if block.strip(b"\0"):
+            return False
+    return True
 
 
 def _close(damaged: _Damage | None) -> None:

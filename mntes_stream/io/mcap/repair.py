@@ -114,13 +114,24 @@ def _walk(ix: FileIndex, f) -> tuple[list[DamagedChunk], list[tuple[int, str]], 
     walked.channels.update(ix.channels)
     index_by_scan(walked, f)
     bad = list(walked.bad_records)
+    readable = walked.info().messages
+    refs = {c.offset: c for c in ix.chunks}
+    lost = []
+    for d in walked.damage():
+        try:  # a chunk whose header the walk cannot trust may still be read through the summary's chunk index
+            chunk = Chunk.read(read_record(f, d.offset, refs[d.offset].length, Opcode.CHUNK))
+            readable += sum(isinstance(r, Message) for r in chunk_records(chunk))
+        except Exception:  # not indexed there, or unreadable that way too (CRC, size, framing): lost
+            lost.append(d)
+        else:
+            bad.append((d.offset, f"{d.why}; read through the summary's chunk index, nothing lost"))
     seen = {c.offset for c in walked.chunks} | {d.offset for d in walked.damaged}
     bad += [(c.offset, "the summary's chunk index points here, but no chunk record was found here")
             for c in ix.chunks if c.offset not in seen]
     said, held = sum(ix.counts.values()), sum(walked.counts.values())
     if not walked.damaged and said != held:
         bad.append((ix.size, f"the summary's statistics say {said} messages, the chunks hold {held}"))
-    return list(walked.damage()), bad, walked.info().messages
+    return lost, bad, readable
 
 
 def _check(ix: FileIndex, found: list[DamagedChunk], bad_records: list[tuple[int, str]], readable: int) -> FileCheck:
