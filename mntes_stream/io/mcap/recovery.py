@@ -22,7 +22,7 @@ from pathlib import Path
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Chunk, DataEnd, Header, Message, MessageIndex, Metadata, Schema
+from mcap.records import Attachment, Channel, Chunk, DataEnd, Header, Message, Metadata, Schema
 from zlib_ng.zlib_ng import crc32  # zlib's CRC, 9x faster (pyproject.toml)
 
 from mntes_stream.errors import TransportError
@@ -31,6 +31,7 @@ _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEADER = struct.Struct("<BQ")
 _TIMES = struct.Struct("<QQ")  # a chunk body starts with message_start_time, message_end_time
 _INDEX_HEAD = struct.Struct("<HI")  # a message index body: channel id, byte length of its (time, offset) pairs
+_PAIR = struct.Struct("<QQ")
 _CHUNK_FIXED = struct.Struct("<QQQII")  # a chunk body: start, end, uncompressed size, CRC, compression length
 _COMPRESSIONS = frozenset({"", "zstd", "lz4"})  # what chunk_records reads
 _OPCODES = frozenset(int(o) for o in Opcode)
@@ -302,6 +303,14 @@ def _index_count(body: bytes) -> tuple[int, int] | None:
     return (cid, nbytes // 16) if nbytes % 16 == 0 else None  # (time, offset) pairs of 16 bytes
 
 
+def _index_entries(body: bytes) -> list[tuple[int, int]]:
+    """The (log time, offset) pairs of a message index record's body that :func:`_index_count` accepted.
+
+    struct rather than mcap's MessageIndex.read: that reads each pair in Python, a third of a scan's time.
+    """
+    return list(_PAIR.iter_unpack(body[_INDEX_HEAD.size:]))
+
+
 def damage_at(idx: FileIndex, f, ref: _ChunkRef, why: str) -> DamagedChunk:
     """Describe an indexed chunk that failed to read, from the summary's message index offsets."""
     counts: dict[int, int] = {}
@@ -420,14 +429,11 @@ def _trailing_indexes(f, start: int, stop: int) -> tuple[dict[int, int], int, in
         nxt = i + 9 + length
         if nxt not in chain:
             continue
-        try:
-            rec = MessageIndex.read(ReadDataStream(io.BytesIO(buf[i + 9: nxt])))
-        except Exception:  # mcap raises EndOfFile, struct.error: not an index record
-            continue
-        if 6 + 16 * len(rec.records) != length or rec.channel_id in chain[nxt][0]:
+        got = _index_count(buf[i + 9: nxt])
+        if got is None or 6 + 16 * got[1] != length or got[0] in chain[nxt][0]:
             continue
         counts, times = chain[nxt]
-        chain[i] = ({**counts, rec.channel_id: len(rec.records)}, times + [t for t, _ in rec.records])
+        chain[i] = ({**counts, got[0]: got[1]}, times + [t for t, _ in _index_entries(buf[i + 9: nxt])])
         first = i
     if first is None:
         return None
@@ -643,7 +649,7 @@ def index_by_scan(idx: FileIndex, f) -> None:
                 if damaged is not None:
                     damaged.counts[got[0]] = damaged.counts.get(got[0], 0) + got[1]
                 elif idx.pending is not None:  # it must point at the messages of the chunk just read
-                    entries = MessageIndex.read(ReadDataStream(io.BytesIO(body))).records
+                    entries = _index_entries(body)
                     want = idx.pending.pop(got[0], [])
                     if sorted(entries) != sorted(want):
                         idx.bad_records.append((pos, f"message index record of channel {got[0]} disagrees with the "
