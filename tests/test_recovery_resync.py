@@ -202,7 +202,17 @@ def walked(request, tmp_path_factory):
         recs.append((op, pos, 9 + ln))
         pos += 9 + ln
     assert (pos == len(data)) == (request.param == "kill")  # killed between records: every record is whole
-    return data, sorted(index_file(path).chunks, key=lambda c: c.offset), recs
+    return _Walked(request.param, data, sorted(index_file(path).chunks, key=lambda c: c.offset), recs)
+
+
+class _Walked(tuple):
+    """``(kind, bytes, chunk refs, records)``, shown short when a test fails."""
+
+    def __new__(cls, *parts):
+        return super().__new__(cls, parts)
+
+    def __repr__(self) -> str:
+        return f"<{self[0]}ed recording: {len(self[1])} bytes, {len(self[2])} chunks>"
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -213,7 +223,7 @@ def test_any_damaged_byte_loses_only_its_chunk_and_is_found(walked, tmp_path_fac
     chunk), verifying says DAMAGED."""
     from mntes_stream.io.mcap.repair import verify_file
 
-    data, chunks, recs = walked
+    _, data, chunks, recs = walked
     where = [off + j for _, off, ln in recs for j in range(min(ln, 64))] if headers else range(8, recs[-1][1] + recs[-1][2])
     k = where[pick % len(where)]
     bad = bytearray(data)
