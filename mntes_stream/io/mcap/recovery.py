@@ -8,6 +8,12 @@ which precedes the compressed body) and the messages and channels it held
 summary points to). Messages whose channel record was in a damaged chunk keep
 a channel rebuilt from their own payloads (an mntes envelope names its setup,
 board, module or sensor, so its key), marked ``mntes.reconstructed``.
+
+Damage in the middle of a file is not taken for its end: the walk
+(:func:`index_by_scan`) checks each record's length against its own fields
+and resynchronises on the next valid chunk (:func:`next_chunk`), naming the
+skipped span; only a chunk that overruns the end with nothing valid after it
+is a cut tail.
 """
 
 from __future__ import annotations
