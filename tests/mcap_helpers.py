@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import signal
+import subprocess
+import sys
 import threading
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -123,3 +127,41 @@ def running_recorder(directory, *, attempts: int = 3, start_timeout_s: float = 3
         thread.join(30)
     if "error" in result:
         raise result["error"]
+
+
+_WRITER_RECORDING = """
+import sys, time
+from mntes_stream.core.convert import make_converter
+from mntes_stream.io import keys
+from mntes_stream.io.mcap import RotatingMcapWriter
+from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.service.source import MinimalSource, SourceConfig
+T0 = 1_700_000_000_000_000_000
+src = MinimalSource(SourceConfig(setup="t", modules=2, channels=8))
+params = {p.detector_id: p for p in src.params}
+pipe = ConverterPipeline(make_converter("table", params), PipelineConfig(setup="t"), params=params, clock=None)
+w = RotatingMcapWriter(sys.argv[1], "rec", flush_interval_s=3600, rotate_s=0, rotate_bytes=0)
+w.write(keys.provenance_key("t"), pipe.provenance_bytes(), T0)
+for t_pub, batch in src.batches(T0, float(sys.argv[2])):
+    for key, payload in batch:
+        w.write(key, payload, t_pub + 1_000_000)
+    w.flush()  # one chunk per batch, as the recorder's flush cadence makes them
+if sys.argv[3] == "finish":
+    w.close()
+print(w.messages, flush=True)
+time.sleep(120)  # killed long before: unless closed, the file never gets its summary
+"""
+
+
+def writer_recording(directory, seconds: float, *, finish: bool) -> tuple[Path, int]:
+    """``(path, messages written)`` of a recording by the recorder's writer (RotatingMcapWriter, one chunk per
+    batch of a MinimalSource, ``seconds`` of it) in a child process SIGKILLed after its last flush, or after
+    closing the file when ``finish``."""
+    proc = subprocess.Popen([sys.executable, "-c", _WRITER_RECORDING, str(directory), str(seconds),
+                             "finish" if finish else "kill"], stdout=subprocess.PIPE, text=True)
+    try:
+        written = int(proc.stdout.readline())
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    return Path(directory) / "rec-000001.mcap", written

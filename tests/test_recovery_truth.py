@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import subprocess
 import sys
 import warnings
@@ -27,39 +26,12 @@ from mntes_stream.io.mcap.recovery import index_file
 
 T0 = 1_700_000_000_000_000_000
 
-_RECORD = """
-import sys, time
-from mntes_stream.core.convert import make_converter
-from mntes_stream.io import keys
-from mntes_stream.io.mcap import RotatingMcapWriter
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
-from mntes_stream.service.source import MinimalSource, SourceConfig
-T0 = 1_700_000_000_000_000_000
-src = MinimalSource(SourceConfig(setup="t", modules=2, channels=8))
-params = {p.detector_id: p for p in src.params}
-pipe = ConverterPipeline(make_converter("table", params), PipelineConfig(setup="t"), params=params, clock=None)
-w = RotatingMcapWriter(sys.argv[1], "rec", flush_interval_s=3600, rotate_s=0, rotate_bytes=0)
-w.write(keys.provenance_key("t"), pipe.provenance_bytes(), T0)
-for t_pub, batch in src.batches(T0, 3.0):
-    for key, payload in batch:
-        w.write(key, payload, t_pub + 1_000_000)
-    w.flush()  # one chunk per batch, as the recorder's flush cadence makes them
-print(w.messages, flush=True)
-time.sleep(120)  # killed long before: the file never gets its summary
-"""
-
-
 @pytest.fixture(scope="module")
 def killed(tmp_path_factory):
     """``(bytes of the SIGKILLed recording, its chunk refs in file order, messages written)``."""
-    d = tmp_path_factory.mktemp("killed")
-    proc = subprocess.Popen([sys.executable, "-c", _RECORD, str(d)], stdout=subprocess.PIPE, text=True)
-    try:
-        written = int(proc.stdout.readline())
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
-    path = d / "rec-000001.mcap"
+    from mcap_helpers import writer_recording
+
+    path, written = writer_recording(tmp_path_factory.mktemp("killed"), 3.0, finish=False)
     chunks = sorted(index_file(path).chunks, key=lambda c: c.offset)
     assert not index_file(path).complete and len(chunks) > 20
     return path.read_bytes(), chunks, written

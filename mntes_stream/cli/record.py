@@ -127,7 +127,8 @@ def run_inspect(args) -> int:
         out["complete"] = all(c.ok and c.complete for c in checks.values())
         damaged = [p for p, c in checks.items() if not c.ok]
     else:
-        damaged = sorted({d.path for d in s.damage} | {f.path for f in s.files if f.unlabelled_messages})
+        damaged = sorted({d.path for d in s.damage}
+                         | {f.path for f in s.files if f.unlabelled_messages or f.damaged_records})
     out["damaged_files"] = damaged
     ledger = _ledger_of(s)
     out["ledger"] = ledger.as_dict()
@@ -167,11 +168,15 @@ def _print_inspect(s, out, meta, checks) -> None:
             state += f"; DAMAGED: {c.summary()}"
         elif c is not None:
             state += ", every chunk verified"
-        elif damage:
-            state += f"; DAMAGED: {len(damage)} chunk(s) unreadable (inspect --verify reads every chunk)"
+        elif damage or f.damaged_records:
+            state += (f"; DAMAGED: {len(damage)} chunk(s) unreadable, {len(f.damaged_records)} damaged record(s) "
+                      f"(inspect --verify reads every chunk)")
         print(f"{f.path}: {f.messages} messages, {f.chunks} chunks, {state}")
         for d in damage:
             print(f"  damaged chunk at {d.describe(with_path=False)}")
+        if c is None:
+            for off, why in f.damaged_records:
+                print(f"  damaged record at byte {off}: {why}")
         if c is not None:
             for off, why in c.damaged_chunks:
                 if not any(d.offset == off for d in c.damage):

@@ -27,6 +27,7 @@ from mntes_stream.io.mcap.recovery import (
     FileIndex,
     chunk_records,
     damage_at,
+    index_by_scan,
     index_file,
     read_record,
 )
@@ -100,9 +101,43 @@ def _reconstructed(ix: FileIndex) -> tuple[str, ...]:
     return tuple(sorted(c.topic for c in ix.channels.values() if RECONSTRUCTED in (c.record.metadata or {})))
 
 
+def _walk(ix: FileIndex, f) -> tuple[list[DamagedChunk], list[tuple[int, str]], int]:
+    """Read a finished file record by record too, as a killed one is read: what its summary reads past.
+
+    A damaged length field, record header or message index, which the
+    summary's chunk index steps over and a streaming reader cannot, is found
+    here, and so is a summary that disagrees with the chunks. Returns the
+    damaged chunks, the damaged records and the readable messages.
+    """
+    walked = FileIndex(path=ix.path, size=ix.size)
+    walked.schemas.update(ix.schemas)  # channels whose record is in a damaged chunk stay known by the summary
+    walked.channels.update(ix.channels)
+    index_by_scan(walked, f)
+    bad = list(walked.bad_records)
+    readable = walked.info().messages
+    refs = {c.offset: c for c in ix.chunks}
+    lost = []
+    for d in walked.damage():
+        try:  # a chunk whose header the walk cannot trust may still be read through the summary's chunk index
+            chunk = Chunk.read(read_record(f, d.offset, refs[d.offset].length, Opcode.CHUNK))
+            readable += sum(isinstance(r, Message) for r in chunk_records(chunk))
+        except Exception:  # not indexed there, or unreadable that way too (CRC, size, framing): lost
+            lost.append(d)
+        else:
+            bad.append((d.offset, f"{d.why}; read through the summary's chunk index, nothing lost"))
+    seen = {c.offset for c in walked.chunks} | {d.offset for d in walked.damaged}
+    bad += [(c.offset, "the summary's chunk index points here, but no chunk record was found here")
+            for c in ix.chunks if c.offset not in seen]
+    said, held = sum(ix.counts.values()), sum(walked.counts.values())
+    if not walked.damaged and said != held:
+        bad.append((ix.size, f"the summary's statistics say {said} messages, the chunks hold {held}"))
+    return lost, bad, readable
+
+
 def _check(ix: FileIndex, found: list[DamagedChunk], bad_records: list[tuple[int, str]], readable: int) -> FileCheck:
-    damage = [*ix.damage(), *found]
-    damaged = [(d.offset, d.why) for d in damage] + ([ix.stopped] if ix.stopped else []) + bad_records
+    damage = list({d.offset: d for d in [*ix.damage(), *found]}.values())  # found by reading and by walking: once
+    chunks = {d.offset for d in damage}  # a damaged header of a lost chunk is said once, with the chunk
+    damaged = [(d.offset, d.why) for d in damage] + sorted({r for r in ix.bad_records + bad_records if r[0] not in chunks})
     return FileCheck(str(ix.path), ix.complete, len(ix.chunks) + len(ix.damaged), tuple(sorted(damaged)), readable,
                      tuple(sorted(damage, key=lambda d: d.offset)), sum(ix.unlabelled.values()), _reconstructed(ix))
 
@@ -115,12 +150,15 @@ def verify_file(path: str | Path) -> FileCheck:
     ix = index_file(Path(path))
     found, bad, readable = [], [], 0
     with open(ix.path, "rb") as f:
-        readable += sum(m.channel_id in ix.channels for m in ix.loose)
-        for ref, records, why in _chunks(ix, f):
-            if records is None:
-                found.append(damage_at(ix, f, ref, why))
-            else:
-                readable += sum(isinstance(r, Message) and r.channel_id in ix.channels for r in records)
+        if ix.complete:  # every chunk is read by the walk (a killed file's index was made by one)
+            found, bad, readable = _walk(ix, f)
+        else:
+            readable += sum(m.channel_id in ix.channels for m in ix.loose)
+            for ref, records, why in _chunks(ix, f):
+                if records is None:
+                    found.append(damage_at(ix, f, ref, why))
+                else:
+                    readable += sum(isinstance(r, Message) and r.channel_id in ix.channels for r in records)
         for which, opcode, read in (("metadata", Opcode.METADATA, Metadata.read),
                                     ("attachments", Opcode.ATTACHMENT, Attachment.read)):
             for off, length in getattr(ix, which):
@@ -173,6 +211,8 @@ def recover_file(src: str | Path, dst: str | Path, compression: str = "zstd") ->
     kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
     try:
         with out, open(ix.path, "rb") as f:
+            if ix.complete:  # what its summary reads past (its messages are read through the summary below)
+                found, bad, _ = _walk(ix, f)
             w = Writer(out, compression=kinds[compression])
             w.start(profile="", library=f"mntes-stream {__version__} recover")
             schema_ids: dict[int, int] = {}

@@ -181,6 +181,8 @@ class Session:
                     )
                 elif fi.problem:
                     warnings.warn(f"{fi.path}: {fi.problem}", TruncatedFileWarning, stacklevel=3)
+                for off, why in fi.damaged_records:
+                    warnings.warn(f"{fi.path}: damaged record at byte {off}: {why}", TruncatedFileWarning, stacklevel=3)
             if self.damage:
                 warnings.warn(f"damaged: {damage_line(self.damage)}", TruncatedFileWarning, stacklevel=3)
 
