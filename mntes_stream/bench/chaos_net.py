@@ -69,6 +69,8 @@ def run(args) -> dict:
         from mntes_stream.errors import ConfigError
 
         raise ConfigError(f"bench chaos-net: {reason}")
+    # A SIGTERM (a timeout, a CI cancel) unwinds like Ctrl-C: the namespaces are deleted on the way out.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     kw = dict(partition_s=args.partition_s, history_s=args.history_s, delay_ms=args.delay_ms, loss_pct=args.loss_pct,
               modules=args.modules, channels=args.channels)
     if args.keep:
@@ -108,7 +110,8 @@ class Lab:
         self.net = f"198.{18 + secrets.randbelow(2)}.{secrets.randbelow(256)}"
         self.made: list[str] = []
         self.addr = {h: f"{self.net}.{k + 1}" for k, h in enumerate(self.HOSTS)}
-        self.impairment = ""
+        self.impairment = "none"
+        self.wire: subprocess.Popen | None = None
         try:
             self._build(delay_ms, loss_pct)
         except BaseException:
@@ -129,20 +132,43 @@ class Lab:
         for h in self.HOSTS:
             # The switch port is named after the host; the host's end is eth0 (names are per namespace).
             _ip("-n", sw, "link", "add", h, "type", "veth", "peer", "name", "eth0", "netns", self.ns(h))
-            _ip("-n", sw, "link", "set", h, "master", "br0")
-            _ip("-n", sw, "link", "set", h, "up")
             _ip("-n", self.ns(h), "addr", "add", f"{self.addr[h]}/24", "dev", "eth0")
             _ip("-n", self.ns(h), "link", "set", "eth0", "up")
+        fails = []
         if delay_ms > 0 or loss_pct > 0:
-            fails = []
             for h in self.HOSTS:
-                res = subprocess.run(["ip", "netns", "exec", self.ns(h), "tc", "qdisc", "add", "dev", "eth0", "root",
-                                      "netem", "delay", f"{delay_ms:g}ms", "loss", f"{loss_pct:g}%"],
-                                     capture_output=True, text=True, timeout=30)
+                res = subprocess.run([*self.argv(h), "tc", "qdisc", "add", "dev", "eth0", "root", "netem", "delay",
+                                      f"{delay_ms:g}ms", "loss", f"{loss_pct:g}%"], capture_output=True, text=True,
+                                     timeout=30)
                 if res.returncode != 0:
                     fails.append(res.stderr.strip())
-            self.impairment = (f"netem delay {delay_ms:g} ms, loss {loss_pct:g} % on each host's link" if not fails
-                               else f"none: tc netem unavailable ({fails[0]})")
+                    break
+        wired = ()
+        if fails:
+            # No netem in this kernel: the DAQ link (all traffic goes through the DAQ router) gets a wire of frames
+            # delayed and dropped in user space instead, the same delay and loss each way (bench/_wire.py).
+            for h in self.HOSTS:
+                _ip("-n", self.ns(h), "link", "set", "eth0", "gso_max_size", "1500")  # no super-frames to forward
+                subprocess.run([*self.argv(h), "tc", "qdisc", "del", "dev", "eth0", "root"], capture_output=True,
+                               timeout=30)
+            wired = ("daq",)
+            _ip("-n", sw, "link", "add", "daq-in", "type", "veth", "peer", "name", "daq-w")
+            for port in ("daq-in", "daq-w"):
+                _ip("-n", sw, "link", "set", port, "gso_max_size", "1500")
+            _ip("-n", sw, "link", "set", "daq-in", "master", "br0")
+            for port in ("daq-in", "daq-w", "daq"):
+                _ip("-n", sw, "link", "set", port, "promisc", "on", "up")
+            self.wire = subprocess.Popen([*self.argv("switch"), sys.executable, "-m", "mntes_stream.bench._wire",
+                                          "daq", "daq-w", f"{delay_ms:g}", f"{loss_pct:g}", "0"],
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            self.impairment = (f"delay {delay_ms:g} ms, loss {loss_pct:g} % each way on the DAQ link, in user space "
+                               f"(bench/_wire.py: tc netem unavailable: {fails[0]})")
+        elif delay_ms > 0 or loss_pct > 0:
+            self.impairment = f"netem delay {delay_ms:g} ms, loss {loss_pct:g} % on each host's link"
+        for h in self.HOSTS:
+            if h not in wired:
+                _ip("-n", sw, "link", "set", h, "master", "br0")
+            _ip("-n", sw, "link", "set", h, "up")
 
     def link(self, host: str, up: bool) -> None:
         """Bring the switch port of ``host`` up or down (down: a partition of that host)."""
@@ -152,6 +178,9 @@ class Lab:
         return ["ip", "netns", "exec", self.ns(host)]
 
     def close(self) -> None:
+        if self.wire is not None and self.wire.poll() is None:
+            self.wire.kill()
+            self.wire.wait(10)
         for name in reversed(self.made):
             # Killing what still runs inside first: a namespace with processes would outlive `ip netns del`.
             pids = _ip("netns", "pids", name, check=False).stdout.split()
@@ -212,11 +241,12 @@ def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0
     rcs: dict[str, int] = {}
     marks: dict[str, int] = {}
     try:
-        say(f"chaos-net: namespaces {lab.prefix}-*, {lab.net}.0/24; impairment: {lab.impairment or 'none'}")
+        say(f"chaos-net: namespaces {lab.prefix}-*, {lab.net}.0/24; impairment: {lab.impairment}")
         cfg = _configs(work, lab.addr["daq"], history_s, modules, channels)
         on = lab.argv
         procs["router"] = _NsProc("router", ["router", "--config", str(cfg["router"])], work, on("daq"))
         procs["router"].wait_log("zenoh id")
+        rtt_s = _connect_rtt_s(lab, on("analysis"), lab.addr["daq"])
         procs["converter"] = _NsProc("converter", ["serve", "--config", str(cfg["converter"]), "--json"], work,
                                      on("analysis"))
         procs["converter"].wait_log("detectors, kind", 600)  # a cold table build
@@ -250,7 +280,20 @@ def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0
                     time.sleep(3.0)
                 rcs[name] = procs[name].stop()
         lab.close()
-    return _analyse(work, procs, rcs, marks, lab, partition_s, history_s)
+    res = _analyse(work, procs, rcs, marks, lab, partition_s, history_s)
+    return {"impairment": lab.impairment, "tcp_connect_analysis_to_daq_ms": round(rtt_s * 1e3, 1), **res}
+
+
+def _connect_rtt_s(lab: Lab, prefix: list[str], host: str) -> float:
+    """Median of 5 TCP connects from a namespace to the router (one round trip each): the link's delay."""
+    code = (f"import socket,time,statistics\nts=[]\nfor _ in range(5):\n t=time.monotonic()\n"
+            f" socket.create_connection(('{host}',{PORT}),timeout=5).close()\n ts.append(time.monotonic()-t)\n"
+            "print(statistics.median(ts))")
+    res = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    try:
+        return float(res.stdout.strip())
+    except ValueError:
+        return float("nan")
 
 
 def _first_after(times_ns: list[int], t_ns: int | None) -> float | None:
@@ -316,7 +359,6 @@ def _analyse(work: Path, procs: dict, rcs: dict, marks: dict, lab: Lab, partitio
         "monitor_saw_the_ledger": bool(monitor_ledgers) and "Traceback" not in monitor_log,
     }
     return {
-        "impairment": lab.impairment,
         "partition_s": partition_s,
         "history_s": history_s,
         "counts_published": published,
