@@ -239,6 +239,7 @@ def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0
     lab = Lab(delay_ms, loss_pct)
     procs: dict[str, _NsProc] = {}
     rcs: dict[str, int] = {}
+    rss_mb: dict[str, float | None] = {}
     marks: dict[str, int] = {}
     try:
         say(f"chaos-net: namespaces {lab.prefix}-*, {lab.net}.0/24; impairment: {lab.impairment}")
@@ -272,6 +273,7 @@ def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0
         procs["router"].wait_log("zenoh id")
         marks["router_up_ns"] = time.time_ns()
         time.sleep(after_restart_s)
+        rss_mb = {name: _max_rss_mb(pr.p.pid) for name, pr in procs.items()}
     finally:
         # Orderly end: the source stops, the converter converts what it holds, the recorder finishes last.
         for name in ("source", "converter", "recorder", "monitor", "router"):
@@ -281,7 +283,19 @@ def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0
                 rcs[name] = procs[name].stop()
         lab.close()
     res = _analyse(work, procs, rcs, marks, lab, partition_s, history_s)
-    return {"impairment": lab.impairment, "tcp_connect_analysis_to_daq_ms": round(rtt_s * 1e3, 1), **res}
+    return {"impairment": lab.impairment, "tcp_connect_analysis_to_daq_ms": round(rtt_s * 1e3, 1), **res,
+            "max_rss_mb": rss_mb}
+
+
+def _max_rss_mb(pid: int) -> float | None:
+    """The process's peak resident memory so far (``VmHWM``), MB."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    return None
 
 
 def _connect_rtt_s(lab: Lab, prefix: list[str], host: str) -> float:
