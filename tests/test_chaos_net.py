@@ -42,7 +42,7 @@ def test_a_partition_longer_than_the_history_is_stated_in_every_summary(tmp_path
     assert c["recorder_accounts_for_every_published_chunk"], res["accounts"]["recorder"]
     # The partition (15 s) outlasted the history (10 s): both ledgers lost chunks, and their closing lines say so.
     assert all(n > 0 for n in res["never_received"].values()), res["never_received"]
-    assert c["lost_only_beyond_history"], (res["never_received"], res["expected_lost_chunks_about"])
+    assert c["lost_only_beyond_history"], (res["never_received"], res["expected_lost_chunks_per_stream_about"])
     assert c["closing_lines_say_lost"], (res["converter_ledger_line"], res["recorder_ledger_line"])
     assert c["recording_matches_recorder_ledger"], (res["recorded_counts_chunks"], res["recorder_ledger_line"])
     # Nobody was restarted by hand: after the link came back and after the router restart, counts were recorded.
