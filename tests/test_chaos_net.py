@@ -31,7 +31,7 @@ def test_a_partition_longer_than_the_history_is_stated_in_every_summary(tmp_path
     before = _namespaces()
     res = run_chaos_net(tmp_path, partition_s=15.0, history_s=10.0, modules=1, channels=8)
     if not res["impairment"].startswith("netem"):
-        warnings.warn(f"chaos-net ran without tc netem: {res['impairment']}")
+        warnings.warn(f"chaos-net ran without tc netem: {res['impairment']}", stacklevel=1)
     # Nothing left behind: every namespace of the run is gone.
     assert not {n for n in _namespaces() - before if n.startswith("mntes-")}
     c = res["checks"]

@@ -32,7 +32,6 @@ Needs root (``ip netns``); ``skip_reason()`` says why it cannot run.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import secrets
@@ -44,7 +43,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mntes_stream.bench.chaos import _Proc
+from mntes_stream.bench.chaos import ServiceProcess, service_configs
 
 HELP = ("daq/analysis/laptop hosts as network namespaces: netem delay and loss, a DAQ-link partition, a router "
         "restart; every ledger accounts for every published chunk")
@@ -193,70 +192,34 @@ class Lab:
         self.made = []
 
 
-class _NsProc(_Proc):
-    """A ``mntes-stream`` process inside a namespace (``ip netns exec`` execs it: the pid is the process's)."""
-
-    def __init__(self, name: str, argv: list[str], work: Path, prefix: list[str]):
-        self.prefix = prefix
-        super().__init__(name, argv, work)
-
-    def start(self) -> None:
-        log = self.work / f"{self.name}-{len(self.runs)}.log"
-        out = self.work / f"{self.name}-{len(self.runs)}.json"
-        with open(log, "w") as err, open(out, "w") as stdout:
-            self.runs.append(subprocess.Popen([*self.prefix, sys.executable, "-m", "mntes_stream", *self.argv],
-                                              cwd=self.work, stdout=stdout, stderr=err, start_new_session=True))
-        self.logs.append(log)
-
-
-def _configs(work: Path, router_ip: str, history_s: float, modules: int, channels: int) -> dict[str, Path]:
-    from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.source import MinimalSource, SourceConfig
-
-    src = SourceConfig(setup="net", modules=modules, channels=channels, hk_interval_s=0.1)
-    dump_params(MinimalSource(src).params, work / "params.toml", metadata={"source": "bench chaos-net (truth)"})
-    zen = f'[zenoh]\nmode = "client"\nconnect = ["tcp/{router_ip}:{PORT}"]\nhistory_s = {history_s}\n'
-    files = {
-        "router": f'[router]\nsetup = "net"\n[zenoh]\nlisten = ["tcp/{router_ip}:{PORT}"]\n',
-        "converter": ('[converter]\nsetup = "net"\nparams = "params.toml"\nkind = "table"\n'
-                      f'table_cache = "{work / "cache"}"\n' + zen),
-        "recorder": '[recorder]\nsetup = "net"\ndirectory = "recordings"\nflush_interval_s = 0.5\n' + zen,
-        "source": (f'[source]\nsetup = "net"\nparams = "params.toml"\nmodules = {modules}\nchannels = {channels}\n'
-                   'hk_interval_s = 0.1\nlinger_s = 2.0\n' + zen),
-    }
-    out = {}
-    for name, text in files.items():
-        out[name] = work / f"{name}.toml"
-        out[name].write_text(text)
-    return out
-
-
 def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0, delay_ms: float = 50.0,
                   loss_pct: float = 1.0, modules: int = 1, channels: int = 8, steady_s: float = 8.0,
                   recover_s: float = 12.0, after_restart_s: float = 10.0, say=None) -> dict:
     """Run the schedule (steady, partition, recovery, router restart) in ``work``; figures and checks."""
     say = say or (lambda m: print(m, file=sys.stderr, flush=True))
     lab = Lab(delay_ms, loss_pct)
-    procs: dict[str, _NsProc] = {}
+    procs: dict[str, ServiceProcess] = {}
     rcs: dict[str, int] = {}
     rss_mb: dict[str, float | None] = {}
     marks: dict[str, int] = {}
     try:
         say(f"chaos-net: namespaces {lab.prefix}-*, {lab.net}.0/24; impairment: {lab.impairment}")
-        cfg = _configs(work, lab.addr["daq"], history_s, modules, channels)
-        on = lab.argv
-        procs["router"] = _NsProc("router", ["router", "--config", str(cfg["router"])], work, on("daq"))
-        procs["router"].wait_log("zenoh id")
-        rtt_s = _connect_rtt_s(lab, on("analysis"), lab.addr["daq"])
-        procs["converter"] = _NsProc("converter", ["serve", "--config", str(cfg["converter"]), "--json"], work,
-                                     on("analysis"))
-        procs["converter"].wait_log("detectors, kind", 600)  # a cold table build
-        procs["recorder"] = _NsProc("recorder", ["serve", "--config", str(cfg["recorder"]), "--json"], work,
-                                    on("analysis"))
-        procs["recorder"].wait_log("recording mntes/net/")
-        procs["monitor"] = _NsProc("monitor", ["monitor", "--text", "--setup", "net", "--update-s", "1", "-m",
-                                               "client", "-e", f"tcp/{lab.addr['daq']}:{PORT}"], work, on("laptop"))
-        procs["source"] = _NsProc("source", ["serve", "--config", str(cfg["source"]), "--json"], work, on("daq"))
+        cfg = service_configs(work, PORT, modules, channels, host=lab.addr["daq"], setup="net", history_s=history_s,
+                              checkpoint=False)
+
+        def start(name: str, host: str, *argv: str) -> ServiceProcess:
+            procs[name] = ServiceProcess(name, list(argv), work, prefix=lab.argv(host))
+            return procs[name]
+
+        start("router", "daq", "router", "--config", str(cfg["router"])).wait_log("zenoh id")
+        rtt_s = _connect_rtt_s(lab.argv("analysis"), lab.addr["daq"])
+        start("converter", "analysis", "serve", "--config", str(cfg["converter"]), "--json").wait_log(
+            "detectors, kind", 600)  # a cold table build
+        start("recorder", "analysis", "serve", "--config", str(cfg["recorder"]), "--json").wait_log(
+            "recording mntes/net/")
+        start("monitor", "laptop", "monitor", "--text", "--setup", "net", "--update-s", "1", "-m", "client",
+              "-e", f"tcp/{lab.addr['daq']}:{PORT}")
+        start("source", "daq", "serve", "--config", str(cfg["source"]), "--json")
         time.sleep(steady_s)
         say(f"chaos-net: DAQ link down for {partition_s:g} s")
         marks["partition_ns"] = time.time_ns()
@@ -298,7 +261,7 @@ def _max_rss_mb(pid: int) -> float | None:
     return None
 
 
-def _connect_rtt_s(lab: Lab, prefix: list[str], host: str) -> float:
+def _connect_rtt_s(prefix: list[str], host: str) -> float:
     """Median of 5 TCP connects from a namespace to the router (one round trip each): the link's delay."""
     code = (f"import socket,time,statistics\nts=[]\nfor _ in range(5):\n t=time.monotonic()\n"
             f" socket.create_connection(('{host}',{PORT}),timeout=5).close()\n ts.append(time.monotonic()-t)\n"
