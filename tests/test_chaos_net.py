@@ -9,6 +9,7 @@ source's history is said in every summary, and the services reconnect by themsel
 
 from __future__ import annotations
 
+import os
 import subprocess
 import warnings
 
@@ -33,7 +34,7 @@ def test_a_partition_longer_than_the_history_is_stated_in_every_summary(tmp_path
     if not res["impairment"].startswith("netem"):
         warnings.warn(f"chaos-net ran without tc netem: {res['impairment']}", stacklevel=1)
     # Nothing left behind: every namespace of the run is gone.
-    assert not {n for n in _namespaces() - before if n.startswith("mntes-")}
+    assert not {n for n in _namespaces() - before if n.startswith(f"mntes-{os.getpid()}-")}
     c = res["checks"]
     assert c["every_process_ended_cleanly"], res["return_codes"]
     assert c["source_summary_counts_published"], res["counts_published"]
@@ -60,4 +61,4 @@ def test_the_lab_deletes_its_namespaces_even_when_building_fails():
 
     with pytest.raises(subprocess.CalledProcessError):
         BadLab(0.0, 0.0)
-    assert not {n for n in _namespaces() - before if n.startswith("mntes-")}
+    assert not {n for n in _namespaces() - before if n.startswith(f"mntes-{os.getpid()}-")}

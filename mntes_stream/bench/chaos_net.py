@@ -95,7 +95,13 @@ def skip_reason() -> str:
         return f"`ip netns add` failed: {exc}"
     if res.returncode != 0:
         return f"`ip netns add` not permitted: {res.stderr.strip() or res.returncode}"
-    _ip("netns", "del", name, check=False)
+    try:
+        for args in (("link", "add", "p0", "type", "veth", "peer", "name", "p1"), ("link", "add", "br0", "type", "bridge")):
+            res = _ip("-n", name, *args, check=False)
+            if res.returncode != 0:
+                return f"`ip link add {' '.join(args[2:])}` not permitted in a namespace: {res.stderr.strip()}"
+    finally:
+        _ip("netns", "del", name, check=False)
     return ""
 
 
