@@ -62,11 +62,15 @@ def run(args) -> dict:
         return run_chaos(Path(tmp), args.duration, args.seed, args.modules, args.channels, events)
 
 
-class _Proc:
-    """One ``mntes-stream`` process, restartable; its output goes to a log file per run."""
+class ServiceProcess:
+    """One ``mntes-stream`` process, restartable; its output goes to a log file per run.
 
-    def __init__(self, name: str, argv: list[str], work: Path):
-        self.name, self.argv, self.work = name, argv, work
+    ``prefix`` runs it through a command (``ip netns exec NAME``: it execs the process, so the pid is the
+    process's own).
+    """
+
+    def __init__(self, name: str, argv: list[str], work: Path, prefix: tuple[str, ...] = ()):
+        self.name, self.argv, self.work, self.prefix = name, argv, work, tuple(prefix)
         self.runs: list[subprocess.Popen] = []
         self.logs: list[Path] = []
         self.start()
@@ -75,8 +79,8 @@ class _Proc:
         log = self.work / f"{self.name}-{len(self.runs)}.log"
         out = self.work / f"{self.name}-{len(self.runs)}.json"
         with open(log, "w") as err, open(out, "w") as stdout:
-            self.runs.append(subprocess.Popen([sys.executable, "-m", "mntes_stream", *self.argv], cwd=self.work,
-                                              stdout=stdout, stderr=err, start_new_session=True))
+            self.runs.append(subprocess.Popen([*self.prefix, sys.executable, "-m", "mntes_stream", *self.argv],
+                                              cwd=self.work, stdout=stdout, stderr=err, start_new_session=True))
         self.logs.append(log)
 
     @property
@@ -144,19 +148,28 @@ def _schedule(events, duration_s: float, seed: int) -> list[tuple[float, str]]:
     return out
 
 
-def _configs(work: Path, port: int, modules: int, channels: int) -> dict[str, Path]:
+def service_configs(work: Path, port: int, modules: int, channels: int, host: str = "127.0.0.1", setup: str = "chaos",
+                    history_s: float | None = None, checkpoint: bool = True) -> dict[str, Path]:
+    """The truth parameters and the router's, converter's, recorder's and source's configs, written in ``work``.
+
+    Every service is a client of the router on ``host:port``; ``history_s`` (None: the default) is the
+    sources' ``[zenoh] history_s``; ``checkpoint``: the converter keeps one.
+    """
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
-    src = SourceConfig(setup="chaos", modules=modules, channels=channels, hk_interval_s=0.1)
-    dump_params(MinimalSource(src).params, work / "params.toml", metadata={"source": "bench chaos (truth)"})
-    zen = f'[zenoh]\nmode = "client"\nconnect = ["tcp/127.0.0.1:{port}"]\n'
+    src = SourceConfig(setup=setup, modules=modules, channels=channels, hk_interval_s=0.1)
+    dump_params(MinimalSource(src).params, work / "params.toml", metadata={"source": f"bench {setup} (truth)"})
+    zen = f'[zenoh]\nmode = "client"\nconnect = ["tcp/{host}:{port}"]\n'
+    if history_s is not None:
+        zen += f"history_s = {history_s}\n"
     files = {
-        "router": f'[router]\nsetup = "chaos"\n[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n',
-        "converter": ('[converter]\nsetup = "chaos"\nparams = "params.toml"\nkind = "table"\n'
-                      f'table_cache = "{work / "cache"}"\ncheckpoint = "checkpoint.json"\n' + zen),
-        "recorder": '[recorder]\nsetup = "chaos"\ndirectory = "recordings"\nflush_interval_s = 0.5\n' + zen,
-        "source": (f'[source]\nsetup = "chaos"\nparams = "params.toml"\nmodules = {modules}\nchannels = {channels}\n'
+        "router": f'[router]\nsetup = "{setup}"\n[zenoh]\nlisten = ["tcp/{host}:{port}"]\n',
+        "converter": (f'[converter]\nsetup = "{setup}"\nparams = "params.toml"\nkind = "table"\n'
+                      f'table_cache = "{work / "cache"}"\n' + ('checkpoint = "checkpoint.json"\n' if checkpoint else "")
+                      + zen),
+        "recorder": f'[recorder]\nsetup = "{setup}"\ndirectory = "recordings"\nflush_interval_s = 0.5\n' + zen,
+        "source": (f'[source]\nsetup = "{setup}"\nparams = "params.toml"\nmodules = {modules}\nchannels = {channels}\n'
                    'hk_interval_s = 0.1\nlinger_s = 2.0\n' + zen),
     }
     out = {}
@@ -173,19 +186,19 @@ def run_chaos(work: Path, duration_s: float = 80.0, seed: int = 0, modules: int 
 
     say = say or (lambda m: print(m, file=sys.stderr, flush=True))
     port = free_tcp_port()
-    cfg = _configs(work, port, modules, channels)
-    procs: dict[str, _Proc] = {}
+    cfg = service_configs(work, port, modules, channels)
+    procs: dict[str, ServiceProcess] = {}
     hogs: list[subprocess.Popen] = []
     log: list[dict] = []
     down: dict[str, list[list[float]]] = {"source": [], "recorder": [], "converter": [], "router": []}
     try:
-        procs["router"] = _Proc("router", ["router", "--config", str(cfg["router"])], work)
+        procs["router"] = ServiceProcess("router", ["router", "--config", str(cfg["router"])], work)
         procs["router"].wait_log("zenoh id")
-        procs["converter"] = _Proc("converter", ["serve", "--config", str(cfg["converter"]), "--json"], work)
+        procs["converter"] = ServiceProcess("converter", ["serve", "--config", str(cfg["converter"]), "--json"], work)
         procs["converter"].wait_log("detectors, kind", 600)  # a cold table build
-        procs["recorder"] = _Proc("recorder", ["serve", "--config", str(cfg["recorder"]), "--json"], work)
+        procs["recorder"] = ServiceProcess("recorder", ["serve", "--config", str(cfg["recorder"]), "--json"], work)
         procs["recorder"].wait_log("recording mntes/chaos/")
-        procs["source"] = _Proc("source", ["serve", "--config", str(cfg["source"]), "--json"], work)
+        procs["source"] = ServiceProcess("source", ["serve", "--config", str(cfg["source"]), "--json"], work)
         t0 = time.monotonic()
         plan = _schedule(events, duration_s, seed)
         say(f"chaos: {len(plan)} events over {duration_s:g} s: " + ", ".join(f"{e}@{t:.0f}s" for t, e in plan))

@@ -362,7 +362,8 @@ def run_source(svc: SourceServiceConfig, stop=None, ready=None, t_start_ns: int 
 
 class PacedBatches:
     """The hooks a paced publisher of batches shares (source, simulator): its ``setup`` sets ``_batches`` (an
-    iterator of ``(t_pub_ns, [(key, payload), ...])``), ``_pacer``, ``_n_batches`` and ``_matched``."""
+    iterator of ``(t_pub_ns, [(key, payload), ...])``), ``_pacer``, ``_n_batches`` and ``_matched``; the summary
+    counts the counts chunks published per stream (``counts_published``, ``"<board>/<module>"``)."""
 
     def step(self, ctx) -> bool:
         item = next(self._batches, None)
@@ -372,6 +373,11 @@ class PacedBatches:
         self._pacer.wait(t_pub_ns, ctx.stop)
         for key, payload in batch:
             ctx.publishers.put(key, payload)
+            if keys.kind_of(key) == "counts":
+                # Per stream: what every downstream ledger (received + never received) must add up to.
+                stream = key.split("/", 3)[3]
+                counted = self.__dict__.setdefault("_counts_published", {})
+                counted[stream] = counted.get(stream, 0) + 1
         self._n_batches += 1
         return True
 
@@ -381,7 +387,8 @@ class PacedBatches:
     def finish(self, ctx) -> dict:
         pubs = ctx.publishers
         result = {"batches": self._n_batches, "messages": pubs.messages, "bytes": pubs.bytes,
-                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched}
+                  "behind_max_ms": self._pacer.behind_max_ms, "matched": self._matched,
+                  "counts_published": dict(sorted(getattr(self, "_counts_published", {}).items()))}
         log.info("%s stopped: %s", self.name, result)
         return result
 
