@@ -83,3 +83,17 @@ def test_two_up_runs_into_one_folder_inspect_and_export_keep_them_apart(tmp_path
     newest = mio.Session(files[1])
     # Only the newest run: no sample before its start, and no hole of the time between the runs.
     assert t.min() >= newest.start_ns - 1_000_000_000 and (t.max() - t.min()) / 1e9 < 10, (t.min(), t.max())
+
+
+def test_inspect_says_a_file_being_written_is_being_written_not_damaged(tmp_path):
+    """A live recording (its writer holds the file open) is not a dead one: inspect says so and exits 0; once its
+    writer is gone without finishing it (killed), the same bytes are UNFINISHED."""
+    w = _record(tmp_path, T0_NS, 30, close=False)  # written and flushed, still open
+    cmd = [sys.executable, "-m", "mntes_stream", "inspect", str(tmp_path)]
+    live = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert live.returncode == 0, live.stderr
+    assert f"{w.current_path}: 30 messages" in live.stdout and "being written (its recorder runs)" in live.stdout
+    assert "UNFINISHED" not in live.stdout and "DAMAGED" not in live.stdout + live.stderr
+    w._current._file.close()  # the writer dies: its lock goes with its file handle, the footer never comes
+    dead = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert "UNFINISHED (" in dead.stdout and "being written" not in dead.stdout, dead.stdout

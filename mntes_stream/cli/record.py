@@ -101,6 +101,7 @@ def run_inspect(args) -> int:
     import sys
 
     from mntes_stream.io.mcap import Session
+    from mntes_stream.io.mcap.recovery import being_written
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -109,6 +110,7 @@ def run_inspect(args) -> int:
     out = {
         "sessions": [{"session": sid, "files": [str(p) for p in ps]} for sid, ps in s.sessions],
         "session": s.session,
+        "being_written": [f.path for f in s.files if not f.complete and being_written(f.path)],
         "files": [dataclasses.asdict(f) for f in s.files],
         "complete": s.complete,
         "start_ns": s.start_ns,
@@ -161,7 +163,12 @@ def _ledger_of(session):
 
 def _print_inspect(s, out, meta, checks) -> None:
     for f in s.files:
-        state = "complete" if f.complete else f"UNFINISHED ({f.problem}); recovered {f.recovered_bytes}/{f.size_bytes} bytes"
+        if f.complete:
+            state = "complete"
+        elif f.path in out["being_written"]:  # its writer holds it open: a live recording, not a dead one
+            state = f"being written (its recorder runs): read up to its last flush, {f.recovered_bytes} bytes"
+        else:
+            state = f"UNFINISHED ({f.problem}); recovered {f.recovered_bytes}/{f.size_bytes} bytes"
         c = checks[f.path] if checks else None
         damage = c.damage if c is not None else [d for d in s.damage if d.path == f.path]
         if c is not None and not c.ok:

@@ -773,3 +773,19 @@ def killed_session(path) -> str:
     except OSError:
         return ""
     return file_session(path)
+
+
+def being_written(path) -> bool:
+    """True while a writer of this package has ``path`` open (it holds an advisory lock until it closes it)."""
+    import fcntl
+
+    try:
+        with open(path, "rb") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return False
+    return False

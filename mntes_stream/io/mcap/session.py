@@ -18,6 +18,7 @@ from mntes_stream.io.mcap.recovery import (
     DamagedChunk,
     FileIndex,
     TruncatedFileWarning,
+    being_written,
     chunk_records,
     damage_at,
     damage_line,
@@ -171,6 +172,8 @@ class Session:
         self.damage: list[DamagedChunk] = [d for ix in self._index for d in ix.damage()]
         if warn:
             for fi in self.files:
+                if not fi.complete and being_written(fi.path):
+                    continue  # a live recording, read up to its last flush: nothing wrong with it
                 if not fi.complete:
                     warnings.warn(
                         f"{fi.path}: not finished by its writer ({fi.problem}); recovered "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import struct
@@ -231,6 +232,9 @@ class McapFileWriter:
             if self.whole:
                 self._target.unlink(missing_ok=True)  # a previous run's leftover, never a finished file
             self._file = open(self._target, "xb")
+            # Held until the file is closed (or its process dies): readers tell a file being written from one
+            # whose writer died (recovery.being_written).
+            fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
             raise TransportError(f"cannot create {self._target}: {exc}") from None
         self._fsync = fsync
