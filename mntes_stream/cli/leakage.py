@@ -235,6 +235,7 @@ def run(args) -> int:
 
 def register(sub) -> None:
     from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, arguments
+    from mntes_stream.options import number
 
     p = sub.add_parser(
         "leakage", help="HWP 2f -> 4f nonlinearity per detector on a recording: linear conversion vs MNTES",
@@ -249,7 +250,7 @@ def register(sub) -> None:
                                                         "simulate --out)")
         p.add_argument("--truth", metavar="NPZ", help="the simulator's per-sample truth (simulate --truth): also "
                                                       "MNTES's own residual against it")
-        p.add_argument("--f-hwp", type=float, metavar="HZ", help="HWP rotation frequency (default: estimated from "
+        p.add_argument("--f-hwp", type=number(float, "Hz", gt=0), metavar="HZ", help="HWP rotation frequency (default: estimated from "
                                                                   "the power spectrum, as the monitor does)")
         p.add_argument("--params", metavar="FILE", help="detector parameter TOML instead of the recorded one "
                                                         "(a simulate recording: its .params.toml)")
@@ -257,7 +258,7 @@ def register(sub) -> None:
                                                      "the 0.014 pW^-1 requirement")
         add_overwrite(p, "replace an existing --png file")
         add_json(p, "print the result as one JSON document")
-        add_quiet(p, "the summary only, no table or progress")
+        add_quiet(p)
         p.set_defaults(func=run)
 
     arguments(p, fill)
