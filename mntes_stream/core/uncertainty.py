@@ -35,11 +35,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from mntes_stream.core import _uncertainty_kernel as _uk
+from mntes_stream.core._kernels import LOW_COLS, binomials
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
 from mntes_stream.core.ids import parse_detector_id
@@ -57,6 +58,7 @@ __all__ = [
     "sigma_p_model",
     "nominal_sigma_p_w",
     "sigma_p_block",
+    "low_responsivity_block",
     "module_key",
     "white_noise_counts",
     "NOISE_FILE_FORMAT",
@@ -227,6 +229,8 @@ class NoiseModel:
     unusable: bool = False
     measured_from: str = ""
     settings: UncertaintySettings = field(default_factory=UncertaintySettings)
+    gain_a_per_count: np.ndarray = field(default_factory=lambda: np.empty(0, complex))
+    nominal_gradient: np.ndarray = field(default_factory=lambda: np.empty(0))
 
     def kernel_record(self, converter) -> np.ndarray:
         """The compiled kernel's per-detector record for ``converter``'s bank (made once, kept)."""
@@ -237,6 +241,46 @@ class NoiseModel:
             cache.clear()
             rec = cache[key] = _uk.row_constants(converter.kernel_constants, self, converter.bank.arrays)
         return rec
+
+    def low_record(self, converter) -> np.ndarray:
+        """The conversion kernel's LOW_RESPONSIVITY record (n_det, ``_kernels.LOW_COLS``) for ``converter``:
+        noise per quadrature, tolerance, ``C(n - 1, 1..8)`` (made once, kept)."""
+        key = (id(converter), converter.identity)
+        cache = self.__dict__.setdefault("_low_records", {})
+        rec = cache.get(key)
+        if rec is None:
+            n = np.asarray(converter.kernel_constants, dtype=np.float64)[:, 7]
+            cols = [np.asarray(self.sigma_i_a, float), np.asarray(self.tolerance_w, float), *binomials(n - 1.0)]
+            rec = np.ascontiguousarray(np.stack(cols, axis=1)) if len(n) else np.empty((0, LOW_COLS))
+            rec.flags.writeable = False
+            cache.clear()
+            cache[key] = rec
+        return rec
+
+    def with_noise(self, readout_noise_a, source: Sequence[str], measured_from: str = "") -> NoiseModel:
+        """This model with other readout noise per detector (e.g. measured live): sigma_i, the nominal
+        sigma_P and the tolerance follow (sigma_P is linear in the noise, so no operating point is solved
+        again; the same numbers :func:`noise_model` would give).
+
+        Parameters
+        ----------
+        readout_noise_a : array_like (n_det,)
+            White readout noise per quadrature, finite and >= 0.
+        source : sequence of str (n_det,)
+            Where each came from (see ``source``).
+        """
+        noise_a = np.asarray(readout_noise_a, dtype=float)
+        if noise_a.shape != self.readout_noise_a.shape or not np.all(np.isfinite(noise_a) & (noise_a >= 0)):
+            raise ConfigError(f"readout noise: expected {self.readout_noise_a.shape[0]} finite values >= 0 (A)")
+        if len(source) != noise_a.size:
+            raise ConfigError("readout noise: one source per detector")
+        sig = total_sigma_i_a(noise_a, self.gain_a_per_count)
+        nominal = sig * self.nominal_gradient
+        return NoiseModel(detector_ids=self.detector_ids, readout_noise_a=noise_a, sigma_i_a=sig,
+                          nominal_sigma_p_w=nominal, tolerance_w=_tolerance(self.settings, nominal),
+                          source=tuple(source), unusable=self.unusable, measured_from=measured_from,
+                          settings=self.settings, gain_a_per_count=self.gain_a_per_count,
+                          nominal_gradient=self.nominal_gradient)
 
     def provenance(self) -> dict:
         """What the converter's provenance records: which noise was used, and the tolerance rule."""
@@ -289,14 +333,22 @@ def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings 
             noise.append(s.readout_noise_a)
             source.append("default" if default else "setting")
     noise_a = np.array(noise, dtype=float)
-    sig = total_sigma_i_a(noise_a, np.array([p.gain_a_per_count for p in params], dtype=complex))
-    nominal = np.array([nominal_sigma_p_w(p, float(x)) for p, x in zip(params, sig)], dtype=float)
-    tol = np.full(len(params), s.sigma_p_tolerance_w) if s.sigma_p_tolerance_w else s.sigma_p_factor * nominal
-    # A detector without a nominal sigma_P (never on its branch) has no LOW_RESPONSIVITY.
-    tol = np.where(np.isfinite(tol), tol, np.inf)
+    gain = np.array([p.gain_a_per_count for p in params], dtype=complex)
+    sig = total_sigma_i_a(noise_a, gain)
+    # sigma_P is the noise times |grad_i P|: the nominal gradient is solved once, any noise scales it.
+    grad = np.array([nominal_sigma_p_w(p, 1.0) for p in params], dtype=float)
+    nominal = sig * grad
     return NoiseModel(detector_ids=tuple(p.detector_id for p in params), readout_noise_a=noise_a, sigma_i_a=sig,
-                      nominal_sigma_p_w=nominal, tolerance_w=tol, source=tuple(source),
-                      unusable=bool(s.low_responsivity_unusable), measured_from=measured_from, settings=s)
+                      nominal_sigma_p_w=nominal, tolerance_w=_tolerance(s, nominal), source=tuple(source),
+                      unusable=bool(s.low_responsivity_unusable), measured_from=measured_from, settings=s,
+                      gain_a_per_count=gain, nominal_gradient=grad)
+
+
+def _tolerance(s: UncertaintySettings, nominal_w: np.ndarray) -> np.ndarray:
+    """Per detector, LOW_RESPONSIVITY above this sigma_P (W); inf for a detector without a nominal sigma_P
+    (never on its branch)."""
+    tol = np.full(nominal_w.shape, s.sigma_p_tolerance_w) if s.sigma_p_tolerance_w else s.sigma_p_factor * nominal_w
+    return np.where(np.isfinite(tol), tol, np.inf)
 
 
 @dataclass(frozen=True)
@@ -316,6 +368,35 @@ class Uncertainty:
     p_opt_w: np.ndarray
     flags: np.ndarray
     sigma_p_w: np.ndarray
+
+
+def low_responsivity_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray,
+                           env, noise: NoiseModel):
+    """Convert a block with LOW_RESPONSIVITY flagged: the flags :func:`sigma_p_block` gives, without sigma_P.
+
+    A compiled ``"table"`` converter flags it in its own pass (``NoiseModel.low_record``, a few
+    percent of the conversion: ``bench convert``); any other converts, then runs the full sigma_P pass.
+
+    Returns
+    -------
+    PowerBlock
+        Its power NaN where LOW_RESPONSIVITY when that is unusable.
+
+    Raises
+    ------
+    ConfigError
+        A noise model of other detectors.
+    """
+    if noise.detector_ids != converter.detector_ids:
+        raise ConfigError("the noise model was built for other detectors than the converter's")
+    if not getattr(converter, "fuses_low_responsivity", False):
+        block = converter.convert(detector_ids, counts_i, counts_q, env)
+        u = sigma_p_block(converter, detector_ids, counts_i, counts_q, env, block, noise)
+        return replace(block, p_opt_w=u.p_opt_w, flags=u.flags)
+    block = converter.convert(detector_ids, counts_i, counts_q, env, low_responsivity=noise.low_record(converter))
+    if noise.unusable:
+        block = replace(block, p_opt_w=np.where((block.flags & fl.LOW_RESPONSIVITY) != 0, np.nan, block.p_opt_w))
+    return block
 
 
 def sigma_p_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray, env,
