@@ -282,8 +282,9 @@ class NoiseModel:
                           settings=self.settings, gain_a_per_count=self.gain_a_per_count,
                           nominal_gradient=self.nominal_gradient)
 
-    def provenance(self) -> dict:
-        """What the converter's provenance records: which noise was used, and the tolerance rule."""
+    def provenance(self, sigma_p: bool = True) -> dict:
+        """What the converter's provenance records: which noise was used, the tolerance rule, and whether
+        sigma_P itself is published (``sigma_p``) or only LOW_RESPONSIVITY flagged."""
         src, n = np.unique(np.array(self.source, dtype=object).astype(str), return_counts=True)
         s = self.settings
         return {
@@ -296,6 +297,7 @@ class NoiseModel:
             "low_responsivity": (f"sigma_P > {s.sigma_p_tolerance_w:g} W" if s.sigma_p_tolerance_w else
                                  f"sigma_P > {s.sigma_p_factor:g} x nominal sigma_P"),
             "low_responsivity_unusable": self.unusable,
+            "sigma_p_published": bool(sigma_p),
         }
 
 

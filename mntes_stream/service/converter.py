@@ -80,12 +80,16 @@ class ConverterConfig(Settings):
                              "sample times are converted in one call)", ge=1)
     checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
                               "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
+    low_responsivity: bool = setting(
+        True, "flag LOW_RESPONSIVITY (sigma_P above its tolerance, as [uncertainty] says) on every sample: on the "
+        "compiled table kernel, in the conversion's own pass (a few percent of its cost, benchmarks/convert.json)")
     sigma_p: bool = setting(False, "publish each sample's power uncertainty sigma_P (readout noise through the "
                             "local responsivity) and flag LOW_RESPONSIVITY, as [uncertainty] says (costs about as "
                             "much as the conversion itself)")
     alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
     uncertainty: UncertaintySettings = setting(default_factory=UncertaintySettings,
-                                               doc="readout noise and LOW_RESPONSIVITY ([uncertainty], with sigma_p)")
+                                               doc="readout noise and LOW_RESPONSIVITY ([uncertainty]: "
+                                                   "low_responsivity, sigma_p)")
     status: StatusConfig = setting(default_factory=StatusConfig, doc="status cadence ([status])")
     metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
@@ -99,6 +103,11 @@ class ConverterConfig(Settings):
         object.__setattr__(self, "_shard", shard)
         if not shard.whole and self.name == "converter":  # shards of one setup need names of their own
             object.__setattr__(self, "name", f"converter-{shard.index}of{shard.count}")
+
+    @property
+    def uncertainty_used(self) -> UncertaintySettings | None:
+        """``uncertainty`` where LOW_RESPONSIVITY is flagged or sigma_P published, else None."""
+        return self.uncertainty if (self.low_responsivity or self.sigma_p) else None
 
     @property
     def shard_parsed(self) -> Shard:
@@ -345,7 +354,7 @@ class ConverterService(Service):
         summary = owns_summary(cfg.shard_parsed, cfg.boards, cfg.modules, streams) if streams is not None else {}
         self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
-                                              uncertainty=cfg.uncertainty if cfg.sigma_p else None)
+                                              uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p)
         if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
             n = pipe.resume_sequences(ckpt[0])
             log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "

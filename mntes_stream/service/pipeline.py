@@ -62,7 +62,7 @@ log = logging.getLogger("mntes_stream.converter")
 
 
 def converter_stages(books: Books, converter, *, params: list, modules, owns: dict, threads: int,
-                     set_aside_bytes: int, noise=None) -> tuple:
+                     set_aside_bytes: int, noise=None, sigma_p: bool = False) -> tuple:
     """The converter's stages, in order: the one declaration every path runs.
 
     Returns
@@ -78,10 +78,10 @@ def converter_stages(books: Books, converter, *, params: list, modules, owns: di
         Decode(books, modules),
         sequence,
         align,
-        Convert(books, converter, threads, noise),
+        Convert(books, converter, threads, noise, sigma_p),
         Flags(books),
         Encode(books, str(converter.identity), str(converter.kind)),
-        Status(books, sequence, align, converter, params, owns, noise),
+        Status(books, sequence, align, converter, params, owns, noise, sigma_p),
     )
 
 
@@ -112,8 +112,11 @@ class ConverterPipeline:
         Counts held at most under overload for late conversion; beyond, the
         oldest set-aside chunk is shed (counted in the ledger).
     uncertainty : core.uncertainty.UncertaintySettings, optional
-        Given: every power chunk carries each sample's sigma_P and LOW_RESPONSIVITY is
-        flagged (``core.uncertainty.sigma_p_block``); None: neither (the power is the same).
+        Given: LOW_RESPONSIVITY is flagged (``core.uncertainty.low_responsivity_block``: in
+        the compiled "table" kernel's own pass); None: not (the power is the same).
+    sigma_p : bool
+        With ``uncertainty``: every power chunk carries each sample's sigma_P too
+        (``core.uncertainty.sigma_p_block``, a pass about as dear as the conversion).
 
     Attribute ``overloaded`` (False unless the live service sets it, so offline
     runs never shed): while True, a chunk further behind its stream's pace than
@@ -127,7 +130,7 @@ class ConverterPipeline:
 
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
                  clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
-                 set_aside_bytes: int = 256 << 20, uncertainty=None):
+                 set_aside_bytes: int = 256 << 20, uncertainty=None, sigma_p: bool = False):
         if not isinstance(threads, int) or threads < 1:
             raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
         self.converter = converter
@@ -154,7 +157,8 @@ class ConverterPipeline:
 
             noise = noise_model_for(list(converter.params), uncertainty)
         self.stages = converter_stages(self.books, converter, params=params, modules=modules, owns=dict(owns or {}),
-                                       threads=threads, set_aside_bytes=set_aside_bytes, noise=noise)
+                                       threads=threads, set_aside_bytes=set_aside_bytes, noise=noise,
+                                       sigma_p=bool(sigma_p) and noise is not None)
         _, self._sequence, self._align, _, _, _, self._status = self.stages
 
     # ------------------------------------------------------------------ running the stages

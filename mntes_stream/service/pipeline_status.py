@@ -30,8 +30,9 @@ class Status:
     name = "status"
 
     def __init__(self, books: Books, sequence: Sequence, align: Align, converter, params: list, owns: dict,
-                 noise=None):
+                 noise=None, sigma_p: bool = False):
         self.books, self.sequence, self.align = books, sequence, align
+        self._sigma_p = sigma_p
         self.converter, self._params, self._owns, self._noise = converter, params, owns, noise
         self.owns_status: Callable[[], dict] | None = None
         self._status_ns = ns(books.config.status_interval_s)
@@ -121,7 +122,7 @@ class Status:
             software_version=__version__,
             t_ns=self._t_created_ns,
             owns=self._owns,
-            noise=self._noise.provenance() if self._noise is not None else {},
+            noise=self._noise.provenance(sigma_p=self._sigma_p) if self._noise is not None else {},
         )
 
     def provenance_bytes(self) -> bytes:
