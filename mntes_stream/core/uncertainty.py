@@ -249,6 +249,8 @@ class NoiseModel:
         cache = self.__dict__.setdefault("_low_records", {})
         rec = cache.get(key)
         if rec is None:
+            if self.detector_ids != converter.detector_ids:
+                raise ConfigError("the noise model was built for other detectors than the converter's")
             n = np.asarray(converter.kernel_constants, dtype=np.float64)[:, 7]
             cols = [np.asarray(self.sigma_i_a, float), np.asarray(self.tolerance_w, float), *binomials(n - 1.0)]
             rec = np.ascontiguousarray(np.stack(cols, axis=1)) if len(n) else np.empty((0, LOW_COLS))
@@ -389,12 +391,11 @@ def low_responsivity_block(converter, detector_ids: Sequence[str], counts_i: np.
     ConfigError
         A noise model of other detectors.
     """
-    if noise.detector_ids != converter.detector_ids:
-        raise ConfigError("the noise model was built for other detectors than the converter's")
-    if not getattr(converter, "fuses_low_responsivity", False):
+    if not getattr(converter, "fuses_low_responsivity", False):  # sigma_p_block checks the detectors
         block = converter.convert(detector_ids, counts_i, counts_q, env)
         u = sigma_p_block(converter, detector_ids, counts_i, counts_q, env, block, noise)
         return replace(block, p_opt_w=u.p_opt_w, flags=u.flags)
+    # low_record checks the detectors once per converter (a live chunk's call must stay cheap).
     block = converter.convert(detector_ids, counts_i, counts_q, env, low_responsivity=noise.low_record(converter))
     if noise.unusable:
         block = replace(block, p_opt_w=np.where((block.flags & fl.LOW_RESPONSIVITY) != 0, np.nan, block.p_opt_w))
