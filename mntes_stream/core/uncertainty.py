@@ -34,6 +34,7 @@ Computed only when asked (:func:`sigma_p_block`).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -61,12 +62,14 @@ __all__ = [
     "low_responsivity_block",
     "module_key",
     "white_noise_counts",
+    "NoiseWindow",
     "NOISE_FILE_FORMAT",
 ]
 
 NOISE_FILE_FORMAT = "mntes-noise"
 
 SIGMA_P_FACTOR = 3.0
+_RAIL = float(2**31 - 1)  # counts at the int32 rails: ADC saturation or "no data" (core.convert)
 SQRT2 = model.SQRT2
 
 
@@ -88,6 +91,12 @@ class UncertaintySettings(Settings):
     noise_file: str | None = setting(
         None, "measured readout noise per detector or module (mntes-stream noise RUN --out FILE); where it names "
         "neither, readout_noise_a", path=True)
+    readout_noise: str = setting(
+        "configured", "the noise LOW_RESPONSIVITY's tolerance and sigma_P use: 'configured' (noise_file, else "
+        "readout_noise_a) or 'measured' (each channel's white noise measured live from its counts over "
+        "noise_window_samples, the configured one until then)", choices=("configured", "measured"))
+    noise_window_samples: int = setting(
+        4096, "'measured': second differences (I and Q pooled) per channel behind each live estimate", ge=64)
 
 
 def module_key(detector_id: str) -> str | None:
@@ -141,6 +150,71 @@ def white_noise_counts(x: np.ndarray, clip: float = 6.0) -> tuple[np.ndarray, np
         used[k] = kept.size
         sigma[k] = math.sqrt(max(float(np.mean((kept - kept.mean()) ** 2)) / 6.0 - 1.0 / 12.0, 0.0))
     return sigma, used
+
+
+class NoiseWindow:
+    """Each detector's white noise measured live from its counts: :func:`white_noise_counts`'s estimate,
+    accumulated chunk by chunk over a window.
+
+    Per chunk and row: second differences of I and of Q (within the chunk: a gap between chunks never
+    enters), those beyond ``clip`` robust sigma of the chunk's own (median absolute deviation, at least one
+    count) left out, their sum and sum of squares added to the row's detector. When a detector has
+    ``window`` of them, its estimate is renewed (variance / 6, less the rounding's 1/12 count^2) and its sums
+    start again. Not thread-safe; pure (no I/O).
+
+    Parameters
+    ----------
+    n_det : int
+        Detectors (rows of a converter's order).
+    window : int
+        Second differences per estimate (>= 64).
+    """
+
+    def __init__(self, n_det: int, window: int = 4096, clip: float = 6.0):
+        if window < 64:
+            raise ConfigError(f"noise window: expected >= 64 second differences, got {window}")
+        self.window, self.clip = int(window), float(clip)
+        self._s = np.zeros(n_det)
+        self._ss = np.zeros(n_det)
+        self._n = np.zeros(n_det, dtype=np.int64)
+        self.sigma_counts = np.full(n_det, np.nan)  # (n_det,): the latest complete window's, NaN before one
+
+    def add(self, rows: np.ndarray, counts_i: np.ndarray, counts_q: np.ndarray) -> np.ndarray:
+        """Add one chunk; returns the detectors (indices) whose estimate was renewed by it.
+
+        Parameters
+        ----------
+        rows : ndarray of int (n_rows,)
+            Each row's detector, -1 for none (skipped).
+        counts_i, counts_q : ndarray (n_rows, n_samp)
+            One chunk (contiguous samples); non-finite and railed values leave their differences out.
+        """
+        ci, cq = np.asarray(counts_i, dtype=float), np.asarray(counts_q, dtype=float)
+        if ci.ndim != 2 or ci.shape != cq.shape or ci.shape[0] != len(rows):
+            raise SchemaError(f"noise window: counts {ci.shape}/{cq.shape} for {len(rows)} rows")
+        if ci.shape[1] < 3:
+            return np.empty(0, dtype=np.int64)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a row with no finite difference: nothing kept
+            # Railed or non-finite counts (INVALID_INPUT) leave their differences out.
+            d = np.concatenate([np.diff(np.where(np.abs(c) < _RAIL, c, np.nan), n=2, axis=1) for c in (ci, cq)],
+                               axis=1)
+            med = np.nanmedian(d, axis=1, keepdims=True)
+            s0 = np.maximum(1.4826 * np.nanmedian(np.abs(d - med), axis=1, keepdims=True), 1.0)
+            keep = np.abs(d - med) <= self.clip * s0
+        d = np.where(keep, d, 0.0)
+        rows = np.asarray(rows, dtype=np.int64)
+        ok = rows >= 0
+        np.add.at(self._s, rows[ok], d[ok].sum(axis=1))
+        np.add.at(self._ss, rows[ok], (d[ok] ** 2).sum(axis=1))
+        np.add.at(self._n, rows[ok], keep[ok].sum(axis=1))
+        full = np.flatnonzero(self._n >= self.window)
+        if full.size:
+            n = self._n[full].astype(float)
+            var = (self._ss[full] - self._s[full] ** 2 / n) / n
+            self.sigma_counts[full] = np.sqrt(np.maximum(var / 6.0 - 1.0 / 12.0, 0.0))
+            self._s[full], self._ss[full], self._n[full] = 0.0, 0.0, 0
+        return full
 
 
 def total_sigma_i_a(readout_noise_a, gain_a_per_count) -> np.ndarray:

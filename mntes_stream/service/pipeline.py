@@ -74,14 +74,16 @@ def converter_stages(books: Books, converter, *, params: list, modules, owns: di
     hk = Housekeeping(books.config, nominal, modules)
     sequence = Sequence(books, modules, set_aside_bytes)
     align = Align(books, hk, Environment(books, hk, frozenset(converter.detector_ids)))
+    convert = Convert(books, converter, threads, noise, sigma_p)
     return (
         Decode(books, modules),
         sequence,
         align,
-        Convert(books, converter, threads, noise, sigma_p),
+        convert,
         Flags(books),
         Encode(books, str(converter.identity), str(converter.kind)),
-        Status(books, sequence, align, converter, params, owns, noise, sigma_p),
+        # The provenance names the noise in use now (measured live: renewed window by window).
+        Status(books, sequence, align, converter, params, owns, (lambda: convert.noise) if noise else None, sigma_p),
     )
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock
-from mntes_stream.core.uncertainty import low_responsivity_block, sigma_p_block
+from mntes_stream.core.uncertainty import NoiseWindow, low_responsivity_block, sigma_p_block
 from mntes_stream.io import keys
 from mntes_stream.io.lean import PowerEncoder
 from mntes_stream.io.messages import CountsChunk, detector_ids_for
@@ -155,17 +155,49 @@ class Convert:
     def __init__(self, books: Books, converter, threads: int = 1, noise=None, sigma_p: bool = False):
         self.books, self.converter, self._threads, self._noise = books, converter, threads, noise
         self._sigma_p = sigma_p and noise is not None
+        self._window = self._index = None
+        if noise is not None and noise.settings.readout_noise == "measured":
+            # Each channel's white noise from its own counts (core.uncertainty.NoiseWindow); the configured
+            # noise until a channel's first window is complete.
+            self._window = NoiseWindow(len(converter.detector_ids), noise.settings.noise_window_samples)
+            self._index = {d: k for k, d in enumerate(converter.detector_ids)}
+            self._configured = noise
         self._executor = None
         self._held: list[_Ready] = []
 
+    @property
+    def noise(self):
+        """The noise model in use now (None: no LOW_RESPONSIVITY); with measured noise, renewed as windows complete."""
+        return self._noise
+
+    def _measure(self, r: _Ready) -> bool:
+        """Add a chunk's counts to the live noise window; True when an estimate was renewed."""
+        rows = np.fromiter((self._index.get(d, -1) for d in r.ids), dtype=np.int64, count=len(r.ids))
+        return self._window.add(rows, r.chunk.counts_i, r.chunk.counts_q).size > 0
+
+    def _renew_noise(self) -> None:
+        """The noise model with every measured channel's live white noise (counts rms times |gain|)."""
+        base = self._configured
+        sig = self._window.sigma_counts
+        have = np.isfinite(sig)
+        noise_a = np.where(have, np.nan_to_num(sig) * np.abs(base.gain_a_per_count), base.readout_noise_a)
+        source = tuple("measured:live" if h else s for h, s in zip(have, base.source))
+        self._noise = base.with_noise(noise_a, source, f"live, {self._window.window} second differences per channel")
+
     def __call__(self, items: list) -> list:
         out = []
+        renewed = False
         for item in items:
             if type(item) is _Ready:
                 item.order = len(self._held)
                 self._held.append(item)
+                if self._window is not None:
+                    renewed |= self._measure(item)
                 continue
             if type(item) is End:
+                if renewed:
+                    self._renew_noise()
+                    renewed = False
                 self._convert(out)
             out.append(item)
         return out

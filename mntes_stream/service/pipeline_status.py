@@ -24,7 +24,8 @@ class Status:
     ----------
     books : Books
     sequence, align : the stages whose state the status reports (streams, set aside, held, housekeeping)
-    converter, params, owns, noise : what the provenance names
+    converter, params, owns : what the provenance names
+    noise : callable returning the noise model in use (``core.uncertainty.NoiseModel``), or None
     """
 
     name = "status"
@@ -39,6 +40,7 @@ class Status:
         self._next_ns: int | None = None
         self._last_ns: int | None = None
         self._provenance: bytes | None = None
+        self._provenance_noise = None
         self._t_created_ns = time.time_ns()
 
     def __call__(self, items: list) -> list:
@@ -122,11 +124,13 @@ class Status:
             software_version=__version__,
             t_ns=self._t_created_ns,
             owns=self._owns,
-            noise=self._noise.provenance(sigma_p=self._sigma_p) if self._noise is not None else {},
+            noise=self._noise().provenance(sigma_p=self._sigma_p) if self._noise is not None else {},
         )
 
     def provenance_bytes(self) -> bytes:
-        """:meth:`provenance` encoded once: identical bytes on every publication."""
-        if self._provenance is None:
-            self._provenance = self.provenance().to_bytes()
+        """:meth:`provenance` encoded once: identical bytes on every publication, until the noise in use
+        changes (measured live, window by window)."""
+        noise = self._noise() if self._noise is not None else None
+        if self._provenance is None or noise is not self._provenance_noise:
+            self._provenance, self._provenance_noise = self.provenance().to_bytes(), noise
         return self._provenance
