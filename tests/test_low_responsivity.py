@@ -72,7 +72,6 @@ def test_fused_flags_equal_the_sigma_p_pass_across_the_top_of_the_transition(nam
     a = bank.arrays
     q = tuple(float(x) for x in conv._row_constants()[0])
     lq = tuple(float(x) for x in noise.low_record(conv)[0])
-    usable = (fused.flags & fl.UNUSABLE) == 0
     for row, col in list(zip(*np.nonzero(usable)))[:: max(1, int(usable.sum()) // 6)]:
         sp = _kernels._sigma_sample(float(ci[row, col]), float(cq[row, col]), float(env.b_field_t[row, col]),
                                     float(env.v_thev_v[row, col]), q, lq, a["r_knot_ohm"], a["cell_interval"],

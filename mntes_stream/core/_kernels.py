@@ -806,10 +806,14 @@ if numba is not None:
                         ap = s_w1[s] * sn * mz4 - vv * (zz - r * r) * x1  # dP/dR |R + z|^4 (1 + x)
                         bm = bbc * w * uu * sn * m2 * mz4                 # dP/d|i| |i|^2 |R + z|^4 (1 + x)
                         im = math.sqrt(m2) if gamma != 0.0 else 0.0
-                        t1, t2, t3 = 2.0 * vv * ap * ap, bm * bm, 2.0 * ap * bm * rz * im
-                        k = m2 * m2 * mz4 * mz4 * x1 * x1
-                        dd = sig2 * (t1 + t2 - t3) - tol2 * k
-                        mag = _LOW_MARGIN * (sig2 * (t1 + t2 + abs(t3)) + tol2 * k)
+                        t12 = 2.0 * vv * ap * ap + bm * bm
+                        t3 = 2.0 * ap * bm * rz * im
+                        mk = m2 * mz4 * x1
+                        k = mk * mk
+                        dd = sig2 * (t12 - t3) - tol2 * k
+                        # |t3| <= t12 (R + Re z = sqrt(2) V Re(i) / |i|^2, so (R + Re z) |i| <= sqrt(2) V): the
+                        # terms' magnitudes are at most 2 t12 and tol^2 k.
+                        mag = _LOW_MARGIN * (2.0 * sig2 * t12 + tol2 * k)
                         out_p[row, s] = p if usable else math.nan
                         out_f[row, s] = f | (_LOW * (usable & checks & (dd > mag)))
                         near = usable & checks & ~(abs(dd) > mag)

@@ -41,9 +41,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from mntes_stream.core import _uncertainty_kernel as _uk
-from mntes_stream.core._kernels import LOW_COLS, binomials
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
+from mntes_stream.core._kernels import LOW_COLS, binomials
 from mntes_stream.core.ids import parse_detector_id
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.settings import Settings, setting
