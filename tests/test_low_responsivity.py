@@ -209,3 +209,21 @@ def test_live_pipeline_measures_the_noise_and_the_provenance_says_so():
     usable = (a.flags & fl.UNUSABLE) == 0
     assert usable.any() and np.all(b.sigma_p_w[usable] < 0.5 * a.sigma_p_w[usable])
     assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True)
+
+
+def test_nominal_gradients_are_solved_once_and_travel_with_a_restart_snapshot():
+    import pickle
+
+    import mntes_stream.service.snapshot  # noqa: F401 - registers how the converter's read-only views pickle
+
+    params = {p.detector_id: p for p in range_detectors().values()}
+    conv = make_converter("table", params)
+    grad = U.nominal_gradients(conv)
+    assert U.nominal_gradients(conv) is grad  # kept on the converter
+    restored = pickle.loads(pickle.dumps(conv))  # what service/snapshot.py stores
+    assert np.array_equal(U.nominal_gradients(restored), grad)
+    s = U.UncertaintySettings()
+    a, b = U.noise_model(conv.params, s), U.noise_model(conv.params, s, gradients=grad)
+    assert np.array_equal(a.tolerance_w, b.tolerance_w) and np.array_equal(a.nominal_sigma_p_w, b.nominal_sigma_p_w)
+    with pytest.raises(ConfigError):
+        U.noise_model(conv.params, s, gradients=grad[:1])

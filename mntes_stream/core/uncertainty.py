@@ -58,6 +58,7 @@ __all__ = [
     "total_sigma_i_a",
     "sigma_p_model",
     "nominal_sigma_p_w",
+    "nominal_gradients",
     "sigma_p_block",
     "low_responsivity_block",
     "module_key",
@@ -377,8 +378,20 @@ class NoiseModel:
         }
 
 
+def nominal_gradients(converter) -> np.ndarray:
+    """``|grad_i P|`` at each of ``converter``'s detectors' nominal operating point (n_det,): the nominal sigma_P
+    per unit noise (:func:`nominal_sigma_p_w`), one forward solve per detector (ms each), kept on the
+    converter so that a converter restored from a restart snapshot does not solve again."""
+    grad = converter.__dict__.get("_nominal_gradient")
+    if grad is None or grad.shape != (len(converter.params),):
+        grad = np.array([nominal_sigma_p_w(p, 1.0) for p in converter.params], dtype=float)
+        converter.__dict__["_nominal_gradient"] = grad
+    return grad
+
+
 def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings | None = None,
-                measured_a: Mapping[str, float] | None = None, measured_from: str = "") -> NoiseModel:
+                measured_a: Mapping[str, float] | None = None, measured_from: str = "",
+                gradients: np.ndarray | None = None) -> NoiseModel:
     """The noise of each detector, from a measurement (per detector or per module) or the setting.
 
     Parameters
@@ -391,6 +404,8 @@ def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings 
         e.g. from ``mntes-stream noise RUN``; a detector's own entry wins over its module's.
     measured_from : str
         Where the measurement came from (for the provenance).
+    gradients : ndarray (n_det,), optional
+        :func:`nominal_gradients` of these detectors, if known (else solved here).
     """
     s = settings or UncertaintySettings()
     measured = dict(measured_a or {})
@@ -414,7 +429,10 @@ def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings 
     gain = np.array([p.gain_a_per_count for p in params], dtype=complex)
     sig = total_sigma_i_a(noise_a, gain)
     # sigma_P is the noise times |grad_i P|: the nominal gradient is solved once, any noise scales it.
-    grad = np.array([nominal_sigma_p_w(p, 1.0) for p in params], dtype=float)
+    grad = (np.array([nominal_sigma_p_w(p, 1.0) for p in params], dtype=float) if gradients is None else
+            np.asarray(gradients, dtype=float))
+    if grad.shape != (len(params),):
+        raise ConfigError(f"nominal gradients: expected {len(params)}, got shape {grad.shape}")
     nominal = sig * grad
     return NoiseModel(detector_ids=tuple(p.detector_id for p in params), readout_noise_a=noise_a, sigma_i_a=sig,
                       nominal_sigma_p_w=nominal, tolerance_w=_tolerance(s, nominal), source=tuple(source),

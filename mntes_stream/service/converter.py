@@ -344,6 +344,10 @@ class ConverterService(Service):
             params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
             conv = converter if converter is not None else build_converter(cfg, params)
             if converter is None:
+                if cfg.uncertainty_used is not None:  # solved once, kept in the snapshot (ms per detector)
+                    from mntes_stream.core.uncertainty import nominal_gradients
+
+                    nominal_gradients(conv)
                 save_snapshot(cfg, snap_key, params, streams, conv)
         if streams is None and converter is not None:
             from mntes_stream.service.housekeeping import known_modules

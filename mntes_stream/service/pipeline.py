@@ -155,9 +155,10 @@ class ConverterPipeline:
             modules = known_modules(known.difference(odd))
         noise = None
         if uncertainty is not None:
+            from mntes_stream.core.uncertainty import nominal_gradients
             from mntes_stream.io.noisefile import noise_model_for  # reads the measured-noise file, if one is named
 
-            noise = noise_model_for(list(converter.params), uncertainty)
+            noise = noise_model_for(list(converter.params), uncertainty, nominal_gradients(converter))
         self.stages = converter_stages(self.books, converter, params=params, modules=modules, owns=dict(owns or {}),
                                        threads=threads, set_aside_bytes=set_aside_bytes, noise=noise,
                                        sigma_p=bool(sigma_p) and noise is not None)
