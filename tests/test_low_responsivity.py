@@ -227,3 +227,31 @@ def test_nominal_gradients_are_solved_once_and_travel_with_a_restart_snapshot():
     assert np.array_equal(a.tolerance_w, b.tolerance_w) and np.array_equal(a.nominal_sigma_p_w, b.nominal_sigma_p_w)
     with pytest.raises(ConfigError):
         U.noise_model(conv.params, s, gradients=grad[:1])
+
+
+def test_auto_flags_only_where_the_kernel_does_it_in_its_own_pass():
+    """``low_responsivity = "auto"`` (only_fused): a converter that would need the sigma_P pass (here the numpy
+    backend) flags nothing and names no noise; ``"on"``: it flags as the compiled kernel does."""
+    from mntes_stream.io.messages import PowerChunk, Provenance
+    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.source import MinimalSource, SourceConfig
+
+    src = MinimalSource(SourceConfig(modules=1, channels=4, hwp_2f_amplitude_w=2e-13))
+    msgs = list(src.batches(1_700_000_000_000_000_000, 1.0))
+    params = {p.detector_id: p for p in src.params}
+    s = U.UncertaintySettings(sigma_p_factor=1.01)
+
+    def run(conv, only_fused):
+        pipe = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None, uncertainty=s, only_fused=only_fused)
+        out = [PowerChunk.from_bytes(p) for t, b in msgs for k, p in pipe.handle_many([(k, p, t) for k, p in b])
+               if "/power/" in k]
+        return out, Provenance.from_bytes(pipe.provenance_bytes()).noise
+
+    compiled, numpy_conv = make_converter("table", params), make_converter("table", params, backend="numpy")
+    fused, noise_fused = run(compiled, True)
+    skipped, noise_skipped = run(numpy_conv, True)
+    full, _ = run(numpy_conv, False)
+    assert noise_skipped == {} and noise_fused["sigma_p_published"] is False
+    assert sum(int(np.count_nonzero(c.flags & LOW)) for c in fused) > 0
+    for a, b, c in zip(fused, skipped, full):
+        assert not np.any(b.flags & LOW) and np.array_equal(a.flags & LOW, c.flags & LOW)

@@ -80,7 +80,7 @@ def test_the_provenance_says_which_noise_was_used():
 def test_offline_convert_takes_sigma_p_from_the_converter_config(tmp_path):
     """``convert REC OUT --config CONVERTER.toml`` with ``[converter] sigma_p = true``: sigma_P as that converter
     would publish it, the power the same as without; without a config, LOW_RESPONSIVITY by the defaults (on,
-    factor 3), no sigma_P; with ``low_responsivity = false``, no LOW_RESPONSIVITY at all."""
+    factor 3), no sigma_P; with ``low_responsivity = "off"``, no LOW_RESPONSIVITY at all."""
     import subprocess
     import sys
 
@@ -97,7 +97,7 @@ def test_offline_convert_takes_sigma_p_from_the_converter_config(tmp_path):
                                         '[uncertainty]\nsigma_p_factor = 1.01\n')
     cli("convert", "rec.mcap", "with.mcap", "--params", "rec.params.toml", "--config", "conv.toml", "-q")
     cli("convert", "rec.mcap", "without.mcap", "--params", "rec.params.toml", "-q")
-    (tmp_path / "off.toml").write_text('[converter]\nparams = "rec.params.toml"\nlow_responsivity = false\n')
+    (tmp_path / "off.toml").write_text('[converter]\nparams = "rec.params.toml"\nlow_responsivity = "off"\n')
     cli("convert", "rec.mcap", "off.mcap", "--params", "rec.params.toml", "--config", "off.toml", "-q")
     (tmp_path / "f3.toml").write_text('[converter]\nparams = "rec.params.toml"\nsigma_p = true\n')
     cli("convert", "rec.mcap", "f3.mcap", "--params", "rec.params.toml", "--config", "f3.toml", "-q")

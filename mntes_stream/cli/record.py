@@ -229,12 +229,12 @@ def run_convert(args) -> int:
     conf = service_config(ConverterService, args.config, (), {}, None) if args.config else None
     if conf is not None:
         pipeline = conf.pipeline
-        uncertainty, sigma_p = conf.uncertainty_used, conf.sigma_p
+        uncertainty, sigma_p, low = conf.uncertainty_used, conf.sigma_p, conf.low_responsivity
     else:  # the converter's defaults (its dataclass fields'; a config needs parameters to exist)
         from mntes_stream.core.uncertainty import UncertaintySettings
 
-        sigma_p = ConverterConfig.sigma_p
-        uncertainty = UncertaintySettings() if ConverterConfig.low_responsivity or sigma_p else None
+        sigma_p, low = ConverterConfig.sigma_p, ConverterConfig.low_responsivity
+        uncertainty = UncertaintySettings() if low != "off" or sigma_p else None
     if _g3_name(args.input) or _g3_name(args.output):  # SPT-3G G3 in or out (mntes_stream.g3)
         from mntes_stream.cli.g3 import run_g3_convert
 
@@ -244,7 +244,7 @@ def run_convert(args) -> int:
     with recording_with_hk(args, args.input) as source:  # --hk: bath temperature from OCS HK files
         stats = convert_recording(source, args.output, tables=args.tables, params=args.params,
                                   pipeline_config=pipeline, progress=not args.quiet, uncertainty=uncertainty,
-                                  sigma_p=sigma_p)
+                                  sigma_p=sigma_p, only_fused=low == "auto")
     if stats.damaged:  # on stderr too: a convert in a script must not pass over it
         import sys
 

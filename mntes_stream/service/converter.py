@@ -80,9 +80,11 @@ class ConverterConfig(Settings):
                              "sample times are converted in one call)", ge=1)
     checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
                               "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
-    low_responsivity: bool = setting(
-        True, "flag LOW_RESPONSIVITY (sigma_P above its tolerance, as [uncertainty] says) on every sample: on the "
-        "compiled table kernel, in the conversion's own pass (a few percent of its cost, benchmarks/convert.json)")
+    low_responsivity: str = setting(
+        "auto", "flag LOW_RESPONSIVITY (sigma_P above its tolerance, as [uncertainty] says) on every sample: 'auto' "
+        "where it costs no second pass (the compiled table kernel flags it in its own pass, benchmarks/convert.json; "
+        "other kinds: not flagged, said at start), 'on' everywhere (other kinds: by the sigma_P pass, about a "
+        "conversion's cost), 'off'", choices=("auto", "on", "off"))
     sigma_p: bool = setting(False, "publish each sample's power uncertainty sigma_P (readout noise through the "
                             "local responsivity) and flag LOW_RESPONSIVITY, as [uncertainty] says (costs about as "
                             "much as the conversion itself)")
@@ -107,7 +109,7 @@ class ConverterConfig(Settings):
     @property
     def uncertainty_used(self) -> UncertaintySettings | None:
         """``uncertainty`` where LOW_RESPONSIVITY is flagged or sigma_P published, else None."""
-        return self.uncertainty if (self.low_responsivity or self.sigma_p) else None
+        return self.uncertainty if (self.low_responsivity != "off" or self.sigma_p) else None
 
     @property
     def shard_parsed(self) -> Shard:
@@ -358,7 +360,8 @@ class ConverterService(Service):
         summary = owns_summary(cfg.shard_parsed, cfg.boards, cfg.modules, streams) if streams is not None else {}
         self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
-                                              uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p)
+                                              uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p,
+                                              only_fused=cfg.low_responsivity == "auto")
         if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
             n = pipe.resume_sequences(ckpt[0])
             log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "

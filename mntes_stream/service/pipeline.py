@@ -119,6 +119,10 @@ class ConverterPipeline:
     sigma_p : bool
         With ``uncertainty``: every power chunk carries each sample's sigma_P too
         (``core.uncertainty.sigma_p_block``, a pass about as dear as the conversion).
+    only_fused : bool
+        With ``uncertainty`` and without ``sigma_p``: LOW_RESPONSIVITY only where the
+        converter flags it in its own pass (``fuses_low_responsivity``); elsewhere not
+        (logged once), rather than a second pass (``[converter] low_responsivity = "auto"``).
 
     Attribute ``overloaded`` (False unless the live service sets it, so offline
     runs never shed): while True, a chunk further behind its stream's pace than
@@ -132,7 +136,8 @@ class ConverterPipeline:
 
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
                  clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
-                 set_aside_bytes: int = 256 << 20, uncertainty=None, sigma_p: bool = False):
+                 set_aside_bytes: int = 256 << 20, uncertainty=None, sigma_p: bool = False,
+                 only_fused: bool = False):
         if not isinstance(threads, int) or threads < 1:
             raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
         self.converter = converter
@@ -154,6 +159,11 @@ class ConverterPipeline:
             log.warning("%s", self.books.last_error)
             modules = known_modules(known.difference(odd))
         noise = None
+        if uncertainty is not None and only_fused and not sigma_p and not getattr(converter, "fuses_low_responsivity",
+                                                                                  False):
+            log.info("LOW_RESPONSIVITY not flagged: a %r converter would need the sigma_P pass for it (about a "
+                     "conversion's cost; [converter] low_responsivity = \"on\" to have it)", converter.kind)
+            uncertainty = None
         if uncertainty is not None:
             from mntes_stream.core.uncertainty import nominal_gradients
             from mntes_stream.io.noisefile import noise_model_for  # reads the measured-noise file, if one is named
