@@ -346,7 +346,9 @@ class ConverterService(Service):
             params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
             conv = converter if converter is not None else build_converter(cfg, params)
             if converter is None:
-                if cfg.uncertainty_used is not None:  # solved once, kept in the snapshot (ms per detector)
+                flags_low = cfg.low_responsivity == "on" or (cfg.low_responsivity == "auto"
+                                                             and getattr(conv, "fuses_low_responsivity", False))
+                if cfg.sigma_p or flags_low:  # solved once, kept in the snapshot (ms per detector)
                     from mntes_stream.core.uncertainty import nominal_gradients
 
                     nominal_gradients(conv)
