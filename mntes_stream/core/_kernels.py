@@ -803,7 +803,9 @@ if numba is not None:
                         mz4 = mz2 * mz2
                         vv = vs * vs
                         x1 = 1.0 + xx
-                        ap = s_w1[s] * sn * mz4 - vv * (zz - r * r) * x1  # dP/dR |R + z|^4 (1 + x)
+                        wt = s_w1[s] * sn * mz4
+                        ap = wt - vv * (zz - r * r) * x1                 # dP/dR |R + z|^4 (1 + x)
+                        aa = abs(wt) + vv * (zz + r * r) * x1            # its terms' magnitude (it may cancel)
                         bm = bbc * w * uu * sn * m2 * mz4                 # dP/d|i| |i|^2 |R + z|^4 (1 + x)
                         im = math.sqrt(m2) if gamma != 0.0 else 0.0
                         t12 = 2.0 * vv * ap * ap + bm * bm
@@ -811,9 +813,10 @@ if numba is not None:
                         mk = m2 * mz4 * x1
                         k = mk * mk
                         dd = sig2 * (t12 - t3) - tol2 * k
-                        # |t3| <= t12 (R + Re z = sqrt(2) V Re(i) / |i|^2, so (R + Re z) |i| <= sqrt(2) V): the
-                        # terms' magnitudes are at most 2 t12 and tol^2 k.
-                        mag = _LOW_MARGIN * (2.0 * sig2 * t12 + tol2 * k)
+                        # The rounding of either form is below eps times the terms' magnitudes: |t3| <= t12
+                        # (R + Re z = sqrt(2) V Re(i) / |i|^2, so (R + Re z) |i| <= sqrt(2) V), and dP/dR's own
+                        # terms bound it where they cancel (aa for ap).
+                        mag = _LOW_MARGIN * (2.0 * sig2 * (2.0 * vv * aa * aa + bm * bm) + tol2 * k)
                         out_p[row, s] = p if usable else math.nan
                         out_f[row, s] = f | (_LOW * (usable & checks & (dd > mag)))
                         near = usable & checks & ~(abs(dd) > mag)
