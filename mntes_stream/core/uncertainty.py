@@ -470,8 +470,8 @@ def low_responsivity_block(converter, detector_ids: Sequence[str], counts_i: np.
                            env, noise: NoiseModel):
     """Convert a block with LOW_RESPONSIVITY flagged: the flags :func:`sigma_p_block` gives, without sigma_P.
 
-    A compiled ``"table"`` converter flags it in its own pass (``NoiseModel.low_record``, a few
-    percent of the conversion: ``bench convert``); any other converts, then runs the full sigma_P pass.
+    A compiled ``"table"`` converter flags it in its own pass (``NoiseModel.low_record``; its cost:
+    ``bench convert``, ``low_responsivity.cost_ratio``); any other converts, then runs the full sigma_P pass.
 
     Returns
     -------

@@ -82,7 +82,7 @@ class ConverterConfig(Settings):
                               "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
     low_responsivity: str = setting(
         "auto", "flag LOW_RESPONSIVITY (sigma_P above its tolerance, as [uncertainty] says) on every sample: 'auto' "
-        "where it costs no second pass (the compiled table kernel flags it in its own pass, benchmarks/convert.json; "
+        "where it costs no second pass (the compiled table kernel flags it in its own pass, benchmarks/README.md; "
         "other kinds: not flagged, said at start), 'on' everywhere (other kinds: by the sigma_P pass, about a "
         "conversion's cost), 'off'", choices=("auto", "on", "off"))
     sigma_p: bool = setting(False, "publish each sample's power uncertainty sigma_P (readout noise through the "
