@@ -13,8 +13,8 @@ from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 
-def _run(conv, msgs, uncertainty):
-    pipe = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None, uncertainty=uncertainty)
+def _run(conv, msgs, uncertainty, sigma_p=True):
+    pipe = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None, uncertainty=uncertainty, sigma_p=sigma_p)
     out = []
     for t, batch in msgs:
         out += pipe.handle_many([(k, p, t) for k, p in batch])
@@ -52,6 +52,12 @@ def test_sigma_p_travels_with_the_power_and_flags_low_responsivity():
         ref = sigma_p_block(conv, ids, c.counts_i, c.counts_q, env, blk, noise)
         np.testing.assert_allclose(b.sigma_p_w[usable], ref.sigma_p_w[usable], rtol=2e-3)
     assert 0 < low  # part of the cycle is flagged
+    # LOW_RESPONSIVITY alone (the default: in the conversion's own pass): the same flags, no sigma_P published.
+    fused, _ = _run(conv, msgs, settings, sigma_p=False)
+    assert len(fused) == len(with_sigma)
+    for (_, a), (_, b) in zip(fused, with_sigma):
+        assert a.sigma_p_w is None and np.array_equal(a.flags, b.flags)
+        assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True)
 
 
 def test_the_provenance_says_which_noise_was_used():
@@ -60,17 +66,21 @@ def test_the_provenance_says_which_noise_was_used():
     src = MinimalSource(SourceConfig(modules=1, channels=4))
     conv = make_converter("table", {p.detector_id: p for p in src.params})
     off = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None)
-    on = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None,
+    on = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None, sigma_p=True,
                            uncertainty=UncertaintySettings(readout_noise_a=3e-12, sigma_p_factor=4.0))
+    flag_only = ConverterPipeline(conv, PipelineConfig(setup="lab"), clock=None, uncertainty=UncertaintySettings())
     assert Provenance.from_bytes(off.provenance_bytes()).noise == {}
     noise = Provenance.from_bytes(on.provenance_bytes()).noise
     assert noise["readout_noise_a_setting"] == 3e-12 and noise["readout_noise_a_range"] == [3e-12, 3e-12]
-    assert noise["low_responsivity"] == "sigma_P > 4 x nominal sigma_P"
+    assert noise["low_responsivity"] == "sigma_P > 4 x nominal sigma_P" and noise["sigma_p_published"] is True
+    noise = Provenance.from_bytes(flag_only.provenance_bytes()).noise
+    assert noise["readout_noise_sources"] == {"default": 4} and noise["sigma_p_published"] is False
 
 
 def test_offline_convert_takes_sigma_p_from_the_converter_config(tmp_path):
     """``convert REC OUT --config CONVERTER.toml`` with ``[converter] sigma_p = true``: sigma_P as that converter
-    would publish it, the power the same as without."""
+    would publish it, the power the same as without; without a config, LOW_RESPONSIVITY by the defaults (on,
+    factor 3), no sigma_P; with ``low_responsivity = "off"``, no LOW_RESPONSIVITY at all."""
     import subprocess
     import sys
 
@@ -87,18 +97,29 @@ def test_offline_convert_takes_sigma_p_from_the_converter_config(tmp_path):
                                         '[uncertainty]\nsigma_p_factor = 1.01\n')
     cli("convert", "rec.mcap", "with.mcap", "--params", "rec.params.toml", "--config", "conv.toml", "-q")
     cli("convert", "rec.mcap", "without.mcap", "--params", "rec.params.toml", "-q")
+    (tmp_path / "off.toml").write_text('[converter]\nparams = "rec.params.toml"\nlow_responsivity = "off"\n')
+    cli("convert", "rec.mcap", "off.mcap", "--params", "rec.params.toml", "--config", "off.toml", "-q")
+    (tmp_path / "f3.toml").write_text('[converter]\nparams = "rec.params.toml"\nsigma_p = true\n')
+    cli("convert", "rec.mcap", "f3.mcap", "--params", "rec.params.toml", "--config", "f3.toml", "-q")
 
     def power(name):
         msgs = list(Session(tmp_path / name).iter_messages())
         prov = [Provenance.from_bytes(m.payload) for m in msgs if m.topic.endswith("/provenance")]
         return [PowerChunk.from_bytes(m.payload) for m in msgs if "/power/" in m.topic], prov[-1]
 
-    (w, prov_w), (wo, prov_wo) = power("with.mcap"), power("without.mcap")
-    assert len(w) == len(wo) > 0 and prov_w.noise["low_responsivity"] == "sigma_P > 1.01 x nominal sigma_P"
-    assert prov_wo.noise == {}
-    for a, b in zip(w, wo):
-        assert b.sigma_p_w is None and a.sigma_p_w is not None
+    (w, prov_w), (wo, prov_wo), (off, prov_off), (f3, _) = (power(n) for n in ("with.mcap", "without.mcap",
+                                                                              "off.mcap", "f3.mcap"))
+    assert len(w) == len(wo) == len(off) == len(f3) > 0
+    assert prov_w.noise["low_responsivity"] == "sigma_P > 1.01 x nominal sigma_P"
+    assert prov_wo.noise["low_responsivity"] == "sigma_P > 3 x nominal sigma_P"
+    assert prov_wo.noise["sigma_p_published"] is False and prov_off.noise == {}
+    low = np.uint16(fl.LOW_RESPONSIVITY)
+    for a, b, c, d in zip(w, wo, off, f3):
+        assert b.sigma_p_w is None and c.sigma_p_w is None and a.sigma_p_w is not None
         assert np.array_equal(a.p_opt_w, b.p_opt_w, equal_nan=True)
-        assert np.array_equal(a.flags & ~np.uint16(fl.LOW_RESPONSIVITY), b.flags)
+        assert np.array_equal(c.p_opt_w, b.p_opt_w, equal_nan=True)
+        assert np.array_equal(a.flags & ~low, c.flags) and np.array_equal(b.flags & ~low, c.flags)
+        assert not np.any(c.flags & low)
+        assert np.array_equal(b.flags, d.flags)  # the default flags are those the sigma_P pass gives
         usable = (a.flags & fl.UNUSABLE) == 0
         assert np.all(a.sigma_p_w[usable] > 0) and np.all(np.isnan(a.sigma_p_w[~usable]))

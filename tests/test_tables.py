@@ -259,6 +259,9 @@ def test_bench_convert_smoke():
         assert key in r
     assert r["detectors"] == 8 and r["samples"] == 200
     assert r["max_abs_error_w"] <= 1e-19 < r["linear_max_abs_error_w"]
+    low = r["low_responsivity"]  # the default's flags: those of the full sigma_P pass, the power untouched
+    assert low["flags_identical_to_sigma_p_pass"] and low["power_identical_to_without"] and low["cost_ratio"] > 0
+    assert r["flagged_samples"].get("low_responsivity", 0) == low["samples_flagged"]
     assert r["flags_identical_to_exact"]
 
 

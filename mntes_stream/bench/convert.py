@@ -13,6 +13,15 @@ over live-size chunks (128 detectors x 20 samples, ``chunks_cpu_msamples_per_s``
 where per-call and per-row costs count, converter call included.
 Accuracy is against the exact per-sample inverse on the same counts.
 
+LOW_RESPONSIVITY is on by default (``[converter] low_responsivity``): the
+conversion with it (``core.uncertainty.low_responsivity_block``, flagged in
+the kernel's own pass) and without it are timed in back-to-back pairs in the
+same run, ``low_responsivity.cost_ratio`` the median of the pairs' CPU-time
+ratios (``cost_ratios`` each pair's; ``chunks_cost_ratio`` on live-size
+chunks, pairs of 50 chunks); its flags are checked against
+the full sigma_P pass's on the whole block. ``flagged_samples`` are the
+default's (with LOW_RESPONSIVITY).
+
 The baselines (``linear``, ``electrical``) are timed the same way, with their
 ratio to ``a * x + b``: alone (``tolerance_w=None``), with the default
 ``NONLINEAR`` check (from a table bank) and with the check by the exact
@@ -202,6 +211,8 @@ def run(args) -> dict:
         "grid_max_abs_error_w": _max_err(g_out.p_opt_w, ref.p_opt_w),
         "grid_bank_mib_per_5000_detectors": grid_bank.nbytes / n_det * 5000 / 2**20,
     })
+    result["low_responsivity"] = low = _low_responsivity(conv, ids, ci, cq, env, out, args.repeats, n)
+    result["flagged_samples"] = low.pop("flagged_samples")
     if getattr(args, "uncertainty", False):
         result["uncertainty"] = _uncertainty(conv, ids, ci, cq, env, out, args.repeats, n, cpu)
     if getattr(args, "range", False):
@@ -211,6 +222,44 @@ def run(args) -> dict:
                                         "electrical": ele.p_opt_w})
         result["figure"] = args.png
     return result
+
+
+def _low_responsivity(conv, ids, ci, cq, env, block, repeats: int, n: int) -> dict:
+    """The conversion with LOW_RESPONSIVITY (the default) against without, timed alternately (CPU seconds,
+    medians), on the block and on live-size chunks; its flags against the full sigma_P pass's."""
+    from mntes_stream.core import flags as fl
+    from mntes_stream.core.uncertainty import low_responsivity_block, noise_model, sigma_p_block
+
+    t0 = time.perf_counter()
+    noise = noise_model(conv.params)
+    build_s = time.perf_counter() - t0
+    with_low = low_responsivity_block(conv, ids, ci, cq, env, noise)  # compiles, warms
+    same = bool(np.array_equal(with_low.flags, sigma_p_block(conv, ids, ci, cq, env, block, noise).flags))
+    # Pairs timed back to back share the machine's load: the figure is the median of the pairs' ratios.
+    plain_cpu, low_cpu = [], []
+    for _ in range(max(2 * repeats + 1, 5)):
+        plain_cpu.append(_timed(lambda: conv.convert(ids, ci, cq, env), 1)[1])
+        low_cpu.append(_timed(lambda: low_responsivity_block(conv, ids, ci, cq, env, noise), 1)[1])
+    chunks_plain, chunks_low = [], []
+    for _ in range(7):
+        chunks_plain.append(_live_chunks(conv, ids, ci, cq, env))
+        chunks_low.append(_live_chunks(conv, ids, ci, cq, env, noise=noise))
+    p, lo = float(np.median(plain_cpu)), float(np.median(low_cpu))
+    cp, cl = float(np.median(chunks_plain)), float(np.median(chunks_low))
+    return {
+        "cpu_msamples_per_s": n / lo / 1e6,
+        "without_cpu_msamples_per_s": n / p / 1e6,
+        "cost_ratio": float(np.median(np.array(low_cpu) / np.array(plain_cpu))),
+        "cost_ratios": [round(float(x), 3) for x in np.array(low_cpu) / np.array(plain_cpu)],
+        "chunks_cpu_msamples_per_s": cl,
+        "chunks_without_cpu_msamples_per_s": cp,
+        "chunks_cost_ratio": float(np.median(np.array(chunks_plain) / np.array(chunks_low))),
+        "power_identical_to_without": bool(np.array_equal(with_low.p_opt_w, block.p_opt_w, equal_nan=True)),
+        "flags_identical_to_sigma_p_pass": same,
+        "samples_flagged": int(np.count_nonzero(with_low.flags & fl.LOW_RESPONSIVITY)),
+        "noise_model_build_s": build_s,
+        "flagged_samples": {k: v for k, v in fl.counts_by_flag(with_low.flags).items() if v},
+    }
 
 
 def _uncertainty(conv, ids, ci, cq, env, block, repeats: int, n: int, convert_cpu: float) -> dict:
@@ -274,16 +323,23 @@ def _baselines(make_converter, params, ids, ci, cq, env, repeats: int, n: int, a
     return res, outs
 
 
-def _live_chunks(conv, ids, ci, cq, env, n_det: int = 128, n_samp: int = 20, n_chunks: int = 50) -> float:
+def _live_chunks(conv, ids, ci, cq, env, n_det: int = 128, n_samp: int = 20, n_chunks: int = 50,
+                 noise=None) -> float:
     """M samples per CPU second over live-size chunks (128 detectors x 20 samples, as a stream
-    delivers them), where per-call and per-row costs count."""
+    delivers them), where per-call and per-row costs count; with ``noise``, LOW_RESPONSIVITY flagged."""
+    from mntes_stream.core.uncertainty import low_responsivity_block
+
     n_det, width = min(n_det, ci.shape[0]), min(n_samp, ci.shape[1])
     spans = [(s, s + width) for s in range(0, ci.shape[1] - width + 1, width)][:n_chunks]
     blocks = [(ci[:n_det, a:b], cq[:n_det, a:b], env.__class__(env.t_bath_k[a:b], env.b_field_t[a:b],
                                                                   env.v_thev_v[:n_det])) for a, b in spans]
     c0 = time.process_time()
-    for i, q, e in blocks:
-        conv.convert(ids[:n_det], i, q, e)
+    if noise is None:
+        for i, q, e in blocks:
+            conv.convert(ids[:n_det], i, q, e)
+    else:
+        for i, q, e in blocks:
+            low_responsivity_block(conv, ids[:n_det], i, q, e, noise)
     return n_det * width * len(blocks) / (time.process_time() - c0) / 1e6
 
 

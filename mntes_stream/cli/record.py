@@ -243,19 +243,25 @@ def run_convert(args) -> int:
     refuse_inapplicable(args, _g3_name(args.input), _g3_name(args.output))
     claim_out(args.output, args.overwrite, inputs=[args.input])
 
-    pipeline = uncertainty = None
+    import tomllib
+
+    from mntes_stream.service.converter import ConverterConfig, ConverterService
+
+    pipeline = None
     kind = args.kind
-    if args.config:
-        import tomllib
-
-        from mntes_stream.service.converter import ConverterService
-
-        conf = service_config(ConverterService, args.config, (), {}, None)
+    # LOW_RESPONSIVITY (and sigma_P) as that converter, or one with the defaults, publishes them.
+    conf = service_config(ConverterService, args.config, (), {}, None) if args.config else None
+    if conf is not None:
         pipeline = conf.pipeline
-        uncertainty = conf.uncertainty if conf.sigma_p else None  # sigma_P as that converter publishes it
+        uncertainty, sigma_p, low = conf.uncertainty_used, conf.sigma_p, conf.low_responsivity
         with open(args.config, "rb") as f:  # a kind the file sets is applied (the default is the recorded one)
             if kind is None and "kind" in tomllib.load(f).get("converter", {}):
                 kind = conf.kind
+    else:  # the converter's defaults (its dataclass fields'; a config needs parameters to exist)
+        from mntes_stream.core.uncertainty import UncertaintySettings
+
+        sigma_p, low = ConverterConfig.sigma_p, ConverterConfig.low_responsivity
+        uncertainty = UncertaintySettings() if low != "off" or sigma_p else None
     if _g3_name(args.input) or _g3_name(args.output):  # SPT-3G G3 in or out (mntes_stream.g3)
         from mntes_stream.cli.g3 import run_g3_convert
 
@@ -269,7 +275,7 @@ def run_convert(args) -> int:
     with recording_with_hk(args, args.input) as source:  # --hk: bath temperature from OCS HK files
         stats = convert_recording(source, args.output, tables=args.tables, params=args.params,
                                   pipeline_config=pipeline, progress=not args.quiet, uncertainty=uncertainty,
-                                  kind=kind)
+                                  sigma_p=sigma_p, only_fused=low == "auto", kind=kind)
     if stats.damaged:  # on stderr too: a convert in a script must not pass over it
         import sys
 

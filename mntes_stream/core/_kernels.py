@@ -67,6 +67,7 @@ _ENV = int(fl.ENV_OUT_OF_RANGE)
 _UNKNOWN = int(fl.UNKNOWN_CHANNEL)
 _HK_MISSING = int(fl.HK_MISSING)
 _UNUSABLE = int(fl.UNUSABLE)
+_LOW = int(fl.LOW_RESPONSIVITY)
 # Columns of the record ``rec`` (:func:`row_constants`). 0-15 are the front end's
 # constants in the order of ``_front``'s ``det``.
 _R_K, _R_N, _R_C1, _R_C2, _R_GAMMA = 16, 17, 18, 19, 20
@@ -75,6 +76,9 @@ _R_INV_T0, _R_K_T0_N = 29, 30
 _R_X_LO, _R_X_HI, _R_CPO = 31, 32, 33         # the table's R range, lookup cells per ohm
 _R_K0, _R_LAST, _R_C0, _R_NCELL = 34, 35, 36, 37  # first and last knot, first cell, cells (exact in float64)
 REC_COLS = 40                                 # padded to 320 bytes, five cache lines
+# Columns of the LOW_RESPONSIVITY record (``core.uncertainty.NoiseModel.low_record``): noise per
+# quadrature (A), tolerance (W), C(n - 1, 1..8).
+LOW_COLS = 10
 
 
 # --- numpy twins -------------------------------------------------------------------------
@@ -523,17 +527,65 @@ if numba is not None:
 
     @_inline
     def _lane_power(w, inv_ts, r, m2, tb, b, v, q):
-        """Power from the table's ``W`` and ``1 / T_s`` at R, by the series alone; and whether
-        the series does not hold (then ``_table_sample`` gives the sample)."""
+        """Power from the table's ``W`` and ``1 / T_s`` at R, by the series alone; whether the
+        series does not hold (then ``_table_sample`` gives the sample); ``x = delta / T_s`` and ``(1 + x)^n``."""
         a = _binomials(q)
         y = tb * q[_R_INV_T0] - 1.0
         kb = q[_R_K_T0_N] * _series(y, a)
         gamma = q[_R_GAMMA]
         delta = q[_R_C1] * b + q[_R_C2] * b * b - (gamma * math.sqrt(m2) if gamma != 0.0 else 0.0)
         xx = delta * inv_ts
-        kt = w * _series(xx, a)
+        sn = _series(xx, a)
+        kt = w * sn
         p = kt - kb - v * v * r / ((r + q[4]) ** 2 + q[9] * q[9])
-        return p, ~(abs(xx) <= SERIES_LIMIT) | ~(abs(y) <= SERIES_LIMIT)
+        return p, ~(abs(xx) <= SERIES_LIMIT) | ~(abs(y) <= SERIES_LIMIT), xx, sn
+
+    _NO_LQ = (0.0,) * LOW_COLS
+
+    @_inline
+    def sigma_gradient(w, w1, uu, fp, r, m2, vs, n, gamma, zr, zi):
+        """``|grad_i P|`` (``core.uncertainty``) from the table's ``W``, ``W'``, ``U = 1/T_s`` and
+        ``(1 + delta U)^(n-1)`` at R; sigma_P is the noise per quadrature times it. The one copy of
+        this arithmetic: the conversion's LOW_RESPONSIVITY and the sigma_P pass both call it, so they
+        flag alike to the bit."""
+        sv_m2 = SQRT2 * vs / m2  # |grad_i R|
+        rz = r + zr
+        mz2 = rz * rz + zi * zi
+        # dP/dR at fixed |i|: K n T^(n-1) T_s' = W' (T / T_s)^(n-1), less the Joule slope.
+        a = w1 * fp - vs * vs * (zr * zr + zi * zi - r * r) / (mz2 * mz2)
+        gr = a * sv_m2
+        bb = -gamma * n * w * uu * fp
+        g2 = gr * gr + bb * bb - 2.0 * a * bb * rz / math.sqrt(m2)
+        return math.sqrt(g2 if g2 > 0.0 else 0.0)
+
+    @_inline
+    def _low_binomials(lq):
+        """``C(n - 1, 1..8)`` of a LOW_RESPONSIVITY record row (``(1 + x)^(n-1)`` by the series)."""
+        return (lq[2], lq[3], lq[4], lq[5], lq[6], lq[7], lq[8], lq[9])
+
+    @_inline
+    def _sigma_sample(xi, xq, b, v, q, lq, x, cidx, coef):
+        """sigma_P of one usable sample with every branch (what ``core._uncertainty_kernel``'s
+        reference gives): the interval by :func:`find_interval`, the exact power beyond the series;
+        NaN outside the table."""
+        ire = q[0] * xi - q[1] * xq - q[2] * b
+        iim = q[0] * xq + q[1] * xi - q[3] * b
+        m2 = ire * ire + iim * iim
+        r = SQRT2 * v * ire / m2 - q[4]
+        if not (q[_R_X_LO] <= r <= q[_R_X_HI]):
+            return math.nan
+        j = find_interval(r, q, x, cidx)
+        u = r - x[j]
+        w = coef[j, 0] + u * (coef[j, 1] + u * (coef[j, 2] + u * coef[j, 3]))
+        w1 = coef[j, 1] + u * (2.0 * coef[j, 2] + 3.0 * u * coef[j, 3])
+        uu = coef[j, 4] + u * (coef[j, 5] + u * (coef[j, 6] + u * coef[j, 7]))
+        n, gamma = q[_R_N], q[_R_GAMMA]
+        xx = (q[_R_C1] * b + q[_R_C2] * b * b - gamma * math.sqrt(m2)) * uu
+        if abs(xx) <= SERIES_LIMIT:
+            fp = _series(xx, _low_binomials(lq))
+        else:
+            fp = math.exp((n - 1.0) * math.log(1.0 + xx)) if xx > -1.0 else 0.0
+        return lq[0] * sigma_gradient(w, w1, uu, fp, r, m2, v, n, gamma, q[4], q[9])
 
     @_jit
     def _fill(a, row, scratch):
@@ -622,8 +674,13 @@ if numba is not None:
                 _prefetch(x, j0)
                 _prefetch(x, j1)
 
+    # LOW_RESPONSIVITY's screen in _table_kernel decides alone where sigma_P^2 and the tolerance^2, scaled
+    # to need no division, differ by more than this fraction of their terms' magnitudes (far above the
+    # rounding of either form, ~1e-15); nearer, the exact sigma_P (_sigma_sample) does.
+    _LOW_MARGIN = 1e-9
+
     @_jit_vector
-    def _table_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx, coef, out_p, out_f):
+    def _table_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx, coef, low, out_p, out_f):
         """The "table" kind over (n_rows, n_samp) samples: ``out_p`` (NaN where unusable), ``out_f``.
 
         A row's front end and power run as vector lanes (the compiler's scalar
@@ -634,8 +691,15 @@ if numba is not None:
         there: it reads the tables as array arguments, whose reference
         counting costs a call per sample. Rows go in blocks of ``_BLOCK``,
         whose table lines :func:`_prefetch_block` asks for first.
+
+        ``low`` (n_bank, ``LOW_COLS``) or empty: LOW_RESPONSIVITY in the power pass, where sigma_P
+        (``sigma_gradient`` on the row's noise ``low[d, 0]``) exceeds the tolerance ``low[d, 1]``:
+        the arithmetic of ``core._uncertainty_kernel`` on the values this kernel has in hand (R,
+        ``|i|^2``, ``W``, ``1/T_s`` and ``delta / T_s``; ``W'`` from the interval's cubic), so no
+        second pass reads the counts and the tables again.
         """
         n_rows, n_samp = out_p.shape
+        low_on = low.shape[0] > 0
         dm = _dom(dom)
         s_tb, s_ltb, s_b, s_v = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp)
         s_hk = np.empty(n_samp, dtype=np.uint16)
@@ -644,6 +708,7 @@ if numba is not None:
         s_f, s_in, s_c = np.empty(n_samp, dtype=np.uint16), np.empty(n_samp, dtype=np.uint8), np.empty(n_samp, np.int64)
         s_r, s_m2, s_rc, s_w, s_its = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), \
             np.empty(n_samp)
+        s_w1 = np.empty(n_samp if low_on else 0)
         shared = (tb.shape[0] == 1, ltb.shape[0] == 1, b.shape[0] == 1, v.shape[0] == 1, hk.shape[0] == 1)
         _fill(tb, 0, s_tb), _fill(ltb, 0, s_ltb), _fill(b, 0, s_b), _fill(v, 0, s_v), _fill(hk, 0, s_hk)
         cells, ends = np.empty((_BLOCK, 2), dtype=np.int64), np.empty((_BLOCK, 4))
@@ -680,6 +745,7 @@ if numba is not None:
                 q = _record(rec, d)
                 k0, last = int(q[_R_K0]), int(q[_R_LAST])
                 n_slow = 0
+                lq = _NO_LQ
                 # Three passes over the row: the front end (vector), the table lookup (scalar), the power
                 # (vector). Vectorised, the lookup's reads are gathers, a dozen per lane group, which cost
                 # more than the same reads done one by one (this 3-pass form: +20 % on 512 x 10000).
@@ -703,20 +769,67 @@ if numba is not None:
                     u = rc - x[ju]
                     s_w[s] = coef[ju, 0] + u * (coef[ju, 1] + u * (coef[ju, 2] + u * coef[ju, 3]))
                     s_its[s] = coef[ju, 4] + u * (coef[ju, 5] + u * (coef[ju, 6] + u * coef[ju, 7]))
-                for s in range(n_samp):
-                    tbs, bs, vs, f, inside = s_tb[s], s_b[s], s_v[s], s_f[s], s_in[s] != 0
-                    p, beyond = _lane_power(s_w[s], s_its[s], s_r[s], s_m2[s], tbs, bs, vs, q)
-                    out_p[row, s] = p if inside & ((f & _UNUSABLE) == 0) else math.nan
-                    out_f[row, s] = f
-                    slow = inside & ((marks[s] != 0) | beyond)
-                    marks[s] = slow
-                    n_slow += slow
+                    if low_on:
+                        s_w1[s] = coef[ju, 1] + u * (2.0 * coef[ju, 2] + 3.0 * u * coef[ju, 3])
+                if not low_on:
+                    for s in range(n_samp):
+                        tbs, bs, vs, f, inside = s_tb[s], s_b[s], s_v[s], s_f[s], s_in[s] != 0
+                        p, beyond, _, _ = _lane_power(s_w[s], s_its[s], s_r[s], s_m2[s], tbs, bs, vs, q)
+                        out_p[row, s] = p if inside & ((f & _UNUSABLE) == 0) else math.nan
+                        out_f[row, s] = f
+                        slow = inside & ((marks[s] != 0) | beyond)
+                        marks[s] = slow
+                        n_slow += slow
+                else:
+                    # With LOW_RESPONSIVITY: the test sigma_P > tol with |grad_i P|^2 (sigma_gradient) multiplied
+                    # through by |i|^4 |R + z|^8 (1 + x)^2, so no division, no square root but |i|'s and no series
+                    # but the power's (1 + x)^n = (1 + x)^(n-1) (1 + x), all shared with the power. Lanes too near
+                    # the tolerance to tell are done again as slow lanes, the exact sigma_P deciding.
+                    lq = (low[d, 0], low[d, 1], low[d, 2], low[d, 3], low[d, 4], low[d, 5], low[d, 6], low[d, 7],
+                          low[d, 8], low[d, 9])
+                    gamma, zr, zi = q[_R_GAMMA], q[4], q[9]
+                    sig2, tol2, zz, bbc = lq[0] * lq[0], lq[1] * lq[1], zr * zr + zi * zi, -gamma * q[_R_N]
+                    checks = lq[1] < math.inf  # a detector without a nominal sigma_P: never LOW_RESPONSIVITY
+                    for s in range(n_samp):
+                        tbs, bs, vs, f, inside = s_tb[s], s_b[s], s_v[s], s_f[s], s_in[s] != 0
+                        r, m2, uu, w = s_r[s], s_m2[s], s_its[s], s_w[s]
+                        p, beyond, xx, sn = _lane_power(w, uu, r, m2, tbs, bs, vs, q)
+                        usable = inside & ((f & _UNUSABLE) == 0)
+                        rz = r + zr
+                        mz2 = rz * rz + zi * zi
+                        mz4 = mz2 * mz2
+                        vv = vs * vs
+                        x1 = 1.0 + xx
+                        wt = s_w1[s] * sn * mz4
+                        ap = wt - vv * (zz - r * r) * x1                 # dP/dR |R + z|^4 (1 + x)
+                        aa = abs(wt) + vv * (zz + r * r) * x1            # its terms' magnitude (it may cancel)
+                        bm = bbc * w * uu * sn * m2 * mz4                 # dP/d|i| |i|^2 |R + z|^4 (1 + x)
+                        im = math.sqrt(m2) if gamma != 0.0 else 0.0
+                        t12 = 2.0 * vv * ap * ap + bm * bm
+                        t3 = 2.0 * ap * bm * rz * im
+                        mk = m2 * mz4 * x1
+                        k = mk * mk
+                        dd = sig2 * (t12 - t3) - tol2 * k
+                        # The rounding of either form is below eps times the terms' magnitudes: |t3| <= t12
+                        # (R + Re z = sqrt(2) V Re(i) / |i|^2, so (R + Re z) |i| <= sqrt(2) V), and dP/dR's own
+                        # terms bound it where they cancel (aa for ap).
+                        mag = _LOW_MARGIN * (2.0 * sig2 * (2.0 * vv * aa * aa + bm * bm) + tol2 * k)
+                        out_p[row, s] = p if usable else math.nan
+                        out_f[row, s] = f | (_LOW * (usable & checks & (dd > mag)))
+                        near = usable & checks & ~(abs(dd) > mag)
+                        slow = inside & ((marks[s] != 0) | beyond | near)
+                        marks[s] = slow
+                        n_slow += slow
                 if n_slow:
                     for s in range(n_samp):
                         if marks[s]:
-                            out_p[row, s], out_f[row, s] = _table_sample(
-                                float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_ltb[s], s_b[s], s_v[s],
-                                int(s_hk[s]), q, dm, x, cidx, coef)
+                            xi, xq = float(ci_[row, s]), float(cq_[row, s])
+                            p, f = _table_sample(xi, xq, s_tb[s], s_ltb[s], s_b[s], s_v[s], int(s_hk[s]), q, dm, x,
+                                                 cidx, coef)
+                            if low_on and (f & _UNUSABLE) == 0:
+                                if _sigma_sample(xi, xq, s_b[s], s_v[s], q, lq, x, cidx, coef) > lq[1]:
+                                    f |= _LOW
+                            out_p[row, s], out_f[row, s] = p, f
 
     @_jit
     def _grid_kernel(ci_, cq_, tb, ltb, b, v, hk, rows, rec, dom, x, cidx,
@@ -844,7 +957,7 @@ if numba is not None:
 
         f8, i4 = t.float64, t.int32
         if kind == "table":
-            return _table_kernel, _signatures((f8, 1), (i4, 1), (f8, 2))
+            return _table_kernel, _signatures((f8, 1), (i4, 1), (f8, 2), (f8, 2))
         return _grid_kernel, _signatures((f8, 1), (i4, 1), (f8, 3), (f8, 3), (f8, 2), (f8, 1), (f8, 1), f8)
 
     _compiled = set()
@@ -867,13 +980,18 @@ if numba is not None:
     def _env(tb, ltb, b, v, hk):
         return [compact(a) for a in (tb, ltb, b, v, hk)]
 
-    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo, coef, out_p, out_f):
+    _NO_LOW = np.empty((0, LOW_COLS))
+
+    def table_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo, coef, out_p, out_f,
+                    low=None):
         """Structured-table conversion (same contract as :func:`table_numpy`; ``rec``: :func:`row_constants`).
 
-        ``phys``, ``ko``, ``co`` and ``cpo`` are in ``rec`` and not read again.
+        ``phys``, ``ko``, ``co`` and ``cpo`` are in ``rec`` and not read again. ``low`` (n_bank,
+        ``LOW_COLS``), optional: LOW_RESPONSIVITY flagged too (``_table_kernel``).
         """
         compile_kernels(("table",))
-        _table_kernel(*_c(ci_, cq_), *_env(tb, ltb, b, v, hk), *_c(rows, rec, dom, x, cidx, coef), out_p, out_f)
+        low = _NO_LOW if low is None else low
+        _table_kernel(*_c(ci_, cq_), *_env(tb, ltb, b, v, hk), *_c(rows, rec, dom, x, cidx, coef, low), out_p, out_f)
 
     def grid_numba(ci_, cq_, tb, ltb, b, v, hk, rows, phys, rec, dom, ko, x, co, cidx, cpo,
                    p_w, dp_w, bias_v, b_nodes, t_ref, bias_rtol, out_p, out_f):

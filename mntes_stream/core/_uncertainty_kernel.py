@@ -73,25 +73,14 @@ if numba is not None:
 
     _jit_vector = numba.njit(cache=True, nogil=True, error_model="numpy", pipeline_class=_NoAliasCompiler)
 
+    from mntes_stream.core._kernels import sigma_gradient as _gradient  # the conversion's LOW_RESPONSIVITY's too
+
     @_inline
     def _series(xx, a0, a1, a2, a3, a4, a5, a6, a7):
         """``(1 + xx)^(n-1)`` by the binomial series (Estrin's scheme)."""
         x2 = xx * xx
         x4 = x2 * x2
         return 1.0 + xx * (((a0 + a1 * xx) + x2 * (a2 + a3 * xx)) + x4 * ((a4 + a5 * xx) + x2 * (a6 + a7 * xx)))
-
-    @_inline
-    def _gradient(w, w1, uu, fp, r, m2, vs, n, gamma, zr, zi):
-        """``|grad_i P|`` from the table's ``W``, ``W'``, ``U`` and ``(1 + delta U)^(n-1)`` at R."""
-        sv_m2 = SQRT2 * vs / m2  # |grad_i R|
-        rz = r + zr
-        mz2 = rz * rz + zi * zi
-        # dP/dR at fixed |i|: K n T^(n-1) T_s' = W' (T / T_s)^(n-1), less the Joule slope.
-        a = w1 * fp - vs * vs * (zr * zr + zi * zi - r * r) / (mz2 * mz2)
-        gr = a * sv_m2
-        bb = -gamma * n * w * uu * fp
-        g2 = gr * gr + bb * bb - 2.0 * a * bb * rz / math.sqrt(m2)
-        return math.sqrt(g2 if g2 > 0.0 else 0.0)
 
     @_inline
     def _sample(xi, xq, bs, vs, q, x, cidx, coef):

@@ -334,7 +334,7 @@ class _Base:
         return f"<{type(self).__name__} kind={self.kind!r} detectors={len(self.detector_ids)} identity={self.identity[:12]}>"
 
     def convert(self, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray,
-                env: EnvironmentBlock) -> PowerBlock:
+                env: EnvironmentBlock, low_responsivity: np.ndarray | None = None) -> PowerBlock:
         """Convert a block of counts to optical power.
 
         Parameters
@@ -343,6 +343,9 @@ class _Base:
         counts_i, counts_q : ndarray, shape (n_det, n_samp)
             int32 (other integer or float types are accepted; floats may be NaN).
         env : EnvironmentBlock
+        low_responsivity : ndarray, shape (n_bank, ``_kernels.LOW_COLS``), optional
+            Only where :attr:`fuses_low_responsivity`: flag LOW_RESPONSIVITY in the
+            conversion itself (``core.uncertainty.NoiseModel.low_record``).
 
         Returns
         -------
@@ -352,16 +355,33 @@ class _Base:
         ------
         SchemaError
             Only for arrays of the wrong shape or dtype.
+        ConfigError
+            ``low_responsivity`` given to a converter that does not fuse it, or of the wrong shape.
         """
+        if low_responsivity is not None:
+            if not self.fuses_low_responsivity:
+                raise ConfigError(f"a {self.kind!r} converter ({getattr(self, 'backend', 'numpy')}) does not flag "
+                                  "LOW_RESPONSIVITY itself: use core.uncertainty.sigma_p_block")
+            if np.shape(low_responsivity) != (len(self.detector_ids), _kernels.LOW_COLS):
+                raise ConfigError(f"low_responsivity: expected shape ({len(self.detector_ids)}, {_kernels.LOW_COLS}), "
+                                  f"got {np.shape(low_responsivity)}")
         inp = _prepare(self._rows, self._v_nominal, detector_ids, counts_i, counts_q, env)
         n_det, n_samp = inp.counts_i.shape
         p = np.empty((n_det, n_samp))
         f = np.empty((n_det, n_samp), dtype=np.uint16)
-        self._convert(inp, p, f)
+        if low_responsivity is None:
+            self._convert(inp, p, f)
+        else:
+            self._convert(inp, p, f, low=low_responsivity)
         return PowerBlock(p_opt_w=p, flags=f, identity=self.identity)
 
     def _convert(self, inp: _Inputs, p: np.ndarray, f: np.ndarray) -> None:
         raise NotImplementedError
+
+    @property
+    def fuses_low_responsivity(self) -> bool:
+        """True when :meth:`convert` can flag LOW_RESPONSIVITY in its own pass (the compiled "table" kernel)."""
+        return False
 
     # What core.uncertainty needs to follow a conversion sample by sample, without reaching into privates.
     @property
@@ -670,15 +690,22 @@ class TableConverter(_Base):
                                                      a["cell_offset"], a["cell_per_ohm"])
         return rec
 
-    def _convert(self, inp, p, f):
+    @property
+    def fuses_low_responsivity(self) -> bool:
+        return self.kind == "table" and self.backend == "numba"
+
+    def _convert(self, inp, p, f, low=None):
         a = self.bank.arrays
         numba = self.backend == "numba"
         common = (inp.counts_i, inp.counts_q, inp.t_bath_k, inp.log_t_bath, inp.b_field_t, inp.v_thev_v, inp.hk_flags,
                   inp.rows, self._phys, *((self._row_constants(),) if numba else ()), self._domain, a["knot_offset"],
                   a["r_knot_ohm"], a["cell_offset"], a["cell_interval"], a["cell_per_ohm"])
         if self.kind == "table":
-            kernel = _kernels.table_numba if numba else _kernels.table_numpy
-            kernel(*common, a["coeffs"], p, f)
+            if low is not None:
+                _kernels.table_numba(*common, a["coeffs"], p, f, low=low)
+            else:
+                kernel = _kernels.table_numba if numba else _kernels.table_numpy
+                kernel(*common, a["coeffs"], p, f)
         else:
             kernel = _kernels.grid_numba if numba else _kernels.grid_numpy
             kernel(*common, a["p_w"], a["dp_dr_w_per_ohm"], a["bias_v"], a["b_nodes_t"], a["t_ref_k"],

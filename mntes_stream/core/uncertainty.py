@@ -34,14 +34,16 @@ Computed only when asked (:func:`sigma_p_block`).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from mntes_stream.core import _uncertainty_kernel as _uk
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
+from mntes_stream.core._kernels import LOW_COLS, binomials
 from mntes_stream.core.ids import parse_detector_id
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.settings import Settings, setting
@@ -56,15 +58,19 @@ __all__ = [
     "total_sigma_i_a",
     "sigma_p_model",
     "nominal_sigma_p_w",
+    "nominal_gradients",
     "sigma_p_block",
+    "low_responsivity_block",
     "module_key",
     "white_noise_counts",
+    "NoiseWindow",
     "NOISE_FILE_FORMAT",
 ]
 
 NOISE_FILE_FORMAT = "mntes-noise"
 
 SIGMA_P_FACTOR = 3.0
+_RAIL = float(2**31 - 1)  # counts at the int32 rails: ADC saturation or "no data" (core.convert)
 SQRT2 = model.SQRT2
 
 
@@ -86,6 +92,12 @@ class UncertaintySettings(Settings):
     noise_file: str | None = setting(
         None, "measured readout noise per detector or module (mntes-stream noise RUN --out FILE); where it names "
         "neither, readout_noise_a", path=True)
+    readout_noise: str = setting(
+        "configured", "the noise LOW_RESPONSIVITY's tolerance and sigma_P use: 'configured' (noise_file, else "
+        "readout_noise_a) or 'measured' (each channel's white noise measured live from its counts over "
+        "noise_window_samples, the configured one until then)", choices=("configured", "measured"))
+    noise_window_samples: int = setting(
+        4096, "'measured': second differences (I and Q pooled) per channel behind each live estimate", ge=64)
 
 
 def module_key(detector_id: str) -> str | None:
@@ -139,6 +151,71 @@ def white_noise_counts(x: np.ndarray, clip: float = 6.0) -> tuple[np.ndarray, np
         used[k] = kept.size
         sigma[k] = math.sqrt(max(float(np.mean((kept - kept.mean()) ** 2)) / 6.0 - 1.0 / 12.0, 0.0))
     return sigma, used
+
+
+class NoiseWindow:
+    """Each detector's white noise measured live from its counts: :func:`white_noise_counts`'s estimate,
+    accumulated chunk by chunk over a window.
+
+    Per chunk and row: second differences of I and of Q (within the chunk: a gap between chunks never
+    enters), those beyond ``clip`` robust sigma of the chunk's own (median absolute deviation, at least one
+    count) left out, their sum and sum of squares added to the row's detector. When a detector has
+    ``window`` of them, its estimate is renewed (variance / 6, less the rounding's 1/12 count^2) and its sums
+    start again. Not thread-safe; pure (no I/O).
+
+    Parameters
+    ----------
+    n_det : int
+        Detectors (rows of a converter's order).
+    window : int
+        Second differences per estimate (>= 64).
+    """
+
+    def __init__(self, n_det: int, window: int = 4096, clip: float = 6.0):
+        if window < 64:
+            raise ConfigError(f"noise window: expected >= 64 second differences, got {window}")
+        self.window, self.clip = int(window), float(clip)
+        self._s = np.zeros(n_det)
+        self._ss = np.zeros(n_det)
+        self._n = np.zeros(n_det, dtype=np.int64)
+        self.sigma_counts = np.full(n_det, np.nan)  # (n_det,): the latest complete window's, NaN before one
+
+    def add(self, rows: np.ndarray, counts_i: np.ndarray, counts_q: np.ndarray) -> np.ndarray:
+        """Add one chunk; returns the detectors (indices) whose estimate was renewed by it.
+
+        Parameters
+        ----------
+        rows : ndarray of int (n_rows,)
+            Each row's detector, -1 for none (skipped).
+        counts_i, counts_q : ndarray (n_rows, n_samp)
+            One chunk (contiguous samples); non-finite and railed values leave their differences out.
+        """
+        ci, cq = np.asarray(counts_i, dtype=float), np.asarray(counts_q, dtype=float)
+        if ci.ndim != 2 or ci.shape != cq.shape or ci.shape[0] != len(rows):
+            raise SchemaError(f"noise window: counts {ci.shape}/{cq.shape} for {len(rows)} rows")
+        if ci.shape[1] < 3:
+            return np.empty(0, dtype=np.int64)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a row with no finite difference: nothing kept
+            # Railed or non-finite counts (INVALID_INPUT) leave their differences out.
+            d = np.concatenate([np.diff(np.where(np.abs(c) < _RAIL, c, np.nan), n=2, axis=1) for c in (ci, cq)],
+                               axis=1)
+            med = np.nanmedian(d, axis=1, keepdims=True)
+            s0 = np.maximum(1.4826 * np.nanmedian(np.abs(d - med), axis=1, keepdims=True), 1.0)
+            keep = np.abs(d - med) <= self.clip * s0
+        d = np.where(keep, d, 0.0)
+        rows = np.asarray(rows, dtype=np.int64)
+        ok = rows >= 0
+        np.add.at(self._s, rows[ok], d[ok].sum(axis=1))
+        np.add.at(self._ss, rows[ok], (d[ok] ** 2).sum(axis=1))
+        np.add.at(self._n, rows[ok], keep[ok].sum(axis=1))
+        full = np.flatnonzero(self._n >= self.window)
+        if full.size:
+            n = self._n[full].astype(float)
+            var = (self._ss[full] - self._s[full] ** 2 / n) / n
+            self.sigma_counts[full] = np.sqrt(np.maximum(var / 6.0 - 1.0 / 12.0, 0.0))
+            self._s[full], self._ss[full], self._n[full] = 0.0, 0.0, 0
+        return full
 
 
 def total_sigma_i_a(readout_noise_a, gain_a_per_count) -> np.ndarray:
@@ -227,6 +304,8 @@ class NoiseModel:
     unusable: bool = False
     measured_from: str = ""
     settings: UncertaintySettings = field(default_factory=UncertaintySettings)
+    gain_a_per_count: np.ndarray = field(default_factory=lambda: np.empty(0, complex))
+    nominal_gradient: np.ndarray = field(default_factory=lambda: np.empty(0))
 
     def kernel_record(self, converter) -> np.ndarray:
         """The compiled kernel's per-detector record for ``converter``'s bank (made once, kept)."""
@@ -238,8 +317,51 @@ class NoiseModel:
             rec = cache[key] = _uk.row_constants(converter.kernel_constants, self, converter.bank.arrays)
         return rec
 
-    def provenance(self) -> dict:
-        """What the converter's provenance records: which noise was used, and the tolerance rule."""
+    def low_record(self, converter) -> np.ndarray:
+        """The conversion kernel's LOW_RESPONSIVITY record (n_det, ``_kernels.LOW_COLS``) for ``converter``:
+        noise per quadrature, tolerance, ``C(n - 1, 1..8)`` (made once, kept)."""
+        key = (id(converter), converter.identity)
+        cache = self.__dict__.setdefault("_low_records", {})
+        rec = cache.get(key)
+        if rec is None:
+            if self.detector_ids != converter.detector_ids:
+                raise ConfigError("the noise model was built for other detectors than the converter's")
+            n = np.asarray(converter.kernel_constants, dtype=np.float64)[:, 7]
+            cols = [np.asarray(self.sigma_i_a, float), np.asarray(self.tolerance_w, float), *binomials(n - 1.0)]
+            rec = np.ascontiguousarray(np.stack(cols, axis=1)) if len(n) else np.empty((0, LOW_COLS))
+            rec.flags.writeable = False
+            cache.clear()
+            cache[key] = rec
+        return rec
+
+    def with_noise(self, readout_noise_a, source: Sequence[str], measured_from: str = "") -> NoiseModel:
+        """This model with other readout noise per detector (e.g. measured live): sigma_i, the nominal
+        sigma_P and the tolerance follow (sigma_P is linear in the noise, so no operating point is solved
+        again; the same numbers :func:`noise_model` would give).
+
+        Parameters
+        ----------
+        readout_noise_a : array_like (n_det,)
+            White readout noise per quadrature, finite and >= 0.
+        source : sequence of str (n_det,)
+            Where each came from (see ``source``).
+        """
+        noise_a = np.asarray(readout_noise_a, dtype=float)
+        if noise_a.shape != self.readout_noise_a.shape or not np.all(np.isfinite(noise_a) & (noise_a >= 0)):
+            raise ConfigError(f"readout noise: expected {self.readout_noise_a.shape[0]} finite values >= 0 (A)")
+        if len(source) != noise_a.size:
+            raise ConfigError("readout noise: one source per detector")
+        sig = total_sigma_i_a(noise_a, self.gain_a_per_count)
+        nominal = sig * self.nominal_gradient
+        return NoiseModel(detector_ids=self.detector_ids, readout_noise_a=noise_a, sigma_i_a=sig,
+                          nominal_sigma_p_w=nominal, tolerance_w=_tolerance(self.settings, nominal),
+                          source=tuple(source), unusable=self.unusable, measured_from=measured_from,
+                          settings=self.settings, gain_a_per_count=self.gain_a_per_count,
+                          nominal_gradient=self.nominal_gradient)
+
+    def provenance(self, sigma_p: bool = True) -> dict:
+        """What the converter's provenance records: which noise was used, the tolerance rule, and whether
+        sigma_P itself is published (``sigma_p``) or only LOW_RESPONSIVITY flagged."""
         src, n = np.unique(np.array(self.source, dtype=object).astype(str), return_counts=True)
         s = self.settings
         return {
@@ -252,11 +374,24 @@ class NoiseModel:
             "low_responsivity": (f"sigma_P > {s.sigma_p_tolerance_w:g} W" if s.sigma_p_tolerance_w else
                                  f"sigma_P > {s.sigma_p_factor:g} x nominal sigma_P"),
             "low_responsivity_unusable": self.unusable,
+            "sigma_p_published": bool(sigma_p),
         }
 
 
+def nominal_gradients(converter) -> np.ndarray:
+    """``|grad_i P|`` at each of ``converter``'s detectors' nominal operating point (n_det,): the nominal sigma_P
+    per unit noise (:func:`nominal_sigma_p_w`), one forward solve per detector (ms each), kept on the
+    converter so that a converter restored from a restart snapshot does not solve again."""
+    grad = converter.__dict__.get("_nominal_gradient")
+    if grad is None or grad.shape != (len(converter.params),):
+        grad = np.array([nominal_sigma_p_w(p, 1.0) for p in converter.params], dtype=float)
+        converter.__dict__["_nominal_gradient"] = grad
+    return grad
+
+
 def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings | None = None,
-                measured_a: Mapping[str, float] | None = None, measured_from: str = "") -> NoiseModel:
+                measured_a: Mapping[str, float] | None = None, measured_from: str = "",
+                gradients: np.ndarray | None = None) -> NoiseModel:
     """The noise of each detector, from a measurement (per detector or per module) or the setting.
 
     Parameters
@@ -269,6 +404,8 @@ def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings 
         e.g. from ``mntes-stream noise RUN``; a detector's own entry wins over its module's.
     measured_from : str
         Where the measurement came from (for the provenance).
+    gradients : ndarray (n_det,), optional
+        :func:`nominal_gradients` of these detectors, if known (else solved here).
     """
     s = settings or UncertaintySettings()
     measured = dict(measured_a or {})
@@ -289,14 +426,25 @@ def noise_model(params: Sequence[DetectorParams], settings: UncertaintySettings 
             noise.append(s.readout_noise_a)
             source.append("default" if default else "setting")
     noise_a = np.array(noise, dtype=float)
-    sig = total_sigma_i_a(noise_a, np.array([p.gain_a_per_count for p in params], dtype=complex))
-    nominal = np.array([nominal_sigma_p_w(p, float(x)) for p, x in zip(params, sig)], dtype=float)
-    tol = np.full(len(params), s.sigma_p_tolerance_w) if s.sigma_p_tolerance_w else s.sigma_p_factor * nominal
-    # A detector without a nominal sigma_P (never on its branch) has no LOW_RESPONSIVITY.
-    tol = np.where(np.isfinite(tol), tol, np.inf)
+    gain = np.array([p.gain_a_per_count for p in params], dtype=complex)
+    sig = total_sigma_i_a(noise_a, gain)
+    # sigma_P is the noise times |grad_i P|: the nominal gradient is solved once, any noise scales it.
+    grad = (np.array([nominal_sigma_p_w(p, 1.0) for p in params], dtype=float) if gradients is None else
+            np.asarray(gradients, dtype=float))
+    if grad.shape != (len(params),):
+        raise ConfigError(f"nominal gradients: expected {len(params)}, got shape {grad.shape}")
+    nominal = sig * grad
     return NoiseModel(detector_ids=tuple(p.detector_id for p in params), readout_noise_a=noise_a, sigma_i_a=sig,
-                      nominal_sigma_p_w=nominal, tolerance_w=tol, source=tuple(source),
-                      unusable=bool(s.low_responsivity_unusable), measured_from=measured_from, settings=s)
+                      nominal_sigma_p_w=nominal, tolerance_w=_tolerance(s, nominal), source=tuple(source),
+                      unusable=bool(s.low_responsivity_unusable), measured_from=measured_from, settings=s,
+                      gain_a_per_count=gain, nominal_gradient=grad)
+
+
+def _tolerance(s: UncertaintySettings, nominal_w: np.ndarray) -> np.ndarray:
+    """Per detector, LOW_RESPONSIVITY above this sigma_P (W); inf for a detector without a nominal sigma_P
+    (never on its branch)."""
+    tol = np.full(nominal_w.shape, s.sigma_p_tolerance_w) if s.sigma_p_tolerance_w else s.sigma_p_factor * nominal_w
+    return np.where(np.isfinite(tol), tol, np.inf)
 
 
 @dataclass(frozen=True)
@@ -316,6 +464,34 @@ class Uncertainty:
     p_opt_w: np.ndarray
     flags: np.ndarray
     sigma_p_w: np.ndarray
+
+
+def low_responsivity_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray,
+                           env, noise: NoiseModel):
+    """Convert a block with LOW_RESPONSIVITY flagged: the flags :func:`sigma_p_block` gives, without sigma_P.
+
+    A compiled ``"table"`` converter flags it in its own pass (``NoiseModel.low_record``; its cost:
+    ``bench convert``, ``low_responsivity.cost_ratio``); any other converts, then runs the full sigma_P pass.
+
+    Returns
+    -------
+    PowerBlock
+        Its power NaN where LOW_RESPONSIVITY when that is unusable.
+
+    Raises
+    ------
+    ConfigError
+        A noise model of other detectors.
+    """
+    if not getattr(converter, "fuses_low_responsivity", False):  # sigma_p_block checks the detectors
+        block = converter.convert(detector_ids, counts_i, counts_q, env)
+        u = sigma_p_block(converter, detector_ids, counts_i, counts_q, env, block, noise)
+        return replace(block, p_opt_w=u.p_opt_w, flags=u.flags)
+    # low_record checks the detectors once per converter (a live chunk's call must stay cheap).
+    block = converter.convert(detector_ids, counts_i, counts_q, env, low_responsivity=noise.low_record(converter))
+    if noise.unusable:
+        block = replace(block, p_opt_w=np.where((block.flags & fl.LOW_RESPONSIVITY) != 0, np.nan, block.p_opt_w))
+    return block
 
 
 def sigma_p_block(converter, detector_ids: Sequence[str], counts_i: np.ndarray, counts_q: np.ndarray, env,

@@ -59,10 +59,11 @@ def load_noise(path: str | Path) -> tuple[dict[str, float], str]:
     return out, str(path)
 
 
-def noise_model_for(params, settings: UncertaintySettings | None = None) -> NoiseModel:
-    """:func:`core.uncertainty.noise_model` with the settings' ``noise_file`` read (the converter's call)."""
+def noise_model_for(params, settings: UncertaintySettings | None = None, gradients=None) -> NoiseModel:
+    """:func:`core.uncertainty.noise_model` with the settings' ``noise_file`` read (the converter's call);
+    ``gradients``: the detectors' ``core.uncertainty.nominal_gradients``, if known."""
     settings = settings or UncertaintySettings()
     if settings.noise_file:
         measured, source = load_noise(settings.noise_file)
-        return noise_model(params, settings, measured, source)
-    return noise_model(params, settings)
+        return noise_model(params, settings, measured, source, gradients=gradients)
+    return noise_model(params, settings, gradients=gradients)

@@ -85,12 +85,18 @@ class ConverterConfig(Settings):
                              "sample times are converted in one call)", ge=1)
     checkpoint: str = setting("", "each stream's newest sequence number is kept in this file at every status, so "
                               "a restart reports the chunks it missed (service/checkpoint.py; '' = none)", path=True)
+    low_responsivity: str = setting(
+        "auto", "flag LOW_RESPONSIVITY (sigma_P above its tolerance, as [uncertainty] says) on every sample: 'auto' "
+        "where it costs no second pass (the compiled table kernel flags it in its own pass, benchmarks/README.md; "
+        "other kinds: not flagged, said at start), 'on' everywhere (other kinds: by the sigma_P pass, about a "
+        "conversion's cost), 'off'", choices=("auto", "on", "off"))
     sigma_p: bool = setting(False, "publish each sample's power uncertainty sigma_P (readout noise through the "
                             "local responsivity) and flag LOW_RESPONSIVITY, as [uncertainty] says (costs about as "
                             "much as the conversion itself)")
     alignment: AlignmentConfig = setting(default_factory=AlignmentConfig, doc="housekeeping alignment ([alignment])")
     uncertainty: UncertaintySettings = setting(default_factory=UncertaintySettings,
-                                               doc="readout noise and LOW_RESPONSIVITY ([uncertainty], with sigma_p)")
+                                               doc="readout noise and LOW_RESPONSIVITY ([uncertainty]: "
+                                                   "low_responsivity, sigma_p)")
     status: StatusConfig = setting(default_factory=StatusConfig, doc="status cadence ([status])")
     metrics: MetricsSettings = setting(default_factory=MetricsSettings, doc="Prometheus endpoint ([metrics])")
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
@@ -104,6 +110,11 @@ class ConverterConfig(Settings):
         object.__setattr__(self, "_shard", shard)
         if not shard.whole and self.name == "converter":  # shards of one setup need names of their own
             object.__setattr__(self, "name", f"converter-{shard.index}of{shard.count}")
+
+    @property
+    def uncertainty_used(self) -> UncertaintySettings | None:
+        """``uncertainty`` where LOW_RESPONSIVITY is flagged or sigma_P published, else None."""
+        return self.uncertainty if (self.low_responsivity != "off" or self.sigma_p) else None
 
     @property
     def shard_parsed(self) -> Shard:
@@ -346,6 +357,12 @@ class ConverterService(Service):
                 with announced(ctx.progress, f"building the {cfg.kind} converter for {n} (tables, flag "
                                f"thresholds; kept in {cfg.table_cache or 'no cache'} for the next start)"):
                     conv = build_converter(cfg, params)
+                    flags_low = cfg.low_responsivity == "on" or (cfg.low_responsivity == "auto"
+                                                                 and getattr(conv, "fuses_low_responsivity", False))
+                    if cfg.sigma_p or flags_low:  # solved once, kept in the snapshot (ms per detector)
+                        from mntes_stream.core.uncertainty import nominal_gradients
+
+                        nominal_gradients(conv)
                 save_snapshot(cfg, snap_key, params, streams, conv)
             else:
                 conv = converter
@@ -360,7 +377,8 @@ class ConverterService(Service):
         summary = owns_summary(cfg.shard_parsed, cfg.boards, cfg.modules, streams) if streams is not None else {}
         self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
-                                              uncertainty=cfg.uncertainty if cfg.sigma_p else None)
+                                              uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p,
+                                              only_fused=cfg.low_responsivity == "auto")
         if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
             n = pipe.resume_sequences(ckpt[0])
             log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "

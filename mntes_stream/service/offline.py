@@ -307,7 +307,8 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
 
 def convert_recording(source, output: str | Path, *, tables=None, params=None, pipeline_config=None,
                       progress: bool = True, table_cache=..., batch_s: float = 1.0,
-                      uncertainty=None, compression: str = _COMPRESSION, kind: str | None = None) -> OfflineStats:
+                      uncertainty=None, sigma_p: bool = False, only_fused: bool = False,
+                      compression: str = _COMPRESSION, kind: str | None = None) -> OfflineStats:
     """Re-convert the recorded counts and housekeeping of ``source`` into ``output`` (MCAP).
 
     Parameters
@@ -336,8 +337,14 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         once per batch. 0: message by message, each output stamped with the
         receive time of the message that released it.
     uncertainty : core.uncertainty.UncertaintySettings, optional
-        Given: sigma_P and LOW_RESPONSIVITY in every power chunk, as a live converter with
-        ``[converter] sigma_p = true`` and this ``[uncertainty]`` table publishes them.
+        Given: LOW_RESPONSIVITY flagged, as a live converter with this ``[uncertainty]``
+        table flags it (``mntes-stream convert`` passes the converter config's, or the
+        defaults': on); None: not.
+    sigma_p : bool
+        With ``uncertainty``: sigma_P in every power chunk too, as ``[converter] sigma_p = true``.
+    only_fused : bool
+        LOW_RESPONSIVITY only where the converter flags it in its own pass (``ConverterPipeline``;
+        ``[converter] low_responsivity = "auto"``).
     compression : {"lz4", "zstd", "none"}
         The output's chunk compression (default lz4: the cheapest to write and read; zstd: smaller files).
     kind : str, optional
@@ -419,7 +426,8 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
 
         def start_pipeline(k, t_ns):
             conv, pd = plan[k][1][:2]
-            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty)
+            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty,
+                                    sigma_p=sigma_p, only_fused=only_fused)
             out.write(keys.provenance_key(pipeline_config.setup), new.provenance_bytes(), t_ns)
             return new
 

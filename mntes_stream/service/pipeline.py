@@ -62,7 +62,7 @@ log = logging.getLogger("mntes_stream.converter")
 
 
 def converter_stages(books: Books, converter, *, params: list, modules, owns: dict, threads: int,
-                     set_aside_bytes: int, noise=None) -> tuple:
+                     set_aside_bytes: int, noise=None, sigma_p: bool = False) -> tuple:
     """The converter's stages, in order: the one declaration every path runs.
 
     Returns
@@ -74,14 +74,16 @@ def converter_stages(books: Books, converter, *, params: list, modules, owns: di
     hk = Housekeeping(books.config, nominal, modules)
     sequence = Sequence(books, modules, set_aside_bytes)
     align = Align(books, hk, Environment(books, hk, frozenset(converter.detector_ids)))
+    convert = Convert(books, converter, threads, noise, sigma_p)
     return (
         Decode(books, modules),
         sequence,
         align,
-        Convert(books, converter, threads, noise),
+        convert,
         Flags(books),
         Encode(books, str(converter.identity), str(converter.kind)),
-        Status(books, sequence, align, converter, params, owns, noise),
+        # The provenance names the noise in use now (measured live: renewed window by window).
+        Status(books, sequence, align, converter, params, owns, (lambda: convert.noise) if noise else None, sigma_p),
     )
 
 
@@ -112,8 +114,15 @@ class ConverterPipeline:
         Counts held at most under overload for late conversion; beyond, the
         oldest set-aside chunk is shed (counted in the ledger).
     uncertainty : core.uncertainty.UncertaintySettings, optional
-        Given: every power chunk carries each sample's sigma_P and LOW_RESPONSIVITY is
-        flagged (``core.uncertainty.sigma_p_block``); None: neither (the power is the same).
+        Given: LOW_RESPONSIVITY is flagged (``core.uncertainty.low_responsivity_block``: in
+        the compiled "table" kernel's own pass); None: not (the power is the same).
+    sigma_p : bool
+        With ``uncertainty``: every power chunk carries each sample's sigma_P too
+        (``core.uncertainty.sigma_p_block``, a pass about as dear as the conversion).
+    only_fused : bool
+        With ``uncertainty`` and without ``sigma_p``: LOW_RESPONSIVITY only where the
+        converter flags it in its own pass (``fuses_low_responsivity``); elsewhere not
+        (logged once), rather than a second pass (``[converter] low_responsivity = "auto"``).
 
     Attribute ``overloaded`` (False unless the live service sets it, so offline
     runs never shed): while True, a chunk further behind its stream's pace than
@@ -127,7 +136,8 @@ class ConverterPipeline:
 
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
                  clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
-                 set_aside_bytes: int = 256 << 20, uncertainty=None):
+                 set_aside_bytes: int = 256 << 20, uncertainty=None, sigma_p: bool = False,
+                 only_fused: bool = False):
         if not isinstance(threads, int) or threads < 1:
             raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
         self.converter = converter
@@ -149,12 +159,19 @@ class ConverterPipeline:
             log.warning("%s", self.books.last_error)
             modules = known_modules(known.difference(odd))
         noise = None
+        if uncertainty is not None and only_fused and not sigma_p and not getattr(converter, "fuses_low_responsivity",
+                                                                                  False):
+            log.info("LOW_RESPONSIVITY not flagged: a %r converter would need the sigma_P pass for it (about a "
+                     "conversion's cost; [converter] low_responsivity = \"on\" to have it)", converter.kind)
+            uncertainty = None
         if uncertainty is not None:
+            from mntes_stream.core.uncertainty import nominal_gradients
             from mntes_stream.io.noisefile import noise_model_for  # reads the measured-noise file, if one is named
 
-            noise = noise_model_for(list(converter.params), uncertainty)
+            noise = noise_model_for(list(converter.params), uncertainty, nominal_gradients(converter))
         self.stages = converter_stages(self.books, converter, params=params, modules=modules, owns=dict(owns or {}),
-                                       threads=threads, set_aside_bytes=set_aside_bytes, noise=noise)
+                                       threads=threads, set_aside_bytes=set_aside_bytes, noise=noise,
+                                       sigma_p=bool(sigma_p) and noise is not None)
         _, self._sequence, self._align, _, _, _, self._status = self.stages
 
     # ------------------------------------------------------------------ running the stages

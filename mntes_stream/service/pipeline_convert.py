@@ -17,7 +17,7 @@ import numpy as np
 
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock
-from mntes_stream.core.uncertainty import sigma_p_block
+from mntes_stream.core.uncertainty import NoiseWindow, low_responsivity_block, sigma_p_block
 from mntes_stream.io import keys
 from mntes_stream.io.lean import PowerEncoder
 from mntes_stream.io.messages import CountsChunk, detector_ids_for
@@ -158,19 +158,52 @@ class Convert:
 
     name = "convert"
 
-    def __init__(self, books: Books, converter, threads: int = 1, noise=None):
+    def __init__(self, books: Books, converter, threads: int = 1, noise=None, sigma_p: bool = False):
         self.books, self.converter, self._threads, self._noise = books, converter, threads, noise
+        self._sigma_p = sigma_p and noise is not None
+        self._window = self._index = None
+        if noise is not None and noise.settings.readout_noise == "measured":
+            # Each channel's white noise from its own counts (core.uncertainty.NoiseWindow); the configured
+            # noise until a channel's first window is complete.
+            self._window = NoiseWindow(len(converter.detector_ids), noise.settings.noise_window_samples)
+            self._index = {d: k for k, d in enumerate(converter.detector_ids)}
+            self._configured = noise
         self._executor = None
         self._held: list[_Ready] = []
 
+    @property
+    def noise(self):
+        """The noise model in use now (None: no LOW_RESPONSIVITY); with measured noise, renewed as windows complete."""
+        return self._noise
+
+    def _measure(self, r: _Ready) -> bool:
+        """Add a chunk's counts to the live noise window; True when an estimate was renewed."""
+        rows = np.fromiter((self._index.get(d, -1) for d in r.ids), dtype=np.int64, count=len(r.ids))
+        return self._window.add(rows, r.chunk.counts_i, r.chunk.counts_q).size > 0
+
+    def _renew_noise(self) -> None:
+        """The noise model with every measured channel's live white noise (counts rms times |gain|)."""
+        base = self._configured
+        sig = self._window.sigma_counts
+        have = np.isfinite(sig)
+        noise_a = np.where(have, np.nan_to_num(sig) * np.abs(base.gain_a_per_count), base.readout_noise_a)
+        source = tuple("measured:live" if h else s for h, s in zip(have, base.source))
+        self._noise = base.with_noise(noise_a, source, f"live, {self._window.window} second differences per channel")
+
     def __call__(self, items: list) -> list:
         out = []
+        renewed = False
         for item in items:
             if type(item) is _Ready:
                 item.order = len(self._held)
                 self._held.append(item)
+                if self._window is not None:
+                    renewed |= self._measure(item)
                 continue
             if type(item) is End:
+                if renewed:
+                    self._renew_noise()
+                    renewed = False
                 self._convert(out)
             out.append(item)
         return out
@@ -231,16 +264,19 @@ class Convert:
             env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
         env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
         ids = [d for r in rows for d in r.ids]
-        out = self.converter.convert(ids, ci, cq, env)
-        p_opt, flags, sigma = self._with_sigma(ids, ci, cq, env, out)
+        p_opt, flags, sigma = self._converted(ids, ci, cq, env)
         if p_opt.shape != ci.shape or flags.shape != ci.shape:
             raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {ci.shape}")
         return p_opt, flags, env_flags, rows, sigma
 
-    def _with_sigma(self, ids, ci, cq, env, out) -> tuple:
-        """p_opt, flags and sigma_P (None unless the pipeline has a noise model) of a converted block."""
-        if self._noise is None:
+    def _converted(self, ids, ci, cq, env) -> tuple:
+        """p_opt, flags and sigma_P (None unless published) of a block: LOW_RESPONSIVITY flagged when the
+        pipeline has a noise model, in the conversion's own pass unless sigma_P is published."""
+        if self._noise is None or not self._sigma_p:
+            out = (self.converter.convert(ids, ci, cq, env) if self._noise is None else
+                   low_responsivity_block(self.converter, ids, ci, cq, env, self._noise))
             return np.asarray(out.p_opt_w, dtype=float), np.asarray(out.flags, dtype=fl.FLAG_DTYPE), None
+        out = self.converter.convert(ids, ci, cq, env)
         u = sigma_p_block(self.converter, ids, ci, cq, env, out, self._noise)
         return np.asarray(u.p_opt_w, dtype=float), np.asarray(u.flags, dtype=fl.FLAG_DTYPE), u.sigma_p_w
 
@@ -258,14 +294,13 @@ class Convert:
         try:
             # The converter flags rows it has no parameters for (UNKNOWN_CHANNEL) itself.
             env = EnvironmentBlock(t_bath_k=r.t_bath, b_field_t=r.b_field, v_thev_v=r.v_bias, flags=r.env_flags)
-            block = self.converter.convert(r.ids, chunk.counts_i, chunk.counts_q, env)
-            p_opt, flags, sigma = self._with_sigma(r.ids, chunk.counts_i, chunk.counts_q, env, block)
+            p_opt, flags, sigma = self._converted(r.ids, chunk.counts_i, chunk.counts_q, env)
             if p_opt.shape != shape or flags.shape != shape:
                 raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {shape}")
         except Exception as exc:  # noqa: BLE001 - one bad block must not stop the stream
             p_opt = np.full(shape, np.nan)
             flags = np.full(shape, fl.INVALID_INPUT, dtype=fl.FLAG_DTYPE)
-            sigma = None if self._noise is None else np.full(shape, np.nan, dtype=np.float32)
+            sigma = np.full(shape, np.nan, dtype=np.float32) if self._sigma_p else None
             self.books.bad("convert_failed", f"{type(exc).__name__}: {exc}",
                            keys.counts_key(self.books.config.setup, chunk.board, chunk.module))
         return _Converted(r, p_opt, flags, sigma, False)

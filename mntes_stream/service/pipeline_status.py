@@ -25,20 +25,23 @@ class Status:
     ----------
     books : Books
     sequence, align : the stages whose state the status reports (streams, set aside, held, housekeeping)
-    converter, params, owns, noise : what the provenance names
+    converter, params, owns : what the provenance names
+    noise : callable returning the noise model in use (``core.uncertainty.NoiseModel``), or None
     """
 
     name = "status"
 
     def __init__(self, books: Books, sequence: Sequence, align: Align, converter, params: list, owns: dict,
-                 noise=None):
+                 noise=None, sigma_p: bool = False):
         self.books, self.sequence, self.align = books, sequence, align
+        self._sigma_p = sigma_p
         self.converter, self._params, self._owns, self._noise = converter, params, owns, noise
         self.owns_status: Callable[[], dict] | None = None
         self._status_ns = ns(books.config.status_interval_s)
         self._next_ns: int | None = None
         self._last_ns: int | None = None
         self._provenance: bytes | None = None
+        self._provenance_noise = None
         self._t_created_ns = time.time_ns()
 
     def __call__(self, items: list) -> list:
@@ -126,11 +129,13 @@ class Status:
             software_version=__version__,
             t_ns=self._t_created_ns,
             owns=self._owns,
-            noise=self._noise.provenance() if self._noise is not None else {},
+            noise=self._noise().provenance(sigma_p=self._sigma_p) if self._noise is not None else {},
         )
 
     def provenance_bytes(self) -> bytes:
-        """:meth:`provenance` encoded once: identical bytes on every publication."""
-        if self._provenance is None:
-            self._provenance = self.provenance().to_bytes()
+        """:meth:`provenance` encoded once: identical bytes on every publication, until the noise in use
+        changes (measured live, window by window)."""
+        noise = self._noise() if self._noise is not None else None
+        if self._provenance is None or noise is not self._provenance_noise:
+            self._provenance, self._provenance_noise = self.provenance().to_bytes(), noise
         return self._provenance
