@@ -91,7 +91,7 @@ SCHEMAS: dict[str, dict] = {
          "flag_counts": {"type": "object", "additionalProperties": {"type": "integer"}},
          "hk_age_s": {"type": "object", "additionalProperties": _NUMBER_OR_NULL},
          "rate_chunks_per_s": {"type": "number"}, "rate_msamples_per_s": {"type": "number"},
-         "latency_p50_ms": _NUMBER_OR_NULL, "latency_p99_ms": _NUMBER_OR_NULL, "latency_max_ms": _NUMBER_OR_NULL,
+         **{k: _NUMBER_OR_NULL for k in StatusMessage.LATENCIES},
          "last_error": {"type": "string"}},
         ["setup", "service", "chunks_converted", "chunks_lost", "bad_messages", "flag_counts"]),
 }
