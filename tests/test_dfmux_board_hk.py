@@ -179,6 +179,47 @@ def test_params_keyed_by_board_names_apply(tmp_path):
     assert f"board {SERIAL}: housekeeping from 127.0.0.1:{port} not read: connection refused" in err[0], err
 
 
+_READ = """
+import json, sys
+from mntes_stream.dfmux.boardhk import read_once
+
+r = read_once(10, "127.0.0.1", int(sys.argv[1]), 5.0)
+print(json.dumps({m: mr.bias_v.tolist() for m, mr in r.modules.items()}))
+"""
+
+
+def test_standin_serves_the_senders_detectors_bias():
+    """``standin --detectors`` (the sender's board spec and seed): the bias the bridge derives from the board's
+    carrier amplitudes (spt3g's bolo_bias_voltage_rms, read over tuber on loopback) is the sender's detectors'
+    bias per module (``DetectorBoard.bias_v``), on every one of the 64 channels, to rounding; a board it does not
+    serve is a one-line usage error."""
+    if importlib.util.find_spec("spt3g") is None:
+        pytest.skip("spt3g not installed (the g3 extra)")
+    from mntes_stream.dfmux.detectors import DetectorBoard
+
+    standin = subprocess.Popen([sys.executable, "-m", "mntes_stream.dfmux.standin", "--board", "10=127.0.0.1:0",
+                                "--detectors", "3:10:8:16", "--seed", "3", "--duration", "60"], env=_env(),
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = standin.stdout.readline()
+        assert line.startswith("standin: listening 10=127.0.0.1:"), standin.stderr.read() if not line else line
+        r = subprocess.run([sys.executable, "-c", _READ, line.split(":")[-1].strip()], env=_env(),
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr[-2000:]
+    finally:
+        standin.send_signal(signal.SIGINT)
+        standin.wait(timeout=30)
+    got = {int(m): np.array(v) for m, v in json.loads(r.stdout).items()}
+    want = DetectorBoard(10, 8, 16, seed=3).bias_v
+    assert sorted(got) == list(range(8)) and all(v.shape == (64,) for v in got.values())
+    assert np.ptp(want) > 0 and not np.allclose(want, DetectorBoard(10, 8, 16).bias_v)  # the seed matters
+    for m in range(8):
+        np.testing.assert_allclose(got[m], want[m], rtol=1e-14, atol=0)
+    bad = subprocess.run([sys.executable, "-m", "mntes_stream.dfmux.standin", "--board", "10=127.0.0.1:0",
+                          "--detectors", "3:11:8:16"], env=_env(), capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "board 11 is not served" in bad.stderr.strip().splitlines()[-1], bad.stderr
+
+
 @pytest.fixture(scope="module")
 def netns_mount(request):
     """A private network namespace (``netns``) and mount namespace can be made here."""

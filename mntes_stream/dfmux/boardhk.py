@@ -37,7 +37,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
 
 __all__ = ["BoardPoller", "BoardReading", "BoardFailure", "ModuleReading", "BoardHkTracker", "read_board",
-           "read_once", "board_params", "parse_hosts", "channel_flags", "TUNED_STATES"]
+           "read_once", "reading_from_dump", "board_params", "parse_hosts", "channel_flags", "TUNED_STATES"]
 
 log = logging.getLogger("mntes_stream.dfmux")
 
@@ -166,16 +166,21 @@ def read_board(client, serial: int, ip: str, previous=None) -> tuple[BoardReadin
 
     Raises on anything but a good reply (the caller says which board and why).
     """
+    reply = client.CallMethod("Dfmux", "_dump_housekeeping")
+    if not isinstance(reply, list) or not reply or not isinstance(reply[0], dict) or "result" not in reply[0]:
+        raise ValueError(f"not a tuber result: {str(reply)[:80]}")
+    return reading_from_dump(reply[0]["result"], serial, ip, previous)
+
+
+def reading_from_dump(dat: dict, serial: int, ip: str, previous=None) -> tuple[BoardReading, object]:
+    """A ``_dump_housekeeping`` result (JSON as the board sends it) -> its reading and snapshot, through
+    spt3g's ``HousekeepingFromJSON``/``WiringFromJSON`` and the G3 path's ``hk_snapshot``."""
     from mntes_stream.g3 import spt3g
     from mntes_stream.g3.mapping import Wiring, hk_snapshot
 
     core, dfmux = spt3g()
     from spt3g.dfmux.Housekeeping import HousekeepingConsumer, HousekeepingForBolo
 
-    reply = client.CallMethod("Dfmux", "_dump_housekeeping")
-    if not isinstance(reply, list) or not reply or not isinstance(reply[0], dict) or "result" not in reply[0]:
-        raise ValueError(f"not a tuber result: {str(reply)[:80]}")
-    dat = reply[0]["result"]
     boardhk = HousekeepingConsumer.HousekeepingFromJSON(dat)
     if int(boardhk.serial) != serial:
         raise ValueError(f"it answers as board {boardhk.serial}")
