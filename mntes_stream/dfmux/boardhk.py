@@ -499,6 +499,8 @@ class BoardHkTracker:
         flagged = {f"{b}/{m}": fl.describe(int(np.bitwise_or.reduce(f))) for (b, m), f in self._flags_sent.items()
                    if f.any()}
         return {"board_hk": boards, "board_hk_failures": sum(st["failures"] for st in self.boards.values()),
+                "board_hk_reads": sum(st["reads"] for st in self.boards.values()),
+                "bias_from_board": sorted(f"{b}/{m}" for b, m in self.pub.from_board),
                 "bias_disagree": dict(sorted(self.bias_disagree.items())), "readout_flagged": flagged,
                 "hk_changes": self.changes[-20:], "hk_changes_total": len(self.changes),
                 "board_names": len(self.names), "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),

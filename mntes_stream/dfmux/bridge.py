@@ -481,6 +481,11 @@ def ledger_line(result: dict) -> str:
         text += f"; {result['invalid_samples']} samples invalid (V4 blocks missing)"
     if result.get("held_released") is False:
         text += "; samples spt3g's builder still held at the stop (up to 1000 per board) were not released"
+    if result.get("board_hk_reads"):
+        text += (f"; board housekeeping read {result['board_hk_reads']} times, the bias of "
+                 f"{len(result.get('bias_from_board', ()))} modules from the boards")
+        if result.get("bias_disagree"):
+            text += f" ({len(result['bias_disagree'])} disagreeing with the configured bias)"
     if result.get("board_hk_failures"):
         text += f"; {result['board_hk_failures']} board housekeeping reads failed"
     if result.get("events_total"):

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import socket
 import sys
 import threading
@@ -276,6 +277,7 @@ def main(argv=None) -> int:
     except OSError as exc:
         print(f"standin: cannot listen: {exc.strerror or exc}", file=sys.stderr)
         return 1
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # kill: the sockets closed, exit 0
     print("standin: listening " + " ".join(f"{b.board.serial}={b.address[0]}:{b.address[1]}" for b in boards),
           flush=True)
     try:
