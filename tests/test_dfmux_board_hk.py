@@ -232,17 +232,18 @@ def netns_mount(request):
 def _params(path: Path) -> dict:
     """Parameters whose gain makes the sender's counts a detector at 0.5 R_n under 3 uV: each channel's
     counts barely move over the run (3 and 15 counts a sample), so a per-channel complex gain puts them on
-    the transition."""
+    the transition. Keyed by the stand-in board's channel names."""
     from mntes_stream.core import model
     from mntes_stream.core.params import table1_params
     from mntes_stream.dfmux.packets import synthetic_counts
+    from mntes_stream.dfmux.standin import channel_name
     from mntes_stream.io.paramfile import dump_params
 
     out = {}
     for m in range(8):
         ci, cq = synthetic_counts(SERIAL, m, np.arange(CHANNELS), np.array([0]))
         for c in range(CHANNELS):
-            det = f"b{SERIAL}m{m}c{c:03d}"
+            det = channel_name(SERIAL, m, c)  # keyed by the names the board stores (the lab's hardware map)
             p = table1_params(det, v_thev_v=3e-6)
             i_target = complex(model.tes_current_a(p, 0.5 * p.r_normal_ohm, 3e-6))
             out[det] = p.replace(gain_a_per_count=i_target / complex(ci[c, 0], cq[c, 0]))
@@ -299,8 +300,10 @@ def inside(workdir: str) -> dict:
                               "--hk-every", str(HK_EVERY_S), "--hk-stale", str(HK_STALE_S), "--hk-timeout", "0.5",
                               "--params", "params.toml", "--json"] + z,
               stdout=open(work / "bridge.json", "w"))
+        # checkable counts: the parameters (_params) and the power check below are made from synthetic_counts
         sender = subprocess.Popen(py + ["mntes_stream.dfmux.sender", "--board", f"3:{SERIAL}:8:{CHANNELS}",
-                                        "--wait-listener", "60", "--duration", str(DURATION_S)],
+                                        "--counts", "checkable", "--wait-listener", "60", "--duration",
+                                        str(DURATION_S)],
                                   cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         board = "127.0.0.1:80"
         from mntes_stream.dfmux.sender import wait_listener
@@ -388,12 +391,12 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
 
     bias, flags, power = _recorded(tmp_path / "rec")
     t_retune = r["retune"]["t_ns"]
-    # the configured table's bias (the sender's 16 channels) until the board is read, then the board's (its 64)
+    # the board is read before the bridge receives its first packet (its names): only the board's bias (its 64
+    # channels) is published, never the configured table's
     steps = {}
     for m, msgs in bias.items():
-        assert msgs[0].channels.size == CHANNELS and msgs[-1].channels.size == 64, m
-        board = [h for h in msgs if h.channels.size == 64]
-        assert all(h.channels.size == 64 for h in msgs[msgs.index(board[0]):]), m
+        board = msgs
+        assert all(h.channels.size == 64 for h in msgs), m
         t = np.concatenate([h.t_ns for h in board])
         v = np.concatenate([h.value for h in board])
         steps[m] = (t, v, np.flatnonzero(np.any(v[1:] != v[:-1], axis=1)))
@@ -414,6 +417,17 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
     from mntes_stream.io.paramfile import load_params
 
     params = load_params(tmp_path / "params.toml")
+    # the board's names are the detector ids of every power chunk, from the first; the parameters keyed by them
+    # apply: module 3's power is exactly the model's (below, each row's parameters looked up by its name)
+    from mntes_stream.dfmux.standin import channel_name
+
+    assert sorted(power) == list(range(8))
+    for m, chunks in power.items():
+        for pc in chunks:
+            assert pc.detector_ids == tuple(channel_name(SERIAL, m, c) for c in pc.channels.tolist()), pc.detector_ids
+    from mntes_stream.dfmux.bridge import ledger_line
+
+    assert result["detector_names"] == 512 and "512 channels named by the boards" in ledger_line(result), where
     t_step = int(t3[k + 1])
     n_after = n_checked = 0
     for pc in power[3]:

@@ -282,6 +282,7 @@ class BoardPoller:
         self.port = int(port)
         self.every_s, self.timeout_s = float(every_s), float(timeout_s)
         self.results: queue.Queue = queue.Queue()
+        self.first_done = threading.Event()  # the first attempt is in results (a reading or a failure)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"dfmux-hk-{self.serial}", daemon=True)
 
@@ -306,6 +307,7 @@ class BoardPoller:
                 self.results.put(reading)
             except Exception as exc:  # noqa: BLE001 - any failure of one board is one line, never the bridge's
                 self.results.put(BoardFailure(self.serial, f"housekeeping from {self.where} not read: {_why(exc)}"))
+            self.first_done.set()
             self._stop.wait(max(0.0, t0 + self.every_s - time.monotonic()))
 
 
@@ -338,6 +340,8 @@ class BoardHkTracker:
         self.changes: list[str] = []
         self.bias_disagree: dict[str, dict] = {}
         self.names: dict[str, str] = {}  # detector id -> the board's mapped name
+        self.frozen: dict[tuple[int, int], dict[int, str]] | None = None  # the ids of the run (freeze_names)
+        self._names_said: set[int] = set()
         self.tuning_disagree: dict[str, dict] = {}
         self._expected = {key: _expected_tuning(p) for key, p in (params or {}).items()}
 
@@ -376,6 +380,11 @@ class BoardHkTracker:
                 det = detector_id(item.serial, m, c)
                 if name != det:
                     self.names[det] = name
+            if self.frozen is not None and item.serial not in self._names_said and \
+                    _named(item.serial, m, mr) != self.frozen.get(key, {}):
+                self._names_said.add(item.serial)
+                self.events.append(f"board {item.serial}: its channel names differ from those of the start (module "
+                                   f"{m}): the detector ids stay those of the start until the bridge restarts")
             if before is not None and before.gains != mr.gains:
                 self._change(f"board {item.serial} module {m}: gains {before.gains} -> {mr.gains} at "
                              f"{t_ns} ns")
@@ -385,6 +394,17 @@ class BoardHkTracker:
                 self._check_tuning(item.serial, m, mr)
             out += self._flags(item.serial, m, t_ns, mr.flags)
         return out
+
+    def freeze_names(self, serials) -> dict[tuple[int, int], dict[int, str]]:
+        """The detector ids of the run: ``(board, module) -> {channel: name}`` of the named channels read so far;
+        a board of ``serials`` not read yet keeps b/m/c ids (one line)."""
+        self.frozen = {key: named for key, mr in self.modules.items() if (named := _named(*key, mr))}
+        for s in serials:
+            if self.boards.get(s, {}).get("reads", 0) == 0:
+                self.events.append(f"board {s}: not read before the first sample: its detector ids are "
+                                   f"b{s}m<module>c<channel> for the run")
+                self._names_said.add(s)
+        return self.frozen
 
     def _check_tuning(self, board: int, m: int, mr) -> None:
         """The board's R_normal, R_frac achieved and loop gain against the parameters', per detector."""
@@ -503,8 +523,14 @@ class BoardHkTracker:
                 "bias_from_board": sorted(f"{b}/{m}" for b, m in self.pub.from_board),
                 "bias_disagree": dict(sorted(self.bias_disagree.items())), "readout_flagged": flagged,
                 "hk_changes": self.changes[-20:], "hk_changes_total": len(self.changes),
-                "board_names": len(self.names), "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
+                "board_names": len(self.names),
+                "detector_names": sum(len(v) for v in (self.frozen or {}).values()), "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
                 "tuning_disagree_total": len(self.tuning_disagree)}
+
+
+def _named(board: int, module: int, mr: ModuleReading) -> dict[int, str]:
+    """``{channel: name}`` of a module's channels the board names (the others carry their b/m/c id)."""
+    return {c: n for c, n in zip(mr.channels.tolist(), mr.names) if n != detector_id(board, module, c)}
 
 
 def _expected_tuning(p) -> dict:
