@@ -124,6 +124,43 @@ print(json.dumps(out))
 """
 
 
+def test_names_are_fixed_at_the_start_and_the_assembler_uses_them():
+    """The ids of the run: the named channels of the boards read before the first packet (unnamed ones keep
+    b/m/c ids, in the chunks the assembler makes); a board not read by then keeps b/m/c ids (one line); names
+    that change later are one line, and the ids stay."""
+    import dataclasses
+
+    from mntes_stream.dfmux.assemble import Assembler
+    from mntes_stream.dfmux.boardhk import BoardHkTracker
+    from mntes_stream.dfmux.packets import SAMPLE_NS
+    from mntes_stream.dfmux.publish import HkPublisher
+
+    tr = BoardHkTracker(HkPublisher("lab", 0.1, 0.0, []))
+    t0 = 1_800_000_000 * 10**9
+    tr.add(_reading(t0))
+    frozen = tr.freeze_names([10, 11])
+    assert frozen == {(10, 0): {0: "Lab.a", 1: "Lab.b"}} and tr.status()["detector_names"] == 2
+    assert tr.events == ["board 11: not read before the first sample: its detector ids are b11m<module>c<channel> "
+                         "for the run"]
+    asm = Assembler("lab", chunk_samples=2)
+    asm.names = frozen
+    chunks = []
+    for k in range(2):
+        chunks += asm.add(t0 + k * SAMPLE_NS, [(10, 0, 0, 1, np.arange(8, dtype=np.int32)),
+                                               (11, 0, 0, 1, np.arange(8, dtype=np.int32))])
+    ids = {c.board: c.detector_ids for c in chunks}
+    assert ids == {10: ("Lab.a", "Lab.b", "b10m0c002", "b10m0c003"), 11: None}, ids
+    renamed = _reading(t0 + 10**9)
+    mr = renamed.modules[0]
+    tr.add(dataclasses.replace(renamed, modules={0: dataclasses.replace(mr, names=("Lab.x",) + mr.names[1:])}))
+    tr.add(dataclasses.replace(renamed, t_ns=t0 + 2 * 10**9,
+                               modules={0: dataclasses.replace(mr, names=("Lab.y",) + mr.names[1:])}))
+    said = [e for e in tr.events if "names differ" in e]
+    assert said == ["board 10: its channel names differ from those of the start (module 0): the detector ids stay "
+                    "those of the start until the bridge restarts"], tr.events
+    assert tr.frozen == {(10, 0): {0: "Lab.a", 1: "Lab.b"}}
+
+
 def test_a_board_answering_garbage_or_hanging_is_one_reason():
     """The poller against a real stand-in (loopback): a reply that is not JSON and a board that never answers
     are failures with their reason, and it reads again when the board answers."""
