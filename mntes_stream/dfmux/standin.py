@@ -262,7 +262,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     states = {s: BoardState(s, args.named_modules, args.carrier_amplitude) for s, _, _ in args.board}
     if args.detectors:
-        from mntes_stream.dfmux.sender import detector_boards, parse_board as sender_board
+        from mntes_stream.dfmux.sender import detector_boards
+        from mntes_stream.dfmux.sender import parse_board as sender_board
 
         try:
             specs = [sender_board(d) for d in args.detectors]
