@@ -524,7 +524,8 @@ class BoardHkTracker:
                 "bias_disagree": dict(sorted(self.bias_disagree.items())), "readout_flagged": flagged,
                 "hk_changes": self.changes[-20:], "hk_changes_total": len(self.changes),
                 "board_names": len(self.names),
-                "detector_names": sum(len(v) for v in (self.frozen or {}).values()), "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
+                "detector_names": sum(len(v) for v in (self.frozen or {}).values()),
+                "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
                 "tuning_disagree_total": len(self.tuning_disagree)}
 
 
