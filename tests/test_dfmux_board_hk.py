@@ -307,7 +307,8 @@ def inside(workdir: str) -> dict:
     z = ["-m", "client", "-e", "tcp/127.0.0.1:7447"]
     _params(work / "params.toml")
     (work / "converter.toml").write_text('[converter]\nparams = "params.toml"\nkind = "exact"\n')
-    logs = {name: open(work / f"{name}.log", "w") for name in ("standin", "router", "converter", "record", "bridge")}
+    logs = {name: open(work / f"{name}.log", "w") for name in ("standin", "router", "converter", "record", "bridge",
+                                                              "monitor")}
     procs = {}
 
     def start(name, argv, stdout=None):
@@ -332,6 +333,7 @@ def inside(workdir: str) -> dict:
         start("record", py + ["mntes_stream", "record", "--dir", "rec"] + z)
         wait_for("converter", "subscribed to")
         wait_for("record", "recording mntes/lab")
+        start("monitor", py + ["mntes_stream", "monitor", "--text"] + z)
         start("bridge", py + ["mntes_stream", "dfmux-bridge", "--interface", "127.0.0.1", "--board", str(SERIAL),
                               "--t-bath-k", "0.1", "--bias", f"{SERIAL}/7=4e-6", "--bias", f"{SERIAL}/*=3e-6",
                               "--hk-every", str(HK_EVERY_S), "--hk-stale", str(HK_STALE_S), "--hk-timeout", "0.5",
@@ -366,7 +368,7 @@ def inside(workdir: str) -> dict:
         procs["bridge"].send_signal(signal.SIGTERM)
         procs["bridge"].wait(timeout=30)
         time.sleep(1.5)  # the converter's last power reaches the recorder
-        for name in ("converter", "record"):
+        for name in ("converter", "record", "monitor"):
             procs[name].send_signal(signal.SIGTERM)
             procs[name].wait(timeout=30)
     finally:
@@ -464,6 +466,17 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
             assert pc.detector_ids == tuple(channel_name(SERIAL, m, c) for c in pc.channels.tolist()), pc.detector_ids
     from mntes_stream.dfmux.bridge import ledger_line
 
+    # and the export of the recording lists them (HDF5, as the lab recipe exports)
+    import h5py
+
+    ex = _cli("export", str(tmp_path / "rec"), "--out", str(tmp_path / "lab.h5"), "-q")
+    assert ex.returncode == 0, ex.stderr[-2000:]
+    with h5py.File(tmp_path / "lab.h5", "r") as f:
+        exported = sorted(d.decode() if isinstance(d, bytes) else str(d) for g in f if "detectors" in f[g]
+                          for d in f[g]["detectors"][()])
+    assert exported == sorted(channel_name(SERIAL, m, c) for m in range(8) for c in range(CHANNELS)), exported[:5]
+    # the monitor names them too (its list of detectors not in the transition)
+    assert f"not in transition: {channel_name(SERIAL, 0, 0)}" in logs["monitor"], logs["monitor"][-1500:]
     assert result["detector_names"] == 512 and "512 channels named by the boards" in ledger_line(result), where
     t_step = int(t3[k + 1])
     n_after = n_checked = 0
