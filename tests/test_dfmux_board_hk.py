@@ -464,11 +464,11 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
     for m, chunks in power.items():
         for pc in chunks:
             assert pc.detector_ids == tuple(channel_name(SERIAL, m, c) for c in pc.channels.tolist()), pc.detector_ids
+    import h5py
+
     from mntes_stream.dfmux.bridge import ledger_line
 
     # and the export of the recording lists them (HDF5, as the lab recipe exports)
-    import h5py
-
     ex = _cli("export", str(tmp_path / "rec"), "--out", str(tmp_path / "lab.h5"), "-q")
     assert ex.returncode == 0, ex.stderr[-2000:]
     with h5py.File(tmp_path / "lab.h5", "r") as f:

@@ -115,8 +115,10 @@ class BoardState:
         from mntes_stream.dfmux.boardhk import reading_from_dump
 
         bias_v = [float(v) for v in bias_v]
-        if len(bias_v) > len(self.amplitude) or not all(v > 0 for v in bias_v):
-            raise ValueError(f"bias per module: up to {len(self.amplitude)} positive volts, got {bias_v}")
+        if len(bias_v) > len(self.amplitude):
+            raise ValueError(f"{len(bias_v)} modules: an IceBoard has {len(self.amplitude)}")
+        if not all(v > 0 for v in bias_v):
+            raise ValueError(f"bias must be > 0 V, got {min(bias_v)}")
         with self.lock:
             saved, dumps = self.amplitude, self.dumps
             self.amplitude = [[1.0] * CHANNELS for _ in saved]
@@ -272,7 +274,10 @@ def main(argv=None) -> int:
         for det in detector_boards(specs, args.seed):
             if det.serial not in states:
                 p.error(f"--detectors: board {det.serial} is not served (no --board {det.serial})")
-            states[det.serial].serve_bias(det.bias_v)
+            try:
+                states[det.serial].serve_bias(det.bias_v)
+            except ValueError as exc:
+                p.error(f"--detectors: board {det.serial}: {exc}")
     try:
         boards = [StandInBoard(states[s], h, port) for s, h, port in args.board]
     except OSError as exc:
