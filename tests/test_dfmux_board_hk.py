@@ -124,6 +124,43 @@ print(json.dumps(out))
 """
 
 
+def test_names_are_fixed_at_the_start_and_the_assembler_uses_them():
+    """The ids of the run: the named channels of the boards read before the first packet (unnamed ones keep
+    b/m/c ids, in the chunks the assembler makes); a board not read by then keeps b/m/c ids (one line); names
+    that change later are one line, and the ids stay."""
+    import dataclasses
+
+    from mntes_stream.dfmux.assemble import Assembler
+    from mntes_stream.dfmux.boardhk import BoardHkTracker
+    from mntes_stream.dfmux.packets import SAMPLE_NS
+    from mntes_stream.dfmux.publish import HkPublisher
+
+    tr = BoardHkTracker(HkPublisher("lab", 0.1, 0.0, []))
+    t0 = 1_800_000_000 * 10**9
+    tr.add(_reading(t0))
+    frozen = tr.freeze_names([10, 11])
+    assert frozen == {(10, 0): {0: "Lab.a", 1: "Lab.b"}} and tr.status()["detector_names"] == 2
+    assert tr.events == ["board 11: not read before the first sample: its detector ids are b11m<module>c<channel> "
+                         "for the run"]
+    asm = Assembler("lab", chunk_samples=2)
+    asm.names = frozen
+    chunks = []
+    for k in range(2):
+        chunks += asm.add(t0 + k * SAMPLE_NS, [(10, 0, 0, 1, np.arange(8, dtype=np.int32)),
+                                               (11, 0, 0, 1, np.arange(8, dtype=np.int32))])
+    ids = {c.board: c.detector_ids for c in chunks}
+    assert ids == {10: ("Lab.a", "Lab.b", "b10m0c002", "b10m0c003"), 11: None}, ids
+    renamed = _reading(t0 + 10**9)
+    mr = renamed.modules[0]
+    tr.add(dataclasses.replace(renamed, modules={0: dataclasses.replace(mr, names=("Lab.x",) + mr.names[1:])}))
+    tr.add(dataclasses.replace(renamed, t_ns=t0 + 2 * 10**9,
+                               modules={0: dataclasses.replace(mr, names=("Lab.y",) + mr.names[1:])}))
+    said = [e for e in tr.events if "names differ" in e]
+    assert said == ["board 10: its channel names differ from those of the start (module 0): the detector ids stay "
+                    "those of the start until the bridge restarts"], tr.events
+    assert tr.frozen == {(10, 0): {0: "Lab.a", 1: "Lab.b"}}
+
+
 def test_a_board_answering_garbage_or_hanging_is_one_reason():
     """The poller against a real stand-in (loopback): a reply that is not JSON and a board that never answers
     are failures with their reason, and it reads again when the board answers."""
@@ -179,6 +216,47 @@ def test_params_keyed_by_board_names_apply(tmp_path):
     assert f"board {SERIAL}: housekeeping from 127.0.0.1:{port} not read: connection refused" in err[0], err
 
 
+_READ = """
+import json, sys
+from mntes_stream.dfmux.boardhk import read_once
+
+r = read_once(10, "127.0.0.1", int(sys.argv[1]), 5.0)
+print(json.dumps({m: mr.bias_v.tolist() for m, mr in r.modules.items()}))
+"""
+
+
+def test_standin_serves_the_senders_detectors_bias():
+    """``standin --detectors`` (the sender's board spec and seed): the bias the bridge derives from the board's
+    carrier amplitudes (spt3g's bolo_bias_voltage_rms, read over tuber on loopback) is the sender's detectors'
+    bias per module (``DetectorBoard.bias_v``), on every one of the 64 channels, to rounding; a board it does not
+    serve is a one-line usage error."""
+    if importlib.util.find_spec("spt3g") is None:
+        pytest.skip("spt3g not installed (the g3 extra)")
+    from mntes_stream.dfmux.detectors import DetectorBoard
+
+    standin = subprocess.Popen([sys.executable, "-m", "mntes_stream.dfmux.standin", "--board", "10=127.0.0.1:0",
+                                "--detectors", "3:10:8:16", "--seed", "3", "--duration", "60"], env=_env(),
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = standin.stdout.readline()
+        assert line.startswith("standin: listening 10=127.0.0.1:"), standin.stderr.read() if not line else line
+        r = subprocess.run([sys.executable, "-c", _READ, line.split(":")[-1].strip()], env=_env(),
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr[-2000:]
+    finally:
+        standin.send_signal(signal.SIGINT)
+        standin.wait(timeout=30)
+    got = {int(m): np.array(v) for m, v in json.loads(r.stdout).items()}
+    want = DetectorBoard(10, 8, 16, seed=3).bias_v
+    assert sorted(got) == list(range(8)) and all(v.shape == (64,) for v in got.values())
+    assert np.ptp(want) > 0 and not np.allclose(want, DetectorBoard(10, 8, 16).bias_v)  # the seed matters
+    for m in range(8):
+        np.testing.assert_allclose(got[m], want[m], rtol=1e-14, atol=0)
+    bad = subprocess.run([sys.executable, "-m", "mntes_stream.dfmux.standin", "--board", "10=127.0.0.1:0",
+                          "--detectors", "3:11:8:16"], env=_env(), capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "board 11 is not served" in bad.stderr.strip().splitlines()[-1], bad.stderr
+
+
 @pytest.fixture(scope="module")
 def netns_mount(request):
     """A private network namespace (``netns``) and mount namespace can be made here."""
@@ -191,17 +269,18 @@ def netns_mount(request):
 def _params(path: Path) -> dict:
     """Parameters whose gain makes the sender's counts a detector at 0.5 R_n under 3 uV: each channel's
     counts barely move over the run (3 and 15 counts a sample), so a per-channel complex gain puts them on
-    the transition."""
+    the transition. Keyed by the stand-in board's channel names."""
     from mntes_stream.core import model
     from mntes_stream.core.params import table1_params
     from mntes_stream.dfmux.packets import synthetic_counts
+    from mntes_stream.dfmux.standin import channel_name
     from mntes_stream.io.paramfile import dump_params
 
     out = {}
     for m in range(8):
         ci, cq = synthetic_counts(SERIAL, m, np.arange(CHANNELS), np.array([0]))
         for c in range(CHANNELS):
-            det = f"b{SERIAL}m{m}c{c:03d}"
+            det = channel_name(SERIAL, m, c)  # keyed by the names the board stores (the lab's hardware map)
             p = table1_params(det, v_thev_v=3e-6)
             i_target = complex(model.tes_current_a(p, 0.5 * p.r_normal_ohm, 3e-6))
             out[det] = p.replace(gain_a_per_count=i_target / complex(ci[c, 0], cq[c, 0]))
@@ -228,7 +307,8 @@ def inside(workdir: str) -> dict:
     z = ["-m", "client", "-e", "tcp/127.0.0.1:7447"]
     _params(work / "params.toml")
     (work / "converter.toml").write_text('[converter]\nparams = "params.toml"\nkind = "exact"\n')
-    logs = {name: open(work / f"{name}.log", "w") for name in ("standin", "router", "converter", "record", "bridge")}
+    logs = {name: open(work / f"{name}.log", "w") for name in ("standin", "router", "converter", "record", "bridge",
+                                                              "monitor")}
     procs = {}
 
     def start(name, argv, stdout=None):
@@ -253,13 +333,16 @@ def inside(workdir: str) -> dict:
         start("record", py + ["mntes_stream", "record", "--dir", "rec"] + z)
         wait_for("converter", "subscribed to")
         wait_for("record", "recording mntes/lab")
+        start("monitor", py + ["mntes_stream", "monitor", "--text"] + z)
         start("bridge", py + ["mntes_stream", "dfmux-bridge", "--interface", "127.0.0.1", "--board", str(SERIAL),
                               "--t-bath-k", "0.1", "--bias", f"{SERIAL}/7=4e-6", "--bias", f"{SERIAL}/*=3e-6",
                               "--hk-every", str(HK_EVERY_S), "--hk-stale", str(HK_STALE_S), "--hk-timeout", "0.5",
                               "--params", "params.toml", "--json"] + z,
               stdout=open(work / "bridge.json", "w"))
-        sender = subprocess.Popen(py + ["mntes_stream.dfmux.sender", "--board", f"3:{SERIAL}:8:{CHANNELS}", "--counts", "checkable",
-                                        "--wait-listener", "60", "--duration", str(DURATION_S)],
+        # checkable counts: the parameters (_params) and the power check below are made from synthetic_counts
+        sender = subprocess.Popen(py + ["mntes_stream.dfmux.sender", "--board", f"3:{SERIAL}:8:{CHANNELS}",
+                                        "--counts", "checkable", "--wait-listener", "60", "--duration",
+                                        str(DURATION_S)],
                                   cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         board = "127.0.0.1:80"
         from mntes_stream.dfmux.sender import wait_listener
@@ -285,7 +368,7 @@ def inside(workdir: str) -> dict:
         procs["bridge"].send_signal(signal.SIGTERM)
         procs["bridge"].wait(timeout=30)
         time.sleep(1.5)  # the converter's last power reaches the recorder
-        for name in ("converter", "record"):
+        for name in ("converter", "record", "monitor"):
             procs[name].send_signal(signal.SIGTERM)
             procs[name].wait(timeout=30)
     finally:
@@ -347,12 +430,12 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
 
     bias, flags, power = _recorded(tmp_path / "rec")
     t_retune = r["retune"]["t_ns"]
-    # the configured table's bias (the sender's 16 channels) until the board is read, then the board's (its 64)
+    # the board is read before the bridge receives its first packet (its names): only the board's bias (its 64
+    # channels) is published, never the configured table's
     steps = {}
     for m, msgs in bias.items():
-        assert msgs[0].channels.size == CHANNELS and msgs[-1].channels.size == 64, m
-        board = [h for h in msgs if h.channels.size == 64]
-        assert all(h.channels.size == 64 for h in msgs[msgs.index(board[0]):]), m
+        board = msgs
+        assert all(h.channels.size == 64 for h in msgs), m
         t = np.concatenate([h.t_ns for h in board])
         v = np.concatenate([h.value for h in board])
         steps[m] = (t, v, np.flatnonzero(np.any(v[1:] != v[:-1], axis=1)))
@@ -373,6 +456,28 @@ def test_board_housekeeping_end_to_end(netns_mount, tmp_path):
     from mntes_stream.io.paramfile import load_params
 
     params = load_params(tmp_path / "params.toml")
+    # the board's names are the detector ids of every power chunk, from the first; the parameters keyed by them
+    # apply: module 3's power is exactly the model's (below, each row's parameters looked up by its name)
+    from mntes_stream.dfmux.standin import channel_name
+
+    assert sorted(power) == list(range(8))
+    for m, chunks in power.items():
+        for pc in chunks:
+            assert pc.detector_ids == tuple(channel_name(SERIAL, m, c) for c in pc.channels.tolist()), pc.detector_ids
+    import h5py
+
+    from mntes_stream.dfmux.bridge import ledger_line
+
+    # and the export of the recording lists them (HDF5, as the lab recipe exports)
+    ex = _cli("export", str(tmp_path / "rec"), "--out", str(tmp_path / "lab.h5"), "-q")
+    assert ex.returncode == 0, ex.stderr[-2000:]
+    with h5py.File(tmp_path / "lab.h5", "r") as f:
+        exported = sorted(d.decode() if isinstance(d, bytes) else str(d) for g in f if "detectors" in f[g]
+                          for d in f[g]["detectors"][()])
+    assert exported == sorted(channel_name(SERIAL, m, c) for m in range(8) for c in range(CHANNELS)), exported[:5]
+    # the monitor names them too (its list of detectors not in the transition)
+    assert f"not in transition: {channel_name(SERIAL, 0, 0)}" in logs["monitor"], logs["monitor"][-1500:]
+    assert result["detector_names"] == 512 and "512 channels named by the boards" in ledger_line(result), where
     t_step = int(t3[k + 1])
     n_after = n_checked = 0
     for pc in power[3]:

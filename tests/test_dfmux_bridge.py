@@ -159,7 +159,7 @@ def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
     from mntes_stream.bench.dfmux import run_netns
 
     cfg = tmp_path / "bridge.toml"
-    cfg.write_text('[dfmux-bridge]\nsilent_s = 0.1\n')
+    cfg.write_text('[dfmux-bridge]\nsilent_s = 0.1\nhk_stale_s = 0.3\n')
     spec = {"boards": ["3:10:8:64", "3:11:8:64", "4:20:1", "2:5:8:64:127.0.0.2"], "duration_s": 1.2,
             "skip": ["11:40:60", "5:150:100000"], "restart": [11], "bridge_args": ["--config", str(cfg)]}
     r = run_netns(spec, timeout_s=90)
@@ -179,7 +179,10 @@ def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
                           "resolve") == 1, text
     assert "board housekeeping reads failed" in last, last
     assert "spt3g 1.0.2" in r["bridge_stdout"][0]
-    assert r["hk_messages"] > 0
+    # a board never read holds no housekeeping to go stale: no readout flags (HK_STALE) and no bias from it
+    # (hk_stale_s 0.3: a board read once would be flagged within the run)
+    assert r["hk_messages"] > 0 and "readout_flags" not in r["hk_sensors"], r
+    assert "no good housekeeping" not in text and "board housekeeping read " not in last, text
 
 
 def test_bridge_carries_the_detectors_power(netns, tmp_path):
@@ -284,6 +287,8 @@ def test_lab_recipe_as_written(netns, tmp_path):
     from mntes_stream.core.ids import parse_detector_id
     from mntes_stream.core.sim import CHANNEL_SATURATED
     from mntes_stream.dfmux.detectors import DetectorBoard
+    from mntes_stream.io.mcap import iter_messages
+    from mntes_stream.io.messages import decode
 
     if importlib.util.find_spec("ocs") is None or importlib.util.find_spec("autobahn") is None:
         pytest.skip("the ocs extra (ocs, autobahn) is not installed")
@@ -310,6 +315,10 @@ def test_lab_recipe_as_written(netns, tmp_path):
     # crossbar's log is left out: its router worker logs a numpy ABI warning with a traceback, and runs on
     assert "Traceback" not in out and not any("Traceback" in v for k, v in logs.items() if k != "crossbar.log"), where
     assert "dfmux-bridge done: received 160 chunks: published 160; lost 0 of 160" in logs["bridge.log"], where
+    # the bias came from the board (the stand-in's tuber): every module's, none disagreeing, no read failed
+    last = logs["bridge.log"].strip().splitlines()[-1]
+    assert re.search(r"; board housekeeping read [1-9]\d* times, the bias of 8 modules from the boards(;|$)", last), where
+    assert "failed" not in last and "disagree" not in last, where
     assert "converter converter: received 160 chunks: converted 160; lost 0 of 160" in logs["converter.log"], where
     assert "ledger: counts received 160 chunks: recorded 160; lost 0 of 160" in logs["record.log"], where
     assert "ledger: counts received 160 chunks: recorded 160; lost 0 of 160" in logs["replayed.log"], where
@@ -330,7 +339,14 @@ def test_lab_recipe_as_written(netns, tmp_path):
                    f[g]["flags"][()]) for g in f if "flags" in f[g]]
     flags = [fl for _, _, fl in groups]
     assert sum(fl.size for fl in flags) == 39040
-    truth = {p.detector_id: p for p in DetectorBoard(10, 8, 16).params}  # the sender's detectors (same arguments)
+    board = DetectorBoard(10, 8, 16)  # the sender's detectors (same arguments)
+    truth = {p.detector_id: p for p in board.params}
+    # the recorded bias is the board's, read over tuber: the detectors' own, on each module's 64 channels
+    bias = [(m.module, m.value) for r in iter_messages(tmp_path / "rec") if r.schema_name == "mntes.hk"
+            for m in [decode(r.payload)] if m.sensor == "bias"]
+    assert sorted({m for m, _ in bias}) == list(range(8)), bias
+    for m, v in bias:
+        assert v.shape[1] == 64 and np.allclose(v, board.bias_v[m], rtol=1e-14, atol=0), (m, v)
     kinds = {ch.channel: ch.kind for ch in DetectorBoard(10, 1, 16).sim.channels}
     for dets, tod, fl in groups:
         for det, p, f in zip(dets, tod, fl):

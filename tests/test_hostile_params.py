@@ -110,26 +110,38 @@ def test_parameters_matching_no_channel_of_the_stream_say_so_once(caplog):
     assert len(said) == 2  # once per stream (channel list), not once per chunk
 
 
-def test_detector_ids_no_stream_can_match_are_said_at_start_and_give_no_stream_state(caplog):
+def test_detector_ids_that_are_names_are_said_at_start_and_match_only_named_rows(caplog):
+    """Ids not of the form b<B>m<M>c<C> are names (counts chunks carrying detector_ids, e.g. the boards' names
+    from dfmux-bridge): said at the start; any stream then gets state, and a stream none of whose rows has
+    parameters is flagged UNKNOWN_CHANNEL, said once (never silently converted)."""
+    import numpy as np
+
+    from mntes_stream.core import flags as fl
     from mntes_stream.core.convert import make_converter
+    from mntes_stream.io.messages import decode
     from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     params = [table1_params("det-a"), table1_params("det-b"), table1_params("b0m1c000")]
-    with caplog.at_level("WARNING", logger="mntes_stream.converter"):
+    with caplog.at_level("INFO", logger="mntes_stream.converter"):
         pipe = ConverterPipeline(make_converter("exact", {p.detector_id: p for p in params}), PipelineConfig(),
                                  clock=None)
-    assert pipe.last_error.startswith("parameters: 2 of 3 detector ids (e.g. 'det-a') are not of the form")
-    assert sum("can match no stream row" in r.getMessage() for r in caplog.records) == 1
-    # Only module b0m1 (named by a usable id) gets state; b0m0 is rejected at the door like any made-up one.
+    assert sum("2 of 3 detector ids (e.g. 'det-a') are names" in r.getMessage() for r in caplog.records) == 1
     src = MinimalSource(SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))
     outs = []
     for t_pub, batch in src.batches(1_700_000_000_000_000_000, duration_s=1.0):
         for key, payload in batch:
             outs += pipe.handle(key, payload, t_pub)
+    outs += pipe.flush()
     st = pipe.status()
-    assert st.bad_messages["unknown_stream"] == 10 and set(pipe._sequence.streams) == {(0, 1)}
-    assert {k for k, _ in outs if "/power/" in k} == {"mntes/lab/power/0/1"}
+    assert not st.bad_messages.get("unknown_stream") and set(pipe._sequence.streams) == {(0, 0), (0, 1)}
+    power = {}
+    for k, p in outs:
+        if "/power/" in k:
+            pw = decode(p)
+            power.setdefault(pw.module, []).append(pw)
+    assert all(np.isnan(pw.p_opt_w).all() and np.all(pw.flags & fl.UNKNOWN_CHANNEL) for pw in power[0])
+    assert sum("no_detector on mntes/lab/counts/0/0" in r.getMessage() for r in caplog.records) == 1
 
 
 @pytest.mark.parametrize("detector,value,match", [

@@ -305,3 +305,28 @@ def test_a_status_says_from_which_seq_a_converter_began_only_when_it_did_not_beg
     schema_check.validate_payload(began.to_bytes())  # status.v1.json declares it
     with pytest.raises(SchemaError):
         m.StatusMessage(**base, began_at={"0/1": "x"})
+
+
+def test_counts_and_power_carry_names_as_detector_ids():
+    """A source's names (dfmux-bridge: the boards') as the rows' ids: round trip, valid against the schemas,
+    carried into the converter's power (the lean encoder's bytes equal the checked encoder's); ids that are not
+    safe, repeated, of the wrong count, or another channel's b/m/c id are rejected."""
+    from mntes_stream.io.lean import CountsDecoder, PowerEncoder
+
+    named = _counts(detector_ids=["Lab0.1.00", "b0m1c003"])  # an unnamed channel keeps its own b/m/c id
+    schema_check.validate_payload(named.to_bytes())
+    back = m.CountsChunk.from_bytes(named.to_bytes())
+    assert back.detector_ids == ("Lab0.1.00", "b0m1c003") and back.row_ids() == back.detector_ids
+    assert _counts().row_ids() == ("b0m1c000", "b0m1c003") and _counts().detector_ids is None
+    lean = CountsDecoder().decode("mntes/lab/counts/0/1", named.to_bytes())
+    assert lean.detector_ids == back.detector_ids
+    p, f = np.ones((2, 4)), np.zeros((2, 4), np.uint16)
+    raw = PowerEncoder("lab", "t", "exact").encode(back, p, f, 10**18 + 1)
+    schema_check.validate_payload(raw)
+    power = m.PowerChunk.from_bytes(raw)
+    assert power.detector_ids == ("Lab0.1.00", "b0m1c003")
+    assert raw == m.PowerChunk("lab", 0, 1, [0, 3], list(back.detector_ids), 5, 10**18, 200.0, p, f, "t", "exact",
+                               10**18, 10**18 + 1).to_bytes()
+    for bad in (["Lab.a"], ["x", "x"], ["../x", "y"], ["Lab.a", "b0m1c000"], [1, 2], "Lab.a"):
+        with pytest.raises(SchemaError):
+            _counts(detector_ids=bad)

@@ -190,7 +190,9 @@ def inside(spec: dict) -> dict:
     extra = sum(len(v) - len(set(v) & set(expected.get(st, ()))) for st, v in seen.items())
     result = {"sender": summary, "bridge_rc": bridge.returncode, "bridge_stdout": out.strip().splitlines(),
               "bridge_stderr": err.strip().splitlines()[-20:], "counts_messages": len(counts),
-              "hk_messages": sum(1 for k, _, _ in got if "/hk/" in k), "values": n_values, "wrong": wrong,
+              "hk_messages": sum(1 for k, _, _ in got if "/hk/" in k),
+              "hk_sensors": sorted({k.split("/hk/", 1)[1].split("/")[0] for k, _, _ in got if "/hk/" in k}),
+              "values": n_values, "wrong": wrong,
               "samples_missing": missing, "samples_unexpected": extra, "streams": len(seen),
               "udp_drops": sum(s["drops"] for s in udp)}
     if counts and cpu:

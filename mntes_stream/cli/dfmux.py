@@ -9,7 +9,7 @@ _FLAGS = {"setup": "setup", "interface": "interface", "boards": "board", "v2_boa
           "chunk_samples": "chunk_samples", "duration_s": "duration", "t_bath_k": "t_bath_k",
           "b_field_t": "b_field_t", "bias": "bias", "board_hosts": "board_host", "hk_every_s": "hk_every",
           "hk_timeout_s": "hk_timeout", "hk_stale_s": "hk_stale", "board_hk": "board_hk",
-          "params": "params"}
+          "board_names": "board_names", "params": "params"}
 
 
 def run_bridge(args) -> int:
@@ -76,6 +76,8 @@ def register(sub) -> None:
                    "names): the boards' R_normal, R_frac achieved and loop gain are checked against them")
     p.add_argument("--no-board-hk", dest="board_hk", action="store_false", default=None,
                    help="do not read the boards' housekeeping (bias from --bias only)")
+    p.add_argument("--no-board-names", dest="board_names", action="store_false", default=None,
+                   help="detector ids b<serial>m<module>c<channel> even where the boards store mapped names")
     add_quiet(p)
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
     add_zenoh_args(p)

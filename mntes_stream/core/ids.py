@@ -45,3 +45,11 @@ def parse_detector_id(det_id: str) -> tuple[int, int, int]:
     if not m:
         raise ConfigError(f"detector id {det_id!r} is not of the form b<board>m<module>c<channel>")
     return int(m.group(1)), int(m.group(2)), int(m.group(3))
+
+
+def is_channel_id(det_id: str) -> bool:
+    """True if ``det_id`` has the b<board>m<module>c<channel> form (else it is a name, e.g. a board's).
+
+    >>> is_channel_id("b10m3c007"), is_channel_id("Lab10.3.07")
+    (True, False)"""
+    return bool(_PATTERN.match(det_id))

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mntes_stream.core.ids import detector_id
 from mntes_stream.dfmux.packets import SAMPLE_NS
 
 __all__ = ["Assembler", "Event", "RAIL", "utc"]
@@ -86,6 +87,9 @@ class Assembler:
         self.out_of_order = 0       # samples at or before their stream's last one (dropped)
         self.published: dict[str, int] = {}
         self._t_pub = 0
+        # (board, module) -> {channel: detector id}: the boards' names (fixed by the bridge before any sample)
+        self.names: dict[tuple[int, int], dict[int, str]] = {}
+        self._row_ids: dict[tuple[int, int, int], tuple | None] = {}
 
     def add(self, t_ns: int, modules, t_pub_ns: int = 0) -> list:
         """One sample: ``modules`` is ``[(board, module, block, nblocks, I/Q int32 array), ...]``; returns the
@@ -163,7 +167,7 @@ class Assembler:
         msg = CountsChunk(setup=self.setup, board=s.board, module=s.module,
                           channels=np.arange(nch, dtype=np.int32), seq=s.seq, t0_ns=None, sample_rate_hz=None,
                           counts_i=np.ascontiguousarray(block[:, 0::2].T), counts_q=np.ascontiguousarray(block[:, 1::2].T),
-                          t_pub_ns=self._t_pub, t_ns=s.t[:n].copy())
+                          t_pub_ns=self._t_pub, t_ns=s.t[:n].copy(), detector_ids=self._ids(s.board, s.module, nch))
         s.seq += 1
         s.samples += n * nch
         self.samples += n * nch
@@ -171,6 +175,15 @@ class Assembler:
         name = f"{s.board}/{s.module}"
         self.published[name] = self.published.get(name, 0) + 1
         return [msg]
+
+    def _ids(self, board: int, module: int, nch: int) -> tuple | None:
+        """The rows' detector ids where the board names its channels (unnamed ones: b/m/c); None: none named."""
+        key = (board, module, nch)
+        if key not in self._row_ids:
+            named = self.names.get((board, module))
+            self._row_ids[key] = None if not named else \
+                tuple(named.get(c, detector_id(board, module, c)) for c in range(nch))
+        return self._row_ids[key]
 
     def flush(self, t_pub_ns: int = 0) -> list:
         """Every stream's partial chunk (at the end)."""

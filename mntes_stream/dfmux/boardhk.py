@@ -37,7 +37,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.ids import detector_id
 
 __all__ = ["BoardPoller", "BoardReading", "BoardFailure", "ModuleReading", "BoardHkTracker", "read_board",
-           "read_once", "board_params", "parse_hosts", "channel_flags", "TUNED_STATES"]
+           "read_once", "reading_from_dump", "board_params", "parse_hosts", "channel_flags", "TUNED_STATES"]
 
 log = logging.getLogger("mntes_stream.dfmux")
 
@@ -166,16 +166,21 @@ def read_board(client, serial: int, ip: str, previous=None) -> tuple[BoardReadin
 
     Raises on anything but a good reply (the caller says which board and why).
     """
+    reply = client.CallMethod("Dfmux", "_dump_housekeeping")
+    if not isinstance(reply, list) or not reply or not isinstance(reply[0], dict) or "result" not in reply[0]:
+        raise ValueError(f"not a tuber result: {str(reply)[:80]}")
+    return reading_from_dump(reply[0]["result"], serial, ip, previous)
+
+
+def reading_from_dump(dat: dict, serial: int, ip: str, previous=None) -> tuple[BoardReading, object]:
+    """A ``_dump_housekeeping`` result (JSON as the board sends it) -> its reading and snapshot, through
+    spt3g's ``HousekeepingFromJSON``/``WiringFromJSON`` and the G3 path's ``hk_snapshot``."""
     from mntes_stream.g3 import spt3g
     from mntes_stream.g3.mapping import Wiring, hk_snapshot
 
     core, dfmux = spt3g()
     from spt3g.dfmux.Housekeeping import HousekeepingConsumer, HousekeepingForBolo
 
-    reply = client.CallMethod("Dfmux", "_dump_housekeeping")
-    if not isinstance(reply, list) or not reply or not isinstance(reply[0], dict) or "result" not in reply[0]:
-        raise ValueError(f"not a tuber result: {str(reply)[:80]}")
-    dat = reply[0]["result"]
     boardhk = HousekeepingConsumer.HousekeepingFromJSON(dat)
     if int(boardhk.serial) != serial:
         raise ValueError(f"it answers as board {boardhk.serial}")
@@ -277,6 +282,7 @@ class BoardPoller:
         self.port = int(port)
         self.every_s, self.timeout_s = float(every_s), float(timeout_s)
         self.results: queue.Queue = queue.Queue()
+        self.first_done = threading.Event()  # the first attempt is in results (a reading or a failure)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"dfmux-hk-{self.serial}", daemon=True)
 
@@ -301,6 +307,7 @@ class BoardPoller:
                 self.results.put(reading)
             except Exception as exc:  # noqa: BLE001 - any failure of one board is one line, never the bridge's
                 self.results.put(BoardFailure(self.serial, f"housekeeping from {self.where} not read: {_why(exc)}"))
+            self.first_done.set()
             self._stop.wait(max(0.0, t0 + self.every_s - time.monotonic()))
 
 
@@ -333,6 +340,8 @@ class BoardHkTracker:
         self.changes: list[str] = []
         self.bias_disagree: dict[str, dict] = {}
         self.names: dict[str, str] = {}  # detector id -> the board's mapped name
+        self.frozen: dict[tuple[int, int], dict[int, str]] | None = None  # the ids of the run (freeze_names)
+        self._names_said: set[int] = set()
         self.tuning_disagree: dict[str, dict] = {}
         self._expected = {key: _expected_tuning(p) for key, p in (params or {}).items()}
 
@@ -371,6 +380,11 @@ class BoardHkTracker:
                 det = detector_id(item.serial, m, c)
                 if name != det:
                     self.names[det] = name
+            if self.frozen is not None and item.serial not in self._names_said and \
+                    _named(item.serial, m, mr) != self.frozen.get(key, {}):
+                self._names_said.add(item.serial)
+                self.events.append(f"board {item.serial}: its channel names differ from those of the start (module "
+                                   f"{m}): the detector ids stay those of the start until the bridge restarts")
             if before is not None and before.gains != mr.gains:
                 self._change(f"board {item.serial} module {m}: gains {before.gains} -> {mr.gains} at "
                              f"{t_ns} ns")
@@ -380,6 +394,17 @@ class BoardHkTracker:
                 self._check_tuning(item.serial, m, mr)
             out += self._flags(item.serial, m, t_ns, mr.flags)
         return out
+
+    def freeze_names(self, serials) -> dict[tuple[int, int], dict[int, str]]:
+        """The detector ids of the run: ``(board, module) -> {channel: name}`` of the named channels read so far;
+        a board of ``serials`` not read yet keeps b/m/c ids (one line)."""
+        self.frozen = {key: named for key, mr in self.modules.items() if (named := _named(*key, mr))}
+        for s in serials:
+            if self.boards.get(s, {}).get("reads", 0) == 0:
+                self.events.append(f"board {s}: not read before the first sample: its detector ids are "
+                                   f"b{s}m<module>c<channel> for the run")
+                self._names_said.add(s)
+        return self.frozen
 
     def _check_tuning(self, board: int, m: int, mr) -> None:
         """The board's R_normal, R_frac achieved and loop gain against the parameters', per detector."""
@@ -494,10 +519,19 @@ class BoardHkTracker:
         flagged = {f"{b}/{m}": fl.describe(int(np.bitwise_or.reduce(f))) for (b, m), f in self._flags_sent.items()
                    if f.any()}
         return {"board_hk": boards, "board_hk_failures": sum(st["failures"] for st in self.boards.values()),
+                "board_hk_reads": sum(st["reads"] for st in self.boards.values()),
+                "bias_from_board": sorted(f"{b}/{m}" for b, m in self.pub.from_board),
                 "bias_disagree": dict(sorted(self.bias_disagree.items())), "readout_flagged": flagged,
                 "hk_changes": self.changes[-20:], "hk_changes_total": len(self.changes),
-                "board_names": len(self.names), "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
+                "board_names": len(self.names),
+                "detector_names": sum(len(v) for v in (self.frozen or {}).values()),
+                "tuning_disagree": dict(sorted(self.tuning_disagree.items())[:100]),
                 "tuning_disagree_total": len(self.tuning_disagree)}
+
+
+def _named(board: int, module: int, mr: ModuleReading) -> dict[int, str]:
+    """``{channel: name}`` of a module's channels the board names (the others carry their b/m/c id)."""
+    return {c: n for c, n in zip(mr.channels.tolist(), mr.names) if n != detector_id(board, module, c)}
 
 
 def _expected_tuning(p) -> dict:

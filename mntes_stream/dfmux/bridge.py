@@ -70,6 +70,13 @@ class DfMuxBridgeSettings(Settings):
                              "spt3g's HousekeepingConsumer): bias, gains, tuning state, rails, mapped names")
     board_hosts: tuple[str, ...] = setting((), "SERIAL=HOST[:PORT] per board whose tuber is not at "
                                            "iceboard<serial>.local:80 (labs without mDNS)")
+    board_names: bool = setting(True, "the names the boards' hardware map stores are the detector ids of their "
+                                "channels (counts, power, exports, monitor); fixed at each board's first housekeeping "
+                                "read (the bridge receives packets once every board's first read is back or "
+                                "names_wait_s passed); unnamed channels, and boards not read by then: "
+                                "b<serial>m<module>c<channel>")
+    names_wait_s: float = setting(10.0, "at the start, wait this long at most for every board's first housekeeping "
+                                  "read (its names) before receiving packets", unit="s", ge=0)
     hk_every_s: float = setting(10.0, "read each board's housekeeping this often (spt3g's "
                                 "PeriodicHousekeepingCollector: every 15200 samples, 100 s)", unit="s", gt=0)
     hk_timeout_s: float = setting(5.0, "a board's tuber reply must come within this (spt3g: 5 s)", unit="s", gt=0)
@@ -354,9 +361,21 @@ class DfMuxBridgeService(Service):
         self._t_beat = 0.0
         self._waited = False
         self._marker_seen = False
-        self._readout.start(core, dfmux)
         for poller in self._pollers:
             poller.start()
+        self._first_hk = self._first_reads(b) if b.board_names and self._pollers else []
+        self._readout.start(core, dfmux)
+
+    def _first_reads(self, b) -> list:
+        """Every board's first housekeeping read (or ``names_wait_s``), before any packet is received: the names
+        it stores are its channels' detector ids for the run, so no stream ever mixes ids. Returns the messages
+        of those reads (published with the first counts)."""
+        t_end = time.monotonic() + b.names_wait_s
+        for poller in self._pollers:
+            poller.first_done.wait(max(0.0, t_end - time.monotonic()))
+        out = self._board_hk()
+        self._asm.names = self._tracker.freeze_names([p.serial for p in self._pollers])
+        return out
 
     def _board_hk(self) -> list:
         """Messages from the boards' housekeeping read since the last call (never waits for a board); stamped
@@ -428,7 +447,8 @@ class DfMuxBridgeService(Service):
                 self._marker_seen = True
                 continue
             chunks += asm.add(t_ns, mods, time.time_ns())
-        out = self._board_hk() + hk.messages(chunks, asm.t_newest_ns) + [
+        first, self._first_hk = self._first_hk, []
+        out = first + self._board_hk() + hk.messages(chunks, asm.t_newest_ns) + [
             (keys.counts_key(b.setup, c.board, c.module), c.to_bytes()) for c in chunks]
         if out and not waited and b.wait_subscribers_s > 0:
             waited = True
@@ -481,6 +501,13 @@ def ledger_line(result: dict) -> str:
         text += f"; {result['invalid_samples']} samples invalid (V4 blocks missing)"
     if result.get("held_released") is False:
         text += "; samples spt3g's builder still held at the stop (up to 1000 per board) were not released"
+    if result.get("board_hk_reads"):
+        text += (f"; board housekeeping read {result['board_hk_reads']} times, the bias of "
+                 f"{len(result.get('bias_from_board', ()))} modules from the boards")
+        if result.get("bias_disagree"):
+            text += f" ({len(result['bias_disagree'])} disagreeing with the configured bias)"
+    if result.get("detector_names"):
+        text += f"; {result['detector_names']} channels named by the boards (their detector ids)"
     if result.get("board_hk_failures"):
         text += f"; {result['board_hk_failures']} board housekeeping reads failed"
     if result.get("events_total"):

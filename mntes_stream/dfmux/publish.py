@@ -44,7 +44,7 @@ class HkPublisher:
         self._t_scalar = -1
         self._t_bias: dict[tuple[int, int], int] = {}
         self._t_sent: dict[str, int] = {}  # per-channel sensor key -> its last reading's time
-        self._from_board: set[tuple[int, int]] = set()
+        self.from_board: set[tuple[int, int]] = set()
         self.readings = 0
 
     def configured_bias(self, board: int, module: int) -> float | None:
@@ -54,7 +54,7 @@ class HkPublisher:
     def board_bias(self, board: int, module: int, channels, t_ns, volts) -> list[tuple[str, bytes]]:
         """The board's bias readings of a module (``t_ns`` shape (n,), ``volts`` (n, n_ch)); from now on the
         table is not used for it."""
-        self._from_board.add((board, module))
+        self.from_board.add((board, module))
         return [self._msg("bias", t_ns, volts, "V", board=board, module=module, channels=channels)]
 
     def board_flags(self, board: int, module: int, channels, t_ns: int, flags) -> list[tuple[str, bytes]]:
@@ -92,7 +92,7 @@ class HkPublisher:
             out += [self._msg(s, t, [v], u) for s, v, u in self.scalars]
         for c in chunks:
             key = (c.board, c.module)
-            if key in self._from_board:
+            if key in self.from_board:
                 continue
             last = self._t_bias.get(key)
             if last is not None and t - last < self.bias_every_ns:

@@ -160,7 +160,8 @@ def main(argv=None) -> int:
     p.add_argument("--bias-args", action="store_true", help="detector counts: print dfmux-bridge's --bias arguments "
                    "for the detectors' bias (one line) and send nothing")
     p.add_argument("--interface", default="127.0.0.1", help="address of the interface to send on")
-    p.add_argument("--duration", type=float, default=1.0, help="seconds of data to send")
+    p.add_argument("--duration", type=float, default=1.0, help="seconds of data to send (0: none, e.g. only "
+                   "--params-out)")
     p.add_argument("--flat-out", action="store_true", help="send as fast as possible, not at the DfMux rate")
     p.add_argument("--start-ns", type=int, default=0, help="time of sample 0 (0: now, on a sample boundary)")
     p.add_argument("--skip", action="append", type=parse_skip, default=[],
@@ -191,6 +192,8 @@ def _send(args, dets, n: int) -> int:
             "boards": " ".join(f"{b.serial}:{b.modules}x{b.channels}" for b in dets)})
     if dets is not None and args.bias_args:
         print(" ".join(a for b in dets for a in b.bias_args()))
+        return 0
+    if args.duration <= 0:
         return 0
     time.sleep(args.wait)
     if args.wait_listener and not wait_listener(args.wait_listener):

@@ -22,13 +22,17 @@ effect, ``t_ns``):
 ``python -m mntes_stream.dfmux.standin --board SERIAL[=HOST[:PORT]]`` serves
 one board per address (default: what ``iceboard<serial>.local`` resolves
 to, port 80, as spt3g connects); its first line on stdout is ``standin:
-listening SERIAL=HOST:PORT ...`` once every socket listens.
+listening SERIAL=HOST:PORT ...`` once every socket listens. With
+``--detectors VERSION:SERIAL:MODULES[:CHANNELS] --seed N`` (the synthetic
+sender's ``--board`` and ``--seed``) it serves the carrier amplitudes that
+give exactly the bias of the sender's detectors (:meth:`BoardState.serve_bias`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import socket
 import sys
 import threading
@@ -98,6 +102,35 @@ class BoardState:
             elif change:
                 raise ValueError(f"unknown change {sorted(change)}")
             return time.time_ns()
+
+    def serve_bias(self, bias_v) -> None:
+        """Carrier amplitudes whose bias, as the bridge derives it, is ``bias_v[m]`` on every channel of module m.
+
+        ``bias_v``: RMS Thevenin volts per module, shape (n,), n <= 8 (the first n modules; e.g. a
+        :class:`~mntes_stream.dfmux.detectors.DetectorBoard`'s ``bias_v``). The amplitude is the bias over
+        the bias of a unit amplitude, both through the bridge's own derivation
+        (:func:`~mntes_stream.dfmux.boardhk.reading_from_dump`: spt3g's ``HousekeepingFromJSON`` and
+        ``bolo_bias_voltage_rms``, linear in the amplitude at a given carrier gain and frequency).
+        """
+        from mntes_stream.dfmux.boardhk import reading_from_dump
+
+        bias_v = [float(v) for v in bias_v]
+        if len(bias_v) > len(self.amplitude):
+            raise ValueError(f"{len(bias_v)} modules: an IceBoard has {len(self.amplitude)}")
+        if not all(v > 0 for v in bias_v):
+            raise ValueError(f"bias must be > 0 V, got {min(bias_v)}")
+        with self.lock:
+            saved, dumps = self.amplitude, self.dumps
+            self.amplitude = [[1.0] * CHANNELS for _ in saved]
+        try:
+            unit = reading_from_dump(self.dump(), self.serial, "127.0.0.1")[0].modules
+        finally:
+            with self.lock:
+                self.amplitude, self.dumps = saved, dumps
+        with self.lock:
+            for m, v in enumerate(bias_v):
+                row = dict(zip(unit[m].channels.tolist(), unit[m].bias_v.tolist()))
+                self.amplitude[m] = [v / row[c] for c in range(CHANNELS)]
 
     def dump(self, t_ns: int | None = None) -> dict:
         """``Dfmux._dump_housekeeping``'s result now (or at ``t_ns``)."""
@@ -221,15 +254,36 @@ def main(argv=None) -> int:
                    help="serve this board (default address: iceboard<serial>.local, port 80); repeatable")
     p.add_argument("--named-modules", type=int, default=MEZZANINES * MODULES,
                    help="modules whose channels carry mapped names (default all 8)")
-    p.add_argument("--carrier-amplitude", type=float, default=CARRIER_AMPLITUDE)
+    p.add_argument("--carrier-amplitude", type=float, default=CARRIER_AMPLITUDE,
+                   help="every channel's normalised carrier amplitude (default %(default)s)")
+    p.add_argument("--detectors", action="append", default=[], metavar="VERSION:SERIAL:MODULES[:CHANNELS]",
+                   help="serve the bias of the synthetic sender's detectors on that board (the sender's --board "
+                        "spec, with --seed as the sender's): each module's carrier amplitudes give its bias")
+    p.add_argument("--seed", type=int, default=0, help="with --detectors: the sender's --seed")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this long (0: until killed)")
     args = p.parse_args(argv)
+    states = {s: BoardState(s, args.named_modules, args.carrier_amplitude) for s, _, _ in args.board}
+    if args.detectors:
+        from mntes_stream.dfmux.sender import detector_boards
+        from mntes_stream.dfmux.sender import parse_board as sender_board
+
+        try:
+            specs = [sender_board(d) for d in args.detectors]
+        except argparse.ArgumentTypeError as exc:
+            p.error(str(exc).replace("--board", "--detectors"))
+        for det in detector_boards(specs, args.seed):
+            if det.serial not in states:
+                p.error(f"--detectors: board {det.serial} is not served (no --board {det.serial})")
+            try:
+                states[det.serial].serve_bias(det.bias_v)
+            except ValueError as exc:
+                p.error(f"--detectors: board {det.serial}: {exc}")
     try:
-        boards = [StandInBoard(BoardState(s, args.named_modules, args.carrier_amplitude), h, port)
-                  for s, h, port in args.board]
+        boards = [StandInBoard(states[s], h, port) for s, h, port in args.board]
     except OSError as exc:
         print(f"standin: cannot listen: {exc.strerror or exc}", file=sys.stderr)
         return 1
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # kill: the sockets closed, exit 0
     print("standin: listening " + " ".join(f"{b.board.serial}={b.address[0]}:{b.address[1]}" for b in boards),
           flush=True)
     try:

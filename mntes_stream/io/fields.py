@@ -116,3 +116,22 @@ def check_times(obj, n_samp: int) -> None:
             raise SchemaError(f"the last of {n_samp} samples from t0_ns = {t0} at {rate} Hz is beyond int64 ns")
         object.__setattr__(obj, "t0_ns", t0)
         object.__setattr__(obj, "sample_rate_hz", rate)
+
+
+def as_detector_ids(value: Any, own: tuple) -> tuple:
+    """Detector ids of rows whose b/m/c ids are ``own``: distinct safe names (``core.ids.check_detector_id``), an
+    id of the b<B>m<M>c<C> form only the row's own (never another channel's), as a tuple."""
+    from mntes_stream.core.ids import DETECTOR_ID_PATTERN, is_channel_id
+
+    if not isinstance(value, (list, tuple)):
+        raise SchemaError("detector_ids must be a list of strings")
+    ids = tuple(value)
+    if len(ids) != len(own):
+        raise SchemaError(f"detector_ids has {len(ids)} names for {len(own)} channels")
+    if not all(isinstance(d, str) and DETECTOR_ID_PATTERN.match(d) for d in ids):
+        raise SchemaError("detector_ids must be safe names (letters, digits, '_', '.', '-'; up to 128 characters)")
+    if len(set(ids)) != len(ids):
+        raise SchemaError("detector_ids must be distinct")
+    if any(d != o and is_channel_id(d) for d, o in zip(ids, own)):
+        raise SchemaError("detector_ids do not match board/module/channels (a b<B>m<M>c<C> id of another channel)")
+    return ids

@@ -56,8 +56,8 @@ class CountsDecoder:
         return chunk
 
     def _remember(self, key: str, msg: dict, chunk: CountsChunk) -> None:
-        if chunk.t_ns is not None:
-            return  # explicit sample times: checked in full every time (no regular header to keep)
+        if chunk.t_ns is not None or chunk.detector_ids is not None:
+            return  # explicit sample times or named rows: checked in full every time (no regular header to keep)
         if len(self._headers) >= _MAX_HEADERS:
             self._headers.clear()
         ci = msg["counts_i"]
@@ -127,12 +127,12 @@ class PowerEncoder:
         self._templates: dict[tuple, tuple] = {}
 
     def _template(self, board: int, module: int, channels: np.ndarray, shape: tuple, late: bool,
-                  sigma: bool) -> tuple:
-        key = (board, module, channels.tobytes(), shape, late, sigma)
+                  sigma: bool, names: tuple | None = None) -> tuple:
+        key = (board, module, channels.tobytes(), shape, late, sigma, names)
         t = self._templates.get(key)
         if t is None:
             # Field order and encodings as PowerChunk._body() and codec.pack() make them (a test compares bytes).
-            ids = detector_ids_for(board, module, channels)
+            ids = names if names is not None else detector_ids_for(board, module, channels)
             n_fields = 16 + (1 if late else 0) + (1 if sigma else 0)  # the envelope (2) and every field but t_ns
             head = b"".join([
                 _map_head(n_fields), _pack("schema"), _pack(PowerChunk.SCHEMA), _pack("version"),
@@ -162,13 +162,14 @@ class PowerEncoder:
         if chunk.t_ns is not None:  # explicit times: the general encoder
             return PowerChunk.unchecked(
                 setup=self._setup, board=chunk.board, module=chunk.module, channels=chunk.channels,
-                detector_ids=detector_ids_for(chunk.board, chunk.module, chunk.channels), seq=chunk.seq,
+                detector_ids=chunk.row_ids(), seq=chunk.seq,
                 t0_ns=chunk.t0_ns, sample_rate_hz=chunk.sample_rate_hz, p_opt_w=p_opt_w, flags=flags,
                 table_identity=self._identity, converter_kind=self._kind, source_t_pub_ns=chunk.t_pub_ns,
                 t_pub_ns=t_pub_ns, t_ns=chunk.t_ns, late=True if late else None,
                 sigma_p_w=sigma_p_w).to_bytes()
         head, k_t0, k_rate, k_p, k_f, mid, k_pub, tail = self._template(
-            chunk.board, chunk.module, chunk.channels, p_opt_w.shape, bool(late), sigma_p_w is not None)
+            chunk.board, chunk.module, chunk.channels, p_opt_w.shape, bool(late), sigma_p_w is not None,
+            chunk.detector_ids)
         return b"".join((head, _pack(chunk.seq), k_t0, _pack(chunk.t0_ns), k_rate, _pack(chunk.sample_rate_hz),
                          k_p, p_opt_w.astype("<f8", copy=False).tobytes(), k_f,
                          flags.astype("<u2", copy=False).tobytes(), mid, _pack(chunk.t_pub_ns), k_pub,

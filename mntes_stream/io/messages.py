@@ -68,6 +68,9 @@ class CountsChunk(MessageBase):
         Publication time at the source.
     t_ns : ndarray of int64, shape (n_samp,), optional
         Explicit sample times instead of ``t0_ns``/``sample_rate_hz``.
+    detector_ids : tuple of str, length n_ch, optional
+        The rows' detector ids when the source names them (``dfmux-bridge``: the names the boards' hardware map
+        stores); absent: ``core.ids.detector_id(board, module, channel)``. The power carries the same ids.
     """
 
     SCHEMA: ClassVar[str] = "mntes.counts"
@@ -85,12 +88,22 @@ class CountsChunk(MessageBase):
     counts_q: np.ndarray
     t_pub_ns: int
     t_ns: np.ndarray | None = None
+    detector_ids: tuple | None = None
+
+    @classmethod
+    def unchecked(cls, **values):
+        """As :meth:`MessageBase.unchecked`; ``detector_ids`` may be left out (absent: the b/m/c ids)."""
+        values.setdefault("detector_ids", None)
+        return super().unchecked(**values)
 
     def __post_init__(self) -> None:
         fc.as_str(self.setup, "setup", NAME_PATTERN)
         for name in ("board", "module", "seq", "t_pub_ns"):
             object.__setattr__(self, name, fc.as_int(getattr(self, name), name))
         ch = fc.as_channels(self.channels)
+        if self.detector_ids is not None:
+            object.__setattr__(self, "detector_ids", fc.as_detector_ids(
+                self.detector_ids, detector_ids_for(self.board, self.module, ch)))
         ci = fc.as_array(self.counts_i, "counts_i", "<i4", 2)
         cq = fc.as_array(self.counts_q, "counts_q", "<i4", 2)
         if ci.shape != cq.shape or ci.shape[0] != ch.size:
@@ -103,6 +116,11 @@ class CountsChunk(MessageBase):
     @property
     def n_samples(self) -> int:
         return int(self.counts_i.shape[1])
+
+    def row_ids(self) -> tuple:
+        """The rows' detector ids: :attr:`detector_ids`, or the b/m/c ids of the channels."""
+        return self.detector_ids if self.detector_ids is not None else \
+            detector_ids_for(self.board, self.module, self.channels)
 
     def times_ns(self) -> np.ndarray:
         """Sample times, int64 (n_samp,)."""
@@ -182,7 +200,8 @@ class PowerChunk(MessageBase):
     board, module : int
     channels : ndarray of int32, shape (n_ch,)
     detector_ids : tuple of str, length n_ch
-        ``core.ids.detector_id(board, module, channel)`` of each row.
+        ``core.ids.detector_id(board, module, channel)`` of each row, or the source counts chunk's
+        ``detector_ids`` (the boards' names).
     seq : int
         Sequence number of the source counts chunk.
     t0_ns, sample_rate_hz, t_ns
@@ -249,8 +268,9 @@ class PowerChunk(MessageBase):
         if not isinstance(self.detector_ids, (list, tuple)):
             raise SchemaError("detector_ids must be a list of strings")
         ids = tuple(self.detector_ids)
-        if ids != detector_ids_for(self.board, self.module, ch):
-            raise SchemaError("detector_ids do not match board/module/channels")
+        own = detector_ids_for(self.board, self.module, ch)
+        if ids != own:  # names (from the counts): safe and distinct
+            ids = fc.as_detector_ids(ids, own)
         p = fc.as_array(self.p_opt_w, "p_opt_w", "<f8", 2)
         f = fc.as_array(self.flags, "flags", "<u2", 2)
         if p.shape != f.shape or p.shape[0] != ch.size:

@@ -456,6 +456,9 @@ class Aggregator:
             buf = self._admit(key, chunk.channels, rate, int(t_recv_ns))
             if buf is None:
                 return
+        ids = getattr(chunk, "detector_ids", None)
+        if ids and len(ids) == len(buf.ids) and ids != buf.ids:  # the source's names (dfmux-bridge: the boards')
+            buf.ids = tuple(ids)
         late = bool(getattr(chunk, "late", None))
         buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns, late)
         self.modules.move_to_end(key)

@@ -151,13 +151,12 @@ class ConverterPipeline:
         known = frozenset(converter.detector_ids)
         modules = known_modules(known)
         if modules is None and known:
-            # Stream rows are always b<B>m<M>c<C>: an id of another form can never match one. Said now, once;
-            # and only the modules of the other ids get state (else any peer-chosen module would).
+            # Ids of another form than b<B>m<M>c<C> are names: they match the rows of counts chunks that carry
+            # detector_ids (dfmux-bridge: the boards' names), on a stream no id says: any stream gets state.
             odd = sorted(d for d in known if known_modules([d]) is None)
-            self.books.last_error = (f"parameters: {len(odd)} of {len(known)} detector ids (e.g. {odd[0]!r}) are "
-                                     "not of the form b<board>m<module>c<channel> and can match no stream row")[:500]
-            log.warning("%s", self.books.last_error)
-            modules = known_modules(known.difference(odd))
+            log.info("parameters: %d of %d detector ids (e.g. %r) are names, not b<board>m<module>c<channel>: they "
+                     "match the rows of counts carrying those names (any stream is taken)", len(odd), len(known),
+                     odd[0])
         noise = None
         if uncertainty is not None and only_fused and not sigma_p and not getattr(converter, "fuses_low_responsivity",
                                                                                   False):

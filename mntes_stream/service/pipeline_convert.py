@@ -20,7 +20,7 @@ from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.core.uncertainty import NoiseWindow, low_responsivity_block, sigma_p_block
 from mntes_stream.io import keys
 from mntes_stream.io.lean import PowerEncoder
-from mntes_stream.io.messages import CountsChunk, detector_ids_for
+from mntes_stream.io.messages import CountsChunk
 from mntes_stream.service.stages import Books, End, Pending
 
 __all__ = ["Convert", "Encode", "Environment", "Flags"]
@@ -104,10 +104,10 @@ class Environment:
 
     def rows_for(self, chunk: CountsChunk) -> tuple:
         """Detector ids of the rows and which the converter knows (cached per channel list)."""
-        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes())
+        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes(), chunk.detector_ids)
         rows = self._rows.get(cache_key)
         if rows is None:
-            ids = detector_ids_for(chunk.board, chunk.module, chunk.channels)
+            ids = chunk.row_ids()  # the source's names, or the b/m/c ids
             known = np.array([d in self._known for d in ids], dtype=bool)
             if len(self._rows) > 4096:
                 self._rows.clear()
