@@ -60,7 +60,9 @@ def test_linear_within_20_percent_of_the_true_nonlinearity_and_mntes_below_the_r
     assert matplotlib.image.imread(png).shape[0] > 200
     # The figure is not replaced without --overwrite (before any conversion); --f-hwp must be positive.
     assert main(argv) == 2 and "--overwrite replaces it" in capsys.readouterr().err
-    assert main(argv[:2] + ["--f-hwp", "0"]) == 2 and "--f-hwp must be > 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:  # refused as the command line is read, in one line
+        main(argv[:2] + ["--f-hwp", "0"])
+    assert refused.value.code == 2 and "argument --f-hwp: expected a number (Hz) > 0, got '0'" in capsys.readouterr().err
     # The text form says the same in words.
     assert main(argv[:-1] + ["--overwrite", "-q"]) == 0
     text = capsys.readouterr().out

@@ -209,10 +209,7 @@ def _table(res: dict) -> str:
 
 def run(args) -> int:
     from mntes_stream.cli._common import claim_out
-    from mntes_stream.errors import ConfigError
 
-    if args.f_hwp is not None and not args.f_hwp > 0:
-        raise ConfigError(f"--f-hwp must be > 0 Hz, got {args.f_hwp}")
     if args.png:
         claim_out(args.png, args.overwrite, inputs=[args.recording])
     res = measure(args.recording, truth_path=args.truth, f_hwp_hz=args.f_hwp, params=args.params,
