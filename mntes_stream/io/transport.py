@@ -76,6 +76,10 @@ class ZenohSettings:
         None, "sources keep this much of each counts and housekeeping key for subscribers that start late or miss "
               "samples (a recorder or router restarting; io/history.py); memory: about this times the data rate "
               "(default 10 s; 0: none)", unit="s", ge=0)
+    history_mb: float | None = setting(
+        None, "... and at most this much per key: the samples a key's cache keeps are this divided by the size of "
+              "its first message, when that is fewer than history_s holds (default 16 MB; 0: no cap in bytes)",
+        unit="MB", ge=0)
     # zenoh retries peers' and routers' connections itself; a client does not open without its router
     # (io/reconnect.py): a service waits for it with this backoff.
     reconnect_min_s: float | None = setting(
@@ -101,6 +105,11 @@ class ZenohSettings:
     def history_seconds(self) -> float:
         """``history_s`` in force (10 s unless named)."""
         return 10.0 if self.history_s is None else float(self.history_s)
+
+    @property
+    def history_bytes(self) -> int:
+        """``history_mb`` in force, in bytes (16 MB unless named; 0: no cap)."""
+        return int((16.0 if self.history_mb is None else float(self.history_mb)) * 1e6)
 
     @property
     def file(self) -> str | None:
@@ -231,22 +240,28 @@ class Publishers:
     history_chunks : int
         Counts and housekeeping keys keep this many samples for late or recovering
         subscribers (``io/history.py``: zenoh's AdvancedPublisher); 0: plain publishers.
+    history_bytes : int
+        ... and at most this many bytes each: a key's cache keeps ``history_bytes`` / (its first message's
+        size) samples when that is fewer (0: no cap in bytes).
     observer : callable, optional
         ``observer(key, payload)`` sees every message put (a service's metrics, passed by its lifecycle).
     """
 
-    def __init__(self, session, block: bool = True, history_chunks: int = 0, observer=None):
+    def __init__(self, session, block: bool = True, history_chunks: int = 0, observer=None, history_bytes: int = 0):
         import zenoh
 
         self._session = session
         self._cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self._pubs: dict[str, object] = {}
         self._history = int(history_chunks)
+        self._history_bytes = int(history_bytes)
         self.messages = 0
         self.bytes = 0
         self._observe = observer
 
-    def publisher(self, key: str):
+    def publisher(self, key: str, size: int = 0):
+        """The publisher on ``key``, declared now if new; ``size``: its messages' size (bytes), which bounds
+        a history cache in bytes (0: not known, the cache is bounded in samples only)."""
         pub = self._pubs.get(key)
         if pub is None:
             import zenoh
@@ -255,8 +270,9 @@ class Publishers:
 
             try:
                 if self._history and history.wants_history(key):
-                    pub = history.declare_history_publisher(self._session, key, zenoh.Encoding(zenoh_encoding(key)),
-                                                            self._cc, self._history)
+                    pub = history.declare_history_publisher(
+                        self._session, key, zenoh.Encoding(zenoh_encoding(key)), self._cc,
+                        history.capped_chunks(self._history, self._history_bytes, size))
                 else:
                     pub = self._session.declare_publisher(key, congestion_control=self._cc,
                                                           encoding=zenoh.Encoding(zenoh_encoding(key)))
@@ -266,7 +282,7 @@ class Publishers:
         return pub
 
     def put(self, key: str, payload: bytes) -> None:
-        self.publisher(key).put(payload)
+        self.publisher(key, len(payload)).put(payload)
         self.messages += 1
         self.bytes += len(payload)
         if self._observe is not None:
@@ -274,8 +290,11 @@ class Publishers:
 
     def wait_matching(self, keys: Iterable[str], timeout_s: float, stop=None) -> bool:
         """Wait until every key has a matching subscriber (True) or the timeout passes."""
-        # An AdvancedPublisher has no matching status: a plain publisher on its key asks for it.
-        pubs = [self.publisher(k) for k in keys]
+        # An AdvancedPublisher has no matching status, and one not yet declared waits for its first message (its
+        # size bounds the cache): a plain publisher on its key asks for it.
+        keys = list(keys)
+        pubs = [self._pubs.get(k) or (None if self._history and history.wants_history(k) else self.publisher(k))
+                for k in keys]
         probes = [self._session.declare_publisher(k) for k, p in zip(keys, pubs) if not hasattr(p, "matching_status")]
         pubs = [p for p in pubs if hasattr(p, "matching_status")] + probes
         deadline = time.monotonic() + timeout_s

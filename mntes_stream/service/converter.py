@@ -73,6 +73,8 @@ class ConverterConfig(Settings):
         10.0, "re-publish parameters + table identity this often, for recorders started later (0 = at start only)",
         unit="s", ge=0)
     queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
+    queue_mb: float = setting(64.0, "... and at most this much payload: a flood of big messages (valid or not) "
+                              "cannot fill memory; beyond, back-pressure", unit="MB", gt=0)
     threads: int = setting(1, "threads converting a large batch side by side (the compiled kernel releases the "
                            "GIL): on a host with a core to spare, lower latency at high rates", ge=1, le=64)
     overload_after_s: float = setting(
@@ -378,7 +380,7 @@ class ConverterService(Service):
         # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
         # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
         self._sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=ctx.stop, mode="callback",
-                                    recover="history")
+                                    max_bytes=int(cfg.queue_mb * 1e6), recover="history")
         try:
             # Provenance on request too: a recorder started later asks instead of waiting for the next one.
             answer(session, self._prov_key, pipe.provenance_bytes())
