@@ -18,6 +18,7 @@ import collections
 import contextlib
 import dataclasses
 import json
+import logging
 import os
 import queue
 import socket
@@ -32,6 +33,8 @@ from mntes_stream.io import history, reconnect
 from mntes_stream.io.presence import announce
 from mntes_stream.io.zenoh_file import named_paths as _named_paths
 from mntes_stream.io.zenoh_file import names_listen_endpoints as _names_listen_endpoints
+
+log = logging.getLogger("mntes_stream.transport")
 
 __all__ = [
     "ZenohSettings",
@@ -255,6 +258,7 @@ class Publishers:
         self._pubs: dict[str, object] = {}
         self._history = int(history_chunks)
         self._history_bytes = int(history_bytes)
+        self._said_capped = False
         self.messages = 0
         self.bytes = 0
         self._observe = observer
@@ -270,9 +274,14 @@ class Publishers:
 
             try:
                 if self._history and history.wants_history(key):
+                    n = history.capped_chunks(self._history, self._history_bytes, size)
+                    if n < self._history and not self._said_capped:  # once: every key of a source is alike
+                        self._said_capped = True
+                        log.info("history of %s: %d messages of %.2f MB kept, not %d: [zenoh] history_mb (%.0f MB "
+                                 "per key) holds fewer than history_s", key, n, size / 1e6, self._history,
+                                 self._history_bytes / 1e6)
                     pub = history.declare_history_publisher(
-                        self._session, key, zenoh.Encoding(zenoh_encoding(key)), self._cc,
-                        history.capped_chunks(self._history, self._history_bytes, size))
+                        self._session, key, zenoh.Encoding(zenoh_encoding(key)), self._cc, n)
                 else:
                     pub = self._session.declare_publisher(key, congestion_control=self._cc,
                                                           encoding=zenoh.Encoding(zenoh_encoding(key)))
@@ -449,18 +458,24 @@ class QueueSubscriber:
                 self._bytes_free.notify()
         return item
 
-    def drain(self, limit: int = 1 << 30) -> Iterator[tuple[str, bytes, int]]:
-        """What is queued now, without waiting (at most ``limit`` items).
+    def drain(self, limit: int = 1 << 30, max_bytes: int = 0) -> Iterator[tuple[str, bytes, int]]:
+        """What is queued now, without waiting (at most ``limit`` items; callback mode: and no more once
+        ``max_bytes`` of payload are out, 0: no such cap).
 
-        In channel mode each key expression's channel is emptied in the order
+        A batch taken out of a queue bounded in bytes frees room that the callback fills again at once: the
+        caller holding the batch holds up to ``max_bytes`` more. In channel mode each key expression's channel is emptied in the order
         given (one pass over them, however many: a converter shard may hold
         hundreds), so housekeeping listed first still comes before counts.
         """
         if self.mode != "channel":
+            out_bytes = 0
             for _ in range(limit):
+                if max_bytes and out_bytes >= max_bytes:
+                    return
                 item = self.get()
                 if item is None:
                     return
+                out_bytes += len(item[1])
                 yield item
             return
         n = 0
