@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from converter_proc import mem_mb
 
 from mntes_stream.io import keys
 from mntes_stream.io.history import capped_chunks
@@ -57,14 +58,6 @@ def test_a_late_subscriber_gets_what_the_byte_budget_kept(history_bytes, kept):
     assert got == list(range(50 - kept, 50))
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
-
-
 def test_big_messages_fill_no_more_than_history_mb_per_key():
     """4 keys x 60 chunks of 819 kB (a 128-channel module at 8 kHz): 197 MB of history_s, 32 MB of history_mb.
 
@@ -74,11 +67,11 @@ def test_big_messages_fill_no_more_than_history_mb_per_key():
     with open_session(loopback(free_tcp_port())) as z:
         pubs = Publishers(z, history_chunks=100, history_bytes=cap_mb * 1_000_000)
         payload = bytes(range(256)) * (size // 256)
-        before = _rss_mb()
+        before = mem_mb()
         for _ in range(n):
             for m in range(n_keys):
                 pubs.put(keys.counts_key("t", 0, m), payload)
-        grown = _rss_mb() - before
+        grown = mem_mb() - before
         pubs.close()
     # The caches (32 MB) plus zenoh's own buffers; without the cap they would hold n x size x n_keys = 197 MB.
     assert grown < n_keys * cap_mb + 48, f"RSS +{grown:.0f} MB"

@@ -11,14 +11,13 @@ gives freed heap back (service/heap.py trim_heap).
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import time
+
+from converter_proc import mem_mb, start_converter
 
 from mntes_stream.io import keys
 from mntes_stream.io.messages import Provenance, StatusMessage, decode
-from mntes_stream.io.paramfile import dump_params
-from mntes_stream.io.transport import Publishers, QueueSubscriber, free_tcp_port, loopback, open_session
+from mntes_stream.io.transport import Publishers, QueueSubscriber, loopback, open_session
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1)
@@ -29,26 +28,8 @@ SETTLED_MB = 96  # RSS after the last round (idle: trimmed) over RSS before (mea
 SETTLE_S = 2.5  # idle this long after a round: the converter trims its heap every 2 s when idle
 
 
-def _mem_mb(pid: int, what: str = "VmRSS") -> float:
-    """Resident memory now (VmRSS) or at its peak so far (VmHWM)."""
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith(what + ":"):
-                return int(line.split()[1]) / 1024
-    raise AssertionError(f"no {what}")
-
-
 def test_rounds_of_malformed_messages_do_not_grow_the_converter(tmp_path):
-    source = MinimalSource(SRC)
-    dump_params(source.params, tmp_path / "params.toml")
-    port = free_tcp_port()
-    (tmp_path / "converter.toml").write_text(
-        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
-        f'queue_mb = {QUEUE_MB}\n[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
-    log = tmp_path / "serve.log"
-    with open(log, "wb") as f:
-        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml", "-q"],
-                                stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+    proc, port, log = start_converter(tmp_path, MinimalSource(SRC), converter=f"queue_mb = {QUEUE_MB}\n")
     rss = []
     try:
         with open_session(loopback(None, [port])) as z:
@@ -57,7 +38,7 @@ def test_rounds_of_malformed_messages_do_not_grow_the_converter(tmp_path):
             while not any(isinstance(decode(i[1]), Provenance) for i in [sub.get(timeout_s=0.1)] if i):
                 assert time.monotonic() < deadline and proc.poll() is None, log.read_text()[-2000:]
             time.sleep(SETTLE_S)
-            before, peak_before = _mem_mb(proc.pid), _mem_mb(proc.pid, "VmHWM")
+            before, peak_before = mem_mb(proc.pid), mem_mb(proc.pid, "VmHWM")
             pubs = Publishers(z)
             key = keys.counts_key("lab", 0, 0)
             garbage = b"\xc1" + os.urandom(SIZE - 1)  # 0xc1: never valid msgpack
@@ -72,8 +53,8 @@ def test_rounds_of_malformed_messages_do_not_grow_the_converter(tmp_path):
                     if item is not None and isinstance(st := decode(item[1]), StatusMessage):
                         malformed = st.bad_messages.get("malformed", 0)
                 time.sleep(SETTLE_S)
-                rss.append(_mem_mb(proc.pid))
-            peak = _mem_mb(proc.pid, "VmHWM")  # since the start; the start's own peak is about its RSS
+                rss.append(mem_mb(proc.pid))
+            peak = mem_mb(proc.pid, "VmHWM")  # since the start; the start's own peak is about its RSS
             pubs.close()
             sub.close()
         assert malformed == ROUNDS * PER_ROUND  # every one counted, none lost on the way
