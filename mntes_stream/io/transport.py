@@ -462,9 +462,10 @@ class QueueSubscriber:
         """What is queued now, without waiting (at most ``limit`` items; callback mode: and no more once
         ``max_bytes`` of payload are out, 0: no such cap).
 
-        A batch taken out of a queue bounded in bytes frees room that the callback fills again at once: the
-        caller holding the batch holds up to ``max_bytes`` more. In channel mode each key expression's channel is emptied in the order
-        given (one pass over them, however many: a converter shard may hold
+        A batch taken out of a queue bounded in bytes frees room that the
+        callback fills again at once: the caller holding the batch holds up to
+        ``max_bytes`` more. In channel mode each key expression's channel is
+        emptied in the order given (one pass over them, however many: a converter shard may hold
         hundreds), so housekeeping listed first still comes before counts.
         """
         if self.mode != "channel":

@@ -46,8 +46,10 @@ def trim_heap() -> bool:
     """Give the C heap's free pages back to the system (glibc ``malloc_trim(0)``); False where it cannot.
 
     After a burst (a flood of big messages queued, then freed), glibc keeps the freed memory in its heaps
-    and arenas: resident, though free. A service calls this when idle, not per message (it walks every
-    arena: ~1 ms for a few hundred MB).
+    and arenas: resident, though free. A service calls this when idle, not per message: it walks every
+    arena, and gives back the top pad too (:func:`pad_heap`; the next messages grow it again). Measured
+    (2-core VM): 300 MB freed in 100 kB pieces between live ones, 46 ms to give back (RSS 298 -> 12 MB);
+    0.3 ms when there is nothing to give back.
     """
     if not sys.platform.startswith("linux"):
         return False
