@@ -359,10 +359,10 @@ def _cpu_s(pid: int) -> float | None:
 
 
 def _rss_mb(pid: int) -> float | None:
-    """Resident memory of a live process in MB (Linux /proc); None where unreadable."""
+    """Resident memory of a live process in MiB, as ``process_max_rss_mb`` (Linux /proc); None where unreadable."""
     try:
         with open(f"/proc/{pid}/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     except (OSError, ValueError, IndexError):
         return None
 
