@@ -633,6 +633,8 @@ def run_once(args) -> dict:
         "max_rss_mb": {name: round(r["process_max_rss_mb"]) if isinstance(r, dict) and "process_max_rss_mb" in r
                        else None for name, r in ((name, results.get(name)) for name in names)},
         "rss_growth_mb": _rss_growth(rss_samples, src["t_start_ns"], stream_end) if stream_end else {},
+        # The converter's receive queue at its fullest: within [converter] queue_mb whatever the rate.
+        "converter_queue_high_water_mb": conv.get("queue_high_water_mb") if isinstance(conv, dict) else None,
         "recording_mb": round(sum(f.stat().st_size for f in rec_dir.glob("*.mcap")) / 1e6, 1),
         "kind": args.kind,
         # Other work on the machine shows in the latency tail: say how busy it was.
