@@ -24,7 +24,7 @@ SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_
 ROUNDS, PER_ROUND, SIZE = 5, 1500, 400_000  # 600 MB a round: 37 times the queue's budget
 QUEUE_MB = 16  # [converter] queue_mb: the queue holds this much, a batch out of it as much again
 PEAK_MB = 2 * QUEUE_MB + 160  # peak RSS (VmHWM) over RSS before: + zenoh's buffers, the heap's pad (measured +73..143)
-SETTLED_MB = 96  # RSS after the last round (idle: trimmed) over RSS before (measured +58; before: +145..266)
+SETTLED_MB = 112  # RSS after the last round (idle: trimmed) over RSS before (measured +53..78; before: +145..266)
 SETTLE_S = 2.5  # idle this long after a round: the converter trims its heap every 2 s when idle
 
 
