@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from mntes_stream.bench._stream_rate import find_rate, next_rate, trial_passes
-from mntes_stream.bench.stream import _cpu_in, _cpu_s, _per_process, _relay_template, _stamped
+from mntes_stream.bench.stream import _cpu_in, _cpu_s, _per_process, _relay_template, _rss_growth, _rss_mb, _stamped
 
 
 def test_cores_come_from_the_samples_inside_the_window():
@@ -33,6 +33,23 @@ def test_cpu_of_a_process_is_read_from_proc():
     sum(i * i for i in range(2_000_000))  # some CPU of our own
     assert _cpu_s(os.getpid()) > before >= 0
     assert _cpu_s(2**22 + 12345) is None  # no such process
+
+
+def test_rss_growth_per_half_comes_from_the_last_sample_at_each_point():
+    s = 10**9
+    samples = [(0, {"a": 100.0, "b": 50.0}), (4 * s, {"a": 180.0, "b": None}), (6 * s, {"a": 200.0, "b": 60.0}),
+               (10 * s, {"a": 260.0, "b": 61.0})]
+    # [0, 10 s]: middle 5 s -> the sample of 4 s; b unreadable there: left out.
+    assert _rss_growth(samples, 0, 10 * s) == {"a": {"start": 100, "middle": 180, "end": 260, "first_half": 80,
+                                                      "second_half": 80}}
+    assert _rss_growth(samples, 6 * s, 10 * s)["b"] == {"start": 60, "middle": 60, "end": 61, "first_half": 0,
+                                                         "second_half": 1}
+    if os.path.exists(f"/proc/{os.getpid()}/statm"):
+        before = _rss_mb(os.getpid())
+        held = b"\x01" * (64 << 20)  # 64 MiB written, so resident
+        assert _rss_mb(os.getpid()) - before > 60
+        del held
+        assert _rss_mb(2**22 + 12345) is None
 
 
 def test_per_process_rates_are_samples_per_own_cpu_second():

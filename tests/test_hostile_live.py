@@ -6,28 +6,18 @@ converter from 195 MB to 2,006 MB for good; 10,000 made-up bias modules added 91
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 
 import numpy as np
+from converter_proc import mem_mb, start_converter
 
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, Provenance, StatusMessage, decode
-from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import Publishers, QueueSubscriber, free_tcp_port, loopback, open_session
 from mntes_stream.service.source import MinimalSource, SourceConfig, publish
 
 SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1)
 BUDGET_MB = 100  # growth allowed under the flood (the table bank and zenoh buffers are already there)
-
-
-def _rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
 
 
 def _wait(sub, pred, timeout_s):
@@ -44,17 +34,8 @@ def _wait(sub, pred, timeout_s):
 
 def test_ten_thousand_made_up_streams_do_not_grow_the_converter(tmp_path):
     source = MinimalSource(SRC)
-    dump_params(source.params, tmp_path / "params.toml")
-    port = free_tcp_port()
-    (tmp_path / "converter.toml").write_text(
-        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
-        # The real chunks after the flood carry the t_pub of before it: not an overload to shed here.
-        '[alignment]\nmax_lag_s = 120.0\n'
-        f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
-    log = tmp_path / "serve.log"
-    with open(log, "wb") as f:
-        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml", "-q"],
-                                stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+    # The real chunks after the flood carry the t_pub of before it: not an overload to shed here.
+    proc, port, log = start_converter(tmp_path, source, rest="[alignment]\nmax_lag_s = 120.0\n")
     try:
         with open_session(loopback(None, [port])) as z:
             sub = QueueSubscriber(z, ["mntes/lab/power/**", "mntes/lab/status/**", "mntes/lab/provenance"])
@@ -62,7 +43,7 @@ def test_ten_thousand_made_up_streams_do_not_grow_the_converter(tmp_path):
             real = list(source.batches(time.time_ns(), duration_s=1.0))
             publish(z, real[:5], speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
             _wait(sub, lambda m: sum(isinstance(x, PowerChunk) for x in m) >= 10, 30)
-            before = _rss_mb(proc.pid)
+            before = mem_mb(proc.pid)
             c = CountsChunk.from_bytes(next(p for k, p in real[0][1] if "/counts/" in k))
             pubs = Publishers(z)
             for i in range(10_000):
@@ -77,7 +58,7 @@ def test_ten_thousand_made_up_streams_do_not_grow_the_converter(tmp_path):
             publish(z, real[5:], speed=0)
             got = _wait(sub, lambda m: any(isinstance(x, StatusMessage) and x.bad_messages.get("unknown_stream", 0)
                                            >= 20_000 and x.chunks_converted >= 20 for x in m), 120)
-            after = _rss_mb(proc.pid)
+            after = mem_mb(proc.pid)
             pubs.close()
             sub.close()
         status = [x for x in got if isinstance(x, StatusMessage)][-1]

@@ -358,6 +358,35 @@ def _cpu_s(pid: int) -> float | None:
         return None
 
 
+def _rss_mb(pid: int) -> float | None:
+    """Resident memory of a live process in MiB, as ``process_max_rss_mb`` (Linux /proc); None where unreadable."""
+    try:
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _rss_growth(samples: list, t0_ns: int, t1_ns: int) -> dict:
+    """Per process: resident MB at the start, middle and end of ``[t0_ns, t1_ns]``, and the growth in each half.
+
+    ``samples`` are ``(t_ns, {name: rss_mb})``; each point is the last sample at or before it.
+    """
+    def at(t_ns):
+        before = [s for s in samples if s[0] <= t_ns]
+        return before[-1][1] if before else {}
+
+    a, b, c = at(t0_ns), at((t0_ns + t1_ns) // 2), at(t1_ns)
+    out = {}
+    for name in c:
+        x, y, z = a.get(name), b.get(name), c.get(name)
+        if None in (x, y, z):
+            continue
+        out[name] = {"start": round(x), "middle": round(y), "end": round(z),
+                     "first_half": round(y - x), "second_half": round(z - y)}
+    return out
+
+
 def _cpu_used(samples: list, t0_ns: int | None, t1_ns: int | None) -> tuple[float, dict]:
     """Wall seconds and each process's CPU seconds between two wall-clock times, from ``(t_ns, {name: cpu_s})``.
 
@@ -476,6 +505,7 @@ def run_once(args) -> dict:
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
         pids = {name: proc.pid for name, proc in services.procs.items()}
         cpu_samples = []  # (wall ns, CPU seconds of each process so far): what each used in each phase
+        rss_samples = []  # (wall ns, resident MB of each process): growth in each half of the stream
         with open_session(zenoh.over(loopback(None, [p_conv]))) as z:
             sub = QueueSubscriber(z, [keys.status_key(setup, conv_cfg.name)])
             # The source keeps its session open after publishing (queued is not delivered): wait
@@ -483,7 +513,9 @@ def run_once(args) -> dict:
             # for 4.5 s. Its power went out before that, so the recorder has had as long to take it in.
             received, pending, last_change = 0, 0, time.monotonic()
             while time.monotonic() - last_change < 4.5 and time.monotonic() < deadline and services.alive():
-                cpu_samples.append((time.time_ns(), {name: _cpu_s(pid) for name, pid in pids.items()}))
+                t_ns = time.time_ns()
+                cpu_samples.append((t_ns, {name: _cpu_s(pid) for name, pid in pids.items()}))
+                rss_samples.append((t_ns, {name: _rss_mb(pid) for name, pid in pids.items()}))
                 item = sub.get(timeout_s=0.1)
                 n_in = received
                 if item is not None:
@@ -596,8 +628,13 @@ def run_once(args) -> dict:
         "converter_threads": args.threads,
         "recorder_shards": args.recorder_shards,
         "compression": args.compression,
-        "max_rss_mb": {k: round(r["process_max_rss_mb"]) if isinstance(r, dict) and "process_max_rss_mb" in r else None
-                       for k, r in (("converter", conv), ("recorder", rec), ("source", src))},
+        # Each process's peak resident memory (its own getrusage, at its end), and how much it grew in each half
+        # of the stream phase (sampled from /proc): a process still growing in the second half is not bounded.
+        "max_rss_mb": {name: round(r["process_max_rss_mb"]) if isinstance(r, dict) and "process_max_rss_mb" in r
+                       else None for name, r in ((name, results.get(name)) for name in names)},
+        "rss_growth_mb": _rss_growth(rss_samples, src["t_start_ns"], stream_end) if stream_end else {},
+        # The converter's receive queue at its fullest: within [converter] queue_mb whatever the rate.
+        "converter_queue_high_water_mb": conv.get("queue_high_water_mb") if isinstance(conv, dict) else None,
         "recording_mb": round(sum(f.stat().st_size for f in rec_dir.glob("*.mcap")) / 1e6, 1),
         "kind": args.kind,
         # Other work on the machine shows in the latency tail: say how busy it was.

@@ -13,7 +13,11 @@ sample shows the gap (``recovery``). What cannot be recovered (older than the
 cache) stays a sequence gap, counted as never received.
 
 The cache holds ``history_s`` of data per key (``[zenoh] history_s``): about
-``history_s`` x the array's data rate of memory in the publisher. The
+``history_s`` x the array's data rate of memory in the publisher, and at most
+``[zenoh] history_mb`` per key (16 MB unless set): a key's cache keeps
+``history_mb`` / (the size of its first message) samples when that is fewer,
+so big messages (a high sample rate, long chunks) cannot make the caches
+grow beyond ``history_mb`` x the keys published. The
 converter caches its power too (``history_s`` / ``POWER_CHUNK_S`` chunks per
 key), so a restarted recorder also records the power published while it was
 down.
@@ -25,7 +29,7 @@ import math
 
 from mntes_stream.io import keys
 
-__all__ = ["HISTORY_KINDS", "POWER_CHUNK_S", "cache_chunks", "declare_history_publisher", "declare_recovering_subscriber"]
+__all__ = ["HISTORY_KINDS", "POWER_CHUNK_S", "cache_chunks", "capped_chunks", "declare_history_publisher", "declare_recovering_subscriber"]
 
 # The data, and the converter's power (a recorder restarted after a crash records the power published meanwhile);
 # status and provenance are periodic.
@@ -39,6 +43,16 @@ def cache_chunks(history_s: float, chunk_s: float) -> int:
     if history_s <= 0 or chunk_s <= 0:
         return 0
     return max(1, math.ceil(history_s / chunk_s))
+
+
+def capped_chunks(max_chunks: int, max_bytes: int, message_bytes: int) -> int:
+    """``max_chunks``, or fewer so that as many messages of ``message_bytes`` fit in ``max_bytes`` (at least 1).
+
+    A cap of 0, or a size not known (0), leaves ``max_chunks``; ``max_chunks`` 0 (no cache) stays 0.
+    """
+    if max_chunks <= 0 or max_bytes <= 0 or message_bytes <= 0:
+        return max(0, int(max_chunks))
+    return max(1, min(int(max_chunks), int(max_bytes) // int(message_bytes)))
 
 
 def wants_history(key: str) -> bool:

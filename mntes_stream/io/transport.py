@@ -18,6 +18,7 @@ import collections
 import contextlib
 import dataclasses
 import json
+import logging
 import os
 import queue
 import socket
@@ -32,6 +33,8 @@ from mntes_stream.io import history, reconnect
 from mntes_stream.io.presence import announce
 from mntes_stream.io.zenoh_file import named_paths as _named_paths
 from mntes_stream.io.zenoh_file import names_listen_endpoints as _names_listen_endpoints
+
+log = logging.getLogger("mntes_stream.transport")
 
 __all__ = [
     "ZenohSettings",
@@ -76,6 +79,10 @@ class ZenohSettings:
         None, "sources keep this much of each counts and housekeeping key for subscribers that start late or miss "
               "samples (a recorder or router restarting; io/history.py); memory: about this times the data rate "
               "(default 10 s; 0: none)", unit="s", ge=0)
+    history_mb: float | None = setting(
+        None, "... and at most this much per key: the samples a key's cache keeps are this divided by the size of "
+              "its first message, when that is fewer than history_s holds (default 16 MB; 0: no cap in bytes)",
+        unit="MB", ge=0)
     # zenoh retries peers' and routers' connections itself; a client does not open without its router
     # (io/reconnect.py): a service waits for it with this backoff.
     reconnect_min_s: float | None = setting(
@@ -101,6 +108,11 @@ class ZenohSettings:
     def history_seconds(self) -> float:
         """``history_s`` in force (10 s unless named)."""
         return 10.0 if self.history_s is None else float(self.history_s)
+
+    @property
+    def history_bytes(self) -> int:
+        """``history_mb`` in force, in bytes (16 MB unless named; 0: no cap)."""
+        return int((16.0 if self.history_mb is None else float(self.history_mb)) * 1e6)
 
     @property
     def file(self) -> str | None:
@@ -231,22 +243,29 @@ class Publishers:
     history_chunks : int
         Counts and housekeeping keys keep this many samples for late or recovering
         subscribers (``io/history.py``: zenoh's AdvancedPublisher); 0: plain publishers.
+    history_bytes : int
+        ... and at most this many bytes each: a key's cache keeps ``history_bytes`` / (its first message's
+        size) samples when that is fewer (0: no cap in bytes).
     observer : callable, optional
         ``observer(key, payload)`` sees every message put (a service's metrics, passed by its lifecycle).
     """
 
-    def __init__(self, session, block: bool = True, history_chunks: int = 0, observer=None):
+    def __init__(self, session, block: bool = True, history_chunks: int = 0, observer=None, history_bytes: int = 0):
         import zenoh
 
         self._session = session
         self._cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self._pubs: dict[str, object] = {}
         self._history = int(history_chunks)
+        self._history_bytes = int(history_bytes)
+        self._said_capped = False
         self.messages = 0
         self.bytes = 0
         self._observe = observer
 
-    def publisher(self, key: str):
+    def publisher(self, key: str, size: int = 0):
+        """The publisher on ``key``, declared now if new; ``size``: its messages' size (bytes), which bounds
+        a history cache in bytes (0: not known, the cache is bounded in samples only)."""
         pub = self._pubs.get(key)
         if pub is None:
             import zenoh
@@ -255,8 +274,14 @@ class Publishers:
 
             try:
                 if self._history and history.wants_history(key):
-                    pub = history.declare_history_publisher(self._session, key, zenoh.Encoding(zenoh_encoding(key)),
-                                                            self._cc, self._history)
+                    n = history.capped_chunks(self._history, self._history_bytes, size)
+                    if n < self._history and not self._said_capped:  # once: every key of a source is alike
+                        self._said_capped = True
+                        log.info("history of %s: %d messages of %.2f MB kept, not %d: [zenoh] history_mb (%.0f MB "
+                                 "per key) holds fewer than history_s", key, n, size / 1e6, self._history,
+                                 self._history_bytes / 1e6)
+                    pub = history.declare_history_publisher(
+                        self._session, key, zenoh.Encoding(zenoh_encoding(key)), self._cc, n)
                 else:
                     pub = self._session.declare_publisher(key, congestion_control=self._cc,
                                                           encoding=zenoh.Encoding(zenoh_encoding(key)))
@@ -266,7 +291,7 @@ class Publishers:
         return pub
 
     def put(self, key: str, payload: bytes) -> None:
-        self.publisher(key).put(payload)
+        self.publisher(key, len(payload)).put(payload)
         self.messages += 1
         self.bytes += len(payload)
         if self._observe is not None:
@@ -274,8 +299,11 @@ class Publishers:
 
     def wait_matching(self, keys: Iterable[str], timeout_s: float, stop=None) -> bool:
         """Wait until every key has a matching subscriber (True) or the timeout passes."""
-        # An AdvancedPublisher has no matching status: a plain publisher on its key asks for it.
-        pubs = [self.publisher(k) for k in keys]
+        # An AdvancedPublisher has no matching status, and one not yet declared waits for its first message (its
+        # size bounds the cache): a plain publisher on its key asks for it.
+        keys = list(keys)
+        pubs = [self._pubs.get(k) or (None if self._history and history.wants_history(k) else self.publisher(k))
+                for k in keys]
         probes = [self._session.declare_publisher(k) for k, p in zip(keys, pubs) if not hasattr(p, "matching_status")]
         pubs = [p for p in pubs if hasattr(p, "matching_status")] + probes
         deadline = time.monotonic() + timeout_s
@@ -447,18 +475,25 @@ class QueueSubscriber:
                 self._bytes_free.notify()
         return item
 
-    def drain(self, limit: int = 1 << 30) -> Iterator[tuple[str, bytes, int]]:
-        """What is queued now, without waiting (at most ``limit`` items).
+    def drain(self, limit: int = 1 << 30, max_bytes: int = 0) -> Iterator[tuple[str, bytes, int]]:
+        """What is queued now, without waiting (at most ``limit`` items; callback mode: and no more once
+        ``max_bytes`` of payload are out, 0: no such cap).
 
-        In channel mode each key expression's channel is emptied in the order
-        given (one pass over them, however many: a converter shard may hold
+        A batch taken out of a queue bounded in bytes frees room that the
+        callback fills again at once: the caller holding the batch holds up to
+        ``max_bytes`` more. In channel mode each key expression's channel is
+        emptied in the order given (one pass over them, however many: a converter shard may hold
         hundreds), so housekeeping listed first still comes before counts.
         """
         if self.mode != "channel":
+            out_bytes = 0
             for _ in range(limit):
+                if max_bytes and out_bytes >= max_bytes:
+                    return
                 item = self.get()
                 if item is None:
                     return
+                out_bytes += len(item[1])
                 yield item
             return
         n = 0

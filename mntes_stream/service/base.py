@@ -358,7 +358,7 @@ class Service(abc.ABC):
                 session = stack.enter_context(open_session(
                     settings, presence=self.presence() if announce else None,
                     retrying=reconnect.Retrying(stopping, self.heartbeat.waiting) if announce else None))
-                pubs = Publishers(session, history_chunks=self.history_chunks(),
+                pubs = Publishers(session, history_chunks=self.history_chunks(), history_bytes=settings.history_bytes,
                                   observer=None if metrics is None else metrics.observe)
                 stack.callback(pubs.close)
             ctx = Context(stopping, self.heartbeat, session, pubs, metrics, mark_ready,

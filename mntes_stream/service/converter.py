@@ -34,6 +34,7 @@ from mntes_stream.service.pipeline_config import SCALAR_SENSORS, AlignmentConfig
 __all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
 
 log = logging.getLogger("mntes_stream.converter")
+_TRIM_EVERY_S = 2.0  # an idle converter gives freed heap back at most this often (service/heap.py trim_heap)
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,8 @@ class ConverterConfig(Settings):
         10.0, "re-publish parameters + table identity this often, for recorders started later (0 = at start only)",
         unit="s", ge=0)
     queue_size: int = setting(4096, "received messages waiting to be converted; beyond, back-pressure", ge=1)
+    queue_mb: float = setting(64.0, "... and at most this much payload: a flood of big messages (valid or not) "
+                              "cannot fill memory; beyond, back-pressure", unit="MB", gt=0)
     threads: int = setting(1, "threads converting a large batch side by side (the compiled kernel releases the "
                            "GIL): on a host with a core to spare, lower latency at high rates", ge=1, le=64)
     overload_after_s: float = setting(
@@ -396,7 +399,8 @@ class ConverterService(Service):
         # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
         # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
         self._sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=ctx.stop, mode="callback",
-                                    recover="history", sources=True)  # each chunk's publisher: two on one key
+                                    max_bytes=int(cfg.queue_mb * 1e6), recover="history",
+                                    sources=True)  # each chunk's publisher: two on one key
         try:
             # Provenance on request too: a recorder started later asks instead of waiting for the next one.
             answer(session, self._prov_key, pipe.provenance_bytes())
@@ -412,12 +416,14 @@ class ConverterService(Service):
             raise
         self._next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
         self._behind_since = None  # monotonic time since when every batch was full (None: caught up)
+        self._next_trim = time.monotonic() + _TRIM_EVERY_S
         log.info("converter %s: %d detectors, kind %s, tables %s; %s; subscribed to %s", cfg.name,
                  len(conv.detector_ids), conv.kind, str(conv.identity)[:12],
                  _owning(cfg, streams, owner), topics if len(topics) <= 8 else f"{len(topics)} key expressions")
 
     def step(self, ctx) -> bool:
         from mntes_stream.service.checkpoint import save_checkpoint
+        from mntes_stream.service.heap import trim_heap
 
         cfg, pipe, sub, owner, pubs = self.config, self._pipe, self._sub, self._ownership, ctx.publishers
         item = sub.get(timeout_s=0.05 if not pipe.set_aside else 0.0)
@@ -427,10 +433,17 @@ class ConverterService(Service):
         if item is None:  # nothing waiting: time for what was set aside under overload
             self._behind_since, pipe.overloaded = None, False
             outs = pipe.tick(now) + pipe.convert_late(cfg.batch_max // 8 or 1)
+            if not pipe.set_aside and time.monotonic() >= self._next_trim:
+                # Idle: what a burst (a flood of big messages in the queue) left freed in glibc's heaps goes back.
+                trim_heap()
+                self._next_trim = time.monotonic() + _TRIM_EVERY_S
         else:
-            batch = [item, *sub.drain(cfg.batch_max - 1)]
+            # A batch in bytes too: it leaves the queue (whose room fills again), so at most 2 x queue_mb is held.
+            cap = int(cfg.queue_mb * 1e6)
+            batch = [item, *sub.drain(cfg.batch_max - 1, max_bytes=max(1, cap - len(item[1])))]
+            full = len(batch) >= cfg.batch_max or sum(len(b[1]) for b in batch) >= cap
             mono = time.monotonic()
-            self._behind_since = (self._behind_since or mono) if len(batch) >= cfg.batch_max else None
+            self._behind_since = (self._behind_since or mono) if full else None
             pipe.overloaded = self._behind_since is not None and mono - self._behind_since >= cfg.overload_after_s
             outs = pipe.handle_many(batch)
         if owner is not None:
@@ -475,5 +488,7 @@ class ConverterService(Service):
         final = pipe.status()
         line = pipe.ledger_now().line()
         log.info("converter %s stopped: %s", cfg.name, line)
-        return {f.name: getattr(final, f.name) for f in fields(final)} | {"dropped_on_close": sub.dropped_on_close,
-                                                                        "ledger_line": line}
+        # The receive queue's peak in bytes: bounded by queue_mb whatever comes (a flood of big messages).
+        return {f.name: getattr(final, f.name) for f in fields(final)} | {
+            "dropped_on_close": sub.dropped_on_close, "ledger_line": line,
+            "queue_high_water_mb": round(sub.high_water_bytes / 1e6, 3)}

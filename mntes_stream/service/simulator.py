@@ -268,7 +268,8 @@ def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, durat
         result = publish(session, source.batches(start, duration_s, truth=truth), speed=speed, stop=stop,
                          progress=progress, t_ref_ns=start,
                          history_chunks=cache_chunks(settings.history_seconds,
-                                                     source.chunk_samples / source.config.sample_rate_hz))
+                                                     source.chunk_samples / source.config.sample_rate_hz),
+                         history_bytes=settings.history_bytes)
         if stop is not None:
             stop.wait(linger_s)
         else:

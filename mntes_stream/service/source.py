@@ -282,7 +282,8 @@ class Pacer:
 
 
 def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None, wait_keys: Iterable[str] = (),
-            wait_s: float = 10.0, progress=None, t_ref_ns: int | None = None, history_chunks: int = 0) -> dict:
+            wait_s: float = 10.0, progress=None, t_ref_ns: int | None = None, history_chunks: int = 0,
+            history_bytes: int = 0) -> dict:
     """Publish batches on ``session`` paced by their ``t_pub_ns`` (``speed`` x real time; 0: flat out).
 
     Parameters
@@ -303,6 +304,8 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
     history_chunks : int
         Samples each counts and housekeeping key keeps for late or recovering
         subscribers (``io/history.py``; 0: none).
+    history_bytes : int
+        ... and at most this many bytes per key (``[zenoh] history_mb``; 0: no cap in bytes).
 
     Returns
     -------
@@ -312,7 +315,7 @@ def publish(session, batches: Iterable[Batch], *, speed: float = 1.0, stop=None,
     """
     from mntes_stream.io.transport import Publishers
 
-    pubs = Publishers(session, history_chunks=history_chunks)
+    pubs = Publishers(session, history_chunks=history_chunks, history_bytes=history_bytes)
     matched = True
     if wait_keys:
         matched = pubs.wait_matching(wait_keys, wait_s, stop)
