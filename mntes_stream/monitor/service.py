@@ -109,7 +109,8 @@ class MonitorService(Service):
 
         cfg = self.config
         positions = load_positions(cfg.params) if cfg.params else None
-        self._sub = MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions, session=ctx.session)
+        self._sub = MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions, session=ctx.session,
+                                      params_path=cfg.params)
         self._sub.start()
 
     def step(self, ctx) -> bool:
