@@ -173,6 +173,10 @@ class MonitorConfig(Settings):
             raise ConfigError(f"memory_mb: {self.memory_mb} MB does not even hold the {self.full_rate_channels} "
                               f"full-rate channels ({self.full_rate_bytes() / 1e6:.0f} MB); raise it or lower "
                               "full_rate_channels, long_history_s or max_rate_hz")
+        if self.full_rate_bytes() + self.leakage_bytes() >= self.memory_mb * 1e6:
+            raise ConfigError(f"memory_mb: {self.memory_mb} MB does not hold the live leakage's rings too "
+                              f"({self.leakage_bytes() / 1e6:.1f} MB); raise it or lower leakage_detectors or "
+                              "leakage_window_s")
 
     def ring_samples(self, window_s: float, rate_hz: float) -> int:
         """Samples a ring over ``window_s`` holds: the window at the stream's rate, capped by ``max_rate_hz``."""
