@@ -240,7 +240,7 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
             expected = abs(validation.expected_linear_nonlinearity_per_w(truth[det])) * 1e-12
             assert y == pytest.approx(expected, rel=0.2) and 0 < err < 0.1 * y, (det, y, err, expected)
         assert "requirement 0.014 pW⁻¹" in s["leakage_notes"]
-        assert "MNTES residual: not measurable live" in s["leakage_info"] and "window 60 s" in s["leakage_info"]
+        assert "MNTES residual: not measurable live" in s["leakage_info"] and " s fitted of 60 s " in s["leakage_info"]
         time.sleep(1.0)
         shot = tmp_path / "monitor.png"
         driver.save_screenshot(str(shot))

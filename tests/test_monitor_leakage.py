@@ -101,6 +101,7 @@ def test_live_linear_leakage_is_the_simulators_and_says_no_2f_with_the_hwp_off(t
     assert sorted(v for v in focal if v is not None) == pytest.approx(
         sorted(abs(r["nl_per_pw"]) for r in leak["detectors"]))
     assert "linear conversion leakage" in text and "pW^-1" in text and "requirement 0.014" in text
+    print("\n" + "\n".join(line for line in text.splitlines() if "leakage" in line or line.startswith("  ")))
 
     _, tick, text = _run(tmp_path, "off", ["--set", "simulator.hwp_2f_w=0.0"],
                          lambda leak: len(leak.get("detectors", [])) == 4

@@ -477,7 +477,8 @@ class Aggregator:
                 return
         late = bool(getattr(chunk, "late", None))
         buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns, late)
-        self.leakage.add("mntes", buf.ids, t_ns, chunk.p_opt_w)
+        if key in self.leakage.module_keys:  # a set lookup per chunk: most modules have no measured detector
+            self.leakage.add("mntes", buf.ids, t_ns, chunk.p_opt_w)
         self.modules.move_to_end(key)
         self.power_chunks += 1
         self.power_samples += int(chunk.p_opt_w.size)
@@ -680,9 +681,7 @@ class Aggregator:
             buf.classify(now_ns, self.config)
         states = self.states()
         if not self.leakage.chosen:
-            self.leakage.choose(self._in_transition())
-        if self.leakage.due(now_ns):
-            self.leakage.evaluate(now_ns, self.config.f_hwp_hz)
+            self.leakage.choose(self._in_transition())  # measured by the subscriber, outside the lock
         interval_s = (now_ns - self._last_tick_ns) / 1e9 if self._last_tick_ns is not None else 0.0
         out = {
             "t_ns": now_ns,

@@ -40,6 +40,7 @@ STATUS_NO_BASELINE = "no_linear_baseline"  # latched or normal at its nominal po
 MNTES_LIVE = ("not measurable live: MNTES's own residual needs the true optical power "
               "(mntes-stream leakage REC --truth NPZ on a simulator's recording)")
 _F_ROWS = 8  # detectors whose MNTES power locates f_HWP
+_REFINE_EVERY = 6  # measurements between two refinements of f_HWP
 
 
 def _num(x, digits: int = 4):
@@ -67,11 +68,13 @@ class LiveLeakage:
         self.every_s = float(every_s)
         self._capacity = int(math.ceil(window_s * max_rate_hz))
         self.chosen: list[str] = []
+        self.module_keys: frozenset[tuple[int, int]] = frozenset()  # (board, module) of the chosen
         self.no_baseline: set[str] = set()
         self._mntes: dict[str, Ring] = {}
         self._linear: dict[str, Ring] = {}
         self._next_ns: int | None = None
         self.evaluations = 0
+        self._refined: tuple[float | None, float] | None = None  # (guess, refined f_HWP)
         self.shadow_state = ""  # what the linear shadow is doing (monitor/shadow.py), shown with the result
         self.last: dict = self._empty("waiting for power")
 
@@ -82,6 +85,7 @@ class LiveLeakage:
         if self.chosen or not candidates or self.max_detectors <= 0:
             return False
         self.chosen = list(candidates[: self.max_detectors])
+        self.module_keys = frozenset(parse_detector_id(d)[:2] for d in self.chosen)
         for d in self.chosen:
             self._mntes[d] = Ring(1, self._capacity, np.float64)
             self._linear[d] = Ring(1, self._capacity, np.float64)
@@ -89,7 +93,7 @@ class LiveLeakage:
 
     def modules(self) -> list[tuple[int, int]]:
         """``(board, module)`` of the measured detectors: whose counts the linear shadow needs."""
-        return sorted({parse_detector_id(d)[:2] for d in self.chosen})
+        return sorted(self.module_keys)
 
     def add(self, which: str, det_ids, t_ns: np.ndarray, p_w: np.ndarray) -> None:
         """Power of a chunk: ``which`` "mntes" or "linear", ids (n_ch,), times (n,), power (n_ch, n)."""
@@ -114,16 +118,14 @@ class LiveLeakage:
         return bool(self.chosen) and (self._next_ns is None or int(now_ns) >= self._next_ns)
 
     def evaluate(self, now_ns: int, f_hwp_hz: float | None) -> dict:
-        """Measure every chosen detector now; the result is kept as :attr:`last` (JSON-ready).
+        """:meth:`snapshot` then :meth:`measure`, kept as :attr:`last`."""
+        self.last = self.measure(self.snapshot(now_ns), now_ns, f_hwp_hz)
+        return self.last
 
-        Parameters
-        ----------
-        now_ns : int
-        f_hwp_hz : float or None
-            Configured HWP frequency (refined on the 2f line), or None: estimated from the MNTES spectra.
-        """
+    def snapshot(self, now_ns: int) -> dict:
+        """Copies of each chosen detector's series on the samples both share, last ``window_s``:
+        ``{id: (t_ns (m,), linear (m,), mntes (m,))}``. Cheap: the caller holds its lock for this only."""
         self._next_ns = int(now_ns) + int(self.every_s * 1e9)
-        self.evaluations += 1
         pairs = {}
         for d in self.chosen:
             t_m, p_m = self._mntes[d].read()
@@ -132,6 +134,21 @@ class LiveLeakage:
             if common.size:
                 keep = common >= common[-1] - int(self.window_s * 1e9)
                 pairs[d] = (common[keep], p_l[0, il[keep]], p_m[0, im[keep]])
+        return pairs
+
+    def measure(self, pairs: dict, now_ns: int, f_hwp_hz: float | None) -> dict:
+        """The measurement of a :meth:`snapshot` (JSON-ready; the fits take ~10-50 ms per detector, so
+        the monitor runs this outside its lock).
+
+        Parameters
+        ----------
+        pairs : dict
+            From :meth:`snapshot`.
+        now_ns : int
+        f_hwp_hz : float or None
+            Configured HWP frequency (refined on the 2f line), or None: estimated from the MNTES spectra.
+        """
+        self.evaluations += 1
         t_ref = min((p[0][0] for p in pairs.values() if p[0].size), default=None)
         f_hz, source = self._f_hwp(pairs, t_ref, f_hwp_hz)
         rows, results = [], []
@@ -155,7 +172,7 @@ class LiveLeakage:
                                bound_per_pw=None if r.resolved else _num(abs(r.nl_per_pw) + 3 * r.sigma_nl_per_pw, 2))
             rows.append(row)
         med = median_nl(results)
-        self.last = {
+        return {
             "enabled": True, "t_ns": int(now_ns), "f_hwp_hz": _num(f_hz, 7), "f_hwp_source": source,
             "window_s": self.window_s, "every_s": self.every_s, "requirement_per_pw": REQUIREMENT_PER_PW,
             "detectors": rows,
@@ -164,7 +181,6 @@ class LiveLeakage:
                        "n_measured": med.n_detectors, "n_resolved": med.n_resolved},
             "mntes": MNTES_LIVE, "shadow": self.shadow_state,
         }
-        return self.last
 
     def _f_hwp(self, pairs: dict, t_ref, f_hwp_hz: float | None) -> tuple[float | None, str]:
         """The configured or spectrally estimated f_HWP, refined on the MNTES 2f line (as ``leakage`` does)."""
@@ -184,10 +200,17 @@ class LiveLeakage:
             if guess is None:
                 return None, "no HWP comb in the power spectrum"
             source = "estimated"
+        # The HWP turns at a steady rate: refined again (the costly part, ~1 s) only when the guess moves or
+        # every _REFINE_EVERY measurements; in between the last refined value stands.
+        cached = self._refined
+        if cached is not None and cached[0] == guess and self.evaluations % _REFINE_EVERY != 1:
+            return cached[1], source + ", refined on the 2f line"
         try:
-            return refine_f_hwp(t_s, rows, guess), source + ", refined on the 2f line"
+            f = refine_f_hwp(t_s, rows, guess)
         except ConfigError:
             return guess, source
+        self._refined = (guess, f)
+        return f, source + ", refined on the 2f line"
 
     def focal(self) -> dict[str, float]:
         """``{detector id: |nl| pW^-1}`` of the last measurement, where resolved (else its 3-sigma bound)."""

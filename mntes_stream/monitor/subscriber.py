@@ -198,11 +198,17 @@ class MonitorSubscriber:
                 log.warning("monitor: %s", self.shadow.state)
             with self.lock:
                 leak.no_baseline = set(self.shadow.no_baseline)
+        now = time.time_ns()
         with self.lock:
-            for chunk in self.shadow.tick(time.time_ns()):
+            for chunk in self.shadow.tick(now):
                 self.aggregator.add_linear(chunk)
             leak.shadow_state = self.shadow.state
             leak.waiting(self.shadow.state)
+            pairs = leak.snapshot(now) if leak.due(now) else None
+        if pairs is not None:  # the fits outside the lock: pages and ticks are not held up by them
+            result = leak.measure(pairs, now, self.aggregator.config.f_hwp_hz)
+            with self.lock:
+                leak.last = result
 
     def handle(self, key: str, payload: bytes, t_recv_ns: int) -> None:
         """Decode one message and feed it to the aggregator (caller holds :attr:`lock`)."""

@@ -137,9 +137,11 @@ def leakage_lines(leak: dict, max_listed: int = 12) -> list[str]:
     else:
         m = "no detector measured"
     f = "-" if leak["f_hwp_hz"] is None else f"{leak['f_hwp_hz']:.5g} Hz"
-    out = [f"linear conversion leakage (2f->4f vs MNTES, requirement {req:g} pW^-1): {m}; f_HWP {f} "
-           f"({leak['f_hwp_source']}), window {leak['window_s']:g} s every {leak['every_s']:g} s"]
     rows = leak["detectors"]
+    fitted = max((r.get("window_s") or 0.0 for r in rows), default=0.0)
+    out = [f"linear conversion leakage (2f->4f vs MNTES, requirement {req:g} pW^-1): {m}; f_HWP {f} "
+           f"({leak['f_hwp_source']}), window {fitted:.1f} s fitted of {leak['window_s']:g} s, every "
+           f"{leak['every_s']:g} s"]
     more = f" (+{len(rows) - max_listed} more)" if len(rows) > max_listed else ""
     out.append("  " + ", ".join(_nl_cell(r) for r in rows[:max_listed]) + more)
     if leak.get("shadow"):

@@ -311,7 +311,9 @@ function leakage(msg) {
   const med = L.median || {};
   const medText = med.value_per_pw !== null && med.value_per_pw !== undefined ? `median ${fmt(med.value_per_pw, 3)} ± ${med.sigma_per_pw} pW⁻¹`
     : med.bound_per_pw !== null && med.bound_per_pw !== undefined ? `median < ${med.bound_per_pw} pW⁻¹ (3σ)` : "no detector measured";
-  $("leakage-info").textContent = L.t_ns ? `Linear conversion: ${medText}, ${rows.length} detectors, window ${L.window_s} s ` +
+  const fitted = Math.max(0, ...rows.map((r) => r.window_s || 0));
+  $("leakage-info").textContent = L.t_ns ? `Linear conversion: ${medText}, ${rows.length} detectors, ` +
+    `window ${fmt(fitted, 1)} s fitted of ${L.window_s} s ` +
     `(refit every ${L.every_s} s), f_HWP ${L.f_hwp_hz === null ? "–" : fmt(L.f_hwp_hz, 4) + " Hz"} (${L.f_hwp_source}). ` +
     `MNTES residual: ${L.mntes}.${L.shadow ? " Shadow: " + L.shadow + "." : ""}` : `Leakage: ${L.why || "off"}. MNTES residual: ${L.mntes || ""}`;
   if (!rows.length) return Plotly.react("leakage", [], emptyLayout(layout, L.why || "no leakage measured yet"), CONFIG);
