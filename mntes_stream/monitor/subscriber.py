@@ -139,7 +139,12 @@ class MonitorSubscriber:
 
     def _ingest(self) -> None:
         while not self._stop.is_set():
-            self._leakage_upkeep()
+            try:
+                self._leakage_upkeep()
+            except Exception:  # a bug in the leakage must not stop the monitor: counted, shown, logged
+                with self.lock:
+                    self.aggregator.add_bad("internal_error")
+                log.exception("monitor: live leakage failed")
             try:
                 first = self._queue.get(timeout=0.1)
             except queue.Empty:
