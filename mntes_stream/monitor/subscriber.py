@@ -67,6 +67,7 @@ class MonitorSubscriber:
         self._shadow_build = False  # parameters arrived: (re)build outside the lock
         self._counts_subs: dict = {}  # (board, module) -> subscriber of that module's counts
         self._provenance_texts: dict[str, str] = {}  # heard before the shadow exists
+        self._measuring: threading.Thread | None = None  # the live leakage's fits, one at a time
         self.zenoh = zenoh
         self.aggregator = Aggregator(config, positions)
         self.lock = threading.Lock()
@@ -118,6 +119,9 @@ class MonitorSubscriber:
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
+        if self._measuring is not None:
+            self._measuring.join(timeout=5)
+            self._measuring = None
 
     # ------------------------------------------------------------------ data path
 
@@ -209,11 +213,25 @@ class MonitorSubscriber:
                 self.aggregator.add_linear(chunk)
             leak.shadow_state = self.shadow.state
             leak.waiting(self.shadow.state)
-            pairs = leak.snapshot(now) if leak.due(now) else None
-        if pairs is not None:  # the fits outside the lock: pages and ticks are not held up by them
-            result = leak.measure(pairs, now, self.aggregator.config.f_hwp_hz)
+            busy = self._measuring is not None and self._measuring.is_alive()
+            pairs = leak.snapshot(now) if leak.due(now) and not busy else None
+        if pairs is not None:
+            # The fits (0.1-0.2 s; f_HWP's refinement 1-2 s once a minute) on a thread of their own, outside the
+            # lock: neither the pages' ticks nor the ingest of power wait for them. One at a time.
+            self._measuring = threading.Thread(target=self._measure, args=(leak, pairs, now),
+                                               name="monitor-leakage", daemon=True)
+            self._measuring.start()
+
+    def _measure(self, leak, pairs: dict, now_ns: int) -> None:
+        try:
+            result = leak.measure(pairs, now_ns, self.aggregator.config.f_hwp_hz)
+        except Exception:  # noqa: BLE001 - counted, shown, logged; the next period tries again
             with self.lock:
-                leak.last = result
+                self.aggregator.add_bad("internal_error")
+            log.exception("monitor: live leakage measurement failed")
+            return
+        with self.lock:
+            leak.last = result
 
     def handle(self, key: str, payload: bytes, t_recv_ns: int) -> None:
         """Decode one message and feed it to the aggregator (caller holds :attr:`lock`)."""
