@@ -283,8 +283,13 @@ function grid(msg) {
 // The live leakage (monitor/leakage_live.py): per measured detector the linear conversion's effective
 // nonlinearity against MNTES with its 1-sigma, or its 3-sigma upper limit, or why there is no number;
 // the 0.014 pW^-1 requirement as a line. MNTES's own residual needs the truth: said, never drawn.
+let leakDrawn = null;  // the measurement drawn: it changes every leakage_every_s (10 s), not every update
+
 function leakage(msg) {
   const L = msg.leakage || {};
+  const key = `${L.t_ns}|${L.why || ""}|${L.shadow || ""}`;
+  if (key === leakDrawn) return Promise.resolve();
+  leakDrawn = key;
   const rows = L.detectors || [];
   const ok = rows.filter((r) => r.resolved);
   const bound = rows.filter((r) => !r.resolved && r.bound_per_pw !== null && r.bound_per_pw !== undefined);
