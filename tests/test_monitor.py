@@ -354,7 +354,7 @@ def test_memory_budget_evicts_idle_modules_then_refuses():
     with pytest.raises(ConfigError, match="memory_mb"):
         MonitorConfig(memory_mb=10.0)  # cannot hold 16 full-rate channels for an hour
     with pytest.raises(ConfigError, match="leakage"):
-        MonitorConfig(memory_mb=2.0, full_rate_channels=0)  # nor the live leakage's 8 x 2 rings of 60 s (3 MB)
+        MonitorConfig(memory_mb=2.0, full_rate_channels=0, leakage_detectors=8)  # nor 8 x 2 leakage rings of 60 s
 
 
 def test_services_are_capped_the_stalest_evicted():

@@ -40,7 +40,7 @@ STATUS_NO_BASELINE = "no_linear_baseline"  # latched or normal at its nominal po
 MNTES_LIVE = ("not measurable live: MNTES's own residual needs the true optical power "
               "(mntes-stream leakage REC --truth NPZ on a simulator's recording)")
 _F_ROWS = 8  # detectors whose MNTES power locates f_HWP
-_REFINE_EVERY = 6  # measurements between two refinements of f_HWP
+_REFINE_EVERY = 6  # measurements between two refinements of f_HWP (cheap now, but the HWP is steady)
 
 
 def _num(x, digits: int = 4):
@@ -200,7 +200,7 @@ class LiveLeakage:
             if guess is None:
                 return None, "no HWP comb in the power spectrum"
             source = "estimated"
-        # The HWP turns at a steady rate: refined again (the costly part, ~1 s) only when the guess moves or
+        # The HWP turns at a steady rate: refined again only when the guess moves or
         # every _REFINE_EVERY measurements; in between the last refined value stands.
         cached = self._refined
         if cached is not None and cached[0] == guess and self.evaluations % _REFINE_EVERY != 1:

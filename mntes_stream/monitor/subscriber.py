@@ -216,7 +216,7 @@ class MonitorSubscriber:
             busy = self._measuring is not None and self._measuring.is_alive()
             pairs = leak.snapshot(now) if leak.due(now) and not busy else None
         if pairs is not None:
-            # The fits (0.1-0.2 s; f_HWP's refinement 1-2 s once a minute) on a thread of their own, outside the
+            # The fits (0.1-0.3 s at load; f_HWP's refinement once a minute) on a thread of their own, outside the
             # lock: neither the pages' ticks nor the ingest of power wait for them. One at a time.
             self._measuring = threading.Thread(target=self._measure, args=(leak, pairs, now),
                                                name="monitor-leakage", daemon=True)
