@@ -287,7 +287,7 @@ def test_config_rejects_nonsense():
     assert STATE_NAMES[0] == "transition"
 
 
-def test_cli_arguments():
+def test_cli_arguments(capsys):
     from mntes_stream.cli import build_parser
     from mntes_stream.cli.monitor import monitor_config
 
@@ -302,11 +302,15 @@ def test_cli_arguments():
     for bad in (["--f-hwp", "-1"], ["--f-hwp", "x"]):
         with pytest.raises(SystemExit):
             parser.parse_args(["monitor", *bad])
-    # Out of range: refused as the command line is read, in one line naming the option (tests/test_cli_errors.py).
-    for bad in (["--port", "70000"], ["--update-s", "0"], ["--history-s", "-1"]):
-        with pytest.raises(SystemExit) as exit_:
+    # Settings flags are checked as they are parsed (cli._common's declared types): one line, exit 2.
+    for bad in (["--port", "70000"], ["--update-s", "0"], ["--history-s", "-1"], ["--leakage-detectors", "65"]):
+        with pytest.raises(SystemExit):
             parser.parse_args(["monitor", *bad])
-        assert exit_.value.code == 2
+    out = capsys.readouterr().err
+    assert "--port: expected an integer >= 0 and <= 65535, got '70000'" in out
+    assert "--leakage-detectors: expected an integer >= 0 and <= 64, got '65'" in out
+    cfg = monitor_config(parser.parse_args(["monitor", "--leakage-detectors", "4", "--leakage-window-s", "30"]))
+    assert cfg.view.leakage_detectors == 4 and cfg.view.leakage_window_s == 30
 
 
 def test_failed_housekeeping_reading_stays_valid_json():
@@ -335,7 +339,7 @@ def test_a_claimed_rate_costs_what_was_sent_not_what_was_claimed():
 
 
 def test_memory_budget_evicts_idle_modules_then_refuses():
-    cfg = MonitorConfig(memory_mb=1.0, full_rate_channels=0, silent_s=3.0)
+    cfg = MonitorConfig(memory_mb=1.0, full_rate_channels=0, silent_s=3.0, leakage_detectors=0)
     assert 2 * cfg.module_bytes(8) < 1e6 < 3 * cfg.module_bytes(8)
     agg = Aggregator(cfg)
     agg.add_power(power_chunk(0, 0), T0)
@@ -349,6 +353,8 @@ def test_memory_budget_evicts_idle_modules_then_refuses():
     assert agg.state_of("b0m0c000") is None and agg.memory()["reserved_bytes"] <= 1e6
     with pytest.raises(ConfigError, match="memory_mb"):
         MonitorConfig(memory_mb=10.0)  # cannot hold 16 full-rate channels for an hour
+    with pytest.raises(ConfigError, match="leakage"):
+        MonitorConfig(memory_mb=2.0, full_rate_channels=0, leakage_detectors=8)  # nor 8 x 2 leakage rings of 60 s
 
 
 def test_services_are_capped_the_stalest_evicted():

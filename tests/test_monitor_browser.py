@@ -32,6 +32,7 @@ pytest.importorskip("aiohttp", reason="the monitor extra (aiohttp) is not instal
 
 from test_monitor_server import Worker
 
+from mntes_stream.core import validation
 from mntes_stream.core.sim import ArraySimulator, SimConfig
 from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.io import keys
@@ -151,12 +152,12 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
     with contextlib.ExitStack() as stack:
         stack.enter_context(_process(
             ["simulate", "--listen", f"tcp/127.0.0.1:{p_sim}", "--setup", "lab", "--modules", "2", "--channels", "16",
-             "--duration", "120", "--no-truth", "--params-out", str(tmp_path / "sim-params.toml")],
+             "--duration", "180", "--no-truth", "--params-out", str(tmp_path / "sim-params.toml")],
             tmp_path / "simulate.log"))
-        stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration", "120"],
+        stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration", "180"],
                                      tmp_path / "converter.log"))
         monitor = stack.enter_context(_process(
-            ["monitor", "--port", "0", "--setup", "lab", "--duration", "120",
+            ["monitor", "--port", "0", "--setup", "lab", "--duration", "180", "--leakage-detectors", "8",
              "--connect", f"tcp/127.0.0.1:{p_conv}", "--connect", f"tcp/127.0.0.1:{p_sim}"], tmp_path / "monitor.log"))
         publisher = Worker(_publish_normal_channel, p_conv, normal, stop)
         publisher.start()
@@ -224,12 +225,37 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         s = _wait(driver, lambda s: any(t["name"] == f"{NORMAL_ID} (saturated)" for t in s["timestreams"]), 10,
                   "the picked channel in the time streams")
         assert next(t for t in s["timestreams"] if t["name"].startswith(NORMAL_ID))["finite"] == 0  # NaN: flagged
+        # The live leakage panel: the linear conversion's nonlinearity per measured detector (the first 8 in
+        # transition), each within 20 % of the model's I''/S, with error bars, against the requirement line.
+        measured = [d for d in sorted(kinds) if kinds[d] == "ok"][:8]
+
+        def leak_points(s):
+            pts = {x: (y, e) for t in s["leakage"] if t["err"] is not None for x, y, e in zip(t["x"], t["y"], t["err"])}
+            return pts if len(pts) == len(measured) else None
+
+        s = _wait(driver, leak_points, 90, "the leakage panel with every measured detector resolved",
+                  lambda s: json.dumps(s["leakage"])[:800] + " " + s["leakage_info"])
+        truth = {p.detector_id: p for p in sim.truth_params}
+        for det, (y, err) in leak_points(s).items():
+            expected = abs(validation.expected_linear_nonlinearity_per_w(truth[det])) * 1e-12
+            assert y == pytest.approx(expected, rel=0.2) and 0 < err < 0.1 * y, (det, y, err, expected)
+        assert "requirement 0.014 pW⁻¹" in s["leakage_notes"]
+        assert "MNTES residual: not measurable live" in s["leakage_info"] and " s fitted of 60 s " in s["leakage_info"]
         time.sleep(1.0)
         shot = tmp_path / "monitor.png"
         driver.save_screenshot(str(shot))
         assert shot.stat().st_size > 20_000
         if os.environ.get("MNTES_MONITOR_SCREENSHOT"):
             shutil.copy(shot, os.environ["MNTES_MONITOR_SCREENSHOT"])
+        # The focal plane coloured by it: the measured cells carry their value, the others none.
+        Select(driver.find_element("id", "focal-metric")).select_by_value("linear_nl_per_pw")
+        s = _wait(driver, lambda s: s["focal_metric"] == "linear_nl_per_pw"
+                  and all(s["grid"].get(d, {}).get("z") is not None for d in measured), 15,
+                  "the focal plane coloured by the linear-conversion leakage")
+        assert all(c["z"] is None for d, c in s["grid"].items() if d not in measured)
+        if os.environ.get("MNTES_MONITOR_SCREENSHOT"):
+            time.sleep(1.0)
+            driver.save_screenshot(os.environ["MNTES_MONITOR_SCREENSHOT"].replace(".png", "-leakage.png"))
     publisher.check()  # what it raised, if anything
 
 

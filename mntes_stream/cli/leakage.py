@@ -255,7 +255,7 @@ def register(sub) -> None:
                                                      "the 0.014 pW^-1 requirement")
         add_overwrite(p, "replace an existing --png file")
         add_json(p, "print the result as one JSON document")
-        add_quiet(p)
+        add_quiet(p)  # one meaning for every command (docs/cli.md); it took no help text
         p.set_defaults(func=run)
 
     arguments(p, fill)

@@ -16,7 +16,8 @@ from mntes_stream.cli._common import (
 )
 
 _SERVICE = ("setup", "bind", "allowed_hosts", "port", "update_s", "text", "duration_s", "params")
-_VIEW = ("history_s", "long_history_s", "memory_mb", "silent_s", "hk_stale_s")
+_VIEW = ("history_s", "long_history_s", "memory_mb", "silent_s", "hk_stale_s", "leakage_detectors",
+         "leakage_window_s", "leakage_every_s")
 
 
 def _f_hwp(text: str):
@@ -92,7 +93,9 @@ def register(sub) -> None:
         help="quick-look web page (or --text table) of power, housekeeping and service health",
         description="Subscribe to mntes/<setup>/{power,hk,status} and serve a live page on 127.0.0.1 "
         "(time streams over 30 s to 1 h, spectrum with HWP harmonics, focal-plane view by state, power, flag "
-        "rate or noise, housekeeping, service health, a badge that turns red when data stop). "
+        "rate, noise or HWP leakage, the linear conversion's live 2f -> 4f nonlinearity against MNTES per "
+        "detector (from the counts of --leakage-detectors detectors), housekeeping, service health, a badge "
+        "that turns red when data stop). "
         "Works the same on a live converter and on `mntes-stream replay`. The [monitor] service of "
         "`serve`, with flags.",
     )

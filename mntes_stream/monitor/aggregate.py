@@ -42,6 +42,7 @@ from mntes_stream.monitor.analysis import (
     welch_psd,
 )
 from mntes_stream.monitor.history import Ring, SlowRing
+from mntes_stream.monitor.leakage_live import LiveLeakage
 from mntes_stream.monitor.ledger_view import ShedWatch, ledger_view
 
 __all__ = [
@@ -125,6 +126,10 @@ class MonitorConfig(Settings):
         Channels one page may plot at once.
     latency_reports : int
         Page render reports kept for the latency figures.
+    leakage_detectors, leakage_window_s, leakage_every_s
+        The live 2f -> 4f leakage of the linear conversion against MNTES
+        (``monitor/leakage_live.py``): how many detectors (the first in
+        transition, layout order; 0: off), over what window, how often.
     """
 
     history_s: float = setting(30.0, "full-rate power kept per channel and plotted", unit="s", gt=0, le=3600)
@@ -157,6 +162,11 @@ class MonitorConfig(Settings):
                                 gt=0)
     max_selected: int = setting(16, "channels one page may plot at once", ge=2)
     latency_reports: int = setting(600, "page render reports kept for the latency figures", ge=2)
+    leakage_detectors: int = setting(0, "detectors whose linear-conversion leakage (2f -> 4f, against MNTES) is "
+                                     "measured live: their modules' counts are subscribed (0: off; 8 is a good "
+                                     "start)", ge=0, le=64)
+    leakage_window_s: float = setting(60.0, "power window of the live leakage fit", unit="s", ge=10, le=300)
+    leakage_every_s: float = setting(10.0, "period of the live leakage measurement", unit="s", ge=1, le=3600)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -164,10 +174,18 @@ class MonitorConfig(Settings):
             raise ConfigError(f"memory_mb: {self.memory_mb} MB does not even hold the {self.full_rate_channels} "
                               f"full-rate channels ({self.full_rate_bytes() / 1e6:.0f} MB); raise it or lower "
                               "full_rate_channels, long_history_s or max_rate_hz")
+        if self.full_rate_bytes() + self.leakage_bytes() >= self.memory_mb * 1e6:
+            raise ConfigError(f"memory_mb: {self.memory_mb} MB does not hold the live leakage's rings too "
+                              f"({self.leakage_bytes() / 1e6:.1f} MB); raise it or lower leakage_detectors or "
+                              "leakage_window_s")
 
     def ring_samples(self, window_s: float, rate_hz: float) -> int:
         """Samples a ring over ``window_s`` holds: the window at the stream's rate, capped by ``max_rate_hz``."""
         return max(int(math.ceil(window_s * min(rate_hz, self.max_rate_hz))), 16)
+
+    def leakage_bytes(self) -> int:
+        """Bytes reserved for the live leakage: two float64 rings per measured detector."""
+        return 2 * self.leakage_detectors * (self.ring_samples(self.leakage_window_s, self.max_rate_hz) * 16)
 
     def full_rate_bytes(self) -> int:
         """Bytes reserved for the full-rate long history of ``full_rate_channels``."""
@@ -418,7 +436,7 @@ class Aggregator:
         self.positions: dict[str, tuple[float, float]] = dict(positions or {})
         self.modules: collections.OrderedDict[tuple[int, int], ModuleBuffer] = collections.OrderedDict()  # by receipt
         self.reserved_bytes = 0
-        self.budget_bytes = int(self.config.memory_mb * 1e6) - self.config.full_rate_bytes()
+        self.budget_bytes = int(self.config.memory_mb * 1e6) - self.config.full_rate_bytes() - self.config.leakage_bytes()
         self.over_budget = 0
         self.evicted = 0
         self.services_evicted = 0
@@ -441,6 +459,8 @@ class Aggregator:
         self._interval_latency_ms: collections.deque = collections.deque(maxlen=_LATENCIES_KEPT)
         self._last_tick_ns: int | None = None
         self._renders: collections.deque = collections.deque(maxlen=self.config.latency_reports)
+        c = self.config
+        self.leakage = LiveLeakage(c.leakage_detectors, c.leakage_window_s, c.leakage_every_s, c.max_rate_hz)
 
     # ------------------------------------------------------------------ input
 
@@ -461,6 +481,8 @@ class Aggregator:
             buf.ids = tuple(ids)
         late = bool(getattr(chunk, "late", None))
         buf.add(t_ns, chunk.p_opt_w, chunk.flags, int(chunk.seq), int(chunk.t_pub_ns), t_recv_ns, late)
+        if key in self.leakage.module_keys:  # a set lookup per chunk: most modules have no measured detector
+            self.leakage.add("mntes", buf.ids, t_ns, chunk.p_opt_w)
         self.modules.move_to_end(key)
         self.power_chunks += 1
         self.power_samples += int(chunk.p_opt_w.size)
@@ -524,13 +546,18 @@ class Aggregator:
         """What the buffers hold and reserve, in bytes, and what the budget refused."""
         return {
             "held_bytes": int(sum(b.capacity_bytes for b in self.modules.values())),
-            "reserved_bytes": int(self.reserved_bytes + self.config.full_rate_bytes()),
+            "reserved_bytes": int(self.reserved_bytes + self.config.full_rate_bytes() + self.config.leakage_bytes()),
             "budget_bytes": int(self.config.memory_mb * 1e6),
             "over_budget": self.over_budget,
             "evicted": self.evicted,
             "services_evicted": self.services_evicted,
             "full_rate_channels": sorted(self._watched),
         }
+
+    def add_linear(self, chunk) -> None:
+        """A power chunk of the linear shadow (``monitor/shadow.py``): the linear baseline of the same counts."""
+        ids = [detector_id(chunk.board, chunk.module, c) for c in np.asarray(chunk.channels).tolist()]
+        self.leakage.add("linear", ids, chunk.times_ns(), chunk.p_opt_w)
 
     def add_hk(self, chunk, t_recv_ns: int) -> None:
         """One :class:`~mntes_stream.io.messages.HousekeepingChunk`."""
@@ -616,6 +643,14 @@ class Aggregator:
                 out.append((buf.ids[r], STATE_NAMES[int(buf.state[r])]))
         return out, total
 
+    def _in_transition(self) -> list[str]:
+        """Channels in transition, in layout order (module by module)."""
+        out = []
+        for key in sorted(self.modules):
+            buf = self.modules[key]
+            out.extend(buf.ids[r] for r in np.flatnonzero(buf.state == STATE_TRANSITION).tolist())
+        return out
+
     def default_selection(self, n: int = 3) -> list[str]:
         """Up to ``n`` channels in transition, spread over the modules (else any channels)."""
         picks: list[str] = []
@@ -644,12 +679,15 @@ class Aggregator:
             ``state_counts``, ``hk`` (decimated history per sensor),
             ``health``, ``freshness`` (:meth:`freshness`), ``focal`` (per
             channel in layout order: ``power_pw``, ``flag_pct``,
-            ``noise_aw_rthz``, None where unknown), ``memory``.
+            ``noise_aw_rthz``, ``linear_nl_per_pw``, None where unknown), ``memory``,
+            ``leakage`` (the live leakage: ``leakage_live.LiveLeakage.evaluate``).
         """
         now_ns = int(now_ns)
         for buf in self.modules.values():
             buf.classify(now_ns, self.config)
         states = self.states()
+        if not self.leakage.chosen:
+            self.leakage.choose(self._in_transition())  # measured by the subscriber, outside the lock
         interval_s = (now_ns - self._last_tick_ns) / 1e9 if self._last_tick_ns is not None else 0.0
         out = {
             "t_ns": now_ns,
@@ -662,6 +700,7 @@ class Aggregator:
             "freshness": self.freshness(now_ns),
             "focal": self._focal(),
             "memory": self.memory(),
+            "leakage": self.leakage.last,
         }
         self._interval_chunks = 0
         self._interval_samples = 0
@@ -738,8 +777,10 @@ class Aggregator:
         def cat(name):
             return np.concatenate([getattr(b, name) for b in parts]) if parts else np.zeros(0)
 
+        leak = self.leakage.focal()
+        nl = [leak.get(d) for b in parts for d in b.ids] if leak else [None] * sum(b.channels.size for b in parts)
         return {"power_pw": _sig_list(cat("power_w") * 1e12), "flag_pct": _sig_list(cat("flag_frac") * 100, 3),
-                "noise_aw_rthz": _sig_list(cat("noise_w_rthz") * 1e18, 3)}
+                "noise_aw_rthz": _sig_list(cat("noise_w_rthz") * 1e18, 3), "linear_nl_per_pw": nl}
 
     def _hk_view(self) -> dict:
         out = {}

@@ -96,6 +96,10 @@ return {
   grid_type: grid ? grid.type : null,
   legend: document.getElementById('legend') ? document.getElementById('legend').innerText : '',
   hk: data('hk').map(t => ({name: t.name, n: t.x.length})),
+  leakage: data('leakage').map(t => ({name: t.name, x: t.x, y: t.y,
+      err: t.error_y && t.error_y.array ? t.error_y.array : null})),
+  leakage_notes: axisText('leakage'),
+  leakage_info: document.getElementById('leakage-info') ? document.getElementById('leakage-info').textContent : '',
   health: document.getElementById('health') ? document.getElementById('health').innerText : '',
 };
 """

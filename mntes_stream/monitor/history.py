@@ -24,13 +24,15 @@ class Ring:
     n_rows : int
     capacity : int
         Hard limit in samples (from configuration only).
+    dtype : numpy dtype
+        Of the values: float32 for display, float64 where fW lines on a pW level are fitted.
     """
 
-    def __init__(self, n_rows: int, capacity: int):
+    def __init__(self, n_rows: int, capacity: int, dtype=np.float32):
         self.n_rows = int(n_rows)
         self.capacity = max(int(capacity), 2)
         self._t = np.zeros(0, dtype=np.int64)
-        self._v = np.zeros((self.n_rows, 0), dtype=np.float32)
+        self._v = np.zeros((self.n_rows, 0), dtype=dtype)
         self._head = 0   # next write position once full; while growing, == count
         self.count = 0
 
@@ -46,13 +48,13 @@ class Ring:
 
     def clear(self) -> None:
         self._t = self._t[:0].copy()
-        self._v = np.zeros((self.n_rows, 0), dtype=np.float32)
+        self._v = np.zeros((self.n_rows, 0), dtype=self._v.dtype)
         self._head = self.count = 0
 
     def _grow(self, need: int) -> None:
         alloc = min(self.capacity, max(_FIRST_ALLOC, 2 * self._t.size, need))
         t = np.zeros(alloc, dtype=np.int64)
-        v = np.full((self.n_rows, alloc), np.nan, dtype=np.float32)
+        v = np.full((self.n_rows, alloc), np.nan, dtype=self._v.dtype)
         t[: self.count] = self._t[: self.count]
         v[:, : self.count] = self._v[:, : self.count]
         self._t, self._v = t, v

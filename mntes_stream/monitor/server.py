@@ -68,7 +68,7 @@ def is_loopback(host: str) -> bool:
 
 
 _LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
-_FOCAL_METRICS = ("state", "power_pw", "flag_pct", "noise_aw_rthz")
+_FOCAL_METRICS = ("state", "power_pw", "flag_pct", "noise_aw_rthz", "linear_nl_per_pw")
 _WINDOWS_S = (30.0, 300.0, 3600.0)
 
 # No framing, no cross-origin reads, nothing loaded from elsewhere (plotly is served from the wheel).

@@ -39,7 +39,9 @@ class MonitorServiceConfig(Settings):
                                     gt=0)
     web: WebLimits = setting(default_factory=WebLimits, doc="the page server's socket limits", flatten=True)
     params: str | None = setting(None, "parameter file whose [metadata.focal_plane] gives sky positions "
-                                 "(detector id = [x_deg, y_deg]) for the focal-plane view")
+                                 "(detector id = [x_deg, y_deg]) for the focal-plane view; its detectors' "
+                                 "parameters also make the live leakage's linear baseline (default: the "
+                                 "converter's provenance)")
     port: int = setting(8050, "HTTP port (0: any free port)", ge=0, le=65535)
     update_s: float = setting(0.5, "update period of the page or table", unit="s", ge=0.05, le=60)
     text: bool = setting(False, "print a terminal table instead of serving the page")
@@ -109,7 +111,8 @@ class MonitorService(Service):
 
         cfg = self.config
         positions = load_positions(cfg.params) if cfg.params else None
-        self._sub = MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions, session=ctx.session)
+        self._sub = MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions, session=ctx.session,
+                                      params_path=cfg.params)
         self._sub.start()
 
     def step(self, ctx) -> bool:

@@ -16,9 +16,9 @@ import queue
 import threading
 import time
 
-from mntes_stream.errors import SchemaError
+from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
-from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, StatusMessage
+from mntes_stream.io.messages import HousekeepingChunk, PowerChunk, Provenance, StatusMessage
 from mntes_stream.io.transport import ZenohSettings, open_session
 from mntes_stream.monitor.aggregate import Aggregator, MonitorConfig
 
@@ -26,11 +26,15 @@ __all__ = ["MonitorSubscriber"]
 
 log = logging.getLogger("mntes_stream.monitor")
 
-_DECODERS = {"power": PowerChunk, "hk": HousekeepingChunk, "status": StatusMessage}
+_DECODERS = {"power": PowerChunk, "hk": HousekeepingChunk, "status": StatusMessage, "provenance": Provenance}
 
 
 class MonitorSubscriber:
-    """Subscribe to ``mntes/<setup>/{power,hk,status}/**`` and keep an :class:`Aggregator` up to date.
+    """Subscribe to ``mntes/<setup>/{power,hk,status,provenance}`` and keep an :class:`Aggregator` up to date.
+
+    For the live leakage (``config.leakage_detectors`` > 0) it also subscribes to the counts of the
+    measured detectors' modules only, once they are chosen, and runs the linear shadow
+    (``monitor/shadow.py``) on them with the provenance's parameters (or ``params_path``).
 
     Use as a context manager (the zenoh session is always closed). All access
     to :attr:`aggregator` from other threads goes through :attr:`lock`.
@@ -48,13 +52,22 @@ class MonitorSubscriber:
         A larger message is refused unread (counted as ``too_large``).
     positions : dict, optional
         Sky positions for the focal-plane view (:func:`~mntes_stream.monitor.service.load_positions`).
+    params_path : str, optional
+        Detector parameter TOML for the linear shadow instead of the converter's provenance.
     """
 
     def __init__(self, setup: str, zenoh: ZenohSettings, config: MonitorConfig | None = None, queue_size: int = 8192,
                  positions: dict | None = None, queue_mb: float = 64.0, max_message_mb: float = 16.0,
-                 session=None):
+                 session=None, params_path: str | None = None):
         self.setup = setup
-        self.key_exprs = (keys.power_key(setup), keys.hk_key(setup), keys.status_key(setup))
+        self.key_exprs = (keys.power_key(setup), keys.hk_key(setup), keys.status_key(setup),
+                          keys.provenance_key(setup))
+        self.params_path = params_path
+        self.shadow = None  # monitor.shadow.LinearShadow, once the measured detectors are chosen
+        self._shadow_build = False  # parameters arrived: (re)build outside the lock
+        self._counts_subs: dict = {}  # (board, module) -> subscriber of that module's counts
+        self._provenance_texts: dict[str, str] = {}  # heard before the shadow exists
+        self._measuring: threading.Thread | None = None  # the live leakage's fits, one at a time
         self.zenoh = zenoh
         self.aggregator = Aggregator(config, positions)
         self.lock = threading.Lock()
@@ -94,10 +107,11 @@ class MonitorSubscriber:
 
     def close(self) -> None:
         self._stop.set()
-        for sub in self._subs:
+        for sub in [*self._subs, *self._counts_subs.values()]:
             with contextlib.suppress(Exception):
                 sub.undeclare()
         self._subs.clear()
+        self._counts_subs.clear()
         if self._session is not None and self._own_session:
             with contextlib.suppress(Exception):
                 self._session.close()
@@ -105,6 +119,9 @@ class MonitorSubscriber:
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
+        if self._measuring is not None:
+            self._measuring.join(timeout=5)
+            self._measuring = None
 
     # ------------------------------------------------------------------ data path
 
@@ -127,6 +144,12 @@ class MonitorSubscriber:
     def _ingest(self) -> None:
         while not self._stop.is_set():
             try:
+                self._leakage_upkeep()
+            except Exception:  # a bug in the leakage must not stop the monitor: counted, shown, logged
+                with self.lock:
+                    self.aggregator.add_bad("internal_error")
+                log.exception("monitor: live leakage failed")
+            try:
                 first = self._queue.get(timeout=0.1)
             except queue.Empty:
                 continue
@@ -147,10 +170,78 @@ class MonitorSubscriber:
                         log.exception("monitor failed on a message from %s", key)
                 self.aggregator.dropped = self._dropped
 
+    # ------------------------------------------------------------------ live leakage
+
+    def _leakage_upkeep(self) -> None:
+        """Start the linear shadow once the measured detectors are chosen, subscribe their modules' counts,
+        (re)build it when parameters arrive (outside the lock: a first numba load takes seconds), let it tick."""
+        leak = self.aggregator.leakage
+        if not leak.chosen:
+            return
+        if self.shadow is None:
+            from mntes_stream.monitor.shadow import LinearShadow
+
+            shadow = LinearShadow(self.setup, leak.chosen)
+            if self.params_path:
+                from mntes_stream.io.paramfile import load_params
+
+                try:
+                    self._shadow_build = shadow.add_params(load_params(self.params_path))
+                except ConfigError as exc:
+                    shadow.state = f"parameters unreadable: {exc}"[:300]
+            for text in self._provenance_texts.values():  # provenance heard before the detectors were chosen
+                self._shadow_build |= shadow.add_params_toml(text, "converter provenance")
+            self.shadow = shadow
+            for board, module in leak.modules():
+                try:
+                    self._counts_subs[(board, module)] = self._session.declare_subscriber(
+                        keys.counts_key(self.setup, board, module), self._on_sample)
+                except Exception as exc:  # noqa: BLE001 - the rest of the monitor goes on
+                    shadow.state = f"cannot subscribe to counts of b{board}m{module}: {exc}"[:300]
+        if self._shadow_build:  # the ingest thread alone uses the shadow: only the leakage state needs the lock
+            self._shadow_build = False
+            try:
+                self.shadow.build()
+            except Exception as exc:  # noqa: BLE001 - bad parameters: said on the page, the monitor goes on
+                self.shadow.pipeline, self.shadow.state = None, f"linear shadow not built: {exc}"[:300]
+                log.warning("monitor: %s", self.shadow.state)
+            with self.lock:
+                leak.no_baseline = set(self.shadow.no_baseline)
+        now = time.time_ns()
+        with self.lock:
+            for chunk in self.shadow.tick(now):
+                self.aggregator.add_linear(chunk)
+            leak.shadow_state = self.shadow.state
+            leak.waiting(self.shadow.state)
+            busy = self._measuring is not None and self._measuring.is_alive()
+            pairs = leak.snapshot(now) if leak.due(now) and not busy else None
+        if pairs is not None:
+            # The fits (0.1-0.3 s at load; f_HWP's refinement once a minute) on a thread of their own, outside the
+            # lock: neither the pages' ticks nor the ingest of power wait for them. One at a time.
+            self._measuring = threading.Thread(target=self._measure, args=(leak, pairs, now),
+                                               name="monitor-leakage", daemon=True)
+            self._measuring.start()
+
+    def _measure(self, leak, pairs: dict, now_ns: int) -> None:
+        try:
+            result = leak.measure(pairs, now_ns, self.aggregator.config.f_hwp_hz)
+        except Exception:  # noqa: BLE001 - counted, shown, logged; the next period tries again
+            with self.lock:
+                self.aggregator.add_bad("internal_error")
+            log.exception("monitor: live leakage measurement failed")
+            return
+        with self.lock:
+            leak.last = result
+
     def handle(self, key: str, payload: bytes, t_recv_ns: int) -> None:
         """Decode one message and feed it to the aggregator (caller holds :attr:`lock`)."""
         agg = self.aggregator
         kind = keys.kind_of(key)
+        if kind == "counts":  # only the measured detectors' modules are subscribed: the linear shadow's input
+            if self.shadow is not None:
+                for chunk in self.shadow.handle(key, payload, t_recv_ns):
+                    agg.add_linear(chunk)
+            return
         cls = _DECODERS.get(kind)
         if cls is None:
             agg.add_bad("wrong_key")
@@ -165,6 +256,16 @@ class MonitorSubscriber:
             agg.add_power(msg, t_recv_ns)
         elif kind == "hk":
             agg.add_hk(msg, t_recv_ns)
+            if self.shadow is not None:  # the linear shadow is fed as the converter is
+                for chunk in self.shadow.handle(key, payload, t_recv_ns):
+                    agg.add_linear(chunk)
+        elif kind == "provenance":
+            if self.params_path:
+                return
+            if self.shadow is not None:
+                self._shadow_build |= self.shadow.add_params_toml(msg.params_toml, "converter provenance")
+            elif len(self._provenance_texts) < 16:  # one per converter shard
+                self._provenance_texts[msg.params_toml] = msg.params_toml
         else:
             agg.add_status(msg, t_recv_ns)
 

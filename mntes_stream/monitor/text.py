@@ -7,7 +7,7 @@ import datetime as _dt
 from mntes_stream.monitor.aggregate import STATE_NAMES, Aggregator
 from mntes_stream.monitor.ledger_view import COLUMNS
 
-__all__ = ["freshness_text", "ledger_lines", "render_text"]
+__all__ = ["freshness_text", "ledger_lines", "leakage_lines", "render_text"]
 
 
 def _f(v, fmt: str = "{:.1f}") -> str:
@@ -80,6 +80,7 @@ def render_text(agg: Aggregator, tick: dict, max_listed: int = 12) -> str:
         hk.append(f"{name} {value} (age {_f(s['age_s'])} s{', STALE' if s['stale'] else ''})")
     lines.append("housekeeping: " + "   ".join(hk))
     lines.append("states: " + "  ".join(f"{n} {tick['state_counts'][n]}" for n in STATE_NAMES))
+    lines.extend(leakage_lines(tick.get("leakage") or {}, max_listed))
     listed, total = agg.channels_not_in_transition(max_listed)
     if total:
         more = f" (+{total - len(listed)} more)" if total > len(listed) else ""
@@ -111,4 +112,41 @@ def ledger_lines(services: list[dict], max_listed: int = 12) -> list[str]:
         more = led["streams_total"] - len(rows)
         if more > 0:
             out.append(f"  (+{more} more streams)")
+    return out
+
+
+def _nl_cell(r: dict) -> str:
+    """One detector's linear-conversion nonlinearity: value +- sigma, a 3-sigma bound, or its status."""
+    if r.get("resolved"):
+        return f"{r['id']} {abs(r['nl_per_pw']):.3g}+-{r['sigma_per_pw']:.2g}"
+    if r.get("bound_per_pw") is not None:
+        return f"{r['id']} <{r['bound_per_pw']:.2g}"
+    return f"{r['id']} {r['status'].replace('_', ' ')}"
+
+
+def leakage_lines(leak: dict, max_listed: int = 12) -> list[str]:
+    """The live leakage (``monitor/leakage_live.py``): the linear conversion's 2f -> 4f nonlinearity against
+    MNTES per measured detector (pW^-1, requirement 0.014), its window and f_HWP; MNTES's own is not live."""
+    if not leak or not leak.get("enabled"):
+        return [f"linear conversion leakage: {leak.get('why', 'off')}"] if leak else []
+    req = leak["requirement_per_pw"]
+    if leak.get("t_ns") is None:
+        return [f"linear conversion leakage (2f->4f vs MNTES, requirement {req:g} pW^-1): {leak.get('why', '')}"]
+    med = leak["median"]
+    if med["value_per_pw"] is not None:
+        m = f"median {med['value_per_pw']:.3g}+-{med['sigma_per_pw']:.2g} pW^-1"
+    elif med["bound_per_pw"] is not None:
+        m = f"median < {med['bound_per_pw']:.2g} pW^-1 (3 sigma, {med['n_resolved']} of {med['n_measured']} resolved)"
+    else:
+        m = "no detector measured"
+    f = "-" if leak["f_hwp_hz"] is None else f"{leak['f_hwp_hz']:.5g} Hz"
+    rows = leak["detectors"]
+    fitted = max((r.get("window_s") or 0.0 for r in rows), default=0.0)
+    out = [f"linear conversion leakage (2f->4f vs MNTES, requirement {req:g} pW^-1): {m}; f_HWP {f} "
+           f"({leak['f_hwp_source']}), window {fitted:.1f} s fitted of {leak['window_s']:g} s, every "
+           f"{leak['every_s']:g} s"]
+    more = f" (+{len(rows) - max_listed} more)" if len(rows) > max_listed else ""
+    out.append("  " + ", ".join(_nl_cell(r) for r in rows[:max_listed]) + more)
+    if leak.get("shadow"):
+        out.append(f"  shadow: {leak['shadow']}; MNTES residual: {leak['mntes']}")
     return out

@@ -204,7 +204,7 @@ function buildGridGeometry() {
   gridGeom = { rows: M.layout.length, cols, ids, offsets, labels: M.layout.map((r) => `b${r.board}m${r.module}`) };
 }
 
-const FOCAL_UNITS = { power_pw: "pW", flag_pct: "% flagged", noise_aw_rthz: "aW/√Hz" };
+const FOCAL_UNITS = { power_pw: "pW", flag_pct: "% flagged", noise_aw_rthz: "aW/√Hz", linear_nl_per_pw: "pW⁻¹ (linear; bound if unresolved)" };
 let gridClickBound = false;
 
 function focalValue(msg, k) {
@@ -280,6 +280,51 @@ function grid(msg) {
   });
 }
 
+// The live leakage (monitor/leakage_live.py): per measured detector the linear conversion's effective
+// nonlinearity against MNTES with its 1-sigma, or its 3-sigma upper limit, or why there is no number;
+// the 0.014 pW^-1 requirement as a line. MNTES's own residual needs the truth: said, never drawn.
+let leakDrawn = null;  // the measurement drawn: it changes every leakage_every_s (10 s), not every update
+
+function leakage(msg) {
+  const L = msg.leakage || {};
+  const key = `${L.t_ns}|${L.why || ""}|${L.shadow || ""}`;
+  if (key === leakDrawn) return Promise.resolve();
+  leakDrawn = key;
+  const rows = L.detectors || [];
+  const ok = rows.filter((r) => r.resolved);
+  const bound = rows.filter((r) => !r.resolved && r.bound_per_pw !== null && r.bound_per_pw !== undefined);
+  const none = rows.filter((r) => r.nl_per_pw === undefined);
+  const ids = rows.map((r) => r.id);
+  const traces = [
+    { type: "scatter", mode: "markers", name: "linear conversion (vs MNTES)", x: ok.map((r) => r.id),
+      y: ok.map((r) => Math.abs(r.nl_per_pw)), error_y: { type: "data", array: ok.map((r) => r.sigma_per_pw), visible: true },
+      marker: { color: "#d62728", size: 9 } },
+    { type: "scatter", mode: "markers", name: "unresolved: 3σ upper limit", x: bound.map((r) => r.id),
+      y: bound.map((r) => r.bound_per_pw), marker: { color: "#ff7f0e", symbol: "triangle-down", size: 10 } },
+  ];
+  const req = L.requirement_per_pw || 0.014;
+  const shapes = [{ type: "line", xref: "paper", x0: 0, x1: 1, yref: "y", y0: req, y1: req, line: { color: "#2ca02c", dash: "dash" } }];
+  const annotations = [{ xref: "paper", x: 1, y: Math.log10(req), yref: "y", text: `requirement ${req} pW⁻¹`, showarrow: false,
+    xanchor: "right", yanchor: "bottom", font: { color: "#2ca02c" } }];
+  none.forEach((r) => annotations.push({ x: r.id, xref: "x", y: Math.log10(req), yref: "y", text: r.status.replaceAll("_", " "),
+    textangle: -90, showarrow: false, yanchor: "bottom", font: { size: 10, color: "#777" } }));
+  const layout = {
+    uirevision: "leak", margin: { l: 60, r: 10, t: 20, b: 70 }, legend: { orientation: "h", y: 1.15 }, shapes, annotations,
+    xaxis: { type: "category", categoryarray: ids, tickangle: -45 },
+    yaxis: { type: "log", title: { text: "|f''/f'| [pW⁻¹]" } },
+  };
+  const med = L.median || {};
+  const medText = med.value_per_pw !== null && med.value_per_pw !== undefined ? `median ${fmt(med.value_per_pw, 3)} ± ${med.sigma_per_pw} pW⁻¹`
+    : med.bound_per_pw !== null && med.bound_per_pw !== undefined ? `median < ${med.bound_per_pw} pW⁻¹ (3σ)` : "no detector measured";
+  const fitted = Math.max(0, ...rows.map((r) => r.window_s || 0));
+  $("leakage-info").textContent = L.t_ns ? `Linear conversion: ${medText}, ${rows.length} detectors, ` +
+    `window ${fmt(fitted, 1)} s fitted of ${L.window_s} s ` +
+    `(refit every ${L.every_s} s), f_HWP ${L.f_hwp_hz === null ? "–" : fmt(L.f_hwp_hz, 4) + " Hz"} (${L.f_hwp_source}). ` +
+    `MNTES residual: ${L.mntes}.${L.shadow ? " Shadow: " + L.shadow + "." : ""}` : `Leakage: ${L.why || "off"}. MNTES residual: ${L.mntes || ""}`;
+  if (!rows.length) return Plotly.react("leakage", [], emptyLayout(layout, L.why || "no leakage measured yet"), CONFIG);
+  return Plotly.react("leakage", traces, layout, CONFIG);
+}
+
 function housekeeping(msg) {
   const tb = msg.hk.t_bath || { t_ms: [], value: [] }, bf = msg.hk.b_field || { t_ms: [], value: [] };
   const traces = [
@@ -351,7 +396,7 @@ async function draw(msg) {
   M.last = msg;
   refreshBadge();
   health(msg);
-  await Promise.all([timeStreams(msg), spectrum(msg), grid(msg), housekeeping(msg)]);
+  await Promise.all([timeStreams(msg), spectrum(msg), grid(msg), leakage(msg), housekeeping(msg)]);
   // The next frame is when the browser has painted what was just drawn.
   await new Promise((resolve) => requestAnimationFrame(() => setTimeout(resolve, 0)));
   const tRenderMs = performance.timeOrigin + performance.now();
