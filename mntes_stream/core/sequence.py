@@ -200,7 +200,7 @@ class PublisherSequences:
     ('duplicate', 1)
     """
 
-    __slots__ = ("_one", "_apart", "_current", "_returns", "conflict", "dup_across")
+    __slots__ = ("_one", "_apart", "_current", "_returns", "conflict", "dup_across", "dup_known")
 
     def __init__(self):
         self._one = StreamSequence()  # the stream as one publisher's
@@ -209,6 +209,7 @@ class PublisherSequences:
         self._returns = 0
         self.conflict = False
         self.dup_across = 0  # chunks another publisher had sent already
+        self.dup_known = 0  # chunks dropped before observe: a restarted converter's checkpoint had them
 
     def observe(self, seq: int, t_first_ns: int, source=None) -> Verdict:
         """Book one chunk of ``source``; the verdict (``DUPLICATE``: drop it)."""
@@ -266,7 +267,7 @@ class PublisherSequences:
 
     @property
     def duplicated(self) -> int:
-        return sum(s.duplicated for s in self._each()) + self.dup_across
+        return sum(s.duplicated for s in self._each()) + self.dup_across + self.dup_known
 
     @property
     def out_of_order(self) -> int:

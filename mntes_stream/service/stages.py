@@ -370,7 +370,7 @@ class Sequence:
         expected = s.next
         floor = self._floor.get(stream_id) if self._floor else None
         if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
-            s.duplicated += 1  # converted by the converter that ran before this restart (its checkpoint says so)
+            s.dup_known += 1  # converted by the converter that ran before this restart (its checkpoint says so)
             return Verdict.DUPLICATE
         resumed = self._resumed.pop(stream_id, None) if self._resumed else None
         verdict = s.observe(seq, t_first_ns, source)
