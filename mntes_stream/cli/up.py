@@ -240,7 +240,8 @@ def run_up(args) -> int:
     services = Services()
     t_start = time.monotonic()
     # A first start compiles kernels and builds tables (tens of seconds): say so, not nothing.
-    services.on_progress = lambda label, text: say(f"  {label}: {text}")
+    if not args.quiet:  # -q: no start lines (docs/cli.md)
+        services.on_progress = lambda label, text: say(f"  {label}: {text}")
     say(f"mntes-stream up: {what}, {len(truth)} detectors ({args.modules} modules x {args.channels} channels) "
         f"at {args.sample_rate} Hz -> {args.kind} conversion -> MCAP in {rec_dir}")
     say(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
@@ -254,9 +255,10 @@ def run_up(args) -> int:
             services.start("recorder", "recorder", rec_cfg, abort=stopping)
             services.start("converter", "converter", conv_cfg, abort=stopping)
             services.start("source", src_service, src_cfg, abort=stopping)
-            say(f"  recorder, converter and source ready after {time.monotonic() - t_start:.1f} s; the source "
-                "publishes once its subscribers are connected")
-            first_power = True
+            if not args.quiet:
+                say(f"  recorder, converter and source ready after {time.monotonic() - t_start:.1f} s; the source "
+                    "publishes once its subscribers are connected")
+            first_power = not args.quiet
             if metrics:
                 merged = _serve_merged(args, metrics, say)
             with open_session(layered(loopback(None, [p_rec, p_conv, p_src]))) as session:
