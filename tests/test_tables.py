@@ -229,6 +229,7 @@ def test_cli_build_and_info(tmp_path, params, capsys):
     dump_params(list(params.values()), pfile)
     out = tmp_path / "tables.npz"
     assert main(["tables", "build", "--params", str(pfile), "--out", str(out), "--quiet"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {out}: 4 detectors")  # -q: the last line stays
     assert main(["tables", "info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     bank = load_bank(out)

@@ -109,6 +109,34 @@ def topic_matcher(topics: str | Iterable[str] | None):
     return lambda t: t in exact or any(p.match(t) for p in patterns)
 
 
+def _sessions(files: list[Path], index: dict) -> list[tuple[str, list[Path]]]:
+    """The files by recording session, oldest first.
+
+    A session is the files of one id, and those of ids recorded over the same span of time: writers that
+    ran side by side (a sharded recorder's processes, each naming its own id) are one observation.
+    """
+    groups: dict[str, list[Path]] = {}
+    for p in files:
+        groups.setdefault(file_session(p), []).append(p)
+    spans = []
+    for sid, ps in groups.items():
+        starts = [index[p].info().start_ns for p in ps]
+        ends = [index[p].info().end_ns for p in ps]
+        lo = min((t for t in starts if t is not None), default=None)
+        hi = max((t for t in ends if t is not None), default=lo)
+        spans.append([lo, hi, sid, list(ps)])
+    merged: list[list] = []
+    for g in spans:  # in the order of their first files (a folder's by name: the order they were written)
+        last = merged[-1] if merged else None
+        if last is not None and None not in (g[0], g[1], last[0], last[1]) and g[0] <= last[1] and last[0] <= g[1]:
+            last[1] = max(last[1], g[1])
+            last[3] += g[3]
+            last[2] = min(last[2], g[2])  # one name for the writers that ran together
+        else:
+            merged.append(g)
+    return [(sid, sorted(ps, key=files.index)) for _, _, sid, ps in merged]
+
+
 class SessionsWarning(UserWarning):
     """The files given hold more than one recording session: the newest is read."""
 
@@ -143,12 +171,9 @@ class Session:
 
     def __init__(self, source, *, warn: bool = True, session: str | None = None):
         files = session_files(source)
-        groups: dict[str, list[Path]] = {}
-        for p in files:
-            groups.setdefault(file_session(p), []).append(p)
-        #: ``[(session id, files)]`` found in ``source`` in the files' order (a folder's by name: oldest first;
-        #: "": files of no named session)
-        self.sessions = list(groups.items())
+        index = {p: index_file(p) for p in files}
+        #: ``[(session id, files)]`` found in ``source``, oldest first ("": files of no named session)
+        self.sessions = _sessions(files, index)
         if session == "all" or len(self.sessions) == 1:
             chosen = files
         elif session is None:
@@ -165,8 +190,9 @@ class Session:
                                      f"{_name(source)}; it has {', '.join(sid or 'unnamed' for sid, _ in self.sessions)}")
             chosen = match[0]
         #: the session read ("all" for every one, "" for files of no named session)
-        self.session = "all" if session == "all" and len(self.sessions) > 1 else file_session(chosen[0])
-        self._index = [index_file(p) for p in chosen]
+        self.session = "all" if session == "all" and len(self.sessions) > 1 else next(
+            sid for sid, ps in self.sessions if chosen[0] in ps)
+        self._index = [index[p] for p in chosen]
         self.files = [ix.info() for ix in self._index]
         # Damaged chunks of unfinished files are known now; a finished file's when a read finds them.
         self.damage: list[DamagedChunk] = [d for ix in self._index for d in ix.damage()]
