@@ -120,8 +120,8 @@ def _sessions(files: list[Path], index: dict) -> list[tuple[str, list[Path]]]:
         groups.setdefault(file_session(p), []).append(p)
     spans = []
     for sid, ps in groups.items():
-        starts = [index[p].info().start_ns for p in ps]
-        ends = [index[p].info().end_ns for p in ps]
+        infos = [index[p].info() for p in ps]
+        starts, ends = [i.start_ns for i in infos], [i.end_ns for i in infos]
         lo = min((t for t in starts if t is not None), default=None)
         hi = max((t for t in ends if t is not None), default=lo)
         spans.append([lo, hi, sid, list(ps)])
@@ -134,7 +134,8 @@ def _sessions(files: list[Path], index: dict) -> list[tuple[str, list[Path]]]:
             last[2] = min(last[2], g[2])  # one name for the writers that ran together
         else:
             merged.append(g)
-    return [(sid, sorted(ps, key=files.index)) for _, _, sid, ps in merged]
+    order = {p: k for k, p in enumerate(files)}
+    return [(sid, sorted(ps, key=order.__getitem__)) for _, _, sid, ps in merged]
 
 
 class SessionsWarning(UserWarning):
