@@ -77,6 +77,71 @@ def test_assembler_chunks_gaps_and_events():
                                                                   "of data time)"}
 
 
+def test_held_gaps_are_lost_as_far_as_sequence_numbers_skipped_the_rest_a_time_jump():
+    """A gap in a stream's time stamps is missing samples only where its packets' sequence numbers skipped (or the
+    board restarted); the rest is the board's clock jumping (an event, in time_jumps, never missing). Each gap
+    takes the sequence event read just before it was seen (the collector writes it before the builder sends)."""
+    from mntes_stream.dfmux.spt3glog import SeqEvent
+
+    asm = Assembler("lab", chunk_samples=4, hold_gaps=True)
+    t = [T0 + k * SAMPLE_NS for k in range(4)]
+    t += [t[-1] + 11 * SAMPLE_NS]                  # k=4: 10 samples missing, the sequence skipped 10: lost
+    t += [t[-1] + 10**9 + SAMPLE_NS]               # k=5: 1 s forward, no sequence skip: a jump
+    t += [t[-1] + 10**9 + 4 * SAMPLE_NS]           # k=6: 1 s forward with 3 packets skipped: 3 lost, the rest a jump
+    t += [t[-1] + 6 * SAMPLE_NS]                   # k=7: a restart (sequence back to 0): all 5 missing
+    wall = [10**18 + k * 10**9 for k in range(len(t))]  # when the bridge took each sample
+    for k, tk in enumerate(t):
+        asm.add(tk, [(3, 1, 0, 1, _iq(3, 1, 2, k)), (3, 2, 0, 1, _iq(3, 2, 2, k))], wall[k])
+    assert asm.stream_gaps == {} and len(asm.pending_gaps) == 8  # nothing counted before the sequence is known
+    seq = [SeqEvent(3, m, got, exp, wall[k] - 10**6) for k, got, exp in ((4, 14, 4), (6, 19, 16), (7, 0, 21))
+           for m in (1, 2)]
+    asm.resolve_gaps(seq, upto=4)                  # module 1's and 2's first two gaps
+    assert asm.stream_gaps == {"3/1": 10, "3/2": 10} and len(asm.pending_gaps) == 4
+    assert [(j["board"], j["forward_s"]) for j in asm.time_jumps] == [(3, 1.0)], asm.time_jumps
+    asm.resolve_gaps([])
+    assert asm.stream_gaps == {"3/1": 18, "3/2": 18}, asm.stream_gaps
+    assert [(j["board"], j["forward_s"]) for j in asm.time_jumps] == [(3, 1.0), (3, 1.0)], asm.time_jumps
+    n_jump = round(10**9 / SAMPLE_NS)
+    assert asm.jump_samples == 2 * 2 * n_jump  # two modules, each 1 s twice (the second's 3 lost samples apart)
+    assert [e.kind for e in asm.events] == ["gap", "jump", "gap", "jump", "gap"], asm.events
+    # without any sequence event every gap is a jump: nothing missing
+    quiet = Assembler("lab", chunk_samples=4, hold_gaps=True)
+    for k, tk in enumerate(t):
+        quiet.add(tk, [(3, 1, 0, 1, _iq(3, 1, 2, k))], wall[k])
+    quiet.resolve_gaps([])
+    assert quiet.stream_gaps == {} and len(quiet.time_jumps) == 4
+
+
+def test_spt3g_log_lines_are_classified_as_its_collector_and_builder_write_them():
+    from mntes_stream.dfmux.spt3glog import SeqEvent, classify
+
+    lines = {
+        "ERROR (DfMuxCollector) 28-Nov-2026:15:16:44 UTC: Corrupted packet from 127.0.0.1 begins with 0 instead of "
+        "0x666d7578 (DfMuxCollector.cxx:311 in int DfMuxCollector::BookPacket(DfmuxPacket*, in_addr))": "magic",
+        "\x1b[1;31mERROR (DfMuxCollector) 28-Nov-2026:15:16:44 UTC:\x1b[0m Unknown packet version 9 from 127.0.0.1 "
+        "(\x1b[1mDfMuxCollector.cxx:339\x1b[0m in int f())": "version",  # a terminal's colours
+        "ERROR (DfMuxCollector): Badly-sized packet with 64 channels from 127.0.0.1 (550 bytes should be 560) "
+        "(DfMuxCollector.cxx:287 in f)": "length",  # no time stamps
+        "DEBUG (DfMuxCollector) 28-Nov-2026:15:16:44 UTC: Received V3 data for board 99 not enumerated on listener "
+        "for interface 127.0.0.1 (DfMuxCollector.cxx:332 in f)": "board not configured",
+        "ERROR (DfMuxBuilder) 28-Nov-2026:15:16:44 UTC: Duplicate packet from board 10 module 1/0 at time x "
+        "(DfMuxBuilder.cxx:137 in f)": "duplicate",
+        "WARN (DfMuxBuilder) 28-Nov-2026:15:16:44 UTC: Abandoning missing packets (x, data from 1/2 boards received)"
+        " (DfMuxBuilder.cxx:196 in f)": "spt3g",
+        "dfmux-bridge: board 10: packets refused": None,
+    }
+    for line, kind in lines.items():
+        assert classify(line)[1] == kind, line
+    level, kind, ev = classify("WARN (DfMuxCollector) 28-Nov-2026:15:16:44 UTC: Out-of-order packet from 10/7 (30 "
+                               "instead of 20) (DfMuxCollector.cxx:352 in f)")
+    assert (level, kind) == ("WARN", "seq") and ev == SeqEvent(10, 7, 30, 20, ev.t_read_ns) and ev.t_read_ns > 0
+    _, kind, (board, step_s, _) = classify(
+        "WARN (DfMuxBuilder) 28-Nov-2026:15:16:44 UTC: Bogon packet from board 10 at past time "
+        "28-Nov-2026:16:16:39.733440000 (last outbound frame was at 28-Nov-2026:16:16:44.726886400) (x.cxx:107 in f)")
+    assert kind == "before the builder's last sample" and board == 10
+    assert abs(step_s - (4.9934464 + SAMPLE_NS / 1e9)) < 1e-6
+
+
 def test_assembler_v4_missing_block_is_rail():
     asm = Assembler("lab", chunk_samples=1)
     blocks = [(9, 0, blk, 8, np.full(256, blk, dtype=np.int32)) for blk in range(8) if blk != 3]
@@ -183,6 +248,41 @@ def test_bridge_v2_v3_v4_counts_one_by_one(netns, tmp_path):
     # (hk_stale_s 0.3: a board read once would be flagged within the run)
     assert r["hk_messages"] > 0 and "readout_flags" not in r["hk_sensors"], r
     assert "no good housekeeping" not in text and "board housekeeping read " not in last, text
+
+
+def test_hostile_packets_are_counted_by_reason_and_time_jumps_are_not_loss(netns):
+    """Packets spt3g drops (magic, version, truncated, oversized, an unconfigured board), a packet claiming module
+    200, an IRIG jump of 1 h forward and a step 5 s back: each dropped packet counted by its reason in the JSON and
+    the closing line, module 200 refused (never a stream), the jump forward no loss, the step back named."""
+    import json
+
+    from mntes_stream.bench.dfmux import run_netns
+    from mntes_stream.dfmux.bridge import ledger_line
+
+    bad = ["magic:10:20", "version:10:30", "short:10:40", "long:10:50", "board:10:60", "module:10:70"]
+    spec = {"boards": ["3:10:8:64"], "duration_s": 1.5, "verify": False, "bridge_args": ["--json"],
+            "sender_args": [a for k in bad for a in ("--bad", k)] + ["--shift", "10:100:3600", "--shift", "10:180:-5"]}
+    r = run_netns(spec, timeout_s=90)
+    assert r["bridge_rc"] == 0, r["bridge_stderr"]
+    out = json.loads("\n".join(r["bridge_stdout"]))
+    n = r["sender"]["samples"]
+    assert out["dropped_packets"] == {"magic": 1, "version": 1, "length": 2, "board not configured": 1,
+                                      "module out of range (board 10)": 1,
+                                      "before the builder's last sample": (n - 180) * 8}, out["dropped_packets"]
+    assert sorted(out["published"]) == [f"10/{m}" for m in range(8)]  # no stream 10/200
+    # the one sample of module 7 whose packet claimed module 200 is missing; the hour forward is not
+    assert out["stream_gaps"] == {"10/7": 1} and out["lost"] == 1, (out["stream_gaps"], out["ledger"])
+    assert [(j["board"], j["forward_s"]) for j in out["time_jumps"]] == [(10, 3600.0), (10, -5.0)], out["time_jumps"]
+    assert out["jump_samples"] == round(3600e9 / SAMPLE_NS) * 8
+    line = ledger_line(out)
+    assert "lost 1 of " in line and "1 module samples never received" in line, line
+    back = (n - 180) * 8
+    assert (f"; {back + 6} packets dropped (before the builder's last sample {back}, board not configured 1, length 2, "
+            "magic 1, module out of range (board 10) 1, version 1)" in line), line
+    assert "2 time stamp jumps (board 10 +3600.000 s, board 10 -5.000 s; " in line, line
+    # spt3g's own lines: shown (a few of each kind, at the level asked for), never the unconfigured board's
+    err = "\n".join(r["bridge_stderr"])
+    assert "Corrupted packet" in err and "not enumerated" not in err, err
 
 
 def test_bridge_carries_the_detectors_power(netns, tmp_path):

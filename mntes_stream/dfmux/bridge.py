@@ -90,7 +90,8 @@ class DfMuxBridgeSettings(Settings):
     silent_s: float = setting(2.0, "a module (or board) without samples this long is reported silent", unit="s",
                               gt=0)
     wait_subscribers_s: float = setting(5.0, "wait this long for subscribers to the first keys", unit="s", ge=0)
-    spt3g_log: str = setting("error", "spt3g's own log level (its collector and builder warn per packet)",
+    spt3g_log: str = setting("error", "spt3g's own lines shown at this level or above (the first 3 of each kind of "
+                             "dropped packet; every drop is counted, whatever the level)",
                              choices=("debug", "info", "warn", "error", "fatal"))
 
 
@@ -297,16 +298,23 @@ class Readout:
                 self._waker = None
 
 
-def unpack(frame) -> tuple[int, list]:
-    """A Timepoint frame -> ``(t_ns, [(board, module, block, nblocks, iq int32), ...])``."""
+def unpack(frame) -> tuple[int, list, list]:
+    """A Timepoint frame -> ``(t_ns, [(board, module, block, nblocks, iq int32), ...], [board, ...])``: the last
+    list names a board once for each module packet refused, its module beyond the board's modules (spt3g's
+    builder takes any module number a packet claims)."""
     t_ns = int(frame["EventHeader"].time) * 10
     out = []
+    refused = []
     meta = frame["DfMux"]
     for board, bs in meta.items():
         nb = int(bs.nblocks) or 1
+        nmod = int(bs.nmodules)
         for idx, sample in bs.items():
+            if idx // nb >= nmod:
+                refused.append(int(board))
+                continue
             out.append((int(board), idx // nb, idx % nb, nb, np.asarray(sample)))
-    return t_ns, out
+    return t_ns, out, refused
 
 
 class DfMuxBridgeService(Service):
@@ -337,7 +345,7 @@ class DfMuxBridgeService(Service):
         from mntes_stream.dfmux.boardhk import BoardHkTracker, BoardPoller, parse_hosts
 
         self._hk = HkPublisher(b.setup, b.t_bath_k, b.b_field_t, bias_table(b.bias), b.bias_every_s)
-        self._asm = Assembler(b.setup, b.chunk_samples)
+        self._asm = Assembler(b.setup, b.chunk_samples, hold_gaps=True)  # spt3g's sequence numbers tell them
         self._readout = Readout(b)  # every setting checked before spt3g is loaded
         hosts = parse_hosts(b.board_hosts)
         unknown = sorted(set(hosts) - set(b.boards))
@@ -355,7 +363,11 @@ class DfMuxBridgeService(Service):
         core, dfmux, which = load_spt3g()
         log.info("dfmux-bridge: %s", which)
         self.spt3g = which
-        core.set_log_level(getattr(core.G3LogLevel, f"LOG_{b.spt3g_log.upper()}"))
+        from mntes_stream.dfmux.spt3glog import Spt3gLog
+
+        self._log = Spt3gLog(core, b.spt3g_log)
+        self._held_gaps = 0
+        self._said_back = 0
         self._said = 0
         self.released = None
         self._t_beat = 0.0
@@ -364,7 +376,12 @@ class DfMuxBridgeService(Service):
         for poller in self._pollers:
             poller.start()
         self._first_hk = self._first_reads(b) if b.board_names and self._pollers else []
-        self._readout.start(core, dfmux)
+        self._log.start()
+        try:
+            self._readout.start(core, dfmux)
+        except BaseException:
+            self._log.stop()
+            raise
 
     def _first_reads(self, b) -> list:
         """Every board's first housekeeping read (or ``names_wait_s``), before any packet is received: the names
@@ -402,6 +419,7 @@ class DfMuxBridgeService(Service):
         b, readout, asm, hk, pubs = self.config.bridge, self._readout, self._asm, self._hk, ctx.publishers
         try:
             # What the builder still holds comes out before the marker packets; then the last chunks.
+            self._log.ignore_v2_unknown()
             readout.start_waker()
             self.released = readout.release()
             t_end = time.monotonic() + 3.0
@@ -420,6 +438,8 @@ class DfMuxBridgeService(Service):
             readout.stop()
             for poller in self._pollers:
                 poller.stop()
+            self._log.stop()  # the collectors are stopped: every line they wrote is read
+        asm.resolve_gaps(self._log.take_seq_events())
         result = self._beat(asm, readout, pubs)
         log.info("dfmux-bridge stopped: %s", result)
         return result
@@ -442,10 +462,12 @@ class DfMuxBridgeService(Service):
         for f in frames:
             if "DfMux" not in f or "EventHeader" not in f:
                 continue
-            t_ns, mods = unpack(f)
+            t_ns, mods, refused = unpack(f)
             if t_ns >= MARKER_NS:  # the bridge's own stop packets
                 self._marker_seen = True
                 continue
+            for board in refused:
+                asm.reject(board, "module out of range")
             chunks += asm.add(t_ns, mods, time.time_ns())
         first, self._first_hk = self._first_hk, []
         out = first + self._board_hk() + hk.messages(chunks, asm.t_newest_ns) + [
@@ -460,6 +482,12 @@ class DfMuxBridgeService(Service):
     def _beat(self, asm, readout, pubs) -> dict:
         from mntes_stream.core.ledger import Ledger
 
+        # gaps held since the last beat (>= 0.5 s ago): their sequence events are read by now
+        asm.resolve_gaps(self._log.take_seq_events(), self._held_gaps)
+        self._held_gaps = len(asm.pending_gaps)
+        for board, back_s in self._log.steps_back[self._said_back:]:
+            asm.step_back(board, back_s)
+        self._said_back = len(self._log.steps_back)
         led = Ledger("published")
         for stream, n in asm.published.items():
             led.received(stream, n)
@@ -477,7 +505,10 @@ class DfMuxBridgeService(Service):
         self._said_hk = len(tracker.events)
         counters = {"spt3g": self.spt3g, "timepoints": asm.timepoints, "samples": asm.samples,
                     "invalid_samples": asm.invalid_samples, "out_of_order": asm.out_of_order,
-                    "gap_samples": asm.gap_samples, "streams": len(asm.streams), "queued_frames": readout.frames.qsize(),
+                    "gap_samples": asm.gap_samples, "jump_samples": asm.jump_samples,
+                    "time_jumps": asm.time_jumps[-20:], "time_jumps_total": len(asm.time_jumps),
+                    "dropped_packets": {**self._log.counts(), **asm.rejected},
+                    "streams": len(asm.streams), "queued_frames": readout.frames.qsize(),
                     "held_released": self.released,
                     "messages": pubs.messages, "bytes": pubs.bytes,
                     "events": ([e.text for e in asm.events] + tracker.events)[-20:],
@@ -497,6 +528,15 @@ def ledger_line(result: dict) -> str:
     text = f"dfmux-bridge done: {led.line()}; {result.get('gap_samples', 0)} module samples never received"
     if result.get("out_of_order"):
         text += f"; {result['out_of_order']} module samples dropped (not after their stream's last one)"
+    dropped = result.get("dropped_packets") or {}
+    if dropped:
+        text += (f"; {sum(dropped.values())} packets dropped (" +
+                 ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) + ")")
+    if result.get("time_jumps_total"):
+        jumps = result.get("time_jumps") or []
+        sizes = ", ".join(f"board {j['board']} {j['forward_s']:+.3f} s" for j in jumps[:4])
+        text += (f"; {result['time_jumps_total']} time stamp jumps ({sizes}{' ...' if len(jumps) > 4 else ''}; "
+                 f"{result.get('jump_samples', 0)} module samples jumped over, not lost)")
     if result.get("invalid_samples"):
         text += f"; {result['invalid_samples']} samples invalid (V4 blocks missing)"
     if result.get("held_released") is False:

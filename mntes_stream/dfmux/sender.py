@@ -31,7 +31,7 @@ import sys
 import threading
 import time
 
-from mntes_stream.dfmux.packets import GROUP, PORT, SAMPLE_NS, PacketBuilder
+from mntes_stream.dfmux.packets import GROUP, PORT, SAMPLE_NS, PacketBuilder, header_dtype
 from mntes_stream.errors import MntesError
 
 __all__ = ["main", "parse_board", "multicast_socket", "detector_boards"]
@@ -62,6 +62,48 @@ def parse_skip(text: str) -> tuple[int, int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"--skip {text!r}: expected SERIAL:FROM:TO (sample numbers)") from None
     return serial, k0, k1
+
+
+BAD_KINDS = ("magic", "version", "short", "long", "board", "module")
+
+
+def parse_bad(text: str) -> tuple[str, int, int]:
+    """``KIND:SERIAL:K`` -> (kind, serial, sample number); see ``--bad``."""
+    parts = text.split(":")
+    try:
+        if len(parts) != 3 or parts[0] not in BAD_KINDS:
+            raise ValueError
+        return parts[0], int(parts[1]), int(parts[2])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--bad {text!r}: expected KIND:SERIAL:K, KIND one of "
+                                         f"{', '.join(BAD_KINDS)}") from None
+
+
+def parse_shift(text: str) -> tuple[int, int, float]:
+    """``SERIAL:K:SECONDS`` -> (serial, first sample shifted, seconds); see ``--shift``."""
+    try:
+        serial, k, sec = text.split(":")
+        return int(serial), int(k), float(sec)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--shift {text!r}: expected SERIAL:K:SECONDS") from None
+
+
+def bad_packets(kind: str, packets: list[bytes]) -> tuple[list[bytes], list[bytes]]:
+    """A board's packets of one sample, made hostile: ``(packets to send instead, extra packets)``.
+
+    ``magic``, ``version``, ``short`` (10 bytes cut), ``long`` (20 bytes added), ``board`` (serial 999, not a
+    configured board): one extra packet, a copy of the first, spoilt; ``module``: the last module's packet
+    claims module 200 instead (the module's sample goes missing).
+    """
+    first = packets[0]
+    if kind == "module":
+        last = bytearray(packets[-1])
+        last[header_dtype(1).fields["module"][1]] = 200
+        return packets[:-1] + [bytes(last)], []
+    spoilt = {"magic": lambda r: bytes(4) + r[4:], "version": lambda r: r[:4] + (9).to_bytes(2, "little") + r[6:],
+              "short": lambda r: r[:-10], "long": lambda r: r + bytes(20),
+              "board": lambda r: r[:6] + (999).to_bytes(2, "little") + r[8:]}[kind](first)
+    return packets, [spoilt]
 
 
 def multicast_socket(interface: str, source: str = "") -> socket.socket:
@@ -168,6 +210,12 @@ def main(argv=None) -> int:
                    help="SERIAL:FROM:TO: that board sends nothing for samples FROM..TO-1 (repeatable)")
     p.add_argument("--restart", action="append", type=int, default=[], metavar="SERIAL",
                    help="that board's sequence numbers start again at 0 after its first skip (a reboot)")
+    p.add_argument("--bad", action="append", type=parse_bad, default=[], metavar="KIND:SERIAL:K",
+                   help=f"at sample K that board also sends a hostile packet ({', '.join(BAD_KINDS[:-1])}; module: "
+                        "its last module's packet claims module 200) (repeatable)")
+    p.add_argument("--shift", action="append", type=parse_shift, default=[], metavar="SERIAL:K:SECONDS",
+                   help="from sample K on, that board's time stamps are SECONDS later (an IRIG jump; negative: "
+                        "back) (repeatable, cumulative)")
     p.add_argument("--wait", type=float, default=0.0, help="seconds to wait before sending")
     p.add_argument("--wait-listener", type=float, default=0.0, metavar="S",
                    help="first wait up to S seconds for a UDP socket on port 9876 here (a collector listening)")
@@ -225,7 +273,13 @@ def _send(args, dets, n: int) -> int:
             seq = k
             if b.serial in args.restart and spans and k >= spans[0][1]:
                 seq = k - spans[0][1]
-            for raw in b.packets(k, t0_ns + k * SAMPLE_NS, seq, counts):
+            shift_ns = sum(int(sec * 1e9) for serial, k0, sec in args.shift if serial == b.serial and k >= k0)
+            raws = b.packets(k, t0_ns + k * SAMPLE_NS + shift_ns, seq, counts)
+            for kind, serial, kb in args.bad:
+                if serial == b.serial and kb == k:
+                    raws, extra = bad_packets(kind, raws)
+                    raws = raws + extra
+            for raw in raws:
                 sock.sendto(raw, dest)
                 packets += 1
             sent[b.serial] += 1
