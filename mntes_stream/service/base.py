@@ -320,6 +320,11 @@ class Service(abc.ABC):
         """Keep the session open this long after the last step (queued is not yet delivered)."""
         return float(getattr(self.config, "linger_s", 0.0) or 0.0)
 
+    def preflight(self) -> None:
+        """Check what needs no session (an optional extra, a file) before the session opens: an error then
+        leaves no zenoh threads to tear down at the process's exit (they can abort it)."""
+        return None
+
     def setup(self, ctx: Context) -> None:
         """Open inputs, declare what the service serves; ready follows unless ``ready_after_setup`` is False."""
         return None
@@ -351,6 +356,7 @@ class Service(abc.ABC):
             if ready is not None and not ready.is_set():
                 ready.set()
 
+        self.preflight()
         settings = self.zenoh_settings()
         with stop_on_signals(stop) as stopping, contextlib.ExitStack() as stack:
             session = pubs = None

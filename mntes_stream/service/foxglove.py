@@ -92,6 +92,9 @@ class FoxgloveService(Service):
     Config = FoxgloveConfig
     summary = "serve a setup to the Foxglove app (Foxglove WebSocket protocol, json channels)"
 
+    def preflight(self) -> None:
+        require_foxglove()
+
     def setup(self, ctx) -> None:
         from mntes_stream.foxglove.translate import FoxgloveView
 
