@@ -83,7 +83,7 @@ def run(args) -> int:
         SimulatorSource,
         TruthRecorder,
         perturbed_params,
-        publish_live,
+        run_simulator,
         write_mcap,
     )
 
@@ -123,15 +123,13 @@ def run(args) -> int:
         with tqdm(total=n, desc="simulate", unit="chunk", disable=args.json or args.quiet or None) as bar:
             result = write_mcap(source, args.out, duration, truth=truth, progress=bar.update)
     else:
-        from mntes_stream.service.base import stop_on_signals
-
         if not args.quiet:
             print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect or ()) + list(settings.listen or ())}, "
                   f"setup {svc.setup!r}, {svc.speed:g}x real time" +
                   (f", {duration:g} s" if duration else ", until Ctrl-C"), file=sys.stderr)
-        with stop_on_signals() as stop:
-            result = publish_live(source, settings, speed=svc.speed, duration_s=duration, stop=stop, truth=truth,
-                                  linger_s=svc.linger_s)
+        # The simulator service's lifecycle (what serve and up run): SIGINT/SIGTERM stop it, linger_s after.
+        result = run_simulator(svc, truth=truth, source=source)
+        result.pop("counts_published", None)  # the summary simulate has always printed
     if truth is not None:
         truth.save(truth_out)
     result.update({"detectors": config.n_detectors, "params": params_out, "truth": truth_out,
