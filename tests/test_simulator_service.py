@@ -137,21 +137,26 @@ def test_recorded_session_converts_back_to_the_truth(tmp_path):
     assert n_power == 2 * 31
 
 
+def _receive(sub, n: int, timeout_s: float = 10.0) -> list:
+    """What ``sub`` holds, waiting up to ``timeout_s`` for ``n`` samples."""
+    got, deadline = [], time.monotonic() + timeout_s
+    while len(got) < n and time.monotonic() < deadline:
+        item = sub.get(0.2)
+        if item is not None:
+            got.append(item)
+    return got
+
+
 def test_live_publication_over_loopback_zenoh():
     port = free_tcp_port()
     cfg = CFG.replace(jupiter_peak_w=0.0)
     src = SimulatorSource(cfg, setup="live", chunk_s=0.1)
-    got = []
     with open_session(loopback(port)) as z:
         sub = QueueSubscriber(z, ["mntes/live/**"])
         try:
             result = run_simulator(SimulatorServiceConfig(sim=cfg, setup="live", speed=0.0, duration_s=1.0,
                                                           zenoh=loopback(connect_ports=[port])), source=src)
-            deadline = time.monotonic() + 10
-            while len(got) < result["messages"] and time.monotonic() < deadline:
-                item = sub.get(0.2)
-                if item is not None:
-                    got.append(item)
+            got = _receive(sub, result["messages"])
         finally:
             sub.close()
     assert result["batches"] == 11 and len(got) == result["messages"]
@@ -173,7 +178,7 @@ def test_live_simulate_command_runs_the_simulator_service(tmp_path):
     """``simulate`` with zenoh endpoints runs ``SimulatorService`` (base.Service's lifecycle): the same summary
     keys as ever, every message it counts received, truth and parameter files written beside."""
     port = free_tcp_port()
-    got, buf = [], io.StringIO()
+    buf = io.StringIO()
     with open_session(loopback(port)) as z:
         sub = QueueSubscriber(z, ["mntes/live/**"])
         try:
@@ -183,11 +188,7 @@ def test_live_simulate_command_runs_the_simulator_service(tmp_path):
                              "--params-out", str(tmp_path / "p.toml"), "--truth", str(tmp_path / "t.npz"),
                              "--json", "-q"]) == 0
             res = json.loads(buf.getvalue())
-            deadline = time.monotonic() + 10
-            while len(got) < res["messages"] and time.monotonic() < deadline:
-                item = sub.get(0.2)
-                if item is not None:
-                    got.append(item)
+            got = _receive(sub, res["messages"])
         finally:
             sub.close()
     assert set(res) == {"batches", "messages", "bytes", "behind_max_ms", "matched", "detectors", "params", "truth",
