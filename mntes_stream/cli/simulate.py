@@ -25,7 +25,7 @@ def _config(args):
 
     doc = read_toml(args.config) if args.config else {}
     table = dict(doc.get("simulator", {})) if isinstance(doc.get("simulator", {}), dict) else doc["simulator"]
-    # Into the [simulator] table before --set: here --set wins over the flags (docs/cli.md).
+    # Into the [simulator] table before --set, which wins over them here (as it always has for simulate).
     table.update(settings_from_args(args, (*_SIM, "f_hwp_hz", *_SERVICE)))
     if args.telescope:
         table["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]

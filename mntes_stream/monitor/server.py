@@ -524,10 +524,10 @@ def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float
 class PageServer:
     """:func:`serve` on a thread of its own, so a service's ``step`` returns while the page is served.
 
-    :meth:`start` returns ``(host, port)`` once the page listens, or raises what kept it from listening
-    (a port in use: :class:`ConfigError`), or returns None when stopped first; :meth:`alive` while it serves; :meth:`stop` shuts it down
-    and raises what the server died of, if it died. Arguments are :func:`serve`'s (no ``duration_s``:
-    the owner stops it).
+    :meth:`start` returns ``(host, port)`` once the page listens, None when stopped first, or raises
+    what kept it from listening (a port in use: :class:`ConfigError`); :meth:`alive` while it serves;
+    :meth:`stop` shuts it down and raises what the server died of, if it died. Arguments are
+    :func:`serve`'s (no ``duration_s``: the owner stops it).
     """
 
     def __init__(self, subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float = 0.5, **options):
