@@ -221,3 +221,44 @@ def test_docs_cli_lists_every_command_and_every_overwrite():
     for path, action in _walk(build_parser()):
         if "--overwrite" in action.option_strings:
             assert f"`{' '.join(path)}`" in row, f"docs/cli.md: --overwrite row misses {' '.join(path)}"
+
+
+def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_path, capsys):
+    """dfmux-bridge, simulate and monitor declare their flags from the settings (``add_settings_args``): each
+    flag, spelled as before, sets its setting over ``--config`` (simulate: ``--set`` wins over its flags, as
+    documented), and is checked at parse time against the declaration (one line naming the flag)."""
+    from mntes_stream.cli.dfmux import bridge_config
+    from mntes_stream.cli.monitor import monitor_config
+    from mntes_stream.cli.simulate import _config as simulate_config
+
+    parser = build_parser()
+    cfg = tmp_path / "bridge.toml"
+    cfg.write_text('[dfmux-bridge]\nchunk_samples = 8\nhk_timeout_s = 1.5\nboards = [9]\n')
+    b = bridge_config(parser.parse_args(
+        ["dfmux-bridge", "--config", str(cfg), "--set", "dfmux-bridge.hk_stale_s=7", "--board", "3", "--board", "4",
+         "--v2-board", "10.0.0.2=5", "--sctp", "h1", "--sctp", "h2", "--bias", "3/0=1e-6", "--hk-every", "2",
+         "--no-board-hk", "--duration", "3", "--t-bath-k", "0.1", "-e", "tcp/127.0.0.1:7447"])).bridge
+    assert (b.boards, b.v2_boards, b.sctp, b.bias) == ((3, 4), ("10.0.0.2=5",), ("h1", "h2"), ("3/0=1e-6",))
+    assert (b.hk_every_s, b.board_hk, b.duration_s, b.t_bath_k) == (2.0, False, 3.0, 0.1)
+    assert (b.chunk_samples, b.hk_timeout_s, b.hk_stale_s, b.board_names) == (8, 1.5, 7.0, True)  # file, --set, default
+    s = simulate_config(parser.parse_args(
+        ["simulate", "--modules", "3", "--sample-rate", "19.1", "--f-hwp", "1.5", "--duration", "2", "--chunk-s",
+         "0.2", "--speed", "0", "--setup", "x1", "--seed", "4", "--set", "simulator.seed=5", "-e", "tcp/127.0.0.1:1"]))
+    assert (s.sim.modules, s.sim.sample_rate_hz, s.sim.f_hwp_hz, s.sim.seed) == (3, 19.1, 1.5, 5)
+    assert (s.duration_s, s.chunk_s, s.speed, s.setup) == (2.0, 0.2, 0.0, "x1")
+    from mntes_stream.cli.ocs import bridge_config as ocs_config
+
+    o = ocs_config(parser.parse_args(["ocs-bridge", "--router", "ws://h:1/ws", "--t-bath-field", "a.b.c", "--stale-s",
+                                      "3", "--duration", "2", "--realm", "r"])).bridge
+    assert (o.router, o.t_bath_field, o.stale_s, o.duration_s, o.realm, o.setup) == ("ws://h:1/ws", "a.b.c", 3.0,
+                                                                                     2.0, "r", "lab")
+    m = monitor_config(parser.parse_args(["monitor", "--port", "0", "--history-s", "20", "--f-hwp", "auto",
+                                          "--update-s", "2"]))
+    assert (m.port, m.view.history_s, m.view.f_hwp_hz, m.update_s) == (0, 20.0, None, 2.0)
+    for argv, says in ((["dfmux-bridge", "--board", "-1"], "argument --board: expected an integer >= 0, got '-1'"),
+                       (["dfmux-bridge", "--hk-every", "0"], "argument --hk-every: expected a number (s) > 0"),
+                       (["simulate", "--sample-rate", "0"], "argument --sample-rate: expected a number (Hz) > 0"),
+                       (["simulate", "--setup", "a/b"], "argument --setup: expected a name matching")):
+        with pytest.raises(SystemExit):
+            parser.parse_args(argv)
+        assert says in capsys.readouterr().err, argv

@@ -160,7 +160,7 @@ def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, so
     params, streams = owned_params(cfg)
     built = build_converter(cfg, params)
     save_snapshot(cfg, key, params, streams, built)
-    key2, (params2, streams2, loaded) = load_snapshot(cfg)
+    key2, (params2, streams2, loaded, text) = load_snapshot(cfg)
     assert key2 == key and streams2 == streams and params2 == params and loaded.identity == built.identity
     rng = np.random.default_rng(1)
     ids = built.detector_ids
@@ -170,11 +170,15 @@ def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, so
     a, b = built.convert(ids, ci, cq, env), loaded.convert(ids, ci, cq, env)
     np.testing.assert_array_equal(a.p_opt_w, b.p_opt_w)
     np.testing.assert_array_equal(a.flags, b.flags)
-    # The provenance's parameter text comes with the snapshot (not written again): the same text.
+    # The provenance's parameter text comes with the snapshot and is handed to the pipeline (not written again,
+    # no hidden cache): the text the built converter's parameters give.
     from mntes_stream.io.paramfile import params_to_toml
+    from mntes_stream.service.pipeline import ConverterPipeline
 
-    assert params_to_toml(list(loaded.params)) == params_to_toml(list(built.params)) != ""
-    assert params_to_toml(list(loaded.params)[::-1]) != params_to_toml(list(loaded.params))
+    assert text == params_to_toml(list(built.params)) != params_to_toml(list(built.params)[::-1])
+    assert ConverterPipeline(loaded, params_toml=text).provenance().params_toml is text
+    written = ConverterPipeline(loaded).provenance().params_toml
+    assert written == text and written is not text
 
 
 def _feed(pipe, batches):

@@ -497,3 +497,72 @@ def test_lean_writer_writes_the_mcap_librarys_file_byte_for_byte(compression):
     lean = write(_LeanWriter)
     assert len(lean) > 10_000 and lean.count(b"\x06") >= 5  # several chunks (0x06: the chunk opcode)
     assert lean == write(Writer)
+
+
+def test_the_mcap_internals_the_lean_writer_uses_are_there_and_behave(tmp_path):
+    """``_LeanWriter`` uses ``mcap.writer.Writer``'s name-mangled internals (pyproject pins mcap to the tested
+    minor release for that): every ``_Writer__*`` name in writer.py exists on a library ``Writer`` with the kind
+    of value it expects, the library's ``flush``/``finish`` reach the overridden ``__finalize_chunk``, and a real
+    file written through the lean path reads back with mcap's own reader, indexes and statistics included."""
+    import inspect
+    import io
+    import re
+    from collections import defaultdict
+
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Chunk, Message, Statistics
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import CompressionType, IndexType, Writer
+
+    from mntes_stream.io.mcap import writer as lean_module
+
+    used = set(re.findall(r"_Writer__\w+", inspect.getsource(lean_module)))
+    expected_kinds = {"_Writer__enable_data_crcs": bool, "_Writer__enable_crcs": bool,
+                      "_Writer__chunk_builder": object, "_Writer__statistics": Statistics,
+                      "_Writer__compression": CompressionType, "_Writer__chunk_size": int,
+                      "_Writer__stream": object, "_Writer__record_builder": RecordBuilder,
+                      "_Writer__index_types": IndexType, "_Writer__chunk_indices": list}
+    methods = {"_Writer__flush", "_Writer__finalize_chunk"}
+    assert used == set(expected_kinds) | methods, "writer.py uses an mcap internal this test does not check"
+    plain = Writer(io.BytesIO())
+    for name, kind in expected_kinds.items():
+        assert isinstance(getattr(plain, name), kind), f"mcap.writer.Writer.{name} is gone or changed kind"
+    assert isinstance(plain._Writer__statistics.channel_message_counts, defaultdict)
+    for name in methods:
+        assert callable(getattr(Writer, name)), f"mcap.writer.Writer.{name} is gone"
+    # The library's own paths must close chunks through the name the lean writer overrides.
+    for caller in (Writer.flush, Writer.finish, Writer._Writer__maybe_finalize_chunk):
+        assert "_Writer__finalize_chunk" in caller.__code__.co_names, f"{caller.__name__} no longer closes chunks so"
+    assert list(inspect.signature(lean_module._LeanWriter.add_message).parameters) == \
+        list(inspect.signature(Writer.add_message).parameters)
+
+    path = tmp_path / "lean.mcap"
+    sent = []
+    with open(path, "wb") as f:
+        w = lean_module._LeanWriter(f, chunk_size=2048, compression=CompressionType.LZ4)
+        assert isinstance(w._Writer__chunk_builder, lean_module._Chunk)
+        w.start(profile="", library="test")
+        a = w.register_channel("a", "msgpack", 0)
+        b = w.register_channel("b", "msgpack", 0)
+        for i in range(40):
+            cid = a if i % 3 else b
+            data = bytes([i]) * (100 + i)
+            w.add_message(cid, log_time=T0 + 40 - i, data=data, publish_time=T0, sequence=i)
+            sent.append((cid, T0 + 40 - i, i, data))
+            if i == 20:
+                w.flush()
+                assert w._Writer__chunk_builder.num_messages == 0  # flush went through the lean chunk close
+        w.finish()
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        got = [(m.channel_id, m.log_time, m.sequence, bytes(m.data)) for _, _, m in reader.iter_messages()]
+    assert summary.statistics.message_count == 40 and summary.statistics.chunk_count == len(summary.chunk_indexes) > 2
+    assert summary.statistics.channel_message_counts == {a: 26, b: 14}
+    assert all(ci.compression == "lz4" and ci.message_index_offsets for ci in summary.chunk_indexes)
+    assert sorted(got, key=lambda m: m[2]) == sent
+    with open(path, "rb") as f:  # the non-seeking reader decompresses every chunk and checks its CRC
+        assert sum(isinstance(r, Message) for r in StreamReader(f, validate_crcs=True).records) == 40
+    with open(path, "rb") as f:
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) == len(summary.chunk_indexes) and all(c.uncompressed_crc for c in chunks)

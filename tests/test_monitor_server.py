@@ -317,3 +317,39 @@ def test_replayed_power_is_labelled_replay_with_the_recordings_latency():
         time.sleep(fr["threshold_s"] + 0.3)
         with sub.lock:
             assert sub.aggregator.tick(time.time_ns())["freshness"]["state"] == "stale"  # a replay that ended
+
+
+def test_the_monitor_service_beats_while_it_serves_the_page():
+    """The page is served from its own thread (``PageServer``): the service's steps return, so its heartbeat
+    beats and its counters advance while the page answers; a stop ends it cleanly with its statistics."""
+    from mntes_stream.monitor.service import MonitorService, MonitorServiceConfig
+
+    zport = free_tcp_port()
+    stop, ready, done = threading.Event(), threading.Event(), {}
+    svc = MonitorService(MonitorServiceConfig(setup="lab", port=0, update_s=0.2, zenoh=loopback(zport),
+                                              view=MonitorConfig(history_s=10.0)))
+    server = Worker(lambda: done.update(svc.start(stop, ready)))  # as serve and up run it
+    server.start()
+    pub = Worker(publish_stream, zport, stop)
+    pub.start()
+    try:
+        assert ready.wait(30), "the monitor never became ready"
+        url = svc.status()["url"]
+
+        async def page_answers():
+            async with aiohttp.ClientSession() as http, http.get(url + "api/state") as r:
+                return r.status == 200 and "health" in await r.json()
+
+        seen = []
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not (len(seen) > 2 and seen[-1]["power_chunks"] > seen[0]["power_chunks"]):
+            time.sleep(1.0)
+            assert asyncio.run(page_answers())
+            seen.append(svc.status())
+        assert all(s["state"] == "running" and s["since_beat_s"] < 2.0 for s in seen), seen
+        assert seen[-1]["power_chunks"] > seen[0]["power_chunks"] > 0, seen
+    finally:
+        stop.set()
+        pub.check()
+        server.check(15)
+    assert done["power_chunks"] >= seen[-1]["power_chunks"] and svc.status()["state"] != "running"

@@ -24,10 +24,11 @@ from mntes_stream.io.paramfile import load_params
 from mntes_stream.io.transport import QueueSubscriber, free_tcp_port, loopback, open_session
 from mntes_stream.service.simulator import (
     SimulatorService,
+    SimulatorServiceConfig,
     SimulatorSource,
     TruthRecorder,
     load_truth,
-    publish_live,
+    run_simulator,
     write_mcap,
 )
 
@@ -136,23 +137,30 @@ def test_recorded_session_converts_back_to_the_truth(tmp_path):
     assert n_power == 2 * 31
 
 
+def _receive(sub, n: int, timeout_s: float = 10.0) -> list:
+    """What ``sub`` holds, waiting up to ``timeout_s`` for ``n`` samples."""
+    got, deadline = [], time.monotonic() + timeout_s
+    while len(got) < n and time.monotonic() < deadline:
+        item = sub.get(0.2)
+        if item is not None:
+            got.append(item)
+    return got
+
+
 def test_live_publication_over_loopback_zenoh():
     port = free_tcp_port()
     cfg = CFG.replace(jupiter_peak_w=0.0)
     src = SimulatorSource(cfg, setup="live", chunk_s=0.1)
-    got = []
     with open_session(loopback(port)) as z:
         sub = QueueSubscriber(z, ["mntes/live/**"])
         try:
-            result = publish_live(src, loopback(connect_ports=[port]), speed=0.0, duration_s=1.0, wait_s=10.0)
-            deadline = time.monotonic() + 10
-            while len(got) < result["messages"] and time.monotonic() < deadline:
-                item = sub.get(0.2)
-                if item is not None:
-                    got.append(item)
+            result = run_simulator(SimulatorServiceConfig(sim=cfg, setup="live", speed=0.0, duration_s=1.0,
+                                                          zenoh=loopback(connect_ports=[port])), source=src)
+            got = _receive(sub, result["messages"])
         finally:
             sub.close()
     assert result["batches"] == 11 and len(got) == result["messages"]
+    assert result["counts_published"] == {"0/0": 11, "0/1": 11}  # the service's own summary (base.Service)
     counts = [decode(p) for k, p, _ in got if "/counts/" in k]
     assert len(counts) == 22
     by_module = {}
@@ -164,6 +172,30 @@ def test_live_publication_over_loopback_zenoh():
         for (b, m), chunks in by_module.items():
             c = next(x for x in chunks if x.t0_ns == int(blk.t_ns[0]))
             assert np.array_equal(c.counts_i, blk.counts_i[ref.module_rows(b, m)])
+
+
+def test_live_simulate_command_runs_the_simulator_service(tmp_path):
+    """``simulate`` with zenoh endpoints runs ``SimulatorService`` (base.Service's lifecycle): the same summary
+    keys as ever, every message it counts received, truth and parameter files written beside."""
+    port = free_tcp_port()
+    buf = io.StringIO()
+    with open_session(loopback(port)) as z:
+        sub = QueueSubscriber(z, ["mntes/live/**"])
+        try:
+            with contextlib.redirect_stdout(buf):
+                assert main(["simulate", "--connect", f"tcp/127.0.0.1:{port}", "--setup", "live", "--duration", "1",
+                             "--speed", "0", "--channels", "8", "--modules", "2", "--set", "simulator.linger_s=0.5",
+                             "--params-out", str(tmp_path / "p.toml"), "--truth", str(tmp_path / "t.npz"),
+                             "--json", "-q"]) == 0
+            res = json.loads(buf.getvalue())
+            got = _receive(sub, res["messages"])
+        finally:
+            sub.close()
+    assert set(res) == {"batches", "messages", "bytes", "behind_max_ms", "matched", "detectors", "params", "truth",
+                        "perturbed_params"}
+    assert res["batches"] == 11 and res["matched"] is True and res["detectors"] == 16 and len(got) == res["messages"]
+    assert len([k for k, _, _ in got if "/counts/" in k]) == 22
+    assert load_truth(tmp_path / "t.npz")["truth_p_opt_w"].shape[0] == 16 and len(load_params(tmp_path / "p.toml")) == 16
 
 
 def test_service_config_tables():

@@ -168,11 +168,18 @@ def zenoh_from_args(args, table=None):
 _CANONICAL = ("--duration", "--out")
 
 
-def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | None = None) -> None:
+def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | None = None, *,
+                      spelled: dict | None = None, repeatable=(), metavars: dict | None = None) -> None:
     """``--name`` flags for settings of ``cls``, typed and documented from their declarations.
 
     Every flag defaults to None (not given), so a flag overrides a config file
     only where it is given; :func:`settings_from_args` collects them.
+
+    ``aliases``: more spellings of a flag (``--duration``, ``--out``: the grammar's, the generated one hidden).
+    ``spelled``: a flag's one spelling where it is not the setting's name (flags older than their setting:
+    ``--hk-every`` for ``hk_every_s``; ``--no-board-hk`` for a bool that defaults True: it sets it False).
+    ``repeatable``: tuple settings given once per value (``--board 1 --board 2``), not as one list.
+    ``metavars``: a flag's placeholder where the setting's name or unit says less (``IP=SERIAL``).
     """
     import typing
 
@@ -187,24 +194,37 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
         # The grammar's spelling wins (--duration, not --duration-s); the generated one stays a hidden alias.
         canonical = [a for a in extra if a in _CANONICAL]
         flags = [*canonical, *(a for a in extra if a not in _CANONICAL)] if canonical else [generated, *extra]
+        if spelled and name in spelled:
+            flags, canonical = [spelled[name], *extra], []
         default = fields[name].default
         many = typing.get_origin(hint) is tuple
         inner = typing.get_args(hint)[0] if many else _not_none(hint)
         if not many and inner in (int, float, str):
             parse = _declared_type(cls, name, hint, s, inner)
+        elif many and name in repeatable and inner in (int, float):
+            from mntes_stream.options import number
+
+            parse = number(inner, s.unit or "", ge=s.ge, gt=s.gt, le=s.le, lt=s.lt)  # bounds apply to each element
         else:
             parse = inner if inner in (int, float, str) else str
         if canonical:
             deprecated_alias(g, generated, canonical[0], dest=name, default=None, type=parse)
         text = f"{s.doc} [{expected(hint, s)}; default {default!r}]" if default is not dataclasses.MISSING else s.doc
         text = text.replace("%", "%%")
-        if hint is bool:
+        metavar = (metavars or {}).get(name)
+        if hint is bool and flags[0].startswith("--no-"):
+            g.add_argument(*flags, dest=name, action="store_false", default=None, help=f"turn off: {s.doc}")
+        elif hint is bool:
             g.add_argument(*flags, dest=name, action=argparse.BooleanOptionalAction, default=None, help=text)
-        elif typing.get_origin(hint) is tuple:
-            g.add_argument(*flags, dest=name, nargs="+", type=inner, default=None, metavar=name.upper(), help=text)
+        elif many and name in repeatable:
+            g.add_argument(*flags, dest=name, action="append", type=parse, default=None,
+                           metavar=metavar or name.upper(), help=text + " (repeatable)")
+        elif many:
+            g.add_argument(*flags, dest=name, nargs="+", type=inner, default=None, metavar=metavar or name.upper(),
+                           help=text)
         else:
-            g.add_argument(*flags, dest=name, type=parse, default=None,
-                           metavar=(s.unit or name).upper() if inner in (int, float) else None, help=text)
+            g.add_argument(*flags, dest=name, type=parse, default=None, help=text,
+                           metavar=metavar or ((s.unit or name).upper() if inner in (int, float) else None))
 
 
 def _not_none(hint):
@@ -232,17 +252,26 @@ def _declared_type(cls, name, hint, s, inner):
 
 
 def settings_from_args(args, names) -> dict:
-    """The settings among ``names`` given on the command line."""
-    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+    """The settings among ``names`` given on the command line (lists of repeated or many values as tuples)."""
+    return {n: tuple(v) if isinstance(v, list) else v for n in names if (v := getattr(args, n, None)) is not None}
+
+
+def _replaced(cfg, flags: dict):
+    """``cfg`` with ``flags``; a dict value replaces settings of the sub-settings of that name (``bridge``)."""
+    return dataclasses.replace(cfg, **{k: _replaced(getattr(cfg, k), v) if isinstance(v, dict) else v
+                                       for k, v in flags.items()})
 
 
 def service_config(service_cls, path, sets, flags: dict, zenoh_flags):
-    """A service's config: its file (``--config``) or its defaults, ``--set`` items, then flags, then zenoh flags."""
+    """A service's config: its file (``--config``) or its defaults, ``--set`` items, then flags, then zenoh flags.
+
+    ``flags`` (:func:`settings_from_args`): settings of the service's config, and ``{table: {setting: value}}``
+    for those of a sub-table (``{"bridge": {...}}``)."""
     from mntes_stream.service.config import config_of, with_zenoh
 
     cfg = config_of(service_cls, path, sets)
     try:
-        cfg = dataclasses.replace(cfg, **flags)
+        cfg = _replaced(cfg, {k: v for k, v in flags.items() if v != {}})
     except ConfigError as exc:
         raise ConfigError(f"command line: {exc}") from None
     return with_zenoh(cfg, zenoh_flags)

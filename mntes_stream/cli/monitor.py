@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 
 from mntes_stream.cli._common import (
@@ -36,19 +35,11 @@ def monitor_config(args):
     """The ``[monitor]`` config the command line asks for (``--config``, ``--set``, flags, zenoh flags)."""
     from mntes_stream.monitor.service import MonitorService
 
-    flags = settings_from_args(args, _SERVICE)
-    cfg = service_config(MonitorService, args.config, args.set, flags, zenoh_layer(args))
     view = settings_from_args(args, _VIEW)
     if args.f_hwp is not None:
         view["f_hwp_hz"] = None if args.f_hwp == "auto" else args.f_hwp
-    if view:
-        from mntes_stream.errors import ConfigError
-
-        try:
-            cfg = dataclasses.replace(cfg, view=dataclasses.replace(cfg.view, **view))
-        except ConfigError as exc:
-            raise ConfigError(f"command line: {exc}") from None
-    return cfg
+    return service_config(MonitorService, args.config, args.set, {**settings_from_args(args, _SERVICE), "view": view},
+                          zenoh_layer(args))
 
 
 def run_monitor(args) -> int:

@@ -6,8 +6,6 @@ import contextlib
 import tempfile
 from pathlib import Path
 
-from mntes_stream.options import number
-
 
 def add_hk_args(p) -> None:
     """Bath temperature from OCS HK G3 files (the aggregator's), aligned by time."""
@@ -81,31 +79,25 @@ def recording_with_hk(args, source):
         yield [*files, side]
 
 
+# The [ocs-bridge] settings the flags set (types, ranges, help from ocs.bridge.OcsBridgeSettings).
+_BRIDGE = ("router", "realm", "t_bath_field", "b_field_field", "setup", "stale_s", "duration_s")
+
+
 def bridge_config(args):
-    """The ocs-bridge config from ``--config``/``--set`` and the command line (which wins)."""
-    import dataclasses
-
-    from mntes_stream.errors import ConfigError
+    """The ocs-bridge config from ``--config``/``--set``, the command line (which wins) and the zenoh flags."""
+    from mntes_stream.cli._common import service_config, settings_from_args, zenoh_layer
     from mntes_stream.ocs.bridge import OcsBridgeService
-    from mntes_stream.service.config import config_of
 
-    cfg = config_of(OcsBridgeService, args.config, args.set)
-    flags = {k: getattr(args, k) for k in ("router", "realm", "setup", "duration_s", "stale_s", "t_bath_field",
-                                           "b_field_field") if getattr(args, k, None) is not None}
-    try:
-        cfg = dataclasses.replace(cfg, bridge=dataclasses.replace(cfg.bridge, **flags))
-    except ConfigError as exc:
-        raise ConfigError(f"command line: {exc}") from None
-    return cfg
+    return service_config(OcsBridgeService, args.config, args.set, {"bridge": settings_from_args(args, _BRIDGE)},
+                          zenoh_layer(args))
 
 
 def run_bridge(args) -> int:
-    from mntes_stream.cli._common import print_mapping, zenoh_layer
+    from mntes_stream.cli._common import print_mapping
     from mntes_stream.ocs.bridge import OcsBridgeService, bridge_line
     from mntes_stream.service.base import stop_on_signals
-    from mntes_stream.service.config import with_zenoh
 
-    cfg = with_zenoh(bridge_config(args), zenoh_layer(args))
+    cfg = bridge_config(args)
     svc = OcsBridgeService(cfg)
     svc.owns()  # a config without any field is a one-line error before anything starts
     with stop_on_signals() as stop:
@@ -116,8 +108,22 @@ def run_bridge(args) -> int:
     return 0
 
 
+def _bridge_args(p) -> None:
+    from mntes_stream.cli._common import add_json, add_settings_args, add_zenoh_args
+    from mntes_stream.ocs.bridge import OcsBridgeSettings
+
+    p.add_argument("--config", metavar="FILE", help="bridge TOML ([ocs-bridge], [zenoh]); flags override it")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
+    add_settings_args(p, OcsBridgeSettings, _BRIDGE, {"duration_s": ("--duration",)},
+                      metavars={"router": "ws://HOST:PORT/ws", "t_bath_field": "FULL.FIELD.NAME",
+                                "b_field_field": "FULL.FIELD.NAME", "stale_s": "S", "duration_s": "S"})
+    add_json(p, "print the final statistics as one JSON document")
+    add_zenoh_args(p)
+    p.set_defaults(func=run_bridge)
+
+
 def register(sub) -> None:
-    from mntes_stream.cli._common import add_json, add_zenoh_args
+    from mntes_stream.cli._common import arguments
 
     p = sub.add_parser("ocs-bridge", help="publish OCS housekeeping (bath temperature, field) from a crossbar router "
                                           "on zenoh",
@@ -125,18 +131,4 @@ def register(sub) -> None:
                                    "named, and publish their readings as t_bath / b_field housekeeping messages with "
                                    "their own times, as the simulator does: the converter's staleness rules apply. "
                                    "Needs the ocs extra (autobahn).")
-    p.add_argument("--config", metavar="FILE", help="bridge TOML ([ocs-bridge], [zenoh]); flags override it")
-    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
-    p.add_argument("--router", metavar="ws://HOST:PORT/ws", help="the crossbar router (OCS hub.wamp_server; default "
-                                                                 "ws://127.0.0.1:8001/ws)")
-    p.add_argument("--realm", help="the WAMP realm (OCS hub.wamp_realm; default test_realm)")
-    p.add_argument("--t-bath-field", metavar="FULL.FIELD.NAME", help="bath temperature field (K), e.g. "
-                                                                     "observatory.LS372.feeds.temperatures.Channel_06_T")
-    p.add_argument("--b-field-field", metavar="FULL.FIELD.NAME", help="magnetic field at the array (T)")
-    p.add_argument("--setup", help="setup name in the keys (default lab)")
-    p.add_argument("--stale-s", type=number(float, "s", gt=0), metavar="S", help="report a sensor whose newest reading is older "
-                                                             "(default 10)")
-    p.add_argument("--duration", dest="duration_s", type=number(float, "s", ge=0), metavar="S", help="stop after this long (0: never)")
-    add_json(p, "print the final statistics as one JSON document")
-    add_zenoh_args(p)
-    p.set_defaults(func=run_bridge)
+    arguments(p, _bridge_args)

@@ -6,26 +6,27 @@ import json
 import sys
 
 from mntes_stream.cli._common import add_zenoh_args, print_mapping
-from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
 from mntes_stream.options import number
+
+# The [simulator] settings the flags set, declared once (core.sim.SimConfig, service.simulator's config): types,
+# ranges and help come from the declarations; the flags keep their spellings (--sample-rate, --f-hwp, --duration).
+_SIM = ("boards", "modules", "channels", "sample_rate_hz", "seed")
+_SERVICE = ("setup", "duration_s", "chunk_s", "speed")
 
 
 def _config(args):
     """The ``[simulator]`` service config: ``--config``, then the flags, then ``--set`` (which wins)."""
     from pathlib import Path
 
-    from mntes_stream.cli._common import zenoh_layer
+    from mntes_stream.cli._common import settings_from_args, zenoh_layer
     from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
     from mntes_stream.service.config import apply_overrides, read_toml, with_zenoh
     from mntes_stream.service.simulator import SimulatorService
 
     doc = read_toml(args.config) if args.config else {}
     table = dict(doc.get("simulator", {})) if isinstance(doc.get("simulator", {}), dict) else doc["simulator"]
-    for name, attr in (("boards", "boards"), ("modules", "modules"), ("channels", "channels"),
-                       ("sample_rate_hz", "sample_rate"), ("seed", "seed"), ("setup", "setup"), ("chunk_s", "chunk_s"),
-                       ("speed", "speed"), ("duration_s", "duration_s"), ("f_hwp_hz", "f_hwp")):
-        if getattr(args, attr) is not None:
-            table[name] = getattr(args, attr)
+    # Into the [simulator] table before --set, which wins over them here (as it always has for simulate).
+    table.update(settings_from_args(args, (*_SIM, "f_hwp_hz", *_SERVICE)))
     if args.telescope:
         table["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]
     doc = apply_overrides({**doc, "simulator": table}, [_table_key(item) for item in args.set or []],
@@ -83,7 +84,7 @@ def run(args) -> int:
         SimulatorSource,
         TruthRecorder,
         perturbed_params,
-        publish_live,
+        run_simulator,
         write_mcap,
     )
 
@@ -123,15 +124,13 @@ def run(args) -> int:
         with tqdm(total=n, desc="simulate", unit="chunk", disable=args.json or args.quiet or None) as bar:
             result = write_mcap(source, args.out, duration, truth=truth, progress=bar.update)
     else:
-        from mntes_stream.service.base import stop_on_signals
-
         if not args.quiet:
             print(f"simulate: {config.n_detectors} detectors on zenoh {list(settings.connect or ()) + list(settings.listen or ())}, "
                   f"setup {svc.setup!r}, {svc.speed:g}x real time" +
                   (f", {duration:g} s" if duration else ", until Ctrl-C"), file=sys.stderr)
-        with stop_on_signals() as stop:
-            result = publish_live(source, settings, speed=svc.speed, duration_s=duration, stop=stop, truth=truth,
-                                  linger_s=svc.linger_s)
+        # The simulator service's lifecycle (what serve and up run): SIGINT/SIGTERM stop it, linger_s after.
+        result = run_simulator(svc, truth=truth, source=source)
+        result.pop("counts_published", None)  # the summary simulate has always printed
     if truth is not None:
         truth.save(truth_out)
     result.update({"detectors": config.n_detectors, "params": params_out, "truth": truth_out,
@@ -141,13 +140,19 @@ def run(args) -> int:
 
 
 def register(sub) -> None:
-    from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, deprecated_alias
+    from mntes_stream.cli._common import arguments
 
     p = sub.add_parser(
         "simulate", help="simulate a DfMux array: publish over zenoh or write an MCAP or G3 file (truth alongside)",
         description="Simulate a TES array read out by DfMux: publish it over zenoh (give zenoh endpoints) or write "
                     "--out FILE (MCAP, or a G3 run with --format g3). Writes the truth parameters (TOML) and the "
                     "per-sample truth (.npz, never read by a converter) next to the output.")
+    arguments(p, _simulate_args)
+
+
+def _simulate_args(p) -> None:
+    from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, add_settings_args, deprecated_alias
+
     p.add_argument("--config", metavar="TOML", help="service config with [simulator] and [zenoh] tables")
     p.add_argument("--out", metavar="FILE", help="write this file instead of publishing: an MCAP recording, or with "
                                                  "--format g3 a G3 run (RUN.g3)")
@@ -155,20 +160,17 @@ def register(sub) -> None:
     p.add_argument("--format", choices=("mcap", "g3"), default="mcap",
                    help="mcap (default); g3: write what a DfMux DAQ would (SPT-3G G3 file --out, see --layout)")
     from mntes_stream.cli.g3 import add_simulate_g3_args
+    from mntes_stream.core.sim import SimConfig
+    from mntes_stream.service.simulator import SimulatorServiceConfig
 
     add_simulate_g3_args(p)
-    p.add_argument("--setup", help="setup name in the keys (default lab, as every service)")
-    p.add_argument("--boards", type=number(int, ge=1), help="DfMux boards (default 1)")
-    p.add_argument("--modules", type=number(int, ge=1), help="modules per board")
-    p.add_argument("--channels", type=number(int, ge=1), help="channels per module (DfMux: 64 or 128)")
-    p.add_argument("--sample-rate", type=number(float, "Hz", gt=0), metavar="HZ", help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux, 20 MHz / 2**17; 19.1 is flight-like)")
+    add_settings_args(p, SimulatorServiceConfig, ("setup",))
+    add_settings_args(p, SimConfig, _SIM, spelled={"sample_rate_hz": "--sample-rate"}, metavars={"sample_rate_hz": "HZ"})
     hwp = p.add_mutually_exclusive_group()
     hwp.add_argument("--telescope", choices=["LFT", "MFT", "HFT"], help="HWP frequency of a LiteBIRD telescope")
-    hwp.add_argument("--f-hwp", type=number(float, "Hz", ge=0), metavar="HZ", help="HWP rotation frequency")
-    p.add_argument("--seed", type=number(int, ge=0), help="random seed of the simulation (default 0)")
-    p.add_argument("--duration", dest="duration_s", type=number(float, "s", ge=0), metavar="S", help="seconds of data (live: 0 = forever)")
-    p.add_argument("--chunk-s", type=number(float, "s", gt=0), metavar="S", help="chunk length (default 0.1 s)")
-    p.add_argument("--speed", type=number(float, ge=0), help="live: multiple of real time (0: as fast as possible)")
+    add_settings_args(hwp, SimConfig, ("f_hwp_hz",), spelled={"f_hwp_hz": "--f-hwp"}, metavars={"f_hwp_hz": "HZ"})
+    add_settings_args(p, SimulatorServiceConfig, _SERVICE[1:], {"duration_s": ("--duration",)},
+                      metavars={"duration_s": "S", "chunk_s": "S"})
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="any simulator or zenoh setting "
                    "(repeatable; VALUE in TOML), e.g. --set simulator.jupiter_peak_w=0.3e-12 "
                    "--set simulator.latched_per_module=2")

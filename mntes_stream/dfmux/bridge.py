@@ -54,7 +54,7 @@ class DfMuxBridgeSettings(Settings):
     setup: str = setting(keys.DEFAULT_SETUP, "keys mntes/<setup>/...", pattern=NAME_PATTERN)
     interface: str = setting("", "address of the interface the boards' UDP multicast (239.192.0.2:9876) arrives on")
     boards: tuple[int, ...] = setting((), "serials of the V3/V4 boards (every one must send: spt3g's builder "
-                                      "collates a sample when all boards are in it)")
+                                      "collates a sample when all boards are in it)", ge=0)
     v2_boards: tuple[str, ...] = setting((), "V2 boards, which send no serial: IP=SERIAL each")
     sctp: tuple[str, ...] = setting((), "board host names to read by SCTP instead of UDP multicast")
     chunk_samples: int = setting(16, "samples per counts chunk per module (16 = 0.105 s)", ge=1)

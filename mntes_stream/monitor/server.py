@@ -40,6 +40,7 @@ import logging
 import math
 import signal
 import socket
+import threading
 import time
 from importlib import resources
 from pathlib import Path
@@ -49,7 +50,7 @@ from aiohttp import WSMsgType, web
 from mntes_stream.errors import ConfigError
 from mntes_stream.monitor.web_limits import ConnectionGuard, RateLog, WebLimits, descriptor_cap
 
-__all__ = ["WebGuard", "is_loopback", "plotly_js_path", "make_app", "serve"]
+__all__ = ["WebGuard", "is_loopback", "plotly_js_path", "make_app", "serve", "PageServer"]
 
 log = logging.getLogger("mntes_stream.monitor")
 
@@ -518,3 +519,57 @@ def serve(subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float
                    "send_timeout_s": send_timeout_s}
     asyncio.run(_serve(subscriber, bind, port, update_s, duration_s, on_ready or (lambda h, p: None), stop_event,
                        web_options, limits or WebLimits()))
+
+
+class PageServer:
+    """:func:`serve` on a thread of its own, so a service's ``step`` returns while the page is served.
+
+    :meth:`start` returns ``(host, port)`` once the page listens, None when stopped first, or raises
+    what kept it from listening (a port in use: :class:`ConfigError`); :meth:`alive` while it serves;
+    :meth:`stop` shuts it down and raises what the server died of, if it died. Arguments are
+    :func:`serve`'s (no ``duration_s``: the owner stops it).
+    """
+
+    def __init__(self, subscriber, bind: str = "127.0.0.1", port: int = 8050, update_s: float = 0.5, **options):
+        self._args = (subscriber, bind, port, update_s, 0.0)
+        self._options = options
+        self._stop = threading.Event()
+        self._listening = threading.Event()
+        self._address: tuple[str, int] | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="monitor-page", daemon=True)
+
+    def _on_ready(self, host: str, port: int) -> None:
+        self._address = (host, port)
+        self._listening.set()
+
+    def _run(self) -> None:
+        try:
+            serve(*self._args, on_ready=self._on_ready, stop_event=self._stop, **self._options)
+        except BaseException as exc:  # raised in the owner's thread by start() or stop()
+            self._error = exc
+
+    def start(self, stop=None) -> tuple[str, int] | None:
+        """Start serving; ``(host, port)`` once listening, None if ``stop`` (Event-like) was set first."""
+        self._thread.start()
+        while not self._listening.wait(0.05):
+            if not self._thread.is_alive() or (stop is not None and stop.is_set()):
+                self.stop()  # raises what the server ended with
+                if not (stop is not None and stop.is_set()):
+                    raise ConfigError("the monitor page server ended before it listened")
+                return None
+        return self._address
+
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop serving (idempotent); raises the error the server ended with, once."""
+        self._stop.set()
+        if self._thread.ident is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                log.warning("monitor: the page server did not stop within %.0f s", timeout_s)
+        error, self._error = self._error, None
+        if error is not None:
+            raise error

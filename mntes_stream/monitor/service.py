@@ -76,22 +76,15 @@ def load_positions(path: str | Path) -> dict[str, tuple[float, float]]:
     return out
 
 
-def _run_text(sub, cfg: MonitorServiceConfig, stop, out=None) -> None:
+def _print_table(sub, out=None) -> None:
     from mntes_stream.monitor.text import render_text
 
     out = sys.stdout if out is None else out  # now: a default bound at import keeps a stream long gone
     clear = out.isatty()
-    t_end = time.monotonic() + cfg.duration_s if cfg.duration_s > 0 else None
-    period = max(cfg.update_s, 0.1)
-    stop.wait(min(period, 1.0))  # let a first interval of data arrive
-    while not stop.is_set():
-        with sub.lock:
-            tick = sub.aggregator.tick(time.time_ns())
-            screen = render_text(sub.aggregator, tick)
-        print(("\x1b[H\x1b[2J" if clear else "") + screen + ("" if clear else "\n"), file=out, flush=True)
-        if t_end is not None and time.monotonic() >= t_end:
-            return
-        stop.wait(period if t_end is None else max(min(period, t_end - time.monotonic()), 0.0))
+    with sub.lock:
+        tick = sub.aggregator.tick(time.time_ns())
+        screen = render_text(sub.aggregator, tick)
+    print(("\x1b[H\x1b[2J" if clear else "") + screen + ("" if clear else "\n"), file=out, flush=True)
 
 
 class MonitorService(Service):
@@ -101,10 +94,13 @@ class MonitorService(Service):
     Config = MonitorServiceConfig
     summary = "quick-look web page (or terminal table) of power, housekeeping and service health"
 
-    ready_after_setup = False  # the web page is ready when its server listens
+    # The page is served by its own thread (monitor.server.PageServer) from setup to finish, so each step
+    # returns within a beat and the heartbeat shows the monitor alive; the table is printed by steps.
+    ready_after_setup = False  # ready when the page listens (setup) or the first table is due (text)
 
     def duration_s(self) -> float:
-        return 0.0  # the text loop and the web server end at duration_s themselves
+        # The table ends at duration_s itself, after the table of that moment (the lifecycle would end first).
+        return 0.0 if self.config.text else self.config.duration_s
 
     def setup(self, ctx) -> None:
         from mntes_stream.monitor.subscriber import MonitorSubscriber
@@ -113,30 +109,64 @@ class MonitorService(Service):
         positions = load_positions(cfg.params) if cfg.params else None
         self._sub = MonitorSubscriber(cfg.setup, cfg.zenoh, cfg.view, positions=positions, session=ctx.session,
                                       params_path=cfg.params)
+        self._page, self._url = None, ""
         self._sub.start()
+        if cfg.text:
+            now = time.monotonic()
+            self._t_end = now + cfg.duration_s if cfg.duration_s > 0 else None
+            self._next_table = now + min(cfg.update_s, 1.0)  # let a first interval of data arrive
+            ctx.mark_ready()
+            return
+        from mntes_stream.monitor.server import PageServer
+
+        self._page = PageServer(self._sub, cfg.bind, cfg.port, cfg.update_s, allowed_hosts=cfg.allowed_hosts,
+                                max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s, limits=cfg.web)
+        try:
+            address = self._page.start(ctx.stop)
+        except BaseException:
+            self._sub.close()
+            raise
+        if address is None:  # stopped while starting: the first step sees it
+            return
+        host, port = address
+        shown = f"[{host}]" if ":" in host else host
+        print(f"mntes-stream monitor: serving http://{shown}:{port}/ (setup {cfg.setup})", flush=True)
+        self._url = f"http://{shown}:{port}/"
+        ctx.mark_ready()
 
     def step(self, ctx) -> bool:
-        # One step: the terminal table or the web server, until stopped or duration_s.
-        cfg, sub = self.config, self._sub
-        if cfg.text:
-            ctx.mark_ready()
-            _run_text(sub, cfg, ctx.stop)
-            return False
-        from mntes_stream.monitor.server import serve
+        if self._page is not None:  # the page: serving until stopped or its server ends (finish says why)
+            ctx.stop.wait(self.beat_every_s)
+            return self._page.alive()
+        now = time.monotonic()
+        if ctx.stop.wait(min(max(self._next_table - now, 0.0), self.beat_every_s)):
+            return True  # the lifecycle sees the stop
+        if time.monotonic() < self._next_table:
+            return True
+        _print_table(self._sub)
+        self._next_table += max(self.config.update_s, 0.1)
+        if self._t_end is not None:
+            if time.monotonic() >= self._t_end:
+                return False
+            self._next_table = min(self._next_table, self._t_end)
+        return True
 
-        def on_ready(host, port):
-            shown = f"[{host}]" if ":" in host else host
-            print(f"mntes-stream monitor: serving http://{shown}:{port}/ (setup {cfg.setup})", flush=True)
-            ctx.mark_ready()
-
-        serve(sub, cfg.bind, cfg.port, cfg.update_s, cfg.duration_s, on_ready, ctx.stop,
-              allowed_hosts=cfg.allowed_hosts, max_clients=cfg.max_clients, send_timeout_s=cfg.send_timeout_s,
-              limits=cfg.web)
-        return False
+    def counters(self) -> dict:
+        agg = self._sub.aggregator if getattr(self, "_sub", None) is not None else None
+        if agg is None:
+            return {}
+        out = {"power_chunks": agg.power_chunks, "dropped": agg.dropped}
+        if self._url:
+            out["url"] = self._url
+        return out
 
     def finish(self, ctx) -> dict:
         sub = self._sub
-        with sub.lock:
-            health = sub.aggregator.tick(time.time_ns())["health"]["monitor"]
-        sub.close()
+        try:
+            if self._page is not None:
+                self._page.stop()  # raises what the server died of, if it did
+        finally:
+            with sub.lock:
+                health = sub.aggregator.tick(time.time_ns())["health"]["monitor"]
+            sub.close()
         return {k: v for k, v in health.items() if isinstance(v, (int, float, str))}

@@ -351,8 +351,9 @@ class ConverterService(Service):
         cfg, converter = self.config, self.prebuilt
         # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
         snap_key, snap = load_snapshot(cfg) if converter is None else (None, None)
+        params_toml = None  # the provenance's parameter text when the snapshot has it (not written again)
         if snap is not None:
-            params, streams, conv = snap
+            params, streams, conv, params_toml = snap
         else:
             params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
             if converter is None:
@@ -378,7 +379,8 @@ class ConverterService(Service):
                        "for the next start)"):
             _warm_up(conv)
         summary = owns_summary(cfg.shard_parsed, cfg.boards, cfg.modules, streams) if streams is not None else {}
-        self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, owns=summary if cfg.partial else None,
+        self._pipe = pipe = ConverterPipeline(conv, cfg.pipeline, params_toml=params_toml,
+                                              owns=summary if cfg.partial else None,
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
                                               uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p,
                                               only_fused=cfg.low_responsivity == "auto")

@@ -62,7 +62,7 @@ log = logging.getLogger("mntes_stream.converter")
 
 
 def converter_stages(books: Books, converter, *, params: list, modules, owns: dict, threads: int,
-                     set_aside_bytes: int, noise=None, sigma_p: bool = False) -> tuple:
+                     set_aside_bytes: int, noise=None, sigma_p: bool = False, params_toml: str | None = None) -> tuple:
     """The converter's stages, in order: the one declaration every path runs.
 
     Returns
@@ -83,7 +83,8 @@ def converter_stages(books: Books, converter, *, params: list, modules, owns: di
         Flags(books),
         Encode(books, str(converter.identity), str(converter.kind)),
         # The provenance names the noise in use now (measured live: renewed window by window).
-        Status(books, sequence, align, converter, params, owns, (lambda: convert.noise) if noise else None, sigma_p),
+        Status(books, sequence, align, converter, params, owns, (lambda: convert.noise) if noise else None, sigma_p,
+               params_toml),
     )
 
 
@@ -100,6 +101,9 @@ class ConverterPipeline:
     params : dict or list of DetectorParams, optional
         The detector parameters (provenance and nominal bias); default
         ``converter.params`` when it has them.
+    params_toml : str, optional
+        Their TOML text (``io.paramfile.params_to_toml``) when the caller has it already
+        (a converter snapshot); default: written from ``params`` once, for the first provenance.
     clock : callable or None
         Publication time stamp of outputs (ns); default ``time.time_ns``.
         None stamps outputs with the receive time of the message being handled,
@@ -137,7 +141,7 @@ class ConverterPipeline:
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
                  clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
                  set_aside_bytes: int = 256 << 20, uncertainty=None, sigma_p: bool = False,
-                 only_fused: bool = False):
+                 only_fused: bool = False, params_toml: str | None = None):
         if not isinstance(threads, int) or threads < 1:
             raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
         self.converter = converter
@@ -170,7 +174,7 @@ class ConverterPipeline:
             noise = noise_model_for(list(converter.params), uncertainty, nominal_gradients(converter))
         self.stages = converter_stages(self.books, converter, params=params, modules=modules, owns=dict(owns or {}),
                                        threads=threads, set_aside_bytes=set_aside_bytes, noise=noise,
-                                       sigma_p=bool(sigma_p) and noise is not None)
+                                       sigma_p=bool(sigma_p) and noise is not None, params_toml=params_toml)
         _, self._sequence, self._align, _, _, _, self._status = self.stages
 
     # ------------------------------------------------------------------ running the stages

@@ -26,16 +26,19 @@ class Status:
     books : Books
     sequence, align : the stages whose state the status reports (streams, set aside, held, housekeeping)
     converter, params, owns : what the provenance names
+    params_toml : str, optional
+        ``params`` as TOML text when the caller has it; default: written once, when first needed
     noise : callable returning the noise model in use (``core.uncertainty.NoiseModel``), or None
     """
 
     name = "status"
 
     def __init__(self, books: Books, sequence: Sequence, align: Align, converter, params: list, owns: dict,
-                 noise=None, sigma_p: bool = False):
+                 noise=None, sigma_p: bool = False, params_toml: str | None = None):
         self.books, self.sequence, self.align = books, sequence, align
         self._sigma_p = sigma_p
         self.converter, self._params, self._owns, self._noise = converter, params, owns, noise
+        self._params_toml = params_toml
         self.owns_status: Callable[[], dict] | None = None
         self._status_ns = ns(books.config.status_interval_s)
         self._next_ns: int | None = None
@@ -121,9 +124,11 @@ class Status:
         """Parameters (TOML text), table identity, converter kind and software version."""
         from mntes_stream.io.paramfile import params_to_toml
 
+        if self._params_toml is None:  # written once: the provenance is renewed when the noise changes
+            self._params_toml = params_to_toml(self._params) if self._params else ""
         return Provenance(
             setup=self.books.config.setup,
-            params_toml=params_to_toml(self._params) if self._params else "",
+            params_toml=self._params_toml,
             table_identity=str(self.converter.identity),
             converter_kind=str(self.converter.kind),
             software_version=__version__,

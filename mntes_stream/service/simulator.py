@@ -41,7 +41,7 @@ from mntes_stream.service.metrics import MetricsSettings
 from mntes_stream.service.source import Batch, PacedBatches
 
 __all__ = ["SimulatorSource", "SimulatorService", "SimulatorServiceConfig", "TruthRecorder", "write_mcap",
-           "publish_live", "run_simulator", "load_truth", "TRUTH_NOTE"]
+           "run_simulator", "load_truth", "TRUTH_NOTE"]
 
 log = logging.getLogger("mntes_stream.simulator")
 
@@ -241,43 +241,6 @@ def write_mcap(source: SimulatorSource, path: str | Path, duration_s: float, t_s
             "elapsed_s": time.perf_counter() - wall}
 
 
-def publish_live(source: SimulatorSource, settings, *, speed: float = 1.0, duration_s: float = 0.0, stop=None,
-                 truth: TruthRecorder | None = None, wait_s: float = 10.0, progress=None,
-                 linger_s: float = 1.0) -> dict:
-    """Publish over zenoh, paced to ``speed`` x real time (0: as fast as possible).
-
-    Waits up to ``wait_s`` for a subscriber to the counts first, and keeps the
-    session open ``linger_s`` after the last batch: ``put`` returns once a
-    message is queued, so closing at once would drop what is still in flight.
-    Returns the counters of :func:`mntes_stream.service.source.publish`.
-    """
-    from mntes_stream.io.history import cache_chunks
-    from mntes_stream.io.transport import Publishers, open_session
-    from mntes_stream.service.source import publish
-
-    with open_session(settings) as session:
-        # Wait for the converter before the data clock starts, so waiting is not latency.
-        if wait_s > 0:
-            pubs = Publishers(session)
-            try:
-                if not pubs.wait_matching(source.wait_keys(), wait_s, stop):
-                    log.warning("simulator: no subscriber for the counts yet; publishing anyway")
-            finally:
-                pubs.close()
-        start = time.time_ns()
-        result = publish(session, source.batches(start, duration_s, truth=truth), speed=speed, stop=stop,
-                         progress=progress, t_ref_ns=start,
-                         history_chunks=cache_chunks(settings.history_seconds,
-                                                     source.chunk_samples / source.config.sample_rate_hz),
-                         history_bytes=settings.history_bytes)
-        if stop is not None:
-            stop.wait(linger_s)
-        else:
-            time.sleep(linger_s)
-    log.info("simulator stopped: %s", result)
-    return result
-
-
 def perturbed_params(params: list[DetectorParams], scale: float = 1.0, seed: int = 0) -> list[DetectorParams]:
     """The truth with random calibration errors: each of ``core.validation.CALIBRATION_ERRORS``
     drawn per detector from N(0, scale x its assumed 1-sigma level)."""
@@ -307,14 +270,16 @@ class SimulatorServiceConfig(Settings):
     zenoh: ZenohSettings = setting(default_factory=ZenohSettings, doc="how to join zenoh ([zenoh])")
 
 
-def run_simulator(cfg: SimulatorServiceConfig, stop=None, ready=None, truth: TruthRecorder | None = None) -> dict:
+def run_simulator(cfg: SimulatorServiceConfig, stop=None, ready=None, truth: TruthRecorder | None = None,
+                  source: SimulatorSource | None = None) -> dict:
     """Publish until ``duration_s`` of data is out or ``stop`` is set (SIGINT/SIGTERM set it too).
 
     ``ready`` is set once the truth parameters are written (``params_out``) and the session is open;
-    the clock starts when the converter has subscribed (or after 10 s).
+    the clock starts when the converter has subscribed (or after 10 s). ``source``: the
+    ``SimulatorSource`` of ``cfg`` when the caller built it already (seconds for a large array).
     """
     service = SimulatorService(cfg)
-    service.truth = truth
+    service.truth, service.source = truth, source
     return dict(service.run(stop, ready))
 
 
@@ -327,6 +292,8 @@ class SimulatorService(PacedBatches, Service):
     #: seconds to wait for a subscriber to the counts before the data clock starts
     WAIT_S = 10.0
     truth: TruthRecorder | None = None
+    #: the SimulatorSource of the config, when built already (None: setup builds it)
+    source: SimulatorSource | None = None
 
     def duration_s(self) -> float:
         return 0.0  # duration_s is seconds of data: the batches end there
@@ -340,7 +307,7 @@ class SimulatorService(PacedBatches, Service):
         from mntes_stream.service.source import Pacer
 
         cfg = self.config
-        source = SimulatorSource(cfg.sim, cfg.setup, cfg.chunk_s)
+        source = self.source if self.source is not None else SimulatorSource(cfg.sim, cfg.setup, cfg.chunk_s)
         if cfg.params_out:
             from mntes_stream.io.paramfile import dump_params
 

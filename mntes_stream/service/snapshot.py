@@ -98,7 +98,8 @@ def _private(path: Path) -> str | None:
 
 
 def load_snapshot(cfg):
-    """``(key, (params, streams, converter))`` saved by an earlier start with the same key, else ``(key, None)``."""
+    """``(key, (params, streams, converter, params_toml))`` saved by an earlier start with the same key, else
+    ``(key, None)``; ``params_toml``: the converter's parameters as ``params_to_toml`` wrote them."""
     if not cfg.table_cache:
         return None, None
     try:
@@ -122,11 +123,8 @@ def load_snapshot(cfg):
     except Exception as exc:  # damaged, truncated, or from code that moved: build instead
         log.warning("converter snapshot %s unusable (%s: %s): building", path, type(exc).__name__, exc)
         return key, None
-    from mntes_stream.io.paramfile import remember_toml
-
-    remember_toml(conv.params, text)  # the provenance's parameter text, without writing it again
     log.info("converter %s loaded from the snapshot %s", str(conv.identity)[:12], path)
-    return key, (params, streams, conv)
+    return key, (params, streams, conv, text)
 
 
 def save_snapshot(cfg, key: str | None, params, streams, conv) -> None:
