@@ -14,7 +14,7 @@ from mntes_stream.io import keys
 from mntes_stream.io.mcap import Session
 from mntes_stream.io.messages import Provenance
 from mntes_stream.io.paramfile import dump_params
-from mntes_stream.service.offline import build_converter, convert_recording
+from mntes_stream.pipeline.offline import build_converter, convert_recording
 from mntes_stream.service.simulator import SimulatorSource, write_mcap
 
 

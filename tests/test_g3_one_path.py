@@ -47,7 +47,7 @@ def test_g3_to_g3_equals_g3_to_mcap_flags_and_all(tmp_path, staleness_s):
     from mntes_stream.core.sim import ArraySimulator
     from mntes_stream.g3.files import g3_to_g3, g3_to_mcap
     from mntes_stream.g3.sim import bolometer_name, write_g3
-    from mntes_stream.service.pipeline import PipelineConfig
+    from mntes_stream.pipeline import PipelineConfig
 
     cfg = SimConfig.noise_free(modules=2, channels=4, t_bath_wander_k=0.2e-3, t_bath_wander_period_s=60.0,
                                bias_steps=((1.0, 0.01),), hk_t_bath_rate_hz=1.0)

@@ -95,14 +95,14 @@ def _same_code(code: str) -> None:
     """The snapshot key hashes mntes_stream/core/*.py (``build_fingerprint``): a file there saved while this test
     runs (in a shared work tree) makes the next start build, rightly, instead of loading. Said plainly, not as a
     miscount of "loaded from the snapshot"."""
-    from mntes_stream.service.snapshot import build_fingerprint
+    from mntes_stream.pipeline.snapshot import build_fingerprint
 
     build_fingerprint.cache_clear()
     assert build_fingerprint() == code, "mntes_stream/core/*.py changed while this test ran: run it again"
 
 
 def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, caplog):
-    from mntes_stream.service.snapshot import build_fingerprint
+    from mntes_stream.pipeline.snapshot import build_fingerprint
 
     dump_params(source.params, tmp_path / "params.toml")
     build_fingerprint.cache_clear()  # this process may have hashed core/ minutes ago (another test): the code now
@@ -125,8 +125,8 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
     # after a refusal is the damaged case's serve run below).
     import logging
 
+    from mntes_stream.pipeline.snapshot import load_snapshot
     from mntes_stream.service.config import load_service_config
-    from mntes_stream.service.snapshot import load_snapshot
 
     _, cfg = load_service_config(tmp_path / "converter.toml")
     os.chmod(snap, 0o666)
@@ -150,8 +150,8 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
 
 def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, source):
     from mntes_stream.core.convert import EnvironmentBlock
+    from mntes_stream.pipeline.snapshot import load_snapshot, save_snapshot
     from mntes_stream.service.converter import ConverterConfig, build_converter, owned_params
-    from mntes_stream.service.snapshot import load_snapshot, save_snapshot
 
     dump_params(source.params, tmp_path / "params.toml")
     cfg = ConverterConfig(params=str(tmp_path / "params.toml"), table_cache=str(tmp_path / "cache"))
@@ -187,7 +187,7 @@ def _feed(pipe, batches):
 
 def test_a_resumed_pipeline_counts_what_was_published_while_it_was_down(source, caplog):
     from mntes_stream.core.convert import make_converter
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
     conv = make_converter("exact", {p.detector_id: p for p in source.params})
     steps = list(source.batches(T0, duration_s=3.0))
@@ -221,7 +221,7 @@ def test_a_resumed_pipeline_drops_the_history_its_checkpoint_had_converted_as_du
     'converted 2264, pending 256': the checkpoint's duplicates were booked received and then lost in an error)."""
     from mntes_stream.core.convert import make_converter
     from mntes_stream.core.ledger import Ledger
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
     conv = make_converter("exact", {p.detector_id: p for p in source.params})
     steps = list(source.batches(T0, duration_s=3.0))

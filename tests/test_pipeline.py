@@ -12,7 +12,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance, StatusMessage, decode
 from mntes_stream.io.paramfile import parse_params
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 T0 = 1_700_000_000_000_000_000
@@ -495,8 +495,8 @@ def test_a_chunk_that_cannot_be_converted_is_dropped_once_and_counted(source, co
 def test_the_stages_are_one_declared_list_and_running_them_by_hand_is_handle_many(source, converter):
     """The stages run in their declared order; the same items through them by hand give handle_many's bytes,
     and a stage that fails on a batch is counted (internal_error) without stopping the next batch."""
-    from mntes_stream.service.pipeline import converter_stages
-    from mntes_stream.service.stages import END
+    from mntes_stream.pipeline.pipeline import converter_stages
+    from mntes_stream.pipeline.stages import END
 
     msgs = _messages(source, 12)
     a, b = len(msgs) // 3, 2 * len(msgs) // 3

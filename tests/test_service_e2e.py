@@ -24,8 +24,8 @@ from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, Provenance, StatusMessage, decode
 from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import Publishers, QueueSubscriber, free_tcp_port, loopback, open_session
+from mntes_stream.pipeline import PipelineConfig
 from mntes_stream.service.converter import ConverterConfig, build_converter, run_converter
-from mntes_stream.service.pipeline import PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig, publish
 
 SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1)

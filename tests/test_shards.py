@@ -15,9 +15,9 @@ from mntes_stream.io.claims import StreamClaims, parse_claim
 from mntes_stream.io.messages import CountsChunk, PowerChunk, Provenance, StatusMessage
 from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import free_tcp_port, loopback, open_session
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.converter import ConverterConfig, owned_params, subscriptions
 from mntes_stream.service.coverage import Coverage
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.recorder import RecorderConfig
 from mntes_stream.service.recorder_sink import shard_filter
 from mntes_stream.service.source import MinimalSource, SourceConfig
@@ -201,7 +201,7 @@ def test_batched_handling_gives_the_power_of_message_by_message(array, bias, thr
     steps with the same rows (split across threads if asked): the same power and flags as handle(),
     message by message."""
     from mntes_stream.core.convert import make_converter
-    from mntes_stream.service import pipeline_convert
+    from mntes_stream.pipeline import convert as pipeline_convert
 
     monkeypatch.setattr(pipeline_convert, "_SPLIT_SAMPLES", 0)  # this small array's runs are split too
 

@@ -15,7 +15,7 @@ housekeeping in force at that sample (spt3g's own conversion functions), so
 a gain change mid-run applies from the sample at or after its timestamp.
 
 With detector parameters the module is the live converter's pipeline
-(``service.pipeline.ConverterPipeline``) behind the G3 translator the bridge
+(``pipeline.pipeline.ConverterPipeline``) behind the G3 translator the bridge
 uses (``g3.translate.FrameTranslator``): each Scan frame becomes one counts
 chunk per module, housekeeping (DfMux bias, the bath thermometer of GcpSlow
 frames) becomes the same housekeeping messages, and the power comes out of
@@ -42,7 +42,6 @@ import numpy as np
 from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import CONVERTER_KINDS, make_converter
 from mntes_stream.errors import ConfigError
-from mntes_stream.g3 import spt3g
 from mntes_stream.g3.counts import scan_block
 from mntes_stream.g3.mapping import (
     BathHistory,
@@ -54,11 +53,12 @@ from mntes_stream.g3.mapping import (
     invalid_counts,
     params_for_wiring,
 )
+from mntes_stream.g3.runtime import spt3g
 from mntes_stream.g3.translate import FrameTranslator
 from mntes_stream.io import keys
 from mntes_stream.io.lean import CountsDecoder
 from mntes_stream.io.messages import PowerChunk
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
 __all__ = ["OpticalPower", "POWER_KEY", "FLAGS_KEY", "load_g3_params"]
 

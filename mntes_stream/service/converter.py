@@ -1,7 +1,7 @@
 """Converter service: zenoh counts + housekeeping in, power + status out (``[converter]`` config).
 
 The loop is thin on purpose: a :class:`~mntes_stream.io.transport.QueueSubscriber`
-hands ``(key, payload, t_recv_ns)`` to a :class:`~mntes_stream.service.pipeline.ConverterPipeline`
+hands ``(key, payload, t_recv_ns)`` to a :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline`
 (the same object offline re-conversion uses), whose outputs go out through
 BLOCK publishers. Provenance (parameters, table identity) is published at
 start and every ``provenance_interval_s`` with identical bytes, so a recorder
@@ -12,11 +12,9 @@ started later still gets it. Stops on SIGINT/SIGTERM, a stop event or
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import dataclass, fields
 
-from mntes_stream import cache_root
 from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
@@ -27,9 +25,10 @@ from mntes_stream.io import keys
 from mntes_stream.io.cache import DEFAULT_MAX_MB
 from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import QueueSubscriber, ZenohSettings, answer
+from mntes_stream.pipeline.build import default_table_cache
+from mntes_stream.pipeline.config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 from mntes_stream.service.base import Service, announced
 from mntes_stream.service.metrics import MetricsSettings
-from mntes_stream.service.pipeline_config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 
 __all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
 
@@ -56,8 +55,8 @@ class ConverterConfig(Settings):
     tables: str = setting("", "table bank file (mntes-stream tables build); '' = build from params at start",
                           path=True)
     table_cache: str = setting(
-        os.path.join(cache_root(), "tables"), "banks built from params, and the converter as built "
-        "(service/snapshot.py), are kept here keyed by parameters, kind and software version, so a restart loads "
+        default_table_cache(), "banks built from params, and the converter as built "
+        "(pipeline/snapshot.py), are kept here keyed by parameters, kind and software version, so a restart loads "
         "instead of rebuilding ('' = no cache; `mntes-stream cache` shows and clears it)", path=True)
     table_cache_max_mb: float = setting(DEFAULT_MAX_MB, "the table cache's size cap: after each write the least "
                                         "recently used entries beyond it are removed", unit="MB", gt=0)
@@ -138,7 +137,7 @@ class ConverterConfig(Settings):
 
     @property
     def pipeline(self) -> PipelineConfig:
-        """What the :class:`~mntes_stream.service.pipeline.ConverterPipeline` takes."""
+        """What the :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` takes."""
         return PipelineConfig.from_parts(self.alignment, setup=self.setup, service=self.name,
                                          status_interval_s=self.status.interval_s)
 
@@ -152,7 +151,7 @@ def owned_params(cfg: ConverterConfig):
     streams : sorted list of (board, module), or None when the detector ids do not name
         their board and module (then the converter takes every stream, unsharded)
     """
-    from mntes_stream.service.housekeeping import known_modules
+    from mntes_stream.pipeline.housekeeping import known_modules
 
     params = None
     if cfg.params:
@@ -195,6 +194,7 @@ def build_converter(cfg: ConverterConfig, params=None):
     With a table bank file, the whole bank is loaded (give each shard a bank of its own to load less).
     """
     from mntes_stream.core.convert import make_converter
+    from mntes_stream.pipeline.build import cached_bank
 
     if params is None and cfg.params:
         from mntes_stream.io.paramfile import load_params
@@ -206,42 +206,8 @@ def build_converter(cfg: ConverterConfig, params=None):
 
         bank = load_bank(cfg.tables)
     elif cfg.table_cache and cfg.kind in ("table", "grid") and params:
-        bank = _cached_bank(cfg, params)
+        bank = cached_bank(cfg.kind, params, cfg.table_cache, cfg.table_cache_max_mb)
     return make_converter(cfg.kind, params, bank)
-
-
-def _cached_bank(cfg: ConverterConfig, params):
-    """The bank for ``params`` from the cache, or built and put there (a broken cache entry is rebuilt)."""
-    import os
-    from pathlib import Path
-
-    from mntes_stream import __version__
-    from mntes_stream.core.tables import TABLE_FORMAT, build_bank, params_identity
-    from mntes_stream.errors import MntesError
-    from mntes_stream.io.cache import prune, touch
-    from mntes_stream.io.tablefile import load_bank, save_bank
-    from mntes_stream.service.snapshot import build_fingerprint
-
-    key = params_identity(list(params.values()), {"kind": cfg.kind, "format": TABLE_FORMAT, "software": __version__,
-                                                  "code": build_fingerprint()})
-    directory = Path(os.path.expanduser(cfg.table_cache))
-    path = directory / f"{cfg.kind}-{key[:32]}.npz"
-    if path.exists():
-        try:
-            bank = load_bank(path)  # verifies the content hash: a damaged entry is not used
-            log.info("table bank %s from the cache %s", bank.identity[:12], path)
-            touch(path)  # recently used: the last the size cap removes
-            return bank
-        except MntesError as exc:
-            log.warning("table cache entry %s unusable (%s): rebuilding", path, exc)
-    bank = build_bank(params, kind=cfg.kind)
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        save_bank(bank, path)
-        prune(directory, getattr(cfg, "table_cache_max_mb", DEFAULT_MAX_MB) * 1e6, keep=(path,))  # offline: no cap set
-    except OSError as exc:  # a read-only home must not stop the converter
-        log.warning("cannot write the table cache %s: %s", path, exc)
-    return bank
 
 
 def _warm_up(conv) -> None:
@@ -343,10 +309,10 @@ class ConverterService(Service):
 
     def setup(self, ctx) -> None:
         from mntes_stream.io.claims import StreamClaims
+        from mntes_stream.pipeline import ConverterPipeline
+        from mntes_stream.pipeline.snapshot import load_snapshot, save_snapshot
         from mntes_stream.service.checkpoint import load_checkpoint
         from mntes_stream.service.ownership import Ownership, owns_summary
-        from mntes_stream.service.pipeline import ConverterPipeline
-        from mntes_stream.service.snapshot import load_snapshot, save_snapshot
 
         cfg, converter = self.config, self.prebuilt
         # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
@@ -370,7 +336,7 @@ class ConverterService(Service):
             else:
                 conv = converter
         if streams is None and converter is not None:
-            from mntes_stream.service.housekeeping import known_modules
+            from mntes_stream.pipeline.housekeeping import known_modules
 
             modules = known_modules(conv.detector_ids)
             streams = sorted(modules) if modules is not None else None

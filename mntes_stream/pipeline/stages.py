@@ -8,14 +8,14 @@ returns frames. What flows:
 - :class:`Counts` / :class:`Hk`: a decoded counts or housekeeping message;
 - :class:`Tick`: a message dropped at the door, which still lets receive time pass;
 - :class:`Pending`: a counts chunk booked in its stream's sequence, held for housekeeping;
-- ``_Ready`` (``service.pipeline_convert``): a released chunk with its housekeeping aligned;
+- ``_Ready`` (``pipeline.convert``): a released chunk with its housekeeping aligned;
 - :data:`END`, last of every batch (``End(force=True)``: flush): the stages that
   gather (conversion, status) act on it.
 
 The stages are declared once, in order, by
-:func:`~mntes_stream.service.pipeline.converter_stages`; every path (the live
+:func:`~mntes_stream.pipeline.pipeline.converter_stages`; every path (the live
 service, offline ``convert``, replay into a converter, the G3 ``OpticalPower``
-module) runs that list through :class:`~mntes_stream.service.pipeline.ConverterPipeline`.
+module) runs that list through :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline`.
 Housekeeping and alignment are one stage because a chunk is aligned with the
 history *as of its release*: a reading received after it must not change it,
 or the power would depend on how the messages were batched.
@@ -40,8 +40,8 @@ from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
 from mntes_stream.io.lean import CountsDecoder
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
-from mntes_stream.service.housekeeping import DelayFloor, Housekeeping, ns
-from mntes_stream.service.pipeline_config import PipelineConfig
+from mntes_stream.pipeline.config import PipelineConfig
+from mntes_stream.pipeline.housekeeping import DelayFloor, Housekeeping, ns
 
 __all__ = ["END", "Books", "Counts", "Decode", "End", "Hk", "Align", "Pending", "PipelineCounters", "Sequence",
            "Tick"]
@@ -442,9 +442,9 @@ class Align:
     last sample (interpolated, not extrapolated) or until it has waited
     ``hk_wait_s`` of receive time, whichever first; at most ``max_pending``
     are held (beyond, the oldest is released at once). A released chunk
-    leaves as ``_Ready``, aligned by ``environment`` (``service.pipeline_convert``)
+    leaves as ``_Ready``, aligned by ``environment`` (``pipeline.convert``)
     with the histories as of its release. Readings are judged by
-    ``service.housekeeping`` (bad ones counted by reason).
+    ``pipeline.housekeeping`` (bad ones counted by reason).
     """
 
     name = "housekeeping"

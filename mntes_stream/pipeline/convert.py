@@ -4,7 +4,7 @@
 housekeeping at every sample); :class:`Convert` gathers them until the end of
 the batch and converts them in as few converter calls as may be;
 :class:`Flags` completes the flags and makes flagged power NaN; :class:`Encode`
-makes each chunk's power message and books it. See ``service.stages`` for
+makes each chunk's power message and books it. See ``pipeline.stages`` for
 what flows between stages.
 """
 
@@ -21,7 +21,7 @@ from mntes_stream.core.uncertainty import NoiseWindow, low_responsivity_block, s
 from mntes_stream.io import keys
 from mntes_stream.io.lean import PowerEncoder
 from mntes_stream.io.messages import CountsChunk
-from mntes_stream.service.stages import Books, End, Pending
+from mntes_stream.pipeline.stages import Books, End, Pending
 
 __all__ = ["Convert", "Encode", "Environment", "Flags"]
 
@@ -94,7 +94,7 @@ def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
 class Environment:
     """A released chunk's rows (detector ids, which have parameters) and housekeeping at every sample.
 
-    Called by the housekeeping stage at a chunk's release (``service.stages.Align``).
+    Called by the housekeeping stage at a chunk's release (``pipeline.stages.Align``).
     """
 
     def __init__(self, books: Books, hk, known: frozenset):

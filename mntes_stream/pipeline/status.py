@@ -12,8 +12,8 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.shards import StreamKey
 from mntes_stream.io import keys
 from mntes_stream.io.messages import Provenance, StatusMessage
-from mntes_stream.service.housekeeping import ns
-from mntes_stream.service.stages import Align, Books, End, Sequence
+from mntes_stream.pipeline.housekeeping import ns
+from mntes_stream.pipeline.stages import Align, Books, End, Sequence
 
 __all__ = ["Status"]
 

@@ -1,7 +1,7 @@
 """Offline re-conversion of a recording through the live converter's own pipeline.
 
 The recorded counts and housekeeping are fed to
-:class:`~mntes_stream.service.pipeline.ConverterPipeline` in log-time order
+:class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` in log-time order
 with their recorded receive times, exactly as the live service feeds what its
 subscriber receives; the inputs and everything the pipeline emits (power,
 status, its provenance) are written to the output file. By default the
@@ -181,16 +181,14 @@ def recorded_calibrations(session) -> list:
 def _cache_dir(table_cache) -> str:
     """The table cache to use: ``...`` is the converter service's default, None or "" none."""
     if table_cache is ...:
-        from dataclasses import fields
+        from mntes_stream.pipeline.build import default_table_cache
 
-        from mntes_stream.service.converter import ConverterConfig
-
-        return next(f.default for f in fields(ConverterConfig) if f.name == "table_cache")
+        return default_table_cache()
     return str(table_cache) if table_cache else ""
 
 
 def _snapshot_cfg(cache: str, kind: str, params_path: str):
-    """What :mod:`service.snapshot` reads of a converter config, for a whole-focal-plane offline converter."""
+    """What :mod:`pipeline.snapshot` reads of a converter config, for a whole-focal-plane offline converter."""
     from types import SimpleNamespace
 
     return SimpleNamespace(params=params_path, tables="", kind=kind, boards=(), modules=(), shard="", table_cache=cache)
@@ -206,7 +204,7 @@ def _load_snapshot(cache: str, kind: str, params, text: str | None):
     """
     import tempfile
 
-    from mntes_stream.service.snapshot import load_snapshot
+    from mntes_stream.pipeline.snapshot import load_snapshot
 
     with tempfile.TemporaryDirectory(prefix="mntes-offline-") as tmp:
         path = str(params) if params is not None else str(Path(tmp) / "params.toml")
@@ -234,7 +232,7 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
     table_cache : path, optional
         Where banks built from parameters are kept, as the live converter
         keeps them (``...``: its default, ``~/.cache/mntes-stream/tables``;
-        None: always build), and the converter as built (``service/snapshot.py``,
+        None: always build), and the converter as built (``pipeline/snapshot.py``,
         keyed by the parameters' bytes, kind and software). What comes from the
         cache is what would be built (same identity), in a fraction of the time.
 
@@ -285,13 +283,11 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
                         "(power NaN, UNKNOWN_CHANNEL): %s", kind, len(left), ", ".join(left[:8]) + (" ..." if len(left) > 8 else ""))
             pdict = {d: q for d, q in pdict.items() if d not in left}
     if snap is None and cache:
-        from types import SimpleNamespace
+        from mntes_stream.pipeline.build import cached_bank
+        from mntes_stream.pipeline.snapshot import save_snapshot
 
-        from mntes_stream.service.converter import _cached_bank
-        from mntes_stream.service.snapshot import save_snapshot
-
-        # The live converter's own bank cache (same keys, same checks); it reads only these two settings.
-        conv = make_converter(kind, pdict, _cached_bank(SimpleNamespace(kind=kind, table_cache=cache), pdict))
+        # The live converter's own bank cache (same keys, same checks).
+        conv = make_converter(kind, pdict, cached_bank(kind, pdict, cache))
         save_snapshot(_snapshot_cfg(cache, kind, ""), key, pdict, None, conv)
     elif snap is None:
         conv = make_converter(kind, pdict)
@@ -357,8 +353,8 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
 
     from mntes_stream.io import keys
     from mntes_stream.io.mcap import McapFileWriter, Session, writer_description
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
-    from mntes_stream.service.replay import INPUT_KINDS, input_topics
+    from mntes_stream.pipeline.config import INPUT_KINDS, PipelineConfig, input_topics
+    from mntes_stream.pipeline.pipeline import ConverterPipeline
 
     if not batch_s >= 0:
         raise ConfigError(f"batch_s must be >= 0, got {batch_s}")

@@ -14,7 +14,7 @@ What happens to a message (``handle``):
   every *required* housekeeping sensor has a reading at or after its last
   sample (so housekeeping is interpolated, not extrapolated) or until it has
   waited ``hk_wait_s`` of receive time, whichever first;
-- housekeeping (``service.housekeeping``): added to that sensor's history (``core.align.HkSeries``),
+- housekeeping (``pipeline.housekeeping``): added to that sensor's history (``core.align.HkSeries``),
   except readings stamped more than ``hk_max_ahead_s`` ahead of the data clock
   or (bias excepted: a setting holds) more than ``hk_retention_s`` behind it,
   which are counted (``bad_messages["hk_time"]``) and dropped. The data clock
@@ -36,7 +36,7 @@ HK_STALE is (``hk_stale_power = "nan"``). Every counts chunk is booked in
 The work is a list of stages (:func:`converter_stages`), each a callable over
 a batch of items in the style of an spt3g pipeline: decode, sequence,
 housekeeping (with alignment), convert, flags, encode, status
-(``service.stages``, ``service.pipeline_convert``, ``service.pipeline_status``).
+(``pipeline.stages``, ``pipeline.convert``, ``pipeline.status``).
 The list is declared once; the live service, offline ``convert``, replay into
 a converter and the G3 ``OpticalPower`` module all run it through
 :class:`ConverterPipeline`.
@@ -50,11 +50,11 @@ from collections.abc import Callable
 
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.errors import ConfigError
-from mntes_stream.service.housekeeping import Housekeeping, known_modules
-from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
-from mntes_stream.service.pipeline_convert import Convert, Encode, Environment, Flags
-from mntes_stream.service.pipeline_status import Status
-from mntes_stream.service.stages import END, Align, Books, Decode, End, PipelineCounters, Sequence
+from mntes_stream.pipeline.config import SCALAR_SENSORS, PipelineConfig
+from mntes_stream.pipeline.convert import Convert, Encode, Environment, Flags
+from mntes_stream.pipeline.housekeeping import Housekeeping, known_modules
+from mntes_stream.pipeline.stages import END, Align, Books, Decode, End, PipelineCounters, Sequence
+from mntes_stream.pipeline.status import Status
 
 __all__ = ["PipelineConfig", "ConverterPipeline", "PipelineCounters", "SCALAR_SENSORS", "converter_stages"]
 
