@@ -495,14 +495,13 @@ def test_a_chunk_that_cannot_be_converted_is_dropped_once_and_counted(source, co
 def test_the_stages_are_one_declared_list_and_running_them_by_hand_is_handle_many(source, converter):
     """The stages run in their declared order; the same items through them by hand give handle_many's bytes,
     and a stage that fails on a batch is counted (internal_error) without stopping the next batch."""
+    from mntes_stream.pipeline.items import END, Flagged, Output
     from mntes_stream.pipeline.pipeline import converter_stages
-    from mntes_stream.pipeline.stages import END
 
     msgs = _messages(source, 12)
     a, b = len(msgs) // 3, 2 * len(msgs) // 3
     pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0), clock=None)
-    assert [s.name for s in pipe.stages] == ["decode", "sequence", "housekeeping", "convert", "flags", "encode",
-                                             "status"]
+    assert pipe.stages.names == ["decode", "sequence", "housekeeping", "convert", "flags", "encode", "status"]
     assert [type(s) for s in pipe.stages] == [type(s) for s in converter_stages(
         pipe.books, converter, params=[], modules=None, owns={}, threads=1, set_aside_bytes=1)]
     want = pipe.handle_many(msgs[:a])
@@ -516,17 +515,39 @@ def test_the_stages_are_one_declared_list_and_running_them_by_hand_is_handle_man
 
     class Broken:
         name = "encode"
+        takes, gives = (Flagged,), (Output,)
 
         def __call__(self, items):
             raise RuntimeError("encoder bug")
 
-    enc = pipe.stages[5]
-    pipe.stages = pipe.stages[:5] + (Broken(),) + pipe.stages[6:]
+    enc = pipe.stages["encode"]
+    pipe.stages = pipe.stages.replace(Broken())
     assert not [k for k, _ in pipe.handle_many(msgs[a:b]) if "/power/" in k]
     assert pipe.bad_messages["internal_error"] == 1 and "encoder bug" in pipe.last_error
-    pipe.stages = pipe.stages[:5] + (enc,) + pipe.stages[6:]
+    pipe.stages = pipe.stages.replace(enc)
     power, _ = _split(pipe.handle_many(msgs[b:]) + pipe.flush())
     assert power and pipe.ledger_now().totals().pending > 0  # the broken batch's chunks: held in the ledger, not lost
+
+
+def test_a_stage_whose_input_no_earlier_stage_gives_is_refused_when_the_list_is_built(converter):
+    """Stages are checked by what they take and give, and parts of the list are run by name."""
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.pipeline.items import Ready, Stages
+
+    pipe = ConverterPipeline(converter, PipelineConfig(), clock=None)
+    stages = list(pipe.stages)
+    with pytest.raises(ConfigError, match="stage 'housekeeping' takes Pending, which no stage before it gives"):
+        Stages([s for s in stages if s.name != "sequence"])  # nothing books chunks into their sequence
+    with pytest.raises(ConfigError, match="stage 'encode' takes Flagged"):
+        Stages(stages[:4] + stages[5:])  # encode before flags: no flagged power to encode
+    with pytest.raises(ConfigError, match="two stages are named 'convert'"):
+        Stages(stages[:4] + stages[3:])
+    assert [s.name for s in pipe.stages.span("convert", "encode", (Ready,))] == ["convert", "flags", "encode"]
+    assert [s.name for s in pipe.stages.span(until="encode")] == pipe.stages.names[:-1]
+    with pytest.raises(ConfigError, match="stage 'convert' takes Ready"):
+        pipe.stages.span("convert", "encode")  # fed received messages, not released chunks
+    with pytest.raises(ConfigError, match="no stage named 'kernel'"):
+        pipe.stages.span(until="kernel")
 
 
 @pytest.mark.parametrize("rate_hz", [1569.0117, 1961.265, 2353.518])

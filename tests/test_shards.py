@@ -241,7 +241,7 @@ def test_batched_handling_gives_the_power_of_message_by_message(array, bias, thr
     # (the last step waits for housekeeping until flush(); with bias, three row layouts, two in the last step;
     # step by step it would take one call per step and layout: 21 or 32)
     assert backlog.converter.calls <= (5 if bias else 2) * threads
-    assert (backlog.stages[3]._executor is not None) == (threads > 1)
+    assert (backlog.stages["convert"]._executor is not None) == (threads > 1)
     if bias:
         assert any(np.any(pw.p_opt_w != single[(0, 0, pw.seq)].p_opt_w) for pw in whole.values()
                    if (pw.board, pw.module) == (0, 1))  # the bias readings changed the power

@@ -1,18 +1,8 @@
 """The converter's stages up to conversion: decode, sequence, housekeeping and alignment (no I/O).
 
-Each stage is a callable over a batch: it takes the batch's items in order
-and returns the items it passes on, as an spt3g module takes a frame and
-returns frames. What flows:
-
-- ``(key, payload, t_recv_ns)``: a received message (into :class:`Decode`);
-- :class:`Counts` / :class:`Hk`: a decoded counts or housekeeping message;
-- :class:`Tick`: a message dropped at the door, which still lets receive time pass;
-- :class:`Pending`: a counts chunk booked in its stream's sequence, held for housekeeping;
-- ``_Ready`` (``pipeline.convert``): a released chunk with its housekeeping aligned;
-- :data:`END`, last of every batch (``End(force=True)``: flush): the stages that
-  gather (conversion, status) act on it.
-
-The stages are declared once, in order, by
+Each stage is a callable over a batch of items (``pipeline.items``: what
+flows, and :class:`~mntes_stream.pipeline.items.Stages`, the checked list),
+declaring what it takes and gives. The stages are declared once, in order, by
 :func:`~mntes_stream.pipeline.pipeline.converter_stages`; every path (the live
 service, offline ``convert``, replay into a converter, the G3 ``OpticalPower``
 module) runs that list through :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline`.
@@ -42,9 +32,9 @@ from mntes_stream.io.lean import CountsDecoder
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
 from mntes_stream.pipeline.config import PipelineConfig
 from mntes_stream.pipeline.housekeeping import DelayFloor, Housekeeping, ns
+from mntes_stream.pipeline.items import Counts, End, Hk, Pending, Ready, Received, Tick
 
-__all__ = ["END", "Books", "Counts", "Decode", "End", "Hk", "Align", "Pending", "PipelineCounters", "Sequence",
-           "Tick"]
+__all__ = ["Align", "Books", "Decode", "PipelineCounters", "Sequence"]
 
 log = logging.getLogger("mntes_stream.converter")
 
@@ -135,51 +125,6 @@ class Books:
         log.error("internal error (%s) handling %s", where, key, exc_info=exc)
 
 
-@dataclass(frozen=True)
-class End:
-    """The end of a batch: the gathering stages act now (``force``: release everything held, a flush)."""
-
-    force: bool = False
-
-
-END = End()
-
-
-@dataclass(frozen=True)
-class Tick:
-    """Receive time passing without an item to carry (a message dropped at the door)."""
-
-    t_recv_ns: int
-
-
-@dataclass(frozen=True)
-class Counts:
-    info: dict
-    chunk: CountsChunk
-    key: str
-    t_recv_ns: int
-    source: str | None = None  # the publisher (zenoh id), when the transport says it
-
-
-@dataclass(frozen=True)
-class Hk:
-    info: dict
-    hk: HousekeepingChunk
-    key: str
-    t_recv_ns: int
-
-
-@dataclass
-class Pending:
-    """A counts chunk booked in its stream's sequence, waiting for its housekeeping."""
-
-    chunk: CountsChunk
-    t_recv_ns: int
-    t_ns: np.ndarray
-    t_last_ns: int | None
-    late: bool = False  # set aside under overload: converted later, published as late power
-
-
 def reject(books: Books, modules, info: dict, reason: str) -> None:
     """A counts message refused: in its stream's ledger when the stream is ours, else under OTHER (bounded)."""
     b, m = info.get("board", ""), info.get("module", "")
@@ -198,6 +143,7 @@ class Decode:
     """
 
     name = "decode"
+    takes, gives = (Received,), (Counts, Hk, Tick)
 
     def __init__(self, books: Books, modules):
         self.books, self.modules = books, modules
@@ -283,6 +229,7 @@ class Sequence:
     """
 
     name = "sequence"
+    takes, gives = (Counts,), (Pending, Tick)
 
     def __init__(self, books: Books, modules, set_aside_bytes: int):
         self.books, self.modules = books, modules
@@ -442,14 +389,15 @@ class Align:
     last sample (interpolated, not extrapolated) or until it has waited
     ``hk_wait_s`` of receive time, whichever first; at most ``max_pending``
     are held (beyond, the oldest is released at once). A released chunk
-    leaves as ``_Ready``, aligned by ``environment`` (``pipeline.convert``)
+    leaves as :class:`~mntes_stream.pipeline.items.Ready`, aligned by ``environment`` (``pipeline.convert``)
     with the histories as of its release. Readings are judged by
     ``pipeline.housekeeping`` (bad ones counted by reason).
     """
 
     name = "housekeeping"
+    takes, gives = (Pending, Hk, Tick), (Ready,)
 
-    def __init__(self, books: Books, hk: Housekeeping, environment: Callable[[Pending], object]):
+    def __init__(self, books: Books, hk: Housekeeping, environment: Callable[[Pending], Ready]):
         self.books, self.hk, self.environment = books, hk, environment
         self.pending: collections.deque[Pending] = collections.deque()
         self._wait_ns = ns(books.config.hk_wait_s)
