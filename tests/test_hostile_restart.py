@@ -131,7 +131,7 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
     _, cfg = load_service_config(tmp_path / "converter.toml")
     os.chmod(snap, 0o666)
     with caplog.at_level(logging.WARNING, logger="mntes_stream.converter"):
-        key, got = load_snapshot(cfg)
+        key, got = load_snapshot(cfg.spec)
     assert got is None and "snapshot not loaded" in caplog.text and "writable by others" in caplog.text
     # ... nor a damaged one: serve builds instead and converts everything.
     snap.write_bytes(b"\x80\x05garbage")
@@ -142,25 +142,28 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
     assert log4.count("loaded from the snapshot") == 1 and len(fourth) == 20
     assert "unusable (" in log4.rsplit("loaded from the snapshot", 1)[-1]
     # ... and a changed parameter file is another key: built again, not the old converter.
-    assert load_snapshot(cfg)[1] is not None  # the damaged start saved a good one again
+    assert load_snapshot(cfg.spec)[1] is not None  # the damaged start saved a good one again
     (tmp_path / "params.toml").write_text((tmp_path / "params.toml").read_text() + "\n")
-    key5, got5 = load_snapshot(load_service_config(tmp_path / "converter.toml")[1])
+    key5, got5 = load_snapshot(load_service_config(tmp_path / "converter.toml")[1].spec)
     assert key5 != key and got5 is None
 
 
 def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, source):
     from mntes_stream.core.convert import EnvironmentBlock
-    from mntes_stream.pipeline.snapshot import load_snapshot, save_snapshot
-    from mntes_stream.service.converter import ConverterConfig, build_converter, owned_params
+    from mntes_stream.pipeline.build import build_converter
+    from mntes_stream.pipeline.snapshot import load_snapshot
+    from mntes_stream.service.converter import ConverterConfig
 
     dump_params(source.params, tmp_path / "params.toml")
     cfg = ConverterConfig(params=str(tmp_path / "params.toml"), table_cache=str(tmp_path / "cache"))
-    key, snap = load_snapshot(cfg)
+    key, snap = load_snapshot(cfg.spec)
     assert snap is None
-    params, streams = owned_params(cfg)
-    built = build_converter(cfg, params)
-    save_snapshot(cfg, key, params, streams, built)
-    key2, (params2, streams2, loaded) = load_snapshot(cfg)
+    first = build_converter(cfg.spec)  # built, and kept as a snapshot
+    built, params, streams = first.converter, first.params, first.streams
+    assert not first.from_snapshot and streams == [(0, 0), (0, 1)] and set(params) == set(built.detector_ids)
+    again = build_converter(cfg.spec)
+    assert again.from_snapshot and again.streams == streams and again.params == params
+    key2, (params2, streams2, loaded) = load_snapshot(cfg.spec)
     assert key2 == key and streams2 == streams and params2 == params and loaded.identity == built.identity
     rng = np.random.default_rng(1)
     ids = built.detector_ids

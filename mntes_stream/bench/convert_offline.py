@@ -110,7 +110,8 @@ def run(args) -> dict:
     from mntes_stream.io.mcap import Session
     from mntes_stream.io.messages import CountsChunk
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.pipeline.offline import build_converter, convert_recording
+    from mntes_stream.pipeline.build import ConverterSpec, build_converter
+    from mntes_stream.pipeline.offline import convert_recording
     from mntes_stream.service.simulator import SimulatorSource, write_mcap
 
     if args.detectors < 1 or args.channels < 1 or args.detectors % args.channels:
@@ -174,7 +175,7 @@ def run(args) -> dict:
                              f"{batched[0][1].samples_converted} samples, the default {stats.samples_converted}")
         # The parts alone, in the same minutes.
         t0 = time.perf_counter()
-        conv = build_converter(None, params=params_file, table_cache=cache)[0]
+        conv = build_converter(ConverterSpec(params_file=str(params_file), table_cache=str(cache))).converter
         build_warm_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         counts_payloads = []

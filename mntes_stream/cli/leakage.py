@@ -86,7 +86,7 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
         if mntes_kind in _BASELINES:  # a recording made with a baseline: MNTES is the reference here
             mntes_out.unlink()
             mntes_kind = convert_recording(rec, mntes_out, params=params, progress=progress, kind="table").converter_kind
-        # Detectors the linear baseline cannot take (latched) come out NaN + UNKNOWN_CHANNEL (offline.build_converter).
+        # Detectors the linear baseline cannot take (latched) come out NaN + UNKNOWN_CHANNEL (pipeline.build: drop_untaken).
         convert_recording(rec, Path(tmp) / "linear.mcap", params=params, progress=progress, kind="linear")
         mntes = RecordedPower(mntes_out).read()
         linear = RecordedPower(Path(tmp) / "linear.mcap").read()

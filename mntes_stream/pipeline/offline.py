@@ -38,7 +38,7 @@ from pathlib import Path
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.errors import ConfigError
 
-__all__ = ["OfflineStats", "build_converter", "convert_recording", "recorded_calibrations"]
+__all__ = ["OfflineStats", "convert_recording", "converter_for", "recorded_calibrations", "spec_for"]
 
 log = logging.getLogger("mntes_stream.offline")
 
@@ -109,7 +109,7 @@ def _merged(parts: dict) -> object:
     """One provenance for the converter shards that together converted a setup: their parameters joined.
 
     A single part is itself. The joined parameters' tables are rebuilt (no one recorded bank has them
-    all): ``table_identity`` is left empty, so :func:`build_converter` does not compare it.
+    all): ``table_identity`` is left empty, so :func:`converter_for` does not compare it.
     """
     import dataclasses
 
@@ -187,36 +187,9 @@ def _cache_dir(table_cache) -> str:
     return str(table_cache) if table_cache else ""
 
 
-def _snapshot_cfg(cache: str, kind: str, params_path: str):
-    """What :mod:`pipeline.snapshot` reads of a converter config, for a whole-focal-plane offline converter."""
-    from types import SimpleNamespace
-
-    return SimpleNamespace(params=params_path, tables="", kind=kind, boards=(), modules=(), shard="", table_cache=cache)
-
-
-def _load_snapshot(cache: str, kind: str, params, text: str | None):
-    """``(key, (params dict, converter) or None)`` from the live converter's snapshot cache.
-
-    Keyed as the live converter keys it: by the parameters' bytes (a file given, else
-    the recorded parameter text), kind and software. Building the converter (parsing and
-    checking every detector's parameters, its table bank, its flag thresholds) is most of
-    an offline conversion of a short recording; a snapshot loads in a fraction of it.
-    """
-    import tempfile
-
-    from mntes_stream.pipeline.snapshot import load_snapshot
-
-    with tempfile.TemporaryDirectory(prefix="mntes-offline-") as tmp:
-        path = str(params) if params is not None else str(Path(tmp) / "params.toml")
-        if params is None:
-            Path(path).write_text(text)
-        key, snap = load_snapshot(_snapshot_cfg(cache, kind, path))
-    return key, (None if snap is None else (snap[0], snap[2]))
-
-
-def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
-                    table_cache=..., kind: str | None = None):
-    """The converter (and its parameters) for a recording.
+def spec_for(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
+             table_cache=..., kind: str | None = None):
+    """The :class:`~mntes_stream.pipeline.build.ConverterSpec` of a recording's converter.
 
     Parameters
     ----------
@@ -228,77 +201,62 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         Table bank file; its kind becomes the converter kind.
     kind : str, optional
         Converter kind (``core.convert``: ``linear`` for the linear baseline of the same counts)
-        instead of the recorded one; not with ``tables`` (a table file sets its own kind).
+        instead of the recorded one; not with ``tables`` (a table file sets its own kind). A
+        baseline asked for on a recording leaves out the detectors it cannot take (said once).
     table_cache : path, optional
         Where banks built from parameters are kept, as the live converter
         keeps them (``...``: its default, ``~/.cache/mntes-stream/tables``;
         None: always build), and the converter as built (``pipeline/snapshot.py``,
         keyed by the parameters' bytes, kind and software). What comes from the
         cache is what would be built (same identity), in a fraction of the time.
-
-    Returns
-    -------
-    converter, params dict, params source (str), tables source (str)
     """
-    from mntes_stream.core.convert import BASELINE_KINDS, baseline_can_take, make_converter
-    from mntes_stream.io.paramfile import load_params, parse_params
+    from mntes_stream.pipeline.build import ConverterSpec
 
     recorded_kind = provenance.converter_kind if provenance is not None else "table"
     if kind is not None and tables is not None:
         raise ConfigError("a table file sets the converter kind: give the kind or the tables, not both")
     kind = kind or recorded_kind
-    cache = _cache_dir(table_cache) if tables is None and kind in ("table", "grid") else ""
-    text = provenance.params_toml if params is None and provenance is not None else None
-    key, snap = _load_snapshot(cache, kind, params, text) if cache and (params is not None or text) else (None, None)
-    if snap is not None:  # the converter as the last run with these parameters built it
-        pdict, conv = snap
-        psrc = str(params) if params is not None else "the recording's provenance"
-    elif params is not None:
-        pdict, psrc = load_params(params), str(params)
-    elif provenance is not None and provenance.params_toml:
-        try:
-            pdict = parse_params(tomllib.loads(provenance.params_toml), "recorded provenance")
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"recorded provenance: parameter TOML unreadable: {exc}") from None
-        psrc = "the recording's provenance"
-    else:
-        pdict, psrc = None, ""
-    if tables is not None:
-        from mntes_stream.io.tablefile import load_bank
-
-        bank = load_bank(tables)
-        # New tables carry their own parameters; recorded ones would only clash.
-        conv = make_converter(bank.kind, pdict if params is not None else None, bank=bank)
-        return conv, (pdict if params is not None else bank.params_by_id()), psrc or "the table file", str(tables)
-    if pdict is None:
+    text = provenance.params_toml if params is None and provenance is not None else ""
+    if tables is not None:  # new tables carry their own parameters; recorded ones would only clash
+        return ConverterSpec(kind="", params_file=str(params) if params is not None else "", tables=str(tables))
+    if params is None and not text:
         raise ConfigError("the recording has no provenance with detector parameters: give --params (and --tables)")
-    if kind != recorded_kind and kind in BASELINE_KINDS and snap is None:
-        # A baseline asked for on a recording: a latched or normal detector has no linearisation. It is left
-        # out (its power NaN + UNKNOWN_CHANNEL, as any detector without parameters), said once, not fatal.
-        left = sorted(d for d, q in pdict.items() if not baseline_can_take(q))
-        if left and len(left) == len(pdict):
-            raise ConfigError(f"no detector is in the transition at its nominal operating point: no {kind} baseline")
-        if left:
-            log.warning("%s baseline: %d detector(s) not in the transition at their nominal operating point left out "
-                        "(power NaN, UNKNOWN_CHANNEL): %s", kind, len(left), ", ".join(left[:8]) + (" ..." if len(left) > 8 else ""))
-            pdict = {d: q for d, q in pdict.items() if d not in left}
-    if snap is None and cache:
-        from mntes_stream.pipeline.build import cached_bank
-        from mntes_stream.pipeline.snapshot import save_snapshot
+    return ConverterSpec(kind=kind, params_file=str(params) if params is not None else "", params_toml=text,
+                         table_cache=_cache_dir(table_cache) if kind in ("table", "grid") else "",
+                         drop_untaken=kind != recorded_kind)
 
-        # The live converter's own bank cache (same keys, same checks).
-        conv = make_converter(kind, pdict, cached_bank(kind, pdict, cache))
-        save_snapshot(_snapshot_cfg(cache, kind, ""), key, pdict, None, conv)
-    elif snap is None:
-        conv = make_converter(kind, pdict)
-    tsrc = f"rebuilt from the parameters ({kind})" if kind in ("table", "grid") else "none (analytic)"
-    if (provenance is not None and params is None and kind == recorded_kind and kind in ("table", "grid")
+
+def converter_for(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
+                  table_cache=..., kind: str | None = None):
+    """The converter (and its parameters) for a recording: :func:`spec_for` built by ``pipeline.build``.
+
+    Returns
+    -------
+    converter, params dict, params source (str), tables source (str)
+
+    Raises
+    ------
+    ConfigError
+        Besides the builder's: tables rebuilt from the recorded parameters whose identity is not the
+        recorded one (other build options: give the table file).
+    """
+    from mntes_stream.pipeline.build import build_converter
+
+    spec = spec_for(provenance, params=params, tables=tables, table_cache=table_cache, kind=kind)
+    built = build_converter(spec)
+    conv = built.converter
+    psrc = str(params) if params is not None else "the recording's provenance" if provenance is not None and \
+        provenance.params_toml else ""
+    if tables is not None:
+        return conv, built.params if params is not None else built.bank_params, psrc or "the table file", str(tables)
+    tsrc = f"rebuilt from the parameters ({spec.kind})" if spec.kind in ("table", "grid") else "none (analytic)"
+    if (provenance is not None and params is None and not spec.drop_untaken and spec.kind in ("table", "grid")
             and provenance.table_identity and str(conv.identity) != provenance.table_identity):
         raise ConfigError(
             f"tables rebuilt from the recorded parameters have identity {str(conv.identity)[:16]}, the recording used "
             f"{provenance.table_identity[:16]} (other build options?): give the table file with --tables"
         )
-    return conv, pdict, psrc, tsrc
+    return conv, built.params, psrc, tsrc
 
 
 def convert_recording(source, output: str | Path, *, tables=None, params=None, pipeline_config=None,
@@ -323,7 +281,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     progress : bool
         tqdm progress bar over the input messages.
     table_cache : path, optional
-        See :func:`build_converter` (default: the live converter's cache).
+        See :func:`spec_for` (default: the live converter's cache).
     batch_s : float
         > 0 (default 1): the messages of each ``batch_s`` of receive time (and
         at most 64 MiB of them) go through the pipeline together, as a live
@@ -345,7 +303,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         The output's chunk compression (default lz4: the cheapest to write and read; zstd: smaller files).
     kind : str, optional
         Convert with this converter kind (e.g. ``linear``: the linear baseline of the same counts) and the
-        recorded parameters, instead of each calibration's recorded kind (see :func:`build_converter`).
+        recorded parameters, instead of each calibration's recorded kind (see :func:`spec_for`).
     """
     from collections import Counter
 
@@ -376,13 +334,13 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         if len(calibrations) > 1:
             log.warning("the recording holds %d calibrations (changed at log times %s); the given %s replace all of them",
                         len(calibrations), [t for t, _ in calibrations[1:]], "tables" if tables is not None else "parameters")
-        plan = [(None, build_converter(prov, params=params, tables=tables, table_cache=table_cache, kind=kind))]
+        plan = [(None, converter_for(prov, params=params, tables=tables, table_cache=table_cache, kind=kind))]
     else:
         built: dict[tuple, tuple] = {}  # a calibration that comes back is not rebuilt
         plan = []
         for k, (t_ns, p) in enumerate(calibrations):
             if _calibration(p) not in built:
-                built[_calibration(p)] = build_converter(p, table_cache=table_cache, kind=kind)
+                built[_calibration(p)] = converter_for(p, table_cache=table_cache, kind=kind)
             plan.append((t_ns if k else None, built[_calibration(p)]))
         log.info("the calibration changed %d time(s) during the recording: each part converted with its own", len(plan) - 1)
     converter, pdict, psrc, tsrc = plan[-1][1]

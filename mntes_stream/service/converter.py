@@ -18,19 +18,19 @@ from dataclasses import dataclass, fields
 from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
-from mntes_stream.core.shards import Shard, owned_streams
+from mntes_stream.core.shards import Shard
 from mntes_stream.core.uncertainty import UncertaintySettings
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.cache import DEFAULT_MAX_MB
 from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import QueueSubscriber, ZenohSettings, answer
-from mntes_stream.pipeline.build import default_table_cache
+from mntes_stream.pipeline.build import ConverterSpec, default_table_cache
 from mntes_stream.pipeline.config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 from mntes_stream.service.base import Service, announced
 from mntes_stream.service.metrics import MetricsSettings
 
-__all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
+__all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "run_converter", "subscriptions"]
 
 log = logging.getLogger("mntes_stream.converter")
 _TRIM_EVERY_S = 2.0  # an idle converter gives freed heap back at most this often (service/heap.py trim_heap)
@@ -136,78 +136,18 @@ class ConverterConfig(Settings):
                    status=StatusConfig(interval_s=pipeline.status_interval_s), **kw)
 
     @property
+    def spec(self) -> ConverterSpec:
+        """What :func:`~mntes_stream.pipeline.build.build_converter` builds this converter from."""
+        flags_low = {"on": "yes", "auto": "if_fused", "off": "no"}[self.low_responsivity]
+        return ConverterSpec(kind=self.kind, params_file=self.params, tables=self.tables, table_cache=self.table_cache,
+                             table_cache_max_mb=self.table_cache_max_mb, boards=self.boards, modules=self.modules,
+                             shard=self.shard, gradients="yes" if self.sigma_p else flags_low)
+
+    @property
     def pipeline(self) -> PipelineConfig:
         """What the :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` takes."""
         return PipelineConfig.from_parts(self.alignment, setup=self.setup, service=self.name,
                                          status_interval_s=self.status.interval_s)
-
-
-def owned_params(cfg: ConverterConfig):
-    """The parameters this converter loads, and the ``(board, module)`` streams it owns.
-
-    Returns
-    -------
-    params : dict of str to DetectorParams, or None (a table bank file alone)
-    streams : sorted list of (board, module), or None when the detector ids do not name
-        their board and module (then the converter takes every stream, unsharded)
-    """
-    from mntes_stream.pipeline.housekeeping import known_modules
-
-    params = None
-    if cfg.params:
-        from mntes_stream.io.paramfile import load_params
-
-        params = load_params(cfg.params)
-    ids = params.keys() if params is not None else _bank_ids(cfg)
-    modules = known_modules(ids)
-    if modules is None:
-        if cfg.partial:
-            raise ConfigError("boards, modules and shard need detector ids of the form b<board>m<module>c<channel>")
-        return params, None
-    streams = owned_streams(modules, cfg.shard_parsed, cfg.boards, cfg.modules)
-    if cfg.partial and not streams:
-        raise ConfigError(f"boards {list(cfg.boards) or '*'}, modules {list(cfg.modules) or '*'}, shard "
-                          f"{cfg.shard_parsed}: no stream of the parameters is in that part of the focal plane")
-    if params is not None and cfg.partial:
-        wanted = set(streams)
-        params = {d: p for d, p in params.items() if _stream(d) in wanted}
-    return params, streams
-
-
-def _stream(detector_id: str) -> tuple[int, int]:
-    from mntes_stream.core.ids import parse_detector_id
-
-    b, m, _ = parse_detector_id(detector_id)
-    return b, m
-
-
-def _bank_ids(cfg: ConverterConfig) -> list[str]:
-    from mntes_stream.io.tablefile import load_bank
-
-    return list(load_bank(cfg.tables).params_by_id())
-
-
-def build_converter(cfg: ConverterConfig, params=None):
-    """The ``core.convert`` converter the config asks for (tables loaded, taken from the cache, or built).
-
-    ``params``: the detector parameters to convert (default: all of ``cfg.params``; a shard passes its own).
-    With a table bank file, the whole bank is loaded (give each shard a bank of its own to load less).
-    """
-    from mntes_stream.core.convert import make_converter
-    from mntes_stream.pipeline.build import cached_bank
-
-    if params is None and cfg.params:
-        from mntes_stream.io.paramfile import load_params
-
-        params = load_params(cfg.params)
-    bank = None
-    if cfg.tables:
-        from mntes_stream.io.tablefile import load_bank
-
-        bank = load_bank(cfg.tables)
-    elif cfg.table_cache and cfg.kind in ("table", "grid") and params:
-        bank = cached_bank(cfg.kind, params, cfg.table_cache, cfg.table_cache_max_mb)
-    return make_converter(cfg.kind, params, bank)
 
 
 def _warm_up(conv) -> None:
@@ -310,36 +250,21 @@ class ConverterService(Service):
     def setup(self, ctx) -> None:
         from mntes_stream.io.claims import StreamClaims
         from mntes_stream.pipeline import ConverterPipeline
-        from mntes_stream.pipeline.snapshot import load_snapshot, save_snapshot
+        from mntes_stream.pipeline.build import build_converter, owned_part
+        from mntes_stream.pipeline.housekeeping import known_modules
         from mntes_stream.service.checkpoint import load_checkpoint
         from mntes_stream.service.ownership import Ownership, owns_summary
 
         cfg, converter = self.config, self.prebuilt
-        # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
-        snap_key, snap = load_snapshot(cfg) if converter is None else (None, None)
-        if snap is not None:
-            params, streams, conv = snap
+        if converter is None:
+            # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
+            built = build_converter(cfg.spec, building=lambda text: announced(ctx.progress, text))
+            conv, streams = built.converter, built.streams
         else:
-            params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
-            if converter is None:
-                n = f"{len(params)} detectors" if params is not None else "the table bank"
-                with announced(ctx.progress, f"building the {cfg.kind} converter for {n} (tables, flag "
-                               f"thresholds; kept in {cfg.table_cache or 'no cache'} for the next start)"):
-                    conv = build_converter(cfg, params)
-                    flags_low = cfg.low_responsivity == "on" or (cfg.low_responsivity == "auto"
-                                                                 and getattr(conv, "fuses_low_responsivity", False))
-                    if cfg.sigma_p or flags_low:  # solved once, kept in the snapshot (ms per detector)
-                        from mntes_stream.core.uncertainty import nominal_gradients
-
-                        nominal_gradients(conv)
-                save_snapshot(cfg, snap_key, params, streams, conv)
-            else:
-                conv = converter
-        if streams is None and converter is not None:
-            from mntes_stream.pipeline.housekeeping import known_modules
-
-            modules = known_modules(conv.detector_ids)
-            streams = sorted(modules) if modules is not None else None
+            conv, streams = converter, owned_part(cfg.spec)[1] if cfg.params else None
+            if streams is None:
+                modules = known_modules(conv.detector_ids)
+                streams = sorted(modules) if modules is not None else None
         with announced(ctx.progress, "compiling the conversion kernels (after an install or upgrade; cached "
                        "for the next start)"):
             _warm_up(conv)
