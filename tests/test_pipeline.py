@@ -550,6 +550,45 @@ def test_a_stage_whose_input_no_earlier_stage_gives_is_refused_when_the_list_is_
         pipe.stages.span(until="kernel")
 
 
+def test_one_runner_batches_and_switches_the_calibration_as_message_by_message(source, converter):
+    """The runner every driver feeds: batched by receive time, the power and flags of message by message, the
+    inputs given back in their order; at a switch the old pipeline converts what arrived before it and the new
+    one takes over, with its own provenance, each retired once flushed."""
+    from mntes_stream.pipeline.runner import Runner
+
+    msgs = _messages(source, 30)
+
+    def powers(writes):
+        return {(p.module, p.seq): (p.converter_kind, p.p_opt_w.tobytes(), p.flags.tobytes())
+                for p in (decode(pl) for k, pl, _ in writes if "/power/" in k)}
+
+    cfg = PipelineConfig(status_interval_s=0.2)
+    one = Runner(lambda k: ConverterPipeline(converter, cfg, clock=None))
+    by_message = [w for m in msgs for w in one.feed(*m)] + one.finish()
+    batched = Runner(lambda k: ConverterPipeline(converter, cfg, clock=None), batch_s=1.0, inputs=True)
+    writes = [w for m in msgs for w in batched.feed(*m)] + batched.finish()
+    assert len(powers(by_message)) == 2 * 30 and powers(writes) == powers(by_message)
+    assert [w for w in writes if keys.kind_of(w[0]) in ("counts", "hk")] == msgs
+    assert sum("/status/" in w[0] for w in writes) < sum("/status/" in w[0] for w in by_message)  # one per batch
+
+    linear = make_converter("linear", {p.detector_id: p for p in source.params})
+    t_switch = msgs[len(msgs) // 2][2]
+    retired = []
+    switching = Runner(lambda k: ConverterPipeline((converter, linear)[k], PipelineConfig(), clock=None),
+                       switches=[t_switch], batch_s=1.0, provenance=True, retire=retired.append)
+    writes = [w for m in msgs for w in switching.feed(*m)] + switching.finish()
+    assert [(decode(p).converter_kind, t) for k, p, t in writes if keys.kind_of(k) == "provenance"] == [
+        ("exact", msgs[0][2]), ("linear", t_switch)]
+    assert [r.converter for r in retired] == [converter, linear]
+    received = {(c.module, c.seq): t for k, p, t in msgs if "/counts/" in k for c in [decode(p)]}
+    got = powers(writes)
+    assert got.keys() == received.keys()
+    for k, (kind, p, f) in got.items():  # each chunk converted by the calibration in force when it arrived
+        assert kind == ("exact" if received[k] < t_switch else "linear"), k
+        if kind == "exact":
+            assert (p, f) == powers(by_message)[k][1:]
+
+
 @pytest.mark.parametrize("rate_hz", [1569.0117, 1961.265, 2353.518])
 def test_the_sources_housekeeping_brackets_each_chunk_in_its_own_step(rate_hz):
     """With hk_interval_s the chunk length (as bench stream sets it), no chunk waits a step for its reading,

@@ -62,6 +62,7 @@ from mntes_stream.io.messages import PowerChunk
 from mntes_stream.pipeline.build import ConverterSpec, build_converter, default_table_cache
 from mntes_stream.pipeline.config import PipelineConfig
 from mntes_stream.pipeline.pipeline import ConverterPipeline
+from mntes_stream.pipeline.runner import Runner
 
 __all__ = ["OpticalPower", "POWER_KEY", "FLAGS_KEY", "load_g3_params"]
 
@@ -136,6 +137,7 @@ class OpticalPower:
         self.gain_changes = 0
         self.rejected: dict[str, int] = {}  # frames it could not use, by reason (dropped from the output)
         self._pipe: ConverterPipeline | None = None
+        self._runner: Runner | None = None
         self._tr: FrameTranslator | None = None
         if self.params is not None:
             self.pipeline_config = pipeline_config or PipelineConfig()
@@ -215,7 +217,7 @@ class OpticalPower:
         core, _ = spt3g()
         ft, tr = frame.type, self._tr
         if ft == core.G3FrameType.EndProcessing:
-            self._route(self._pipe.flush() if self._pipe is not None else [])
+            self._route(self._runner.finish() if self._runner is not None else [])
             return self._release(True) + [frame]
         if ft == core.G3FrameType.Scan and self._pipe is None and self.input_i in frame:
             if tr.wiring is None:
@@ -260,6 +262,7 @@ class OpticalPower:
                              options=tuple(self.converter_options.items()))
         self._converter = build_converter(spec).converter
         self._pipe = ConverterPipeline(self._converter, self.pipeline_config, params=list(pdict.values()), clock=None)
+        self._runner = Runner.around(self._pipe)
         self._names = dict(zip(tr.wiring.detector_ids, tr.wiring.names))
         self._keep = frozenset(pdict)
         early, self._early = list(self._early), deque(maxlen=10_000)
@@ -271,10 +274,10 @@ class OpticalPower:
             self._early.extend(msgs)
             return
         if msgs:
-            self._route(self._pipe.handle_many([(k, p, t) for t, k, p in msgs]))
+            self._route(self._runner.feed_batch([(k, p, t) for t, k, p in msgs], msgs[-1][0]))
 
     def _route(self, outs) -> None:
-        for key, payload in outs:
+        for key, payload, _ in outs:
             if keys.kind_of(key) != "power":
                 continue
             chunk = PowerChunk.from_bytes(payload)

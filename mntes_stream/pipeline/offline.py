@@ -313,6 +313,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     from mntes_stream.io.mcap import McapFileWriter, Session, writer_description
     from mntes_stream.pipeline.config import INPUT_KINDS, PipelineConfig, input_topics
     from mntes_stream.pipeline.pipeline import ConverterPipeline
+    from mntes_stream.pipeline.runner import Runner
 
     if not batch_s >= 0:
         raise ConfigError(f"batch_s must be >= 0, got {batch_s}")
@@ -367,70 +368,31 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     with McapFileWriter(output, metadata={"mntes.recording": meta}, whole=True, compression=compression,
                         chunk_size_bytes=_CHUNK_BYTES) as out:
         bar = tqdm(total=total, unit="msg", desc="convert", disable=not progress)
-        t_last = None
-        epoch = 0
 
-        def emit(items, t_ns):
+        def start_pipeline(k):
+            conv, pd = plan[k][1][:2]
+            return ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty,
+                                     sigma_p=sigma_p, only_fused=only_fused)
+
+        # The inputs are written back with the outputs, in the runner's order; each calibration's pipeline
+        # starts with its provenance; batches as a live converter takes its backlog (batch_s > 0: the same
+        # power and flags as message by message, stamped at each batch's last message).
+        runner = Runner(start_pipeline, switches=[t for t, _ in plan[1:]], batch_s=batch_s, batch_bytes=_BATCH_BYTES,
+                        inputs=True, provenance=True, retire=add_status)
+
+        def emit(writes):
             nonlocal n_power, n_status
-            for key, payload in items:
+            for key, payload, t_ns in writes:
                 out.write(key, payload, t_ns)
                 kind = keys.kind_of(key)
                 n_power += kind == "power"
                 n_status += kind == "status"
 
-        def start_pipeline(k, t_ns):
-            conv, pd = plan[k][1][:2]
-            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty,
-                                    sigma_p=sigma_p, only_fused=only_fused)
-            out.write(keys.provenance_key(pipeline_config.setup), new.provenance_bytes(), t_ns)
-            return new
-
-        pipe = None
-        batch: list = []  # batch_s > 0: inputs (already written) waiting for one handle_many call
-        batch_bytes = 0
-
-        def run_batch():
-            nonlocal batch_bytes
-            if batch:
-                emit(pipe.handle_many(batch), batch[-1][2])
-                batch.clear()
-                batch_bytes = 0
-
         for msg in session.iter_messages(selection):
-            if pipe is None or (epoch + 1 < len(plan) and msg.log_time_ns >= plan[epoch + 1][0]):
-                while epoch + 1 < len(plan) and msg.log_time_ns >= plan[epoch + 1][0]:
-                    epoch += 1
-                if pipe is None:
-                    pipe = start_pipeline(epoch, msg.log_time_ns)
-                else:
-                    # The converter changed at t_switch: what the old one holds arrived
-                    # before, so it is the old one's to convert (as the stopped live converter did).
-                    run_batch()
-                    t_switch = plan[epoch][0]
-                    emit(pipe.tick(t_switch), t_switch)
-                    emit(pipe.flush(), t_switch)
-                    add_status(pipe)
-                    pipe = start_pipeline(epoch, t_switch)
-            t_last = msg.log_time_ns
-            if batch_s > 0:
-                # As a live converter takes what arrived while it converted: the power and flags are the
-                # same (handle_many), the outputs come out and are stamped at the end of each batch.
-                out.write(msg.topic, msg.payload, msg.log_time_ns)
-                if batch and (msg.log_time_ns - batch[0][2] > batch_s * 1e9 or batch_bytes > _BATCH_BYTES):
-                    run_batch()
-                batch.append((msg.topic, msg.payload, msg.log_time_ns))
-                batch_bytes += len(msg.payload)
-            else:
-                # Release what waited long enough *before* this message, as the live service's ticks do.
-                emit(pipe.tick(msg.log_time_ns), msg.log_time_ns)
-                out.write(msg.topic, msg.payload, msg.log_time_ns)
-                emit(pipe.handle(msg.topic, msg.payload, msg.log_time_ns), msg.log_time_ns)
+            emit(runner.feed(msg.topic, msg.payload, msg.log_time_ns))
             n_in += 1
             bar.update(1)
-        if pipe is not None:
-            run_batch()
-            emit(pipe.flush(), t_last)
-            add_status(pipe)
+        emit(runner.finish())
         bar.close()
         _mark_damage(session, out)
     return OfflineStats(

@@ -2,7 +2,8 @@
 
 The loop is thin on purpose: a :class:`~mntes_stream.io.transport.QueueSubscriber`
 hands ``(key, payload, t_recv_ns)`` to a :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline`
-(the same object offline re-conversion uses), whose outputs go out through
+through its :class:`~mntes_stream.pipeline.runner.Runner` (the same ones offline
+re-conversion and the G3 module use), whose outputs go out through
 BLOCK publishers. Provenance (parameters, table identity) is published at
 start and every ``provenance_interval_s`` with identical bytes, so a recorder
 started later still gets it. Stops on SIGINT/SIGTERM, a stop event or
@@ -252,6 +253,7 @@ class ConverterService(Service):
         from mntes_stream.pipeline import ConverterPipeline
         from mntes_stream.pipeline.build import build_converter, owned_part
         from mntes_stream.pipeline.housekeeping import known_modules
+        from mntes_stream.pipeline.runner import Runner
         from mntes_stream.service.checkpoint import load_checkpoint
         from mntes_stream.service.ownership import Ownership, owns_summary
 
@@ -273,6 +275,7 @@ class ConverterService(Service):
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
                                               uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p,
                                               only_fused=cfg.low_responsivity == "auto")
+        self._runner = Runner.around(pipe)  # batches are what piled up (step); ticks and late power when idle
         if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
             n = pipe.resume_sequences(ckpt[0])
             log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
@@ -323,7 +326,7 @@ class ConverterService(Service):
         now = time.time_ns()
         if item is None:  # nothing waiting: time for what was set aside under overload
             self._behind_since, pipe.overloaded = None, False
-            outs = pipe.tick(now) + pipe.convert_late(cfg.batch_max // 8 or 1)
+            outs = self._runner.idle(now, cfg.batch_max // 8 or 1)
             if not pipe.set_aside and time.monotonic() >= self._next_trim:
                 # Idle: what a burst (a flood of big messages in the queue) left freed in glibc's heaps goes back.
                 trim_heap()
@@ -336,7 +339,8 @@ class ConverterService(Service):
             mono = time.monotonic()
             self._behind_since = (self._behind_since or mono) if full else None
             pipe.overloaded = self._behind_since is not None and mono - self._behind_since >= cfg.overload_after_s
-            outs = pipe.handle_many(batch)
+            outs = self._runner.feed_batch(batch, now)
+        outs = [(k, p) for k, p, _ in outs]
         if owner is not None:
             outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
         for key, payload in outs:
@@ -368,8 +372,8 @@ class ConverterService(Service):
         cfg, pipe, sub, owner = self.config, self._pipe, self._sub, self._ownership
         try:  # stop receiving, convert what is already here, say so, then close
             sub.close()
-            outs = pipe.handle_many(list(sub.drain())) + pipe.flush()
-            for key, payload in outs:
+            outs = self._runner.feed_batch(list(sub.drain())) + self._runner.finish()
+            for key, payload, _ in outs:
                 if owner is None or owner.allow(key, payload, time.time_ns()):
                     ctx.publishers.put(key, payload)
             if cfg.checkpoint:
