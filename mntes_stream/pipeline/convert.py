@@ -1,7 +1,7 @@
-"""The converter's stages from alignment on: rows and environment, conversion, flags, encoding (no I/O).
+"""The converter's stages from conversion on: conversion, flags, encoding (no I/O).
 
-``Environment`` makes a released chunk's ``Ready`` (its rows and its
-housekeeping at every sample); :class:`Convert` gathers them until the end of
+A released chunk comes as a ``Ready`` (its rows and its housekeeping at every
+sample, ``pipeline.stages.Environment``); :class:`Convert` gathers them until the end of
 the batch and converts them in as few converter calls as may be;
 :class:`Flags` completes the flags and makes flagged power NaN; :class:`Encode`
 makes each chunk's power message and books it. See ``pipeline.items`` for
@@ -19,11 +19,10 @@ from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.core.uncertainty import NoiseWindow, low_responsivity_block, sigma_p_block
 from mntes_stream.io import keys
 from mntes_stream.io.lean import PowerEncoder
-from mntes_stream.io.messages import CountsChunk
-from mntes_stream.pipeline.items import Converted, End, Flagged, Output, Pending, Ready, Run
+from mntes_stream.pipeline.items import Converted, End, Flagged, Output, Ready, Run
 from mntes_stream.pipeline.stages import Books
 
-__all__ = ["Convert", "Encode", "Environment", "Flags"]
+__all__ = ["Convert", "Encode", "Flags"]
 
 # A run is split across threads only from this many samples (rows x samples): below, a thread hand-over
 # (tens of microseconds) costs more than the kernel time it saves.
@@ -51,54 +50,6 @@ def _runs(groups: list[list[Ready]]) -> list[list[list[Ready]]]:
         layout = _layout(group)
         runs.setdefault(k if layout is None else layout, []).append(group)
     return list(runs.values())
-
-
-class Environment:
-    """A released chunk's rows (detector ids, which have parameters) and housekeeping at every sample.
-
-    Called by the housekeeping stage at a chunk's release (``pipeline.stages.Align``).
-    """
-
-    def __init__(self, books: Books, hk, known: frozenset):
-        self.books, self.hk, self._known = books, hk, known
-        self._rows: dict[tuple, tuple] = {}
-        self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
-
-    def rows_for(self, chunk: CountsChunk) -> tuple:
-        """Detector ids of the rows and which the converter knows (cached per channel list)."""
-        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes(), chunk.detector_ids)
-        rows = self._rows.get(cache_key)
-        if rows is None:
-            ids = chunk.row_ids()  # the source's names, or the b/m/c ids
-            known = np.array([d in self._known for d in ids], dtype=bool)
-            if len(self._rows) > 4096:
-                self._rows.clear()
-            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
-            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
-                self._unmatched += 1
-                books = self.books
-                books.last_error = (f"no_detector on {keys.counts_key(books.config.setup, chunk.board, chunk.module)}"
-                                    f": none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
-                                    "flagged UNKNOWN_CHANNEL")[:500]
-                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
-                    log.warning("%s", books.last_error)
-        return rows
-
-    def __call__(self, p: Pending) -> Ready:
-        chunk, t = p.chunk, p.t_ns
-        t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
-        b_field, f_b = self.hk.scalar("b_field", chunk, t)
-        env_flags_t = f_tb | f_b
-        ids, known, n_unknown = self.rows_for(chunk)
-        v_bias, f_bias = self.hk.bias(chunk, t, ids)
-        f_board = self.hk.readout_flags(chunk, t)
-        if f_board is not None:  # the board's own flags (dfmux-bridge): per row, so the bias is per row too
-            if v_bias is None:
-                v_bias, f_bias = self.hk.nominal_bias(ids, t.size), f_board
-            else:
-                f_bias = f_bias | f_board
-        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
-        return Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
 
 
 class Convert:

@@ -53,10 +53,10 @@ from collections.abc import Callable
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.errors import ConfigError
 from mntes_stream.pipeline.config import SCALAR_SENSORS, PipelineConfig
-from mntes_stream.pipeline.convert import Convert, Encode, Environment, Flags
+from mntes_stream.pipeline.convert import Convert, Encode, Flags
 from mntes_stream.pipeline.housekeeping import Housekeeping, known_modules
 from mntes_stream.pipeline.items import END, End, Ready, Stages
-from mntes_stream.pipeline.stages import Align, Books, Decode, PipelineCounters, Sequence
+from mntes_stream.pipeline.stages import Align, Books, Decode, Environment, PipelineCounters, Sequence
 from mntes_stream.pipeline.status import Status
 
 __all__ = ["PipelineConfig", "ConverterPipeline", "PipelineCounters", "SCALAR_SENSORS", "converter_stages"]

@@ -1,4 +1,4 @@
-"""The converter's stages up to conversion: decode, sequence, housekeeping and alignment (no I/O).
+"""The converter's stages up to conversion: decode, sequence, housekeeping and alignment, the release (no I/O).
 
 Each stage is a callable over a batch of items (``pipeline.items``: what
 flows, and :class:`~mntes_stream.pipeline.items.Stages`, the checked list),
@@ -34,7 +34,7 @@ from mntes_stream.pipeline.config import PipelineConfig
 from mntes_stream.pipeline.housekeeping import DelayFloor, Housekeeping, ns
 from mntes_stream.pipeline.items import Counts, End, Hk, Pending, Ready, Received, Tick
 
-__all__ = ["Align", "Books", "Decode", "PipelineCounters", "Sequence"]
+__all__ = ["Align", "Books", "Decode", "Environment", "PipelineCounters", "Sequence"]
 
 log = logging.getLogger("mntes_stream.converter")
 
@@ -382,6 +382,55 @@ class Sequence:
         return out
 
 
+class Environment:
+    """A released chunk's rows (detector ids, which have parameters) and housekeeping at every sample.
+
+    Called by the housekeeping stage at a chunk's release (:class:`Align`): a chunk's release is this
+    module and the histories of ``pipeline.housekeeping``.
+    """
+
+    def __init__(self, books: Books, hk, known: frozenset):
+        self.books, self.hk, self._known = books, hk, known
+        self._rows: dict[tuple, tuple] = {}
+        self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
+
+    def rows_for(self, chunk: CountsChunk) -> tuple:
+        """Detector ids of the rows and which the converter knows (cached per channel list)."""
+        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes(), chunk.detector_ids)
+        rows = self._rows.get(cache_key)
+        if rows is None:
+            ids = chunk.row_ids()  # the source's names, or the b/m/c ids
+            known = np.array([d in self._known for d in ids], dtype=bool)
+            if len(self._rows) > 4096:
+                self._rows.clear()
+            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
+            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
+                self._unmatched += 1
+                books = self.books
+                books.last_error = (f"no_detector on {keys.counts_key(books.config.setup, chunk.board, chunk.module)}"
+                                    f": none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
+                                    "flagged UNKNOWN_CHANNEL")[:500]
+                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
+                    log.warning("%s", books.last_error)
+        return rows
+
+    def __call__(self, p: Pending) -> Ready:
+        chunk, t = p.chunk, p.t_ns
+        t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
+        b_field, f_b = self.hk.scalar("b_field", chunk, t)
+        env_flags_t = f_tb | f_b
+        ids, known, n_unknown = self.rows_for(chunk)
+        v_bias, f_bias = self.hk.bias(chunk, t, ids)
+        f_board = self.hk.readout_flags(chunk, t)
+        if f_board is not None:  # the board's own flags (dfmux-bridge): per row, so the bias is per row too
+            if v_bias is None:
+                v_bias, f_bias = self.hk.nominal_bias(ids, t.size), f_board
+            else:
+                f_bias = f_bias | f_board
+        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
+        return Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
+
+
 class Align:
     """Housekeeping and alignment: :class:`Hk` into the histories; :class:`Pending` chunks held, released aligned.
 
@@ -389,7 +438,7 @@ class Align:
     last sample (interpolated, not extrapolated) or until it has waited
     ``hk_wait_s`` of receive time, whichever first; at most ``max_pending``
     are held (beyond, the oldest is released at once). A released chunk
-    leaves as :class:`~mntes_stream.pipeline.items.Ready`, aligned by ``environment`` (``pipeline.convert``)
+    leaves as :class:`~mntes_stream.pipeline.items.Ready`, aligned by ``environment`` (:class:`Environment`)
     with the histories as of its release. Readings are judged by
     ``pipeline.housekeeping`` (bad ones counted by reason).
     """
