@@ -190,6 +190,17 @@ def test_packages_import_only_what_their_contract_allows():
     assert not found, found
 
 
+def test_the_g3_converter_runs_the_pipeline_and_only_its_bridge_service_imports_service():
+    # OpticalPower and convert RUN.g3 take the converter from pipeline/ (below service/); the g3-bridge is a
+    # service (service.base), the one module of g3 that may import service.
+    modules = _modules()
+    known = {name.split(".")[0] for name in modules} - {"mntes_stream"}
+    uses = {name: {pkg for _, pkg in _package_imports(path, package, known)} for name, (path, package) in modules.items()
+            if name.split(".")[0] == "g3"}
+    assert {name for name, pkgs in uses.items() if "service" in pkgs} == {"g3.bridge"}
+    assert "pipeline" in uses["g3.power"] and "pipeline" in uses["g3.files"]
+
+
 def _module_cycles(modules) -> set[frozenset[str]]:
     """Strongly connected groups (> 1 module) of the import graph between modules, any import counted.
 
