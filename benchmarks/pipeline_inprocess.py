@@ -20,7 +20,7 @@ import time
 
 from mntes_stream.core.convert import make_converter
 from mntes_stream.io.messages import PowerChunk
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 T0_NS = 1_700_000_000_000_000_000

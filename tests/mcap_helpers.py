@@ -134,7 +134,7 @@ import sys, time
 from mntes_stream.core.convert import make_converter
 from mntes_stream.io import keys
 from mntes_stream.io.mcap import RotatingMcapWriter
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 T0 = 1_700_000_000_000_000_000
 src = MinimalSource(SourceConfig(setup="t", modules=2, channels=8))

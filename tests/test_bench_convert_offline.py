@@ -14,7 +14,8 @@ from mntes_stream.io import keys
 from mntes_stream.io.mcap import Session
 from mntes_stream.io.messages import Provenance
 from mntes_stream.io.paramfile import dump_params
-from mntes_stream.service.offline import build_converter, convert_recording
+from mntes_stream.pipeline.build import ConverterSpec, build_converter
+from mntes_stream.pipeline.offline import convert_recording
 from mntes_stream.service.simulator import SimulatorSource, write_mcap
 
 
@@ -56,7 +57,7 @@ def test_a_converter_from_the_cache_converts_bit_for_bit_as_one_built(recording)
     # Other bytes are another key (a snapshot of its own), the same detectors the same bank.
     other = recording / "other.toml"
     other.write_text(params.read_text() + "\n# the same detectors\n")
-    conv_other = build_converter(None, params=other, table_cache=cache)[0]
+    conv_other = build_converter(ConverterSpec(params_file=str(other), table_cache=str(cache))).converter
     assert len(list(cache.glob("converter-table-*.pickle"))) == 2
     assert str(conv_other.identity) == warm.table_identity  # same detectors, same tables: the same bank
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from mntes_stream.core.params import table1_params
 from mntes_stream.io.cache import prune, usage
-from mntes_stream.service.converter import ConverterConfig, _cached_bank
+from mntes_stream.pipeline.build import cached_bank
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -22,18 +22,18 @@ def _params(i: int) -> dict:
 
 
 def test_the_table_cache_keeps_to_its_cap_dropping_the_least_recently_used(tmp_path):
-    one = _cached_bank(ConverterConfig(params="unused.toml", table_cache=str(tmp_path)), _params(0))
+    one = cached_bank("table", _params(0), str(tmp_path))
     size = next(tmp_path.glob("*.npz")).stat().st_size
     # Room for two entries: the third write removes the least recently used, not the newest nor a just-loaded one.
-    cfg = ConverterConfig(params="unused.toml", table_cache=str(tmp_path), table_cache_max_mb=2.5 * size / 1e6)
+    cap_mb = 2.5 * size / 1e6
     first = next(tmp_path.glob("*.npz"))
     os.utime(first, (time.time() - 100, time.time() - 100))
-    _cached_bank(cfg, _params(1))
+    cached_bank("table", _params(1), str(tmp_path), cap_mb)
     second = next(p for p in tmp_path.glob("*.npz") if p != first)
     os.utime(second, (time.time() - 50, time.time() - 50))
-    again = _cached_bank(cfg, _params(0))  # a hit: touched, so now the most recently used
+    again = cached_bank("table", _params(0), str(tmp_path), cap_mb)  # a hit: touched, so now the most recently used
     assert again.identity == one.identity and first.stat().st_mtime > time.time() - 10
-    _cached_bank(cfg, _params(2))
+    cached_bank("table", _params(2), str(tmp_path), cap_mb)
     left = sorted(tmp_path.glob("*.npz"))
     assert len(left) == 2 and first in left and second not in left
     assert sum(p.stat().st_size for p in left) <= 2.5 * size

@@ -24,7 +24,7 @@ from mntes_stream.io import keys
 from mntes_stream.io import mcap as mio
 from mntes_stream.io.messages import PowerChunk
 from mntes_stream.io.transport import Publishers, free_tcp_port, loopback, open_session
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.recorder import RecorderConfig, ZenohSettings, run_recorder
 from mntes_stream.service.source import MinimalSource, SourceConfig
 

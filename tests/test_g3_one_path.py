@@ -42,21 +42,24 @@ def _mcap_power(path, names):
 
 
 @pytest.mark.parametrize("staleness_s", [60.0, 0.3])
-def test_g3_to_g3_equals_g3_to_mcap_flags_and_all(tmp_path, staleness_s):
+def test_g3_to_g3_equals_g3_to_mcap_flags_and_all(tmp_path, staleness_s, monkeypatch):
     from mntes_stream.core.ids import parse_detector_id
     from mntes_stream.core.sim import ArraySimulator
     from mntes_stream.g3.files import g3_to_g3, g3_to_mcap
     from mntes_stream.g3.sim import bolometer_name, write_g3
-    from mntes_stream.service.pipeline import PipelineConfig
+    from mntes_stream.pipeline import PipelineConfig
 
     cfg = SimConfig.noise_free(modules=2, channels=4, t_bath_wander_k=0.2e-3, t_bath_wander_period_s=60.0,
                                bias_steps=((1.0, 0.01),), hk_t_bath_rate_hz=1.0)
     write_g3(cfg, tmp_path / "run.g3", 3.0, layout="scans", t0_ns=T0_NS, gain_steps=((2.0, 6),),
              params_out=tmp_path / "p.toml")
     pc = PipelineConfig(hk_staleness_s=staleness_s)
+    monkeypatch.setenv("MNTES_STREAM_CACHE", str(tmp_path / "cache"))  # the default table cache, this test's own
     g3_to_g3(tmp_path / "run.g3", tmp_path / "out.g3", params=tmp_path / "p.toml",
              pipeline_config=pc)
+    (bank,) = (tmp_path / "cache" / "tables").glob("table-*.npz")  # the G3 module's bank, kept in the table cache
     g3_to_mcap(tmp_path / "run.g3", tmp_path / "out.mcap", params=tmp_path / "p.toml", pipeline_config=pc)
+    assert list((tmp_path / "cache" / "tables").glob("table-*.npz")) == [bank]  # ... which convert took from there
     names = {d: bolometer_name(*parse_detector_id(d)) for d in ArraySimulator(cfg).detector_ids}
     p_g3, f_g3 = _g3_power(tmp_path / "out.g3")
     p_mc, f_mc = _mcap_power(tmp_path / "out.mcap", names)

@@ -13,7 +13,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import make_converter
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, decode
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 T0 = 1_700_000_000_000_000_000

@@ -82,7 +82,7 @@ def _pipeline_run(params, caplog):
 
     from mntes_stream.core.convert import make_converter
     from mntes_stream.io.messages import decode
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     src = MinimalSource(SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))
@@ -119,7 +119,7 @@ def test_detector_ids_that_are_names_are_said_at_start_and_match_only_named_rows
     from mntes_stream.core import flags as fl
     from mntes_stream.core.convert import make_converter
     from mntes_stream.io.messages import decode
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     params = [table1_params("det-a"), table1_params("det-b"), table1_params("b0m1c000")]

@@ -95,14 +95,14 @@ def _same_code(code: str) -> None:
     """The snapshot key hashes mntes_stream/core/*.py (``build_fingerprint``): a file there saved while this test
     runs (in a shared work tree) makes the next start build, rightly, instead of loading. Said plainly, not as a
     miscount of "loaded from the snapshot"."""
-    from mntes_stream.service.snapshot import build_fingerprint
+    from mntes_stream.pipeline.snapshot import build_fingerprint
 
     build_fingerprint.cache_clear()
     assert build_fingerprint() == code, "mntes_stream/core/*.py changed while this test ran: run it again"
 
 
 def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, caplog):
-    from mntes_stream.service.snapshot import build_fingerprint
+    from mntes_stream.pipeline.snapshot import build_fingerprint
 
     dump_params(source.params, tmp_path / "params.toml")
     build_fingerprint.cache_clear()  # this process may have hashed core/ minutes ago (another test): the code now
@@ -125,13 +125,13 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
     # after a refusal is the damaged case's serve run below).
     import logging
 
+    from mntes_stream.pipeline.snapshot import load_snapshot
     from mntes_stream.service.config import load_service_config
-    from mntes_stream.service.snapshot import load_snapshot
 
     _, cfg = load_service_config(tmp_path / "converter.toml")
     os.chmod(snap, 0o666)
     with caplog.at_level(logging.WARNING, logger="mntes_stream.converter"):
-        key, got = load_snapshot(cfg)
+        key, got = load_snapshot(cfg.spec)
     assert got is None and "snapshot not loaded" in caplog.text and "writable by others" in caplog.text
     # ... nor a damaged one: serve builds instead and converts everything.
     snap.write_bytes(b"\x80\x05garbage")
@@ -142,25 +142,28 @@ def test_a_restart_loads_the_converter_its_last_start_built(tmp_path, source, ca
     assert log4.count("loaded from the snapshot") == 1 and len(fourth) == 20
     assert "unusable (" in log4.rsplit("loaded from the snapshot", 1)[-1]
     # ... and a changed parameter file is another key: built again, not the old converter.
-    assert load_snapshot(cfg)[1] is not None  # the damaged start saved a good one again
+    assert load_snapshot(cfg.spec)[1] is not None  # the damaged start saved a good one again
     (tmp_path / "params.toml").write_text((tmp_path / "params.toml").read_text() + "\n")
-    key5, got5 = load_snapshot(load_service_config(tmp_path / "converter.toml")[1])
+    key5, got5 = load_snapshot(load_service_config(tmp_path / "converter.toml")[1].spec)
     assert key5 != key and got5 is None
 
 
 def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, source):
     from mntes_stream.core.convert import EnvironmentBlock
-    from mntes_stream.service.converter import ConverterConfig, build_converter, owned_params
-    from mntes_stream.service.snapshot import load_snapshot, save_snapshot
+    from mntes_stream.pipeline.build import build_converter
+    from mntes_stream.pipeline.snapshot import load_snapshot
+    from mntes_stream.service.converter import ConverterConfig
 
     dump_params(source.params, tmp_path / "params.toml")
     cfg = ConverterConfig(params=str(tmp_path / "params.toml"), table_cache=str(tmp_path / "cache"))
-    key, snap = load_snapshot(cfg)
+    key, snap = load_snapshot(cfg.spec)
     assert snap is None
-    params, streams = owned_params(cfg)
-    built = build_converter(cfg, params)
-    save_snapshot(cfg, key, params, streams, built)
-    key2, (params2, streams2, loaded, text) = load_snapshot(cfg)
+    first = build_converter(cfg.spec)  # built, and kept as a snapshot
+    built, params, streams = first.converter, first.params, first.streams
+    assert not first.from_snapshot and streams == [(0, 0), (0, 1)] and set(params) == set(built.detector_ids)
+    again = build_converter(cfg.spec)
+    assert again.from_snapshot and again.streams == streams and again.params == params
+    key2, (params2, streams2, loaded, text) = load_snapshot(cfg.spec)
     assert key2 == key and streams2 == streams and params2 == params and loaded.identity == built.identity
     rng = np.random.default_rng(1)
     ids = built.detector_ids
@@ -173,7 +176,7 @@ def test_the_snapshot_converts_bit_for_bit_like_the_converter_built(tmp_path, so
     # The provenance's parameter text comes with the snapshot and is handed to the pipeline (not written again,
     # no hidden cache): the text the built converter's parameters give.
     from mntes_stream.io.paramfile import params_to_toml
-    from mntes_stream.service.pipeline import ConverterPipeline
+    from mntes_stream.pipeline import ConverterPipeline
 
     assert text == params_to_toml(list(built.params)) != params_to_toml(list(built.params)[::-1])
     assert ConverterPipeline(loaded, params_toml=text).provenance().params_toml is text
@@ -191,7 +194,7 @@ def _feed(pipe, batches):
 
 def test_a_resumed_pipeline_counts_what_was_published_while_it_was_down(source, caplog):
     from mntes_stream.core.convert import make_converter
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
     conv = make_converter("exact", {p.detector_id: p for p in source.params})
     steps = list(source.batches(T0, duration_s=3.0))
@@ -225,7 +228,7 @@ def test_a_resumed_pipeline_drops_the_history_its_checkpoint_had_converted_as_du
     'converted 2264, pending 256': the checkpoint's duplicates were booked received and then lost in an error)."""
     from mntes_stream.core.convert import make_converter
     from mntes_stream.core.ledger import Ledger
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
     conv = make_converter("exact", {p.detector_id: p for p in source.params})
     steps = list(source.batches(T0, duration_s=3.0))

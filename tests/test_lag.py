@@ -7,7 +7,7 @@ import re
 from mntes_stream.core.convert import make_converter
 from mntes_stream.core.lag import who_is_behind
 from mntes_stream.io.messages import StatusMessage
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 T0_NS = 1_700_000_000_000_000_000

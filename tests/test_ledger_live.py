@@ -18,7 +18,7 @@ import pytest
 
 from mntes_stream.bench.chaos import cpu_hog
 from mntes_stream.core.ledger import Ledger
-from mntes_stream.service.offline import convert_recording
+from mntes_stream.pipeline.offline import convert_recording
 
 pytestmark = pytest.mark.slow
 

@@ -181,7 +181,7 @@ def test_live_pipeline_measures_the_noise_and_the_provenance_says_so():
     complete its noise is measured far below the configured 2.76e-11 A, sigma_P falls with it, and the
     provenance names the live measurement."""
     from mntes_stream.io.messages import PowerChunk, Provenance
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     src = MinimalSource(SourceConfig(modules=1, channels=4, hwp_2f_amplitude_w=0.0, t_bath_swing_k=0.0,
@@ -214,13 +214,13 @@ def test_live_pipeline_measures_the_noise_and_the_provenance_says_so():
 def test_nominal_gradients_are_solved_once_and_travel_with_a_restart_snapshot():
     import pickle
 
-    import mntes_stream.service.snapshot  # noqa: F401 - registers how the converter's read-only views pickle
+    import mntes_stream.pipeline.snapshot  # noqa: F401 - registers how the converter's read-only views pickle
 
     params = {p.detector_id: p for p in range_detectors().values()}
     conv = make_converter("table", params)
     grad = U.nominal_gradients(conv)
     assert U.nominal_gradients(conv) is grad  # kept on the converter
-    restored = pickle.loads(pickle.dumps(conv))  # what service/snapshot.py stores
+    restored = pickle.loads(pickle.dumps(conv))  # what pipeline/snapshot.py stores
     assert np.array_equal(U.nominal_gradients(restored), grad)
     s = U.UncertaintySettings()
     a, b = U.noise_model(conv.params, s), U.noise_model(conv.params, s, gradients=grad)
@@ -233,7 +233,7 @@ def test_auto_flags_only_where_the_kernel_does_it_in_its_own_pass():
     """``low_responsivity = "auto"`` (only_fused): a converter that would need the sigma_P pass (here the numpy
     backend) flags nothing and names no noise; ``"on"``: it flags as the compiled kernel does."""
     from mntes_stream.io.messages import PowerChunk, Provenance
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     src = MinimalSource(SourceConfig(modules=1, channels=4, hwp_2f_amplitude_w=2e-13))

@@ -12,7 +12,7 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, Provenance, StatusMessage, decode
 from mntes_stream.io.paramfile import parse_params
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 T0 = 1_700_000_000_000_000_000
@@ -495,14 +495,13 @@ def test_a_chunk_that_cannot_be_converted_is_dropped_once_and_counted(source, co
 def test_the_stages_are_one_declared_list_and_running_them_by_hand_is_handle_many(source, converter):
     """The stages run in their declared order; the same items through them by hand give handle_many's bytes,
     and a stage that fails on a batch is counted (internal_error) without stopping the next batch."""
-    from mntes_stream.service.pipeline import converter_stages
-    from mntes_stream.service.stages import END
+    from mntes_stream.pipeline.items import END, Flagged, Output
+    from mntes_stream.pipeline.pipeline import converter_stages
 
     msgs = _messages(source, 12)
     a, b = len(msgs) // 3, 2 * len(msgs) // 3
     pipe = ConverterPipeline(converter, PipelineConfig(hk_wait_s=0.0), clock=None)
-    assert [s.name for s in pipe.stages] == ["decode", "sequence", "housekeeping", "convert", "flags", "encode",
-                                             "status"]
+    assert pipe.stages.names == ["decode", "sequence", "housekeeping", "convert", "flags", "encode", "status"]
     assert [type(s) for s in pipe.stages] == [type(s) for s in converter_stages(
         pipe.books, converter, params=[], modules=None, owns={}, threads=1, set_aside_bytes=1)]
     want = pipe.handle_many(msgs[:a])
@@ -516,17 +515,78 @@ def test_the_stages_are_one_declared_list_and_running_them_by_hand_is_handle_man
 
     class Broken:
         name = "encode"
+        takes, gives = (Flagged,), (Output,)
 
         def __call__(self, items):
             raise RuntimeError("encoder bug")
 
-    enc = pipe.stages[5]
-    pipe.stages = pipe.stages[:5] + (Broken(),) + pipe.stages[6:]
+    enc = pipe.stages["encode"]
+    pipe.stages = pipe.stages.replace(Broken())
     assert not [k for k, _ in pipe.handle_many(msgs[a:b]) if "/power/" in k]
     assert pipe.bad_messages["internal_error"] == 1 and "encoder bug" in pipe.last_error
-    pipe.stages = pipe.stages[:5] + (enc,) + pipe.stages[6:]
+    pipe.stages = pipe.stages.replace(enc)
     power, _ = _split(pipe.handle_many(msgs[b:]) + pipe.flush())
     assert power and pipe.ledger_now().totals().pending > 0  # the broken batch's chunks: held in the ledger, not lost
+
+
+def test_a_stage_whose_input_no_earlier_stage_gives_is_refused_when_the_list_is_built(converter):
+    """Stages are checked by what they take and give, and parts of the list are run by name."""
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.pipeline.items import Ready, Stages
+
+    pipe = ConverterPipeline(converter, PipelineConfig(), clock=None)
+    stages = list(pipe.stages)
+    with pytest.raises(ConfigError, match="stage 'housekeeping' takes Pending, which no stage before it gives"):
+        Stages([s for s in stages if s.name != "sequence"])  # nothing books chunks into their sequence
+    with pytest.raises(ConfigError, match="stage 'encode' takes Flagged"):
+        Stages(stages[:4] + stages[5:])  # encode before flags: no flagged power to encode
+    with pytest.raises(ConfigError, match="two stages are named 'convert'"):
+        Stages(stages[:4] + stages[3:])
+    assert [s.name for s in pipe.stages.span("convert", "encode", (Ready,))] == ["convert", "flags", "encode"]
+    assert [s.name for s in pipe.stages.span(until="encode")] == pipe.stages.names[:-1]
+    with pytest.raises(ConfigError, match="stage 'convert' takes Ready"):
+        pipe.stages.span("convert", "encode")  # fed received messages, not released chunks
+    with pytest.raises(ConfigError, match="no stage named 'kernel'"):
+        pipe.stages.span(until="kernel")
+
+
+def test_one_runner_batches_and_switches_the_calibration_as_message_by_message(source, converter):
+    """The runner every driver feeds: batched by receive time, the power and flags of message by message, the
+    inputs given back in their order; at a switch the old pipeline converts what arrived before it and the new
+    one takes over, with its own provenance, each retired once flushed."""
+    from mntes_stream.pipeline.runner import Runner
+
+    msgs = _messages(source, 30)
+
+    def powers(writes):
+        return {(p.module, p.seq): (p.converter_kind, p.p_opt_w.tobytes(), p.flags.tobytes())
+                for p in (decode(pl) for k, pl, _ in writes if "/power/" in k)}
+
+    cfg = PipelineConfig(status_interval_s=0.2)
+    one = Runner(lambda k: ConverterPipeline(converter, cfg, clock=None))
+    by_message = [w for m in msgs for w in one.feed(*m)] + one.finish()
+    batched = Runner(lambda k: ConverterPipeline(converter, cfg, clock=None), batch_s=1.0, inputs=True)
+    writes = [w for m in msgs for w in batched.feed(*m)] + batched.finish()
+    assert len(powers(by_message)) == 2 * 30 and powers(writes) == powers(by_message)
+    assert [w for w in writes if keys.kind_of(w[0]) in ("counts", "hk")] == msgs
+    assert sum("/status/" in w[0] for w in writes) < sum("/status/" in w[0] for w in by_message)  # one per batch
+
+    linear = make_converter("linear", {p.detector_id: p for p in source.params})
+    t_switch = msgs[len(msgs) // 2][2]
+    retired = []
+    switching = Runner(lambda k: ConverterPipeline((converter, linear)[k], PipelineConfig(), clock=None),
+                       switches=[t_switch], batch_s=1.0, provenance=True, retire=retired.append)
+    writes = [w for m in msgs for w in switching.feed(*m)] + switching.finish()
+    assert [(decode(p).converter_kind, t) for k, p, t in writes if keys.kind_of(k) == "provenance"] == [
+        ("exact", msgs[0][2]), ("linear", t_switch)]
+    assert [r.converter for r in retired] == [converter, linear]
+    received = {(c.module, c.seq): t for k, p, t in msgs if "/counts/" in k for c in [decode(p)]}
+    got = powers(writes)
+    assert got.keys() == received.keys()
+    for k, (kind, p, f) in got.items():  # each chunk converted by the calibration in force when it arrived
+        assert kind == ("exact" if received[k] < t_switch else "linear"), k
+        if kind == "exact":
+            assert (p, f) == powers(by_message)[k][1:]
 
 
 @pytest.mark.parametrize("rate_hz", [1569.0117, 1961.265, 2353.518])

@@ -184,7 +184,7 @@ def source_recording(tmp_path_factory):
     """
     from mntes_stream.core.convert import make_converter
     from mntes_stream.io import keys
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     src = MinimalSource(SourceConfig(setup="t", modules=2, channels=8))
@@ -213,7 +213,7 @@ def _power(source):
 def test_offline_convert_reproduces_the_recorded_conversion(source_recording, tmp_path):
     import numpy as np
 
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     path, src = source_recording
     out = tmp_path / "out.mcap"
@@ -276,7 +276,7 @@ def test_offline_convert_with_a_table_file(source_recording, tmp_path):
     from mntes_stream.core.tables import build_bank
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.tablefile import save_bank
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     path, src = source_recording
     newer = [p.replace(t_c_k=p.transition.t_c_k * 1.001) for p in src.params]
@@ -295,7 +295,7 @@ def test_offline_convert_with_a_table_file(source_recording, tmp_path):
 
 
 def test_offline_convert_needs_parameters(tmp_path):
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     path = tmp_path / "bare.mcap"
     with mio.McapFileWriter(path) as w:
@@ -315,7 +315,7 @@ def two_calibrations(tmp_path_factory):
     from mntes_stream.core.convert import make_converter
     from mntes_stream.io import keys
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.source import MinimalSource, SourceConfig
 
     src = MinimalSource(SourceConfig(setup="t", modules=1, channels=4))
@@ -354,7 +354,7 @@ def two_calibrations(tmp_path_factory):
 def test_offline_convert_switches_calibration_where_the_recording_did(two_calibrations, tmp_path):
     import numpy as np
 
-    from mntes_stream.service.offline import convert_recording, recorded_calibrations
+    from mntes_stream.pipeline.offline import convert_recording, recorded_calibrations
 
     directory, src, ident, t_switch = two_calibrations
     assert [(t, p.table_identity) for t, p in recorded_calibrations(mio.Session(directory))] == \
@@ -378,7 +378,7 @@ def test_offline_convert_switches_calibration_where_the_recording_did(two_calibr
 
 
 def test_offline_convert_override_of_several_calibrations_warns(two_calibrations, tmp_path, caplog):
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     directory, src, ident, _ = two_calibrations
     with caplog.at_level("WARNING", logger="mntes_stream.offline"):
@@ -394,8 +394,8 @@ def _live_run(tmp_path, name, params_file, feed, n_power):
     both services have stopped (converter first, so it converts what it holds).
     """
     from mntes_stream.io.transport import free_tcp_port
+    from mntes_stream.pipeline import PipelineConfig
     from mntes_stream.service.converter import ConverterConfig, run_converter
-    from mntes_stream.service.pipeline import PipelineConfig
 
     rec_dir = tmp_path / name
     with running_recorder(rec_dir) as (ep_rec, _):
@@ -427,7 +427,7 @@ def test_live_replayed_and_offline_conversions_agree(tmp_path):
 
     from mntes_stream.io import keys
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
     from mntes_stream.service.source import MinimalSource, SourceConfig, publish
 
     src = MinimalSource(SourceConfig(setup="t", modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1))

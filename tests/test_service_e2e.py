@@ -24,8 +24,9 @@ from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk, PowerChunk, Provenance, StatusMessage, decode
 from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import Publishers, QueueSubscriber, free_tcp_port, loopback, open_session
-from mntes_stream.service.converter import ConverterConfig, build_converter, run_converter
-from mntes_stream.service.pipeline import PipelineConfig
+from mntes_stream.pipeline import PipelineConfig
+from mntes_stream.pipeline.build import build_converter
+from mntes_stream.service.converter import ConverterConfig, run_converter
 from mntes_stream.service.source import MinimalSource, SourceConfig, publish
 
 SRC = SourceConfig(modules=2, channels=4, sample_rate_hz=200.0, chunk_s=0.1, hk_interval_s=0.1)
@@ -104,7 +105,7 @@ def test_power_over_zenoh_equals_library_conversion(source, params_file):
     hk = {s: [h for _, h in inputs if isinstance(h, HousekeepingChunk) and h.sensor == s] for s in ("t_bath", "b_field")}
     hk_t = {s: np.concatenate([h.t_ns for h in v]) for s, v in hk.items()}
     hk_v = {s: np.concatenate([h.value for h in v]) for s, v in hk.items()}
-    library = build_converter(cfg)
+    library = build_converter(cfg.spec).converter
     exact = make_converter("exact", {p.detector_id: p for p in source.params})
     for pw in power:
         c = counts[(pw.module, pw.seq)]

@@ -20,8 +20,9 @@ import pytest
 from mntes_stream.errors import ConfigError
 from mntes_stream.io.paramfile import load_params
 from mntes_stream.io.transport import ZenohSettings, describe_config, zenoh_config
+from mntes_stream.pipeline.build import build_converter
 from mntes_stream.service.config import load_service_config, read_toml
-from mntes_stream.service.converter import ConverterService, build_converter, subscriptions
+from mntes_stream.service.converter import ConverterService, subscriptions
 from mntes_stream.service.registry import SERVICES as REGISTRY
 from mntes_stream.service.source import MinimalSource, default_params
 
@@ -104,7 +105,7 @@ def test_converter_and_source_configs_agree():
     params = load_params(conv.params)
     MinimalSource(src.source, list(params.values()))
     assert {p.detector_id: p.to_dict() for p in default_params(src.source)} == {k: p.to_dict() for k, p in params.items()}
-    converter = build_converter(conv)
+    converter = build_converter(conv.spec).converter
     assert set(converter.detector_ids) == set(params)
     assert subscriptions(conv) == ["mntes/lab/hk/**", "mntes/lab/counts/*/*"]
 

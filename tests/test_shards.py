@@ -15,9 +15,10 @@ from mntes_stream.io.claims import StreamClaims, parse_claim
 from mntes_stream.io.messages import CountsChunk, PowerChunk, Provenance, StatusMessage
 from mntes_stream.io.paramfile import dump_params
 from mntes_stream.io.transport import free_tcp_port, loopback, open_session
-from mntes_stream.service.converter import ConverterConfig, owned_params, subscriptions
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline.build import owned_part
+from mntes_stream.service.converter import ConverterConfig, subscriptions
 from mntes_stream.service.coverage import Coverage
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.recorder import RecorderConfig
 from mntes_stream.service.recorder_sink import shard_filter
 from mntes_stream.service.source import MinimalSource, SourceConfig
@@ -84,7 +85,7 @@ def test_a_shard_loads_only_its_detectors_and_subscribes_only_to_its_keys(array)
     tmp, _ = array
     cfg = ConverterConfig(params=str(tmp / "params.toml"), shard="1/2", table_cache="")
     assert cfg.name == "converter-1of2"  # shards of one setup get names of their own
-    params, streams = owned_params(cfg)
+    params, streams = owned_part(cfg.spec)
     assert streams == owned_streams([(b, m) for b in range(2) for m in range(3)], Shard(1, 2))
     assert sorted({d[:4] for d in params}) == sorted(f"b{b}m{m}" for b, m in streams)
     assert len(params) == 4 * len(streams)
@@ -94,12 +95,12 @@ def test_a_shard_loads_only_its_detectors_and_subscribes_only_to_its_keys(array)
                                        for s in ("bias", "readout_flags")]
                                       + [f"mntes/lab/counts/{b}/{m}" for b, m in streams])
     # boards and modules narrow it further; nothing left is an error, said in one line.
-    assert owned_params(ConverterConfig(params=str(tmp / "params.toml"), boards=(1,), modules=(2,)))[1] == [(1, 2)]
+    assert owned_part(ConverterConfig(params=str(tmp / "params.toml"), boards=(1,), modules=(2,)).spec)[1] == [(1, 2)]
     with pytest.raises(ConfigError, match="no stream of the parameters"):
-        owned_params(ConverterConfig(params=str(tmp / "params.toml"), boards=(7,)))
+        owned_part(ConverterConfig(params=str(tmp / "params.toml"), boards=(7,)).spec)
     # The whole focal plane: every stream, the subscriptions of before.
     whole = ConverterConfig(params=str(tmp / "params.toml"))
-    assert len(owned_params(whole)[1]) == 6 and subscriptions(whole, owned_params(whole)[1])[0] == "mntes/lab/hk/**"
+    assert len(owned_part(whole.spec)[1]) == 6 and subscriptions(whole, owned_part(whole.spec)[1])[0] == "mntes/lab/hk/**"
 
 
 def test_owns_travels_in_status_and_provenance_and_is_checked():
@@ -201,7 +202,7 @@ def test_batched_handling_gives_the_power_of_message_by_message(array, bias, thr
     steps with the same rows (split across threads if asked): the same power and flags as handle(),
     message by message."""
     from mntes_stream.core.convert import make_converter
-    from mntes_stream.service import pipeline_convert
+    from mntes_stream.pipeline import convert as pipeline_convert
 
     monkeypatch.setattr(pipeline_convert, "_SPLIT_SAMPLES", 0)  # this small array's runs are split too
 
@@ -241,7 +242,7 @@ def test_batched_handling_gives_the_power_of_message_by_message(array, bias, thr
     # (the last step waits for housekeeping until flush(); with bias, three row layouts, two in the last step;
     # step by step it would take one call per step and layout: 21 or 32)
     assert backlog.converter.calls <= (5 if bias else 2) * threads
-    assert (backlog.stages[3]._executor is not None) == (threads > 1)
+    assert (backlog.stages["convert"]._executor is not None) == (threads > 1)
     if bias:
         assert any(np.any(pw.p_opt_w != single[(0, 0, pw.seq)].p_opt_w) for pw in whole.values()
                    if (pw.board, pw.module) == (0, 1))  # the bias readings changed the power

@@ -156,7 +156,7 @@ def test_three_shards_publish_every_detector_once(tmp_path):
             assert list(where) == ["mntes-shard0of2-"], (t, where)
 
     # Offline: the shard files convert as one session, with the shards' parameters joined, to the live power.
-    from mntes_stream.service.offline import convert_recording, recorded_calibrations
+    from mntes_stream.pipeline.offline import convert_recording, recorded_calibrations
 
     (calibration,) = [p for _, p in recorded_calibrations(session)]
     assert calibration.owns == {"shards": 3} and calibration.params_toml.count("[detectors.") == MODULES * CHANNELS

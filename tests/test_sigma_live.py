@@ -9,7 +9,7 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.convert import EnvironmentBlock, make_converter
 from mntes_stream.core.uncertainty import UncertaintySettings, noise_model, sigma_p_block
 from mntes_stream.io.messages import CountsChunk, PowerChunk, Provenance
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 from mntes_stream.service.source import MinimalSource, SourceConfig
 
 

@@ -201,7 +201,7 @@ def test_live_simulate_command_runs_the_simulator_service(tmp_path):
 def test_service_config_tables():
     import dataclasses
 
-    from mntes_stream.service.pipeline import PipelineConfig
+    from mntes_stream.pipeline import PipelineConfig
     from mntes_stream.service.source import SourceConfig
 
     svc = SimulatorService.config_from_document({"simulator": {"channels": 128, "setup": "x1", "speed": 0, "duration_s": 5,

@@ -244,7 +244,7 @@ def _analyse(work: Path, procs: dict, rcs: dict, log: list, down: dict, duration
     from mntes_stream.core.ledger import Ledger
     from mntes_stream.io.mcap import Session
     from mntes_stream.io.messages import CountsChunk, PowerChunk, StatusMessage
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     session = Session(work / "recordings")
     counts: dict[str, dict[tuple, int]] = {}  # stream -> {(seq, t0): 1}

@@ -6,7 +6,7 @@ is converted by ``mntes-stream convert REC OUT --params P`` in a process of its
 own, as a user runs it: once with an empty cache (``HOME`` pointed at the work
 directory: the table bank and the converter built and cached), then
 ``--repeat`` times with the cache warm; then in this process with
-:func:`~mntes_stream.service.offline.convert_recording` (imports and compiled
+:func:`~mntes_stream.pipeline.offline.convert_recording` (imports and compiled
 kernels already loaded). Each run is timed end to end (converter, reading,
 the pipeline, writing the output MCAP); the figure is seconds of data per wall
 second (target: 20x for 2,048 detectors x 30 s). Besides, each part alone in
@@ -110,7 +110,8 @@ def run(args) -> dict:
     from mntes_stream.io.mcap import Session
     from mntes_stream.io.messages import CountsChunk
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.offline import build_converter, convert_recording
+    from mntes_stream.pipeline.build import ConverterSpec, build_converter
+    from mntes_stream.pipeline.offline import convert_recording
     from mntes_stream.service.simulator import SimulatorSource, write_mcap
 
     if args.detectors < 1 or args.channels < 1 or args.detectors % args.channels:
@@ -174,7 +175,7 @@ def run(args) -> dict:
                              f"{batched[0][1].samples_converted} samples, the default {stats.samples_converted}")
         # The parts alone, in the same minutes.
         t0 = time.perf_counter()
-        conv = build_converter(None, params=params_file, table_cache=cache)[0]
+        conv = build_converter(ConverterSpec(params_file=str(params_file), table_cache=str(cache))).converter
         build_warm_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         counts_payloads = []

@@ -74,7 +74,7 @@ def _imports_s() -> float:
     for _ in range(3):
         t0 = time.monotonic()
         subprocess.run([sys.executable, "-c", "import mntes_stream.cli, mntes_stream.service.converter, "
-                        "mntes_stream.service.pipeline, mntes_stream.core.convert, zenoh"], check=True)
+                        "mntes_stream.pipeline.pipeline, mntes_stream.core.convert, zenoh"], check=True)
         runs.append(time.monotonic() - t0)
     return statistics.median(runs)
 

@@ -1,7 +1,7 @@
 """``mntes-stream leakage REC``: the HWP 2f -> 4f nonlinearity MNTES removed, per detector, on a recording.
 
 The recorded counts are converted twice in process with the live converter's
-code (``service.offline.convert_recording``, into a temporary directory):
+code (``pipeline.offline.convert_recording``, into a temporary directory):
 with the recording's MNTES kind and with ``linear``, the linear baseline of
 the same counts. ``core.leakage.leakage_between`` then measures, per
 detector, the linear conversion's effective nonlinearity against MNTES
@@ -75,7 +75,7 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
     from mntes_stream.core.leakage import REQUIREMENT_PER_PW, leakage_between, median_nl
     from mntes_stream.errors import ConfigError
     from mntes_stream.feeds.recorded import RecordedPower
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
     from mntes_stream.service.simulator import load_truth
 
     truth = load_truth(truth_path) if truth_path else None
@@ -86,7 +86,7 @@ def measure(rec, *, truth_path=None, f_hwp_hz=None, params=None, progress=False)
         if mntes_kind in _BASELINES:  # a recording made with a baseline: MNTES is the reference here
             mntes_out.unlink()
             mntes_kind = convert_recording(rec, mntes_out, params=params, progress=progress, kind="table").converter_kind
-        # Detectors the linear baseline cannot take (latched) come out NaN + UNKNOWN_CHANNEL (offline.build_converter).
+        # Detectors the linear baseline cannot take (latched) come out NaN + UNKNOWN_CHANNEL (pipeline.build: drop_untaken).
         convert_recording(rec, Path(tmp) / "linear.mcap", params=params, progress=progress, kind="linear")
         mntes = RecordedPower(mntes_out).read()
         linear = RecordedPower(Path(tmp) / "linear.mcap").read()

@@ -238,7 +238,7 @@ def run_recover(args) -> int:
 def run_convert(args) -> int:
     from mntes_stream.cli._common import claim_out
     from mntes_stream.cli.g3 import refuse_inapplicable
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     refuse_inapplicable(args, _g3_name(args.input), _g3_name(args.output))
     claim_out(args.output, args.overwrite, inputs=[args.input])

@@ -6,7 +6,7 @@
 - G3 -> MCAP: the frames become counts and housekeeping messages
   (:class:`~mntes_stream.g3.translate.FrameTranslator`, as the live bridge
   publishes them), and the recording is converted by the live converter's own
-  pipeline (``service.offline.convert_recording``) with the parameters mapped
+  pipeline (``pipeline.offline.convert_recording``) with the parameters mapped
   to detector ids and the gain of the first housekeeping.
 - MCAP -> G3: the recorded (or, with parameters or tables, re-converted)
   power as Scan frames with ``MntesOpticalPower``/``MntesFlags``, keyed by
@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from mntes_stream.errors import ConfigError
-from mntes_stream.g3 import spt3g
 from mntes_stream.g3.mapping import G3InputConfig, Wiring
+from mntes_stream.g3.runtime import spt3g
 from mntes_stream.g3.wire import AtomicG3Writer
 
 MAX_FRAME_BYTES = 512 << 20  # a frame of a G3 file claiming more is not read (the bridge's max_frame_mb)
@@ -314,7 +314,7 @@ def g3_to_mcap(inputs, output, *, params, config: G3InputConfig | None = None, s
     """
     from mntes_stream.io.mcap import McapFileWriter, writer_description
     from mntes_stream.io.paramfile import dump_params
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     if params is None and tables is None:
         raise ConfigError("G3 -> MCAP needs detector parameters (--params, keyed by bolometer name or detector id)")
@@ -345,7 +345,7 @@ def mcap_to_g3(inputs, output, *, params=None, tables=None, wiring=None, pipelin
     """Recorded power (re-converted when ``params``/``tables`` are given) as G3 Scan frames."""
     from mntes_stream.io.mcap import Session
     from mntes_stream.io.messages import PowerChunk
-    from mntes_stream.service.offline import convert_recording
+    from mntes_stream.pipeline.offline import convert_recording
 
     core, _ = spt3g()
     if Path(output).exists():

@@ -41,9 +41,9 @@ def positions_from_g3(paths) -> dict:
     ConfigError
         No Wiring frame, no Calibration frame with ``BolometerProperties``, or no usable bolometer.
     """
-    from mntes_stream.g3 import spt3g
     from mntes_stream.g3.files import read_frames
     from mntes_stream.g3.mapping import Wiring
+    from mntes_stream.g3.runtime import spt3g
 
     core, _ = spt3g()
     wiring = props = None

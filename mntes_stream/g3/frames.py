@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mntes_stream.core.timing import G3_TICK_NS
-from mntes_stream.g3 import spt3g
+from mntes_stream.g3.runtime import spt3g
 
 __all__ = ["ModuleHk", "wiring_frame", "housekeeping_frame", "timepoint_frame", "gcpslow_frame", "g3_time",
            "MODULES_PER_MEZZ", "MEZZANINES"]

@@ -19,8 +19,8 @@ from mntes_stream.errors import MntesError, SchemaError
 
 
 def _g3_to_mcap(inputs, output, params, setup="lab") -> dict:
-    from mntes_stream.g3 import spt3g_in_use
     from mntes_stream.g3.files import g3_to_mcap
+    from mntes_stream.g3.runtime import spt3g_in_use
 
     stats = g3_to_mcap(inputs, output, params=params, setup=setup)
     return {"output": str(output), "power_chunks": stats.power_chunks, "spt3g": spt3g_in_use()}
@@ -56,7 +56,7 @@ def run(task: str, **kwargs) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    from mntes_stream.g3 import RefuseAfterSpt3g
+    from mntes_stream.g3.runtime import RefuseAfterSpt3g
 
     sys.meta_path.insert(0, RefuseAfterSpt3g())  # before anything could load so3g's spt3g
     try:

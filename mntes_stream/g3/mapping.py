@@ -207,7 +207,7 @@ def hk_snapshot(hkmap, wiring: Wiring, t_fallback_ns: int = 0, previous: HkSnaps
     mostly repeats itself), its values are reused: spt3g's functions cost
     about 0.3 ms per bolometer.
     """
-    from mntes_stream.g3 import spt3g
+    from mntes_stream.g3.runtime import spt3g
 
     core, dfmux = spt3g()
     from spt3g.dfmux.unittransforms import bolo_bias_voltage_rms, counts_to_rms_amps
@@ -313,7 +313,7 @@ class HkHistory:
 
 def bath_reading(frame, config: G3InputConfig, t_fallback_ns: int) -> tuple[int, float] | None:
     """``(t_ns, K)`` of the bath thermometer in a GcpSlow frame, or None if it has none."""
-    from mntes_stream.g3 import spt3g
+    from mntes_stream.g3.runtime import spt3g
 
     core, _ = spt3g()
     head, _, entry = config.t_bath_key.partition(".")

@@ -60,7 +60,7 @@ def read_fields(path, names) -> dict[str, HkSeries]:
     SchemaError
         A frame spt3g cannot decode.
     """
-    from mntes_stream.g3 import spt3g
+    from mntes_stream.g3.runtime import spt3g
 
     core, _ = spt3g()
     names = list(dict.fromkeys(names))

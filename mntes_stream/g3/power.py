@@ -15,7 +15,8 @@ housekeeping in force at that sample (spt3g's own conversion functions), so
 a gain change mid-run applies from the sample at or after its timestamp.
 
 With detector parameters the module is the live converter's pipeline
-(``service.pipeline.ConverterPipeline``) behind the G3 translator the bridge
+(``pipeline.ConverterPipeline``, its converter from ``pipeline.build``: the
+table cache too) behind the G3 translator the bridge
 uses (``g3.translate.FrameTranslator``): each Scan frame becomes one counts
 chunk per module, housekeeping (DfMux bias, the bath thermometer of GcpSlow
 frames) becomes the same housekeeping messages, and the power comes out of
@@ -40,9 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from mntes_stream.core import flags as fl
-from mntes_stream.core.convert import CONVERTER_KINDS, make_converter
+from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.errors import ConfigError
-from mntes_stream.g3 import spt3g
 from mntes_stream.g3.counts import scan_block
 from mntes_stream.g3.mapping import (
     BathHistory,
@@ -54,11 +54,15 @@ from mntes_stream.g3.mapping import (
     invalid_counts,
     params_for_wiring,
 )
+from mntes_stream.g3.runtime import spt3g
 from mntes_stream.g3.translate import FrameTranslator
 from mntes_stream.io import keys
 from mntes_stream.io.lean import CountsDecoder
 from mntes_stream.io.messages import PowerChunk
-from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+from mntes_stream.pipeline.build import ConverterSpec, build_converter, default_table_cache
+from mntes_stream.pipeline.config import PipelineConfig
+from mntes_stream.pipeline.pipeline import ConverterPipeline
+from mntes_stream.pipeline.runner import Runner
 
 __all__ = ["OpticalPower", "POWER_KEY", "FLAGS_KEY", "load_g3_params"]
 
@@ -101,12 +105,16 @@ class OpticalPower:
     pipeline_config : PipelineConfig, optional
         The converter pipeline's settings (housekeeping staleness, ...); default
         as ``convert`` uses them.
+    table_cache : path, optional
+        Where table banks built from parameters are kept, as the converter
+        service keeps them (``...``: its default; None: always build). Build
+        options among ``converter_options`` build the bank anew.
     """
 
     def __init__(self, params=None, kind: str = "table", config: G3InputConfig | None = None, preload=(),
                  input_i: str = "RawTimestreams_I", input_q: str = "RawTimestreams_Q", output: str = POWER_KEY,
                  flags_output: str = FLAGS_KEY, pipeline_config: PipelineConfig | None = None,
-                 **converter_options):
+                 table_cache=..., **converter_options):
         if kind not in CONVERTER_KINDS:
             raise ConfigError(f"unknown kind {kind!r} (known: {', '.join(CONVERTER_KINDS)})")
         self.params = load_g3_params(params)
@@ -116,6 +124,7 @@ class OpticalPower:
         self.config = config or G3InputConfig()
         self.input_i, self.input_q, self.output, self.flags_output = input_i, input_q, output, flags_output
         self.converter_options = converter_options
+        self.table_cache = default_table_cache() if table_cache is ... else str(table_cache or "")
         self.wiring: Wiring | None = None
         self.hk = HkHistory(int(self.config.hk_retention_s * 1e9))
         self.bath = BathHistory(self.config)
@@ -128,6 +137,7 @@ class OpticalPower:
         self.gain_changes = 0
         self.rejected: dict[str, int] = {}  # frames it could not use, by reason (dropped from the output)
         self._pipe: ConverterPipeline | None = None
+        self._runner: Runner | None = None
         self._tr: FrameTranslator | None = None
         if self.params is not None:
             self.pipeline_config = pipeline_config or PipelineConfig()
@@ -207,7 +217,7 @@ class OpticalPower:
         core, _ = spt3g()
         ft, tr = frame.type, self._tr
         if ft == core.G3FrameType.EndProcessing:
-            self._route(self._pipe.flush() if self._pipe is not None else [])
+            self._route(self._runner.finish() if self._runner is not None else [])
             return self._release(True) + [frame]
         if ft == core.G3FrameType.Scan and self._pipe is None and self.input_i in frame:
             if tr.wiring is None:
@@ -248,8 +258,11 @@ class OpticalPower:
             raise ConfigError("no wired bolometer has parameters: are they keyed by bolometer name or detector id?")
         # Later gain changes rescale the counts to the parameters' gain (the translator does, as for the bridge).
         tr.set_gain_reference({d: abs(p.gain_a_per_count) for d, p in pdict.items()})
-        self._converter = make_converter(self.kind, pdict, **self.converter_options)
+        spec = ConverterSpec(kind=self.kind, params=tuple(pdict.items()), table_cache=self.table_cache,
+                             options=tuple(self.converter_options.items()))
+        self._converter = build_converter(spec).converter
         self._pipe = ConverterPipeline(self._converter, self.pipeline_config, params=list(pdict.values()), clock=None)
+        self._runner = Runner.around(self._pipe)
         self._names = dict(zip(tr.wiring.detector_ids, tr.wiring.names))
         self._keep = frozenset(pdict)
         early, self._early = list(self._early), deque(maxlen=10_000)
@@ -261,10 +274,10 @@ class OpticalPower:
             self._early.extend(msgs)
             return
         if msgs:
-            self._route(self._pipe.handle_many([(k, p, t) for t, k, p in msgs]))
+            self._route(self._runner.feed_batch([(k, p, t) for t, k, p in msgs], msgs[-1][0]))
 
     def _route(self, outs) -> None:
-        for key, payload in outs:
+        for key, payload, _ in outs:
             if keys.kind_of(key) != "power":
                 continue
             chunk = PowerChunk.from_bytes(payload)

@@ -29,9 +29,9 @@ import numpy as np
 from mntes_stream.core import model
 from mntes_stream.core.sim import ArraySimulator, SimConfig, solve_quasi_static
 from mntes_stream.errors import ConfigError
-from mntes_stream.g3 import spt3g
 from mntes_stream.g3.frames import ModuleHk, g3_time, gcpslow_frame, housekeeping_frame, timepoint_frame, wiring_frame
 from mntes_stream.g3.mapping import SQRT2, Wiring, hk_snapshot
+from mntes_stream.g3.runtime import spt3g
 
 __all__ = ["write_g3", "bolometer_name", "G3_LAYOUTS", "g3_sim_config"]
 

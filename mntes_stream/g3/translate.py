@@ -37,7 +37,6 @@ import numpy as np
 
 from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS
 from mntes_stream.errors import ConfigError, SchemaError
-from mntes_stream.g3 import spt3g
 from mntes_stream.g3.counts import TimepointBuffer, scan_block
 from mntes_stream.g3.mapping import (
     SQRT2,
@@ -50,6 +49,7 @@ from mntes_stream.g3.mapping import (
     hk_snapshot,
     invalid_counts,
 )
+from mntes_stream.g3.runtime import spt3g
 from mntes_stream.g3.wire import BadFrame
 from mntes_stream.io import keys
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk

@@ -156,7 +156,7 @@ def decode_frame(data: bytes):
     The entries stay serialized until read (spt3g decodes lazily): a bad blob
     shows when the translator reads it.
     """
-    from mntes_stream.g3 import spt3g
+    from mntes_stream.g3.runtime import spt3g
 
     core, _ = spt3g()
     try:

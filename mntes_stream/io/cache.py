@@ -3,7 +3,7 @@
 Three parts live under :func:`mntes_stream.cache_root` (``~/.cache/mntes-stream``):
 
 - ``tables/``: table banks built from parameter files (``<kind>-<key>.npz``) and
-  converters as built (``converter-<kind>-<key>.pickle``, ``service/snapshot.py``).
+  converters as built (``converter-<kind>-<key>.pickle``, ``pipeline/snapshot.py``).
   Every new parameter file, kind or software version adds entries (5-7 MB for
   256 detectors, ~130 MB for 5,000), so the part is pruned to a size cap after
   each write, least recently used first (a load touches its entry).

@@ -3,7 +3,7 @@
 For the live leakage (``monitor/leakage_live.py``) the monitor needs, next to
 the converter's MNTES power, the power the linear conversion gives from the
 same counts. It converts them itself with the converter's own code: a
-:class:`~mntes_stream.service.pipeline.ConverterPipeline` of kind ``linear``
+:class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` of kind ``linear``
 (``core.convert.LinearConverter``) built for the measured detectors only,
 fed the counts of their modules and every housekeeping message, exactly as
 the converter is fed. The parameters come from the converter's provenance
@@ -76,7 +76,7 @@ class LinearShadow:
     def build(self) -> None:
         """The pipeline for the measured detectors whose parameters are known and that a baseline can take."""
         from mntes_stream.core.convert import baseline_can_take, make_converter
-        from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
+        from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
         usable = {d: q for d, q in self.params.items() if baseline_can_take(q)}
         self.no_baseline = {d for d in self.params if d not in usable}

@@ -4,7 +4,7 @@ Written with every status (and at a clean stop) to the ``checkpoint`` file
 of ``[converter]``, atomically (a new file renamed over the old one: a
 converter killed mid-write leaves the previous checkpoint whole). At start
 the converter continues its streams from it
-(:meth:`~mntes_stream.service.pipeline.ConverterPipeline.resume_sequences`):
+(:meth:`~mntes_stream.pipeline.pipeline.ConverterPipeline.resume_sequences`):
 each stream's first chunk then says how many chunks were published while no
 converter ran, counted in the status (``chunks_lost``), the heartbeat
 (``chunks_missed_while_down``) and said once per stream in the log and

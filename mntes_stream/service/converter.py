@@ -1,8 +1,9 @@
 """Converter service: zenoh counts + housekeeping in, power + status out (``[converter]`` config).
 
 The loop is thin on purpose: a :class:`~mntes_stream.io.transport.QueueSubscriber`
-hands ``(key, payload, t_recv_ns)`` to a :class:`~mntes_stream.service.pipeline.ConverterPipeline`
-(the same object offline re-conversion uses), whose outputs go out through
+hands ``(key, payload, t_recv_ns)`` to a :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline`
+through its :class:`~mntes_stream.pipeline.runner.Runner` (the same ones offline
+re-conversion and the G3 module use), whose outputs go out through
 BLOCK publishers. Provenance (parameters, table identity) is published at
 start and every ``provenance_interval_s`` with identical bytes, so a recorder
 started later still gets it. Stops on SIGINT/SIGTERM, a stop event or
@@ -12,26 +13,25 @@ started later still gets it. Stops on SIGINT/SIGTERM, a stop event or
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import dataclass, fields
 
-from mntes_stream import cache_root
 from mntes_stream.core.convert import CONVERTER_KINDS
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
-from mntes_stream.core.shards import Shard, owned_streams
+from mntes_stream.core.shards import Shard
 from mntes_stream.core.uncertainty import UncertaintySettings
 from mntes_stream.errors import ConfigError
 from mntes_stream.io import keys
 from mntes_stream.io.cache import DEFAULT_MAX_MB
 from mntes_stream.io.messages import decode
 from mntes_stream.io.transport import QueueSubscriber, ZenohSettings, answer
+from mntes_stream.pipeline.build import ConverterSpec, default_table_cache
+from mntes_stream.pipeline.config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 from mntes_stream.service.base import Service, announced
 from mntes_stream.service.metrics import MetricsSettings
-from mntes_stream.service.pipeline_config import SCALAR_SENSORS, AlignmentConfig, PipelineConfig
 
-__all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "build_converter", "run_converter", "subscriptions"]
+__all__ = ["ConverterConfig", "ConverterService", "StatusConfig", "run_converter", "subscriptions"]
 
 log = logging.getLogger("mntes_stream.converter")
 _TRIM_EVERY_S = 2.0  # an idle converter gives freed heap back at most this often (service/heap.py trim_heap)
@@ -56,8 +56,8 @@ class ConverterConfig(Settings):
     tables: str = setting("", "table bank file (mntes-stream tables build); '' = build from params at start",
                           path=True)
     table_cache: str = setting(
-        os.path.join(cache_root(), "tables"), "banks built from params, and the converter as built "
-        "(service/snapshot.py), are kept here keyed by parameters, kind and software version, so a restart loads "
+        default_table_cache(), "banks built from params, and the converter as built "
+        "(pipeline/snapshot.py), are kept here keyed by parameters, kind and software version, so a restart loads "
         "instead of rebuilding ('' = no cache; `mntes-stream cache` shows and clears it)", path=True)
     table_cache_max_mb: float = setting(DEFAULT_MAX_MB, "the table cache's size cap: after each write the least "
                                         "recently used entries beyond it are removed", unit="MB", gt=0)
@@ -137,111 +137,18 @@ class ConverterConfig(Settings):
                    status=StatusConfig(interval_s=pipeline.status_interval_s), **kw)
 
     @property
+    def spec(self) -> ConverterSpec:
+        """What :func:`~mntes_stream.pipeline.build.build_converter` builds this converter from."""
+        flags_low = {"on": "yes", "auto": "if_fused", "off": "no"}[self.low_responsivity]
+        return ConverterSpec(kind=self.kind, params_file=self.params, tables=self.tables, table_cache=self.table_cache,
+                             table_cache_max_mb=self.table_cache_max_mb, boards=self.boards, modules=self.modules,
+                             shard=self.shard, gradients="yes" if self.sigma_p else flags_low)
+
+    @property
     def pipeline(self) -> PipelineConfig:
-        """What the :class:`~mntes_stream.service.pipeline.ConverterPipeline` takes."""
+        """What the :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` takes."""
         return PipelineConfig.from_parts(self.alignment, setup=self.setup, service=self.name,
                                          status_interval_s=self.status.interval_s)
-
-
-def owned_params(cfg: ConverterConfig):
-    """The parameters this converter loads, and the ``(board, module)`` streams it owns.
-
-    Returns
-    -------
-    params : dict of str to DetectorParams, or None (a table bank file alone)
-    streams : sorted list of (board, module), or None when the detector ids do not name
-        their board and module (then the converter takes every stream, unsharded)
-    """
-    from mntes_stream.service.housekeeping import known_modules
-
-    params = None
-    if cfg.params:
-        from mntes_stream.io.paramfile import load_params
-
-        params = load_params(cfg.params)
-    ids = params.keys() if params is not None else _bank_ids(cfg)
-    modules = known_modules(ids)
-    if modules is None:
-        if cfg.partial:
-            raise ConfigError("boards, modules and shard need detector ids of the form b<board>m<module>c<channel>")
-        return params, None
-    streams = owned_streams(modules, cfg.shard_parsed, cfg.boards, cfg.modules)
-    if cfg.partial and not streams:
-        raise ConfigError(f"boards {list(cfg.boards) or '*'}, modules {list(cfg.modules) or '*'}, shard "
-                          f"{cfg.shard_parsed}: no stream of the parameters is in that part of the focal plane")
-    if params is not None and cfg.partial:
-        wanted = set(streams)
-        params = {d: p for d, p in params.items() if _stream(d) in wanted}
-    return params, streams
-
-
-def _stream(detector_id: str) -> tuple[int, int]:
-    from mntes_stream.core.ids import parse_detector_id
-
-    b, m, _ = parse_detector_id(detector_id)
-    return b, m
-
-
-def _bank_ids(cfg: ConverterConfig) -> list[str]:
-    from mntes_stream.io.tablefile import load_bank
-
-    return list(load_bank(cfg.tables).params_by_id())
-
-
-def build_converter(cfg: ConverterConfig, params=None):
-    """The ``core.convert`` converter the config asks for (tables loaded, taken from the cache, or built).
-
-    ``params``: the detector parameters to convert (default: all of ``cfg.params``; a shard passes its own).
-    With a table bank file, the whole bank is loaded (give each shard a bank of its own to load less).
-    """
-    from mntes_stream.core.convert import make_converter
-
-    if params is None and cfg.params:
-        from mntes_stream.io.paramfile import load_params
-
-        params = load_params(cfg.params)
-    bank = None
-    if cfg.tables:
-        from mntes_stream.io.tablefile import load_bank
-
-        bank = load_bank(cfg.tables)
-    elif cfg.table_cache and cfg.kind in ("table", "grid") and params:
-        bank = _cached_bank(cfg, params)
-    return make_converter(cfg.kind, params, bank)
-
-
-def _cached_bank(cfg: ConverterConfig, params):
-    """The bank for ``params`` from the cache, or built and put there (a broken cache entry is rebuilt)."""
-    import os
-    from pathlib import Path
-
-    from mntes_stream import __version__
-    from mntes_stream.core.tables import TABLE_FORMAT, build_bank, params_identity
-    from mntes_stream.errors import MntesError
-    from mntes_stream.io.cache import prune, touch
-    from mntes_stream.io.tablefile import load_bank, save_bank
-    from mntes_stream.service.snapshot import build_fingerprint
-
-    key = params_identity(list(params.values()), {"kind": cfg.kind, "format": TABLE_FORMAT, "software": __version__,
-                                                  "code": build_fingerprint()})
-    directory = Path(os.path.expanduser(cfg.table_cache))
-    path = directory / f"{cfg.kind}-{key[:32]}.npz"
-    if path.exists():
-        try:
-            bank = load_bank(path)  # verifies the content hash: a damaged entry is not used
-            log.info("table bank %s from the cache %s", bank.identity[:12], path)
-            touch(path)  # recently used: the last the size cap removes
-            return bank
-        except MntesError as exc:
-            log.warning("table cache entry %s unusable (%s): rebuilding", path, exc)
-    bank = build_bank(params, kind=cfg.kind)
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        save_bank(bank, path)
-        prune(directory, getattr(cfg, "table_cache_max_mb", DEFAULT_MAX_MB) * 1e6, keep=(path,))  # offline: no cap set
-    except OSError as exc:  # a read-only home must not stop the converter
-        log.warning("cannot write the table cache %s: %s", path, exc)
-    return bank
 
 
 def _warm_up(conv) -> None:
@@ -343,38 +250,24 @@ class ConverterService(Service):
 
     def setup(self, ctx) -> None:
         from mntes_stream.io.claims import StreamClaims
+        from mntes_stream.pipeline import ConverterPipeline
+        from mntes_stream.pipeline.build import build_converter, owned_part
+        from mntes_stream.pipeline.housekeeping import known_modules
+        from mntes_stream.pipeline.runner import Runner
         from mntes_stream.service.checkpoint import load_checkpoint
         from mntes_stream.service.ownership import Ownership, owns_summary
-        from mntes_stream.service.pipeline import ConverterPipeline
-        from mntes_stream.service.snapshot import load_snapshot, save_snapshot
 
         cfg, converter = self.config, self.prebuilt
-        # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
-        snap_key, snap = load_snapshot(cfg) if converter is None else (None, None)
-        params_toml = None  # the provenance's parameter text when the snapshot has it (not written again)
-        if snap is not None:
-            params, streams, conv, params_toml = snap
+        if converter is None:
+            # A restart takes the converter its last start built (same files, kind, part, software) from the cache.
+            built = build_converter(cfg.spec, building=lambda text: announced(ctx.progress, text))
+            conv, streams, params_toml = built.converter, built.streams, built.params_toml
         else:
-            params, streams = owned_params(cfg) if converter is None or cfg.params else (None, None)
-            if converter is None:
-                n = f"{len(params)} detectors" if params is not None else "the table bank"
-                with announced(ctx.progress, f"building the {cfg.kind} converter for {n} (tables, flag "
-                               f"thresholds; kept in {cfg.table_cache or 'no cache'} for the next start)"):
-                    conv = build_converter(cfg, params)
-                    flags_low = cfg.low_responsivity == "on" or (cfg.low_responsivity == "auto"
-                                                                 and getattr(conv, "fuses_low_responsivity", False))
-                    if cfg.sigma_p or flags_low:  # solved once, kept in the snapshot (ms per detector)
-                        from mntes_stream.core.uncertainty import nominal_gradients
-
-                        nominal_gradients(conv)
-                save_snapshot(cfg, snap_key, params, streams, conv)
-            else:
-                conv = converter
-        if streams is None and converter is not None:
-            from mntes_stream.service.housekeeping import known_modules
-
-            modules = known_modules(conv.detector_ids)
-            streams = sorted(modules) if modules is not None else None
+            conv, streams = converter, owned_part(cfg.spec)[1] if cfg.params else None
+            params_toml = None
+            if streams is None:
+                modules = known_modules(conv.detector_ids)
+                streams = sorted(modules) if modules is not None else None
         with announced(ctx.progress, "compiling the conversion kernels (after an install or upgrade; cached "
                        "for the next start)"):
             _warm_up(conv)
@@ -384,6 +277,7 @@ class ConverterService(Service):
                                               threads=cfg.threads, set_aside_bytes=int(cfg.set_aside_mb * 1e6),
                                               uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p,
                                               only_fused=cfg.low_responsivity == "auto")
+        self._runner = Runner.around(pipe)  # batches are what piled up (step); ticks and late power when idle
         if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
             n = pipe.resume_sequences(ckpt[0])
             log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
@@ -434,7 +328,7 @@ class ConverterService(Service):
         now = time.time_ns()
         if item is None:  # nothing waiting: time for what was set aside under overload
             self._behind_since, pipe.overloaded = None, False
-            outs = pipe.tick(now) + pipe.convert_late(cfg.batch_max // 8 or 1)
+            outs = self._runner.idle(now, cfg.batch_max // 8 or 1)
             if not pipe.set_aside and time.monotonic() >= self._next_trim:
                 # Idle: what a burst (a flood of big messages in the queue) left freed in glibc's heaps goes back.
                 trim_heap()
@@ -447,7 +341,8 @@ class ConverterService(Service):
             mono = time.monotonic()
             self._behind_since = (self._behind_since or mono) if full else None
             pipe.overloaded = self._behind_since is not None and mono - self._behind_since >= cfg.overload_after_s
-            outs = pipe.handle_many(batch)
+            outs = self._runner.feed_batch(batch, now)
+        outs = [(k, p) for k, p, _ in outs]
         if owner is not None:
             outs = owner.refresh() + [o for o in outs if owner.allow(o[0], o[1], now)]
         for key, payload in outs:
@@ -479,8 +374,8 @@ class ConverterService(Service):
         cfg, pipe, sub, owner = self.config, self._pipe, self._sub, self._ownership
         try:  # stop receiving, convert what is already here, say so, then close
             sub.close()
-            outs = pipe.handle_many(list(sub.drain())) + pipe.flush()
-            for key, payload in outs:
+            outs = self._runner.feed_batch(list(sub.drain())) + self._runner.finish()
+            for key, payload, _ in outs:
                 if owner is None or owner.allow(key, payload, time.time_ns()):
                     ctx.publishers.put(key, payload)
             if cfg.checkpoint:

@@ -19,21 +19,13 @@ from mntes_stream.io import keys
 from mntes_stream.io.mcap.envelope import peek_envelope
 from mntes_stream.io.mcap.ledger import RecordingBook
 from mntes_stream.io.transport import ZenohSettings
+from mntes_stream.pipeline.config import INPUT_KINDS
 from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
-__all__ = ["INPUT_KINDS", "ReplayConfig", "ReplayService", "ReplayStats", "input_topics", "parse_time", "run_replay"]
+__all__ = ["ReplayConfig", "ReplayService", "ReplayStats", "parse_time", "run_replay"]
 
 log = logging.getLogger("mntes_stream.replay")
-
-#: Key kinds a converter consumes: the default selection of a replay (any setup).
-INPUT_KINDS = ("counts", "hk")
-
-
-def input_topics(setup: str) -> tuple[str, ...]:
-    """Key expressions of a converter's inputs for one setup: counts and housekeeping."""
-    return (keys.counts_key(setup), keys.hk_key(setup))
-
 
 @dataclass(frozen=True)
 class ReplayConfig(Settings):

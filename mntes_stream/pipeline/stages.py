@@ -1,21 +1,11 @@
-"""The converter's stages up to conversion: decode, sequence, housekeeping and alignment (no I/O).
+"""The converter's stages up to conversion: decode, sequence, housekeeping and alignment, the release (no I/O).
 
-Each stage is a callable over a batch: it takes the batch's items in order
-and returns the items it passes on, as an spt3g module takes a frame and
-returns frames. What flows:
-
-- ``(key, payload, t_recv_ns)``: a received message (into :class:`Decode`);
-- :class:`Counts` / :class:`Hk`: a decoded counts or housekeeping message;
-- :class:`Tick`: a message dropped at the door, which still lets receive time pass;
-- :class:`Pending`: a counts chunk booked in its stream's sequence, held for housekeeping;
-- ``_Ready`` (``service.pipeline_convert``): a released chunk with its housekeeping aligned;
-- :data:`END`, last of every batch (``End(force=True)``: flush): the stages that
-  gather (conversion, status) act on it.
-
-The stages are declared once, in order, by
-:func:`~mntes_stream.service.pipeline.converter_stages`; every path (the live
+Each stage is a callable over a batch of items (``pipeline.items``: what
+flows, and :class:`~mntes_stream.pipeline.items.Stages`, the checked list),
+declaring what it takes and gives. The stages are declared once, in order, by
+:func:`~mntes_stream.pipeline.pipeline.converter_stages`; every path (the live
 service, offline ``convert``, replay into a converter, the G3 ``OpticalPower``
-module) runs that list through :class:`~mntes_stream.service.pipeline.ConverterPipeline`.
+module) runs that list through :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline`.
 Housekeeping and alignment are one stage because a chunk is aligned with the
 history *as of its release*: a reading received after it must not change it,
 or the power would depend on how the messages were batched.
@@ -40,11 +30,11 @@ from mntes_stream.errors import ConfigError, SchemaError
 from mntes_stream.io import keys
 from mntes_stream.io.lean import CountsDecoder
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
-from mntes_stream.service.housekeeping import DelayFloor, Housekeeping, ns
-from mntes_stream.service.pipeline_config import PipelineConfig
+from mntes_stream.pipeline.config import PipelineConfig
+from mntes_stream.pipeline.housekeeping import DelayFloor, Housekeeping, ns
+from mntes_stream.pipeline.items import Counts, End, Hk, Pending, Ready, Received, Tick
 
-__all__ = ["END", "Books", "Counts", "Decode", "End", "Hk", "Align", "Pending", "PipelineCounters", "Sequence",
-           "Tick"]
+__all__ = ["Align", "Books", "Decode", "Environment", "PipelineCounters", "Sequence"]
 
 log = logging.getLogger("mntes_stream.converter")
 
@@ -135,51 +125,6 @@ class Books:
         log.error("internal error (%s) handling %s", where, key, exc_info=exc)
 
 
-@dataclass(frozen=True)
-class End:
-    """The end of a batch: the gathering stages act now (``force``: release everything held, a flush)."""
-
-    force: bool = False
-
-
-END = End()
-
-
-@dataclass(frozen=True)
-class Tick:
-    """Receive time passing without an item to carry (a message dropped at the door)."""
-
-    t_recv_ns: int
-
-
-@dataclass(frozen=True)
-class Counts:
-    info: dict
-    chunk: CountsChunk
-    key: str
-    t_recv_ns: int
-    source: str | None = None  # the publisher (zenoh id), when the transport says it
-
-
-@dataclass(frozen=True)
-class Hk:
-    info: dict
-    hk: HousekeepingChunk
-    key: str
-    t_recv_ns: int
-
-
-@dataclass
-class Pending:
-    """A counts chunk booked in its stream's sequence, waiting for its housekeeping."""
-
-    chunk: CountsChunk
-    t_recv_ns: int
-    t_ns: np.ndarray
-    t_last_ns: int | None
-    late: bool = False  # set aside under overload: converted later, published as late power
-
-
 def reject(books: Books, modules, info: dict, reason: str) -> None:
     """A counts message refused: in its stream's ledger when the stream is ours, else under OTHER (bounded)."""
     b, m = info.get("board", ""), info.get("module", "")
@@ -198,6 +143,7 @@ class Decode:
     """
 
     name = "decode"
+    takes, gives = (Received,), (Counts, Hk, Tick)
 
     def __init__(self, books: Books, modules):
         self.books, self.modules = books, modules
@@ -283,6 +229,7 @@ class Sequence:
     """
 
     name = "sequence"
+    takes, gives = (Counts,), (Pending, Tick)
 
     def __init__(self, books: Books, modules, set_aside_bytes: int):
         self.books, self.modules = books, modules
@@ -435,6 +382,55 @@ class Sequence:
         return out
 
 
+class Environment:
+    """A released chunk's rows (detector ids, which have parameters) and housekeeping at every sample.
+
+    Called by the housekeeping stage at a chunk's release (:class:`Align`): a chunk's release is this
+    module and the histories of ``pipeline.housekeeping``.
+    """
+
+    def __init__(self, books: Books, hk, known: frozenset):
+        self.books, self.hk, self._known = books, hk, known
+        self._rows: dict[tuple, tuple] = {}
+        self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
+
+    def rows_for(self, chunk: CountsChunk) -> tuple:
+        """Detector ids of the rows and which the converter knows (cached per channel list)."""
+        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes(), chunk.detector_ids)
+        rows = self._rows.get(cache_key)
+        if rows is None:
+            ids = chunk.row_ids()  # the source's names, or the b/m/c ids
+            known = np.array([d in self._known for d in ids], dtype=bool)
+            if len(self._rows) > 4096:
+                self._rows.clear()
+            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
+            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
+                self._unmatched += 1
+                books = self.books
+                books.last_error = (f"no_detector on {keys.counts_key(books.config.setup, chunk.board, chunk.module)}"
+                                    f": none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
+                                    "flagged UNKNOWN_CHANNEL")[:500]
+                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
+                    log.warning("%s", books.last_error)
+        return rows
+
+    def __call__(self, p: Pending) -> Ready:
+        chunk, t = p.chunk, p.t_ns
+        t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
+        b_field, f_b = self.hk.scalar("b_field", chunk, t)
+        env_flags_t = f_tb | f_b
+        ids, known, n_unknown = self.rows_for(chunk)
+        v_bias, f_bias = self.hk.bias(chunk, t, ids)
+        f_board = self.hk.readout_flags(chunk, t)
+        if f_board is not None:  # the board's own flags (dfmux-bridge): per row, so the bias is per row too
+            if v_bias is None:
+                v_bias, f_bias = self.hk.nominal_bias(ids, t.size), f_board
+            else:
+                f_bias = f_bias | f_board
+        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
+        return Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
+
+
 class Align:
     """Housekeeping and alignment: :class:`Hk` into the histories; :class:`Pending` chunks held, released aligned.
 
@@ -442,14 +438,15 @@ class Align:
     last sample (interpolated, not extrapolated) or until it has waited
     ``hk_wait_s`` of receive time, whichever first; at most ``max_pending``
     are held (beyond, the oldest is released at once). A released chunk
-    leaves as ``_Ready``, aligned by ``environment`` (``service.pipeline_convert``)
+    leaves as :class:`~mntes_stream.pipeline.items.Ready`, aligned by ``environment`` (:class:`Environment`)
     with the histories as of its release. Readings are judged by
-    ``service.housekeeping`` (bad ones counted by reason).
+    ``pipeline.housekeeping`` (bad ones counted by reason).
     """
 
     name = "housekeeping"
+    takes, gives = (Pending, Hk, Tick), (Ready,)
 
-    def __init__(self, books: Books, hk: Housekeeping, environment: Callable[[Pending], object]):
+    def __init__(self, books: Books, hk: Housekeeping, environment: Callable[[Pending], Ready]):
         self.books, self.hk, self.environment = books, hk, environment
         self.pending: collections.deque[Pending] = collections.deque()
         self._wait_ns = ns(books.config.hk_wait_s)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mntes_stream.io.cache import DEFAULT_MAX_MB, prune, touch
+from mntes_stream.io.cache import prune, touch
 
 __all__ = ["snapshot_key", "load_snapshot", "save_snapshot", "build_fingerprint"]
 
@@ -68,23 +68,28 @@ def build_fingerprint() -> str:
     return h.hexdigest()
 
 
-def snapshot_key(cfg) -> str:
-    """What the converter built from ``cfg`` depends on: file contents, kind, part of the focal plane, software."""
+def snapshot_key(spec) -> str | None:
+    """What the converter built from ``spec`` (``pipeline.build.ConverterSpec``) depends on: the bytes of its
+    parameters and tables, kind, part of the focal plane, software. None for parameters given in memory."""
     from mntes_stream import __version__
     from mntes_stream.core.tables import TABLE_FORMAT
 
+    if spec.params:
+        return None
+    params = _digest(spec.params_file) if spec.params_file else \
+        hashlib.sha256(spec.params_toml.encode()).hexdigest() if spec.params_toml else ""
     parts = [
-        f"params={_digest(cfg.params) if cfg.params else ''}",
-        f"tables={_digest(cfg.tables) if cfg.tables else ''}",
-        f"kind={cfg.kind}", f"boards={list(cfg.boards)}", f"modules={list(cfg.modules)}", f"shard={cfg.shard}",
+        f"params={params}",
+        f"tables={_digest(spec.tables) if spec.tables else ''}",
+        f"kind={spec.kind}", f"boards={list(spec.boards)}", f"modules={list(spec.modules)}", f"shard={spec.shard}",
         f"software={__version__}", f"code={build_fingerprint()}", f"format={TABLE_FORMAT}", f"numpy={np.__version__}",
         f"python={platform.python_version()}", f"pickle={pickle.HIGHEST_PROTOCOL}",
-    ]
+    ] + (["drop_untaken"] if spec.drop_untaken else []) + ([f"options={sorted(spec.options)!r}"] if spec.options else [])
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
-def _path(cfg, key: str) -> Path:
-    return Path(os.path.expanduser(cfg.table_cache)) / f"converter-{cfg.kind}-{key[:32]}.pickle"
+def _path(spec, key: str) -> Path:
+    return Path(os.path.expanduser(spec.table_cache)) / f"converter-{spec.kind}-{key[:32]}.pickle"
 
 
 def _private(path: Path) -> str | None:
@@ -97,16 +102,19 @@ def _private(path: Path) -> str | None:
     return None
 
 
-def load_snapshot(cfg):
-    """``(key, (params, streams, converter, params_toml))`` saved by an earlier start with the same key, else
-    ``(key, None)``; ``params_toml``: the converter's parameters as ``params_to_toml`` wrote them."""
-    if not cfg.table_cache:
+def load_snapshot(spec):
+    """``(key, (params, streams, converter, params_toml))`` saved by an earlier build of ``spec``
+    (``pipeline.build.ConverterSpec``) with the same key, else ``(key, None)`` (key None: no cache, or nothing to
+    key it by); ``params_toml``: the converter's parameters as ``params_to_toml`` wrote them."""
+    if not spec.table_cache:
         return None, None
     try:
-        key = snapshot_key(cfg)
+        key = snapshot_key(spec)
     except OSError:  # a missing file: the normal path says so, once
         return None, None
-    path = _path(cfg, key)
+    if key is None:
+        return None, None
+    path = _path(spec, key)
     if not path.exists():
         return key, None
     try:
@@ -127,13 +135,13 @@ def load_snapshot(cfg):
     return key, (params, streams, conv, text)
 
 
-def save_snapshot(cfg, key: str | None, params, streams, conv) -> None:
+def save_snapshot(spec, key: str | None, params, streams, conv) -> None:
     """Keep what :func:`load_snapshot` gives back (best effort: a read-only cache only logs)."""
-    if not cfg.table_cache or key is None:
+    if not spec.table_cache or key is None:
         return
     from mntes_stream.io.paramfile import params_to_toml
 
-    path = _path(cfg, key)
+    path = _path(spec, key)
     try:
         path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         fd, tmp = tempfile.mkstemp(prefix=".snapshot-", dir=path.parent)  # mode 0600
@@ -145,6 +153,6 @@ def save_snapshot(cfg, key: str | None, params, streams, conv) -> None:
         except BaseException:
             os.unlink(tmp)
             raise
-        prune(path.parent, getattr(cfg, "table_cache_max_mb", DEFAULT_MAX_MB) * 1e6, keep=(path,))
+        prune(path.parent, spec.table_cache_max_mb * 1e6, keep=(path,))
     except (OSError, pickle.PicklingError, TypeError, AttributeError) as exc:
         log.warning("cannot write the converter snapshot %s: %s", path, exc)

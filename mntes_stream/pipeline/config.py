@@ -8,9 +8,16 @@ from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.io import keys
 
-__all__ = ["SCALAR_SENSORS", "AlignmentConfig", "PipelineConfig"]
+__all__ = ["INPUT_KINDS", "SCALAR_SENSORS", "AlignmentConfig", "PipelineConfig", "input_topics"]
 
 SCALAR_SENSORS = ("t_bath", "b_field")
+#: Key kinds a converter consumes (also the default selection of a replay, any setup).
+INPUT_KINDS = ("counts", "hk")
+
+
+def input_topics(setup: str) -> tuple[str, ...]:
+    """Key expressions of a converter's inputs for one setup: counts and housekeeping."""
+    return (keys.counts_key(setup), keys.hk_key(setup))
 
 
 @dataclass(frozen=True)
@@ -78,7 +85,7 @@ class AlignmentConfig(Settings):
 
 @dataclass(frozen=True)
 class PipelineConfig(AlignmentConfig):
-    """Everything :class:`~mntes_stream.service.pipeline.ConverterPipeline` takes: the alignment, plus
+    """Everything :class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` takes: the alignment, plus
     the keys it publishes on (``mntes/<setup>/power/...``, ``mntes/<setup>/status/<service>``) and the
     status cadence (receive clock)."""
 

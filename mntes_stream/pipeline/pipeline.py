@@ -14,7 +14,7 @@ What happens to a message (``handle``):
   every *required* housekeeping sensor has a reading at or after its last
   sample (so housekeeping is interpolated, not extrapolated) or until it has
   waited ``hk_wait_s`` of receive time, whichever first;
-- housekeeping (``service.housekeeping``): added to that sensor's history (``core.align.HkSeries``),
+- housekeeping (``pipeline.housekeeping``): added to that sensor's history (``core.align.HkSeries``),
   except readings stamped more than ``hk_max_ahead_s`` ahead of the data clock
   or (bias excepted: a setting holds) more than ``hk_retention_s`` behind it,
   which are counted (``bad_messages["hk_time"]``) and dropped. The data clock
@@ -33,13 +33,15 @@ Power is NaN wherever a flag in ``core.flags.UNUSABLE`` is set, and where
 HK_STALE is (``hk_stale_power = "nan"``). Every counts chunk is booked in
 ``ledger`` (``core.ledger``).
 
-The work is a list of stages (:func:`converter_stages`), each a callable over
-a batch of items in the style of an spt3g pipeline: decode, sequence,
+The work is a list of named stages (:func:`converter_stages`), each a callable
+over a batch of items in the style of an spt3g pipeline: decode, sequence,
 housekeeping (with alignment), convert, flags, encode, status
-(``service.stages``, ``service.pipeline_convert``, ``service.pipeline_status``).
-The list is declared once; the live service, offline ``convert``, replay into
-a converter and the G3 ``OpticalPower`` module all run it through
-:class:`ConverterPipeline`.
+(``pipeline.stages``, ``pipeline.convert``, ``pipeline.status``), each
+declaring the item types it takes and gives (``pipeline.items``), checked when
+the list is built. The list is declared once; the live service, offline
+``convert``, replay into a converter and the G3 ``OpticalPower`` module all run
+it through :class:`ConverterPipeline`, which runs parts of it by name (a
+flush: ``until="encode"``; late power: ``"convert"`` to ``"encode"``).
 """
 
 from __future__ import annotations
@@ -50,11 +52,12 @@ from collections.abc import Callable
 
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.errors import ConfigError
-from mntes_stream.service.housekeeping import Housekeeping, known_modules
-from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
-from mntes_stream.service.pipeline_convert import Convert, Encode, Environment, Flags
-from mntes_stream.service.pipeline_status import Status
-from mntes_stream.service.stages import END, Align, Books, Decode, End, PipelineCounters, Sequence
+from mntes_stream.pipeline.config import SCALAR_SENSORS, PipelineConfig
+from mntes_stream.pipeline.convert import Convert, Encode, Flags
+from mntes_stream.pipeline.housekeeping import Housekeeping, known_modules
+from mntes_stream.pipeline.items import END, End, Ready, Stages
+from mntes_stream.pipeline.stages import Align, Books, Decode, Environment, PipelineCounters, Sequence
+from mntes_stream.pipeline.status import Status
 
 __all__ = ["PipelineConfig", "ConverterPipeline", "PipelineCounters", "SCALAR_SENSORS", "converter_stages"]
 
@@ -62,20 +65,21 @@ log = logging.getLogger("mntes_stream.converter")
 
 
 def converter_stages(books: Books, converter, *, params: list, modules, owns: dict, threads: int,
-                     set_aside_bytes: int, noise=None, sigma_p: bool = False, params_toml: str | None = None) -> tuple:
+                     set_aside_bytes: int, noise=None, sigma_p: bool = False, params_toml: str | None = None) -> Stages:
     """The converter's stages, in order: the one declaration every path runs.
 
     Returns
     -------
-    tuple of callables, each ``stage(items: list) -> list``:
-    ``(Decode, Sequence, Align, Convert, Flags, Encode, Status)``.
+    Stages
+        ``decode, sequence, housekeeping, convert, flags, encode, status``, each
+        ``stage(items: list) -> list`` (``pipeline.items``), checked as a list.
     """
     nominal = {p.detector_id: float(p.v_thev_v) for p in params}
     hk = Housekeeping(books.config, nominal, modules)
     sequence = Sequence(books, modules, set_aside_bytes)
     align = Align(books, hk, Environment(books, hk, frozenset(converter.detector_ids)))
     convert = Convert(books, converter, threads, noise, sigma_p)
-    return (
+    return Stages((
         Decode(books, modules),
         sequence,
         align,
@@ -85,7 +89,7 @@ def converter_stages(books: Books, converter, *, params: list, modules, owns: di
         # The provenance names the noise in use now (measured live: renewed window by window).
         Status(books, sequence, align, converter, params, owns, (lambda: convert.noise) if noise else None, sigma_p,
                params_toml),
-    )
+    ))
 
 
 class ConverterPipeline:
@@ -175,13 +179,17 @@ class ConverterPipeline:
         self.stages = converter_stages(self.books, converter, params=params, modules=modules, owns=dict(owns or {}),
                                        threads=threads, set_aside_bytes=set_aside_bytes, noise=noise,
                                        sigma_p=bool(sigma_p) and noise is not None, params_toml=params_toml)
-        _, self._sequence, self._align, _, _, _, self._status = self.stages
+        self._sequence: Sequence = self.stages["sequence"]
+        self._align: Align = self.stages["housekeeping"]
+        self._status: Status = self.stages["status"]
 
     # ------------------------------------------------------------------ running the stages
 
-    def _run(self, items: list, stages=None, what: str = "batch") -> list[tuple[str, bytes]]:
-        """``items`` through ``stages`` (default all) in order; the ``(key, payload)`` messages that come out."""
-        for stage in self.stages if stages is None else stages:
+    def _run(self, items: list, first: str | None = None, until: str | None = None, entry: tuple | None = None,
+             what: str = "batch") -> list[tuple[str, bytes]]:
+        """``items`` (of the types ``entry``) through the stages ``first`` to ``until`` (by name; None: the
+        list's ends) in order; the ``(key, payload)`` messages that come out."""
+        for stage in self.stages.span(first, until, entry):
             try:
                 items = stage(items)
             except Exception as exc:  # noqa: BLE001 - the service must survive its own bugs too
@@ -214,7 +222,7 @@ class ConverterPipeline:
 
     def flush(self) -> list[tuple[str, bytes]]:
         """Convert everything still held (with what housekeeping there is) and emit a final status."""
-        out = self._run([End(force=True)], self.stages[:-1], "flush")  # one status, the final one below
+        out = self._run([End(force=True)], until="encode", what="flush")  # one status, the final one below
         out += self.convert_late(len(self._sequence.aside))
         if self.books.now_ns is not None:
             try:
@@ -234,7 +242,7 @@ class ConverterPipeline:
         if not ready:
             return []
         # Convert, flags, encode: no new status for late power alone.
-        return self._run(ready + [END], self.stages[3:-1], "late")
+        return self._run(ready + [END], "convert", "encode", (Ready,), "late")
 
     def resume_sequences(self, state: dict) -> int:
         """Continue streams from a previous converter's :meth:`sequence_state` (before any chunk arrives).

@@ -24,7 +24,7 @@ from mntes_stream.core.align import HkSeries
 from mntes_stream.core.ids import parse_detector_id
 from mntes_stream.errors import ConfigError
 from mntes_stream.io.messages import CountsChunk, HousekeepingChunk
-from mntes_stream.service.pipeline_config import SCALAR_SENSORS, PipelineConfig
+from mntes_stream.pipeline.config import SCALAR_SENSORS, PipelineConfig
 
 __all__ = ["DelayFloor", "Housekeeping", "known_modules", "ns"]
 

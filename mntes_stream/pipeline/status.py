@@ -12,8 +12,9 @@ from mntes_stream.core import flags as fl
 from mntes_stream.core.shards import StreamKey
 from mntes_stream.io import keys
 from mntes_stream.io.messages import Provenance, StatusMessage
-from mntes_stream.service.housekeeping import ns
-from mntes_stream.service.stages import Align, Books, End, Sequence
+from mntes_stream.pipeline.housekeeping import ns
+from mntes_stream.pipeline.items import End, Output
+from mntes_stream.pipeline.stages import Align, Books, Sequence
 
 __all__ = ["Status"]
 
@@ -32,6 +33,7 @@ class Status:
     """
 
     name = "status"
+    takes, gives = (), (Output,)
 
     def __init__(self, books: Books, sequence: Sequence, align: Align, converter, params: list, owns: dict,
                  noise=None, sigma_p: bool = False, params_toml: str | None = None):

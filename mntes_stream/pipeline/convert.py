@@ -1,17 +1,16 @@
-"""The converter's stages from alignment on: rows and environment, conversion, flags, encoding (no I/O).
+"""The converter's stages from conversion on: conversion, flags, encoding (no I/O).
 
-``environment`` makes a released chunk's ``_Ready`` (its rows and its
-housekeeping at every sample); :class:`Convert` gathers them until the end of
+A released chunk comes as a ``Ready`` (its rows and its housekeeping at every
+sample, ``pipeline.stages.Environment``); :class:`Convert` gathers them until the end of
 the batch and converts them in as few converter calls as may be;
 :class:`Flags` completes the flags and makes flagged power NaN; :class:`Encode`
-makes each chunk's power message and books it. See ``service.stages`` for
+makes each chunk's power message and books it. See ``pipeline.items`` for
 what flows between stages.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,10 +19,10 @@ from mntes_stream.core.convert import EnvironmentBlock
 from mntes_stream.core.uncertainty import NoiseWindow, low_responsivity_block, sigma_p_block
 from mntes_stream.io import keys
 from mntes_stream.io.lean import PowerEncoder
-from mntes_stream.io.messages import CountsChunk
-from mntes_stream.service.stages import Books, End, Pending
+from mntes_stream.pipeline.items import Converted, End, Flagged, Output, Ready, Run
+from mntes_stream.pipeline.stages import Books
 
-__all__ = ["Convert", "Encode", "Environment", "Flags"]
+__all__ = ["Convert", "Encode", "Flags"]
 
 # A run is split across threads only from this many samples (rows x samples): below, a thread hand-over
 # (tens of microseconds) costs more than the kernel time it saves.
@@ -32,51 +31,13 @@ _SPLIT_SAMPLES = 200_000
 log = logging.getLogger("mntes_stream.converter")
 
 
-@dataclass
-class _Ready:
-    """A released chunk with its rows and aligned housekeeping, waiting to be converted."""
-
-    chunk: CountsChunk
-    ids: tuple
-    known: np.ndarray
-    n_unknown: int
-    t_bath: np.ndarray
-    b_field: np.ndarray
-    v_bias: np.ndarray | None
-    env_flags: np.ndarray
-    env_flags_t: np.ndarray
-    late: bool = False
-    order: int = 0  # its place in the batch's release order (``Convert``), which ``Flags`` restores
-
-
-@dataclass
-class _Run:
-    """A run's converted blocks (``Convert`` to ``Flags``): per part, its modules and their block."""
-
-    run: list
-    orders: list
-    cols: np.ndarray
-    parts: list  # (m0, m1, p_opt, flags, env_flags, rows, sigma)
-
-
-@dataclass
-class _Converted:
-    """One chunk's power, flags and sigma_P (``finished``: housekeeping and unknown-row flags applied)."""
-
-    ready: _Ready
-    p_opt: np.ndarray
-    flags: np.ndarray
-    sigma: np.ndarray | None
-    finished: bool
-
-
-def _layout(group: list[_Ready]) -> tuple | None:
+def _layout(group: list[Ready]) -> tuple | None:
     """A group's rows, module by module (None when a module appears twice: not merged)."""
     rows = sorted((r.chunk.board, r.chunk.module, r.chunk.channels.tobytes(), r.v_bias is None) for r in group)
     return tuple(rows) if len({row[:2] for row in rows}) == len(rows) else None
 
 
-def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
+def _runs(groups: list[list[Ready]]) -> list[list[list[Ready]]]:
     """Groups with one row layout, together, in the order each layout first appears.
 
     A stream's chunks can change order here: a step whose modules were aligned
@@ -84,59 +45,11 @@ def _runs(groups: list[list[_Ready]]) -> list[list[list[_Ready]]]:
     run of its layout, so a stream may be in two runs of one batch. ``Flags``
     puts the converted chunks back in their release order.
     """
-    runs: dict[object, list[list[_Ready]]] = {}
+    runs: dict[object, list[list[Ready]]] = {}
     for k, group in enumerate(groups):
         layout = _layout(group)
         runs.setdefault(k if layout is None else layout, []).append(group)
     return list(runs.values())
-
-
-class Environment:
-    """A released chunk's rows (detector ids, which have parameters) and housekeeping at every sample.
-
-    Called by the housekeeping stage at a chunk's release (``service.stages.Align``).
-    """
-
-    def __init__(self, books: Books, hk, known: frozenset):
-        self.books, self.hk, self._known = books, hk, known
-        self._rows: dict[tuple, tuple] = {}
-        self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
-
-    def rows_for(self, chunk: CountsChunk) -> tuple:
-        """Detector ids of the rows and which the converter knows (cached per channel list)."""
-        cache_key = (chunk.board, chunk.module, chunk.channels.tobytes(), chunk.detector_ids)
-        rows = self._rows.get(cache_key)
-        if rows is None:
-            ids = chunk.row_ids()  # the source's names, or the b/m/c ids
-            known = np.array([d in self._known for d in ids], dtype=bool)
-            if len(self._rows) > 4096:
-                self._rows.clear()
-            rows = self._rows[cache_key] = (ids, known, int((~known).sum()))
-            if ids and not known.any():  # every row NaN: loud, once per channel list, never silent
-                self._unmatched += 1
-                books = self.books
-                books.last_error = (f"no_detector on {keys.counts_key(books.config.setup, chunk.board, chunk.module)}"
-                                    f": none of its {len(ids)} channels ({ids[0]}...) has parameters; power NaN, "
-                                    "flagged UNKNOWN_CHANNEL")[:500]
-                if self._unmatched <= 10 or self._unmatched % 1000 == 0:
-                    log.warning("%s", books.last_error)
-        return rows
-
-    def __call__(self, p: Pending) -> _Ready:
-        chunk, t = p.chunk, p.t_ns
-        t_bath, f_tb = self.hk.scalar("t_bath", chunk, t)
-        b_field, f_b = self.hk.scalar("b_field", chunk, t)
-        env_flags_t = f_tb | f_b
-        ids, known, n_unknown = self.rows_for(chunk)
-        v_bias, f_bias = self.hk.bias(chunk, t, ids)
-        f_board = self.hk.readout_flags(chunk, t)
-        if f_board is not None:  # the board's own flags (dfmux-bridge): per row, so the bias is per row too
-            if v_bias is None:
-                v_bias, f_bias = self.hk.nominal_bias(ids, t.size), f_board
-            else:
-                f_bias = f_bias | f_board
-        env_flags = env_flags_t if f_bias is None else env_flags_t[None, :] | f_bias
-        return _Ready(chunk, ids, known, n_unknown, t_bath, b_field, v_bias, env_flags, env_flags_t, p.late)
 
 
 class Convert:
@@ -157,6 +70,7 @@ class Convert:
     """
 
     name = "convert"
+    takes, gives = (Ready,), (Run, Converted)
 
     def __init__(self, books: Books, converter, threads: int = 1, noise=None, sigma_p: bool = False):
         self.books, self.converter, self._threads, self._noise = books, converter, threads, noise
@@ -169,14 +83,14 @@ class Convert:
             self._index = {d: k for k, d in enumerate(converter.detector_ids)}
             self._configured = noise
         self._executor = None
-        self._held: list[_Ready] = []
+        self._held: list[Ready] = []
 
     @property
     def noise(self):
         """The noise model in use now (None: no LOW_RESPONSIVITY); with measured noise, renewed as windows complete."""
         return self._noise
 
-    def _measure(self, r: _Ready) -> bool:
+    def _measure(self, r: Ready) -> bool:
         """Add a chunk's counts to the live noise window; True when an estimate was renewed."""
         rows = np.fromiter((self._index.get(d, -1) for d in r.ids), dtype=np.int64, count=len(r.ids))
         return self._window.add(rows, r.chunk.counts_i, r.chunk.counts_q).size > 0
@@ -194,7 +108,7 @@ class Convert:
         out = []
         renewed = False
         for item in items:
-            if type(item) is _Ready:
+            if type(item) is Ready:
                 item.order = len(self._held)
                 self._held.append(item)
                 if self._window is not None:
@@ -210,7 +124,7 @@ class Convert:
 
     def _convert(self, out: list) -> None:
         held, self._held = self._held, []
-        groups: dict[tuple, list[_Ready]] = {}
+        groups: dict[tuple, list[Ready]] = {}
         for r in held:
             groups.setdefault((id(r.t_bath), id(r.b_field), r.v_bias is None, r.late), []).append(r)
         for run in _runs(list(groups.values())):
@@ -220,7 +134,7 @@ class Convert:
             else:
                 out += [self._one(r) for group in run for r in group]
 
-    def _run(self, run: list[list[_Ready]]) -> _Run | None:
+    def _run(self, run: list[list[Ready]]) -> Run | None:
         """Converter calls for a run of groups (None: convert them one by one)."""
         orders = [sorted(range(len(g)), key=lambda k, g=g: (g[k].chunk.board, g[k].chunk.module)) for g in run]
         n_mod = len(orders[0])
@@ -237,9 +151,9 @@ class Convert:
                 done = [self._part(run, orders, *parts[0])] + [f.result() for f in futures]
         except Exception:  # noqa: BLE001 - find out which chunk it was: one by one, each failure counted
             return None
-        return _Run(run, orders, cols, [(m0, m1, *d) for (m0, m1), d in zip(parts, done)])
+        return Run(run, orders, cols, [(m0, m1, *d) for (m0, m1), d in zip(parts, done)])
 
-    def _part(self, run: list[list[_Ready]], orders: list[list[int]], m0: int, m1: int) -> tuple:
+    def _part(self, run: list[list[Ready]], orders: list[list[int]], m0: int, m1: int) -> tuple:
         """Modules ``m0:m1`` of the run (in stream order) through one converter call.
 
         Returns p_opt and flags (rows, samples), the environment flags, the rows' chunks of the first
@@ -288,7 +202,7 @@ class Convert:
             self._executor = ThreadPoolExecutor(max_workers=self._threads - 1, thread_name_prefix="convert")
         return self._executor
 
-    def _one(self, r: _Ready) -> _Converted:
+    def _one(self, r: Ready) -> Converted:
         chunk = r.chunk
         shape = chunk.counts_i.shape
         try:
@@ -303,7 +217,7 @@ class Convert:
             sigma = np.full(shape, np.nan, dtype=np.float32) if self._sigma_p else None
             self.books.bad("convert_failed", f"{type(exc).__name__}: {exc}",
                            keys.counts_key(self.books.config.setup, chunk.board, chunk.module))
-        return _Converted(r, p_opt, flags, sigma, False)
+        return Converted(r, p_opt, flags, sigma)
 
 
 class Flags:
@@ -317,6 +231,7 @@ class Flags:
     """
 
     name = "flags"
+    takes, gives = (Run, Converted), (Flagged,)
 
     def __init__(self, books: Books):
         self.books = books
@@ -327,13 +242,13 @@ class Flags:
         out, done = [], []
         for item in items:
             kind = type(item)
-            if kind is _Run:
+            if kind is Run:
                 self._run(item, done)
-            elif kind is _Converted and not item.finished:
+            elif kind is Converted:
                 r = item.ready
                 p, f, s = self.finish(item.p_opt, item.flags, r.env_flags, r.known if r.n_unknown else None,
                                       item.sigma)
-                done.append(_Converted(r, p, f, s, True))
+                done.append(Flagged(r, p, f, s))
             else:
                 self._in_order(done, out)
                 out.append(item)
@@ -348,7 +263,7 @@ class Flags:
             out += done
             done.clear()
 
-    def _run(self, item: _Run, out: list) -> None:
+    def _run(self, item: Run, out: list) -> None:
         run, cols = item.run, item.cols
         chunks: list[list] = [[None] * len(g) for g in run]
         for m0, m1, p_opt, flags, env_flags, rows, sigma in item.parts:
@@ -359,8 +274,8 @@ class Flags:
                 c0, c1 = cols[g], cols[g + 1]
                 for m in range(m0, m1):
                     r0, r1 = starts[m - m0], starts[m - m0 + 1]
-                    chunks[g][order[m]] = _Converted(run[g][order[m]], p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1],
-                                                     None if sigma is None else sigma[r0:r1, c0:c1], True)
+                    chunks[g][order[m]] = Flagged(run[g][order[m]], p_opt[r0:r1, c0:c1], flags[r0:r1, c0:c1],
+                                                  None if sigma is None else sigma[r0:r1, c0:c1])
         for row in chunks:
             out += row
 
@@ -389,6 +304,7 @@ class Encode:
     """
 
     name = "encode"
+    takes, gives = (Flagged,), (Output,)
 
     def __init__(self, books: Books, table_identity: str, kind: str):
         self.books = books
@@ -398,7 +314,7 @@ class Encode:
     def __call__(self, items: list) -> list:
         out = []
         for item in items:
-            if type(item) is not _Converted:
+            if type(item) is not Flagged:
                 out.append(item)
                 continue
             try:
@@ -407,7 +323,7 @@ class Encode:
                 self.books.dropped(item.ready.chunk, exc)
         return out
 
-    def _one(self, item: _Converted) -> tuple[str, bytes]:
+    def _one(self, item: Flagged) -> tuple[str, bytes]:
         r, books = item.ready, self.books
         chunk, cfg = r.chunk, books.config
         n_ch, n = chunk.counts_i.shape

@@ -1,7 +1,7 @@
 """Offline re-conversion of a recording through the live converter's own pipeline.
 
 The recorded counts and housekeeping are fed to
-:class:`~mntes_stream.service.pipeline.ConverterPipeline` in log-time order
+:class:`~mntes_stream.pipeline.pipeline.ConverterPipeline` in log-time order
 with their recorded receive times, exactly as the live service feeds what its
 subscriber receives; the inputs and everything the pipeline emits (power,
 status, its provenance) are written to the output file. By default the
@@ -38,7 +38,7 @@ from pathlib import Path
 from mntes_stream.core.ledger import Ledger
 from mntes_stream.errors import ConfigError
 
-__all__ = ["OfflineStats", "build_converter", "convert_recording", "recorded_calibrations"]
+__all__ = ["OfflineStats", "convert_recording", "converter_for", "recorded_calibrations", "spec_for"]
 
 log = logging.getLogger("mntes_stream.offline")
 
@@ -109,7 +109,7 @@ def _merged(parts: dict) -> object:
     """One provenance for the converter shards that together converted a setup: their parameters joined.
 
     A single part is itself. The joined parameters' tables are rebuilt (no one recorded bank has them
-    all): ``table_identity`` is left empty, so :func:`build_converter` does not compare it.
+    all): ``table_identity`` is left empty, so :func:`converter_for` does not compare it.
     """
     import dataclasses
 
@@ -181,44 +181,15 @@ def recorded_calibrations(session) -> list:
 def _cache_dir(table_cache) -> str:
     """The table cache to use: ``...`` is the converter service's default, None or "" none."""
     if table_cache is ...:
-        from dataclasses import fields
+        from mntes_stream.pipeline.build import default_table_cache
 
-        from mntes_stream.service.converter import ConverterConfig
-
-        return next(f.default for f in fields(ConverterConfig) if f.name == "table_cache")
+        return default_table_cache()
     return str(table_cache) if table_cache else ""
 
 
-def _snapshot_cfg(cache: str, kind: str, params_path: str):
-    """What :mod:`service.snapshot` reads of a converter config, for a whole-focal-plane offline converter."""
-    from types import SimpleNamespace
-
-    return SimpleNamespace(params=params_path, tables="", kind=kind, boards=(), modules=(), shard="", table_cache=cache)
-
-
-def _load_snapshot(cache: str, kind: str, params, text: str | None):
-    """``(key, (params dict, converter) or None)`` from the live converter's snapshot cache.
-
-    Keyed as the live converter keys it: by the parameters' bytes (a file given, else
-    the recorded parameter text), kind and software. Building the converter (parsing and
-    checking every detector's parameters, its table bank, its flag thresholds) is most of
-    an offline conversion of a short recording; a snapshot loads in a fraction of it.
-    """
-    import tempfile
-
-    from mntes_stream.service.snapshot import load_snapshot
-
-    with tempfile.TemporaryDirectory(prefix="mntes-offline-") as tmp:
-        path = str(params) if params is not None else str(Path(tmp) / "params.toml")
-        if params is None:
-            Path(path).write_text(text)
-        key, snap = load_snapshot(_snapshot_cfg(cache, kind, path))
-    return key, (None if snap is None else (snap[0], snap[2]))
-
-
-def build_converter(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
-                    table_cache=..., kind: str | None = None):
-    """The converter (and its parameters) for a recording.
+def spec_for(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
+             table_cache=..., kind: str | None = None):
+    """The :class:`~mntes_stream.pipeline.build.ConverterSpec` of a recording's converter.
 
     Parameters
     ----------
@@ -230,79 +201,62 @@ def build_converter(provenance, *, params: str | Path | None = None, tables: str
         Table bank file; its kind becomes the converter kind.
     kind : str, optional
         Converter kind (``core.convert``: ``linear`` for the linear baseline of the same counts)
-        instead of the recorded one; not with ``tables`` (a table file sets its own kind).
+        instead of the recorded one; not with ``tables`` (a table file sets its own kind). A
+        baseline asked for on a recording leaves out the detectors it cannot take (said once).
     table_cache : path, optional
         Where banks built from parameters are kept, as the live converter
         keeps them (``...``: its default, ``~/.cache/mntes-stream/tables``;
-        None: always build), and the converter as built (``service/snapshot.py``,
+        None: always build), and the converter as built (``pipeline/snapshot.py``,
         keyed by the parameters' bytes, kind and software). What comes from the
         cache is what would be built (same identity), in a fraction of the time.
-
-    Returns
-    -------
-    converter, params dict, params source (str), tables source (str)
     """
-    from mntes_stream.core.convert import BASELINE_KINDS, baseline_can_take, make_converter
-    from mntes_stream.io.paramfile import load_params, parse_params
+    from mntes_stream.pipeline.build import ConverterSpec
 
     recorded_kind = provenance.converter_kind if provenance is not None else "table"
     if kind is not None and tables is not None:
         raise ConfigError("a table file sets the converter kind: give the kind or the tables, not both")
     kind = kind or recorded_kind
-    cache = _cache_dir(table_cache) if tables is None and kind in ("table", "grid") else ""
-    text = provenance.params_toml if params is None and provenance is not None else None
-    key, snap = _load_snapshot(cache, kind, params, text) if cache and (params is not None or text) else (None, None)
-    if snap is not None:  # the converter as the last run with these parameters built it
-        pdict, conv = snap
-        psrc = str(params) if params is not None else "the recording's provenance"
-    elif params is not None:
-        pdict, psrc = load_params(params), str(params)
-    elif provenance is not None and provenance.params_toml:
-        try:
-            pdict = parse_params(tomllib.loads(provenance.params_toml), "recorded provenance")
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"recorded provenance: parameter TOML unreadable: {exc}") from None
-        psrc = "the recording's provenance"
-    else:
-        pdict, psrc = None, ""
-    if tables is not None:
-        from mntes_stream.io.tablefile import load_bank
-
-        bank = load_bank(tables)
-        # New tables carry their own parameters; recorded ones would only clash.
-        conv = make_converter(bank.kind, pdict if params is not None else None, bank=bank)
-        return conv, (pdict if params is not None else bank.params_by_id()), psrc or "the table file", str(tables)
-    if pdict is None:
+    text = provenance.params_toml if params is None and provenance is not None else ""
+    if tables is not None:  # new tables carry their own parameters; recorded ones would only clash
+        return ConverterSpec(kind="", params_file=str(params) if params is not None else "", tables=str(tables))
+    if params is None and not text:
         raise ConfigError("the recording has no provenance with detector parameters: give --params (and --tables)")
-    if kind != recorded_kind and kind in BASELINE_KINDS and snap is None:
-        # A baseline asked for on a recording: a latched or normal detector has no linearisation. It is left
-        # out (its power NaN + UNKNOWN_CHANNEL, as any detector without parameters), said once, not fatal.
-        left = sorted(d for d, q in pdict.items() if not baseline_can_take(q))
-        if left and len(left) == len(pdict):
-            raise ConfigError(f"no detector is in the transition at its nominal operating point: no {kind} baseline")
-        if left:
-            log.warning("%s baseline: %d detector(s) not in the transition at their nominal operating point left out "
-                        "(power NaN, UNKNOWN_CHANNEL): %s", kind, len(left), ", ".join(left[:8]) + (" ..." if len(left) > 8 else ""))
-            pdict = {d: q for d, q in pdict.items() if d not in left}
-    if snap is None and cache:
-        from types import SimpleNamespace
+    return ConverterSpec(kind=kind, params_file=str(params) if params is not None else "", params_toml=text,
+                         table_cache=_cache_dir(table_cache) if kind in ("table", "grid") else "",
+                         drop_untaken=kind != recorded_kind)
 
-        from mntes_stream.service.converter import _cached_bank
-        from mntes_stream.service.snapshot import save_snapshot
 
-        # The live converter's own bank cache (same keys, same checks); it reads only these two settings.
-        conv = make_converter(kind, pdict, _cached_bank(SimpleNamespace(kind=kind, table_cache=cache), pdict))
-        save_snapshot(_snapshot_cfg(cache, kind, ""), key, pdict, None, conv)
-    elif snap is None:
-        conv = make_converter(kind, pdict)
-    tsrc = f"rebuilt from the parameters ({kind})" if kind in ("table", "grid") else "none (analytic)"
-    if (provenance is not None and params is None and kind == recorded_kind and kind in ("table", "grid")
+def converter_for(provenance, *, params: str | Path | None = None, tables: str | Path | None = None,
+                  table_cache=..., kind: str | None = None):
+    """The converter (and its parameters) for a recording: :func:`spec_for` built by ``pipeline.build``.
+
+    Returns
+    -------
+    converter, params dict, params source (str), tables source (str)
+
+    Raises
+    ------
+    ConfigError
+        Besides the builder's: tables rebuilt from the recorded parameters whose identity is not the
+        recorded one (other build options: give the table file).
+    """
+    from mntes_stream.pipeline.build import build_converter
+
+    spec = spec_for(provenance, params=params, tables=tables, table_cache=table_cache, kind=kind)
+    built = build_converter(spec)
+    conv = built.converter
+    psrc = str(params) if params is not None else "the recording's provenance" if provenance is not None and \
+        provenance.params_toml else ""
+    if tables is not None:
+        return conv, built.params if params is not None else built.bank_params, psrc or "the table file", str(tables)
+    tsrc = f"rebuilt from the parameters ({spec.kind})" if spec.kind in ("table", "grid") else "none (analytic)"
+    if (provenance is not None and params is None and not spec.drop_untaken and spec.kind in ("table", "grid")
             and provenance.table_identity and str(conv.identity) != provenance.table_identity):
         raise ConfigError(
             f"tables rebuilt from the recorded parameters have identity {str(conv.identity)[:16]}, the recording used "
             f"{provenance.table_identity[:16]} (other build options?): give the table file with --tables"
         )
-    return conv, pdict, psrc, tsrc
+    return conv, built.params, psrc, tsrc
 
 
 def convert_recording(source, output: str | Path, *, tables=None, params=None, pipeline_config=None,
@@ -327,7 +281,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     progress : bool
         tqdm progress bar over the input messages.
     table_cache : path, optional
-        See :func:`build_converter` (default: the live converter's cache).
+        See :func:`spec_for` (default: the live converter's cache).
     batch_s : float
         > 0 (default 1): the messages of each ``batch_s`` of receive time (and
         at most 64 MiB of them) go through the pipeline together, as a live
@@ -349,7 +303,7 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         The output's chunk compression (default lz4: the cheapest to write and read; zstd: smaller files).
     kind : str, optional
         Convert with this converter kind (e.g. ``linear``: the linear baseline of the same counts) and the
-        recorded parameters, instead of each calibration's recorded kind (see :func:`build_converter`).
+        recorded parameters, instead of each calibration's recorded kind (see :func:`spec_for`).
     """
     from collections import Counter
 
@@ -357,8 +311,9 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
 
     from mntes_stream.io import keys
     from mntes_stream.io.mcap import McapFileWriter, Session, writer_description
-    from mntes_stream.service.pipeline import ConverterPipeline, PipelineConfig
-    from mntes_stream.service.replay import INPUT_KINDS, input_topics
+    from mntes_stream.pipeline.config import INPUT_KINDS, PipelineConfig, input_topics
+    from mntes_stream.pipeline.pipeline import ConverterPipeline
+    from mntes_stream.pipeline.runner import Runner
 
     if not batch_s >= 0:
         raise ConfigError(f"batch_s must be >= 0, got {batch_s}")
@@ -380,13 +335,13 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
         if len(calibrations) > 1:
             log.warning("the recording holds %d calibrations (changed at log times %s); the given %s replace all of them",
                         len(calibrations), [t for t, _ in calibrations[1:]], "tables" if tables is not None else "parameters")
-        plan = [(None, build_converter(prov, params=params, tables=tables, table_cache=table_cache, kind=kind))]
+        plan = [(None, converter_for(prov, params=params, tables=tables, table_cache=table_cache, kind=kind))]
     else:
         built: dict[tuple, tuple] = {}  # a calibration that comes back is not rebuilt
         plan = []
         for k, (t_ns, p) in enumerate(calibrations):
             if _calibration(p) not in built:
-                built[_calibration(p)] = build_converter(p, table_cache=table_cache, kind=kind)
+                built[_calibration(p)] = converter_for(p, table_cache=table_cache, kind=kind)
             plan.append((t_ns if k else None, built[_calibration(p)]))
         log.info("the calibration changed %d time(s) during the recording: each part converted with its own", len(plan) - 1)
     converter, pdict, psrc, tsrc = plan[-1][1]
@@ -413,70 +368,31 @@ def convert_recording(source, output: str | Path, *, tables=None, params=None, p
     with McapFileWriter(output, metadata={"mntes.recording": meta}, whole=True, compression=compression,
                         chunk_size_bytes=_CHUNK_BYTES) as out:
         bar = tqdm(total=total, unit="msg", desc="convert", disable=not progress)
-        t_last = None
-        epoch = 0
 
-        def emit(items, t_ns):
+        def start_pipeline(k):
+            conv, pd = plan[k][1][:2]
+            return ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty,
+                                     sigma_p=sigma_p, only_fused=only_fused)
+
+        # The inputs are written back with the outputs, in the runner's order; each calibration's pipeline
+        # starts with its provenance; batches as a live converter takes its backlog (batch_s > 0: the same
+        # power and flags as message by message, stamped at each batch's last message).
+        runner = Runner(start_pipeline, switches=[t for t, _ in plan[1:]], batch_s=batch_s, batch_bytes=_BATCH_BYTES,
+                        inputs=True, provenance=True, retire=add_status)
+
+        def emit(writes):
             nonlocal n_power, n_status
-            for key, payload in items:
+            for key, payload, t_ns in writes:
                 out.write(key, payload, t_ns)
                 kind = keys.kind_of(key)
                 n_power += kind == "power"
                 n_status += kind == "status"
 
-        def start_pipeline(k, t_ns):
-            conv, pd = plan[k][1][:2]
-            new = ConverterPipeline(conv, pipeline_config, params=pd, clock=None, uncertainty=uncertainty,
-                                    sigma_p=sigma_p, only_fused=only_fused)
-            out.write(keys.provenance_key(pipeline_config.setup), new.provenance_bytes(), t_ns)
-            return new
-
-        pipe = None
-        batch: list = []  # batch_s > 0: inputs (already written) waiting for one handle_many call
-        batch_bytes = 0
-
-        def run_batch():
-            nonlocal batch_bytes
-            if batch:
-                emit(pipe.handle_many(batch), batch[-1][2])
-                batch.clear()
-                batch_bytes = 0
-
         for msg in session.iter_messages(selection):
-            if pipe is None or (epoch + 1 < len(plan) and msg.log_time_ns >= plan[epoch + 1][0]):
-                while epoch + 1 < len(plan) and msg.log_time_ns >= plan[epoch + 1][0]:
-                    epoch += 1
-                if pipe is None:
-                    pipe = start_pipeline(epoch, msg.log_time_ns)
-                else:
-                    # The converter changed at t_switch: what the old one holds arrived
-                    # before, so it is the old one's to convert (as the stopped live converter did).
-                    run_batch()
-                    t_switch = plan[epoch][0]
-                    emit(pipe.tick(t_switch), t_switch)
-                    emit(pipe.flush(), t_switch)
-                    add_status(pipe)
-                    pipe = start_pipeline(epoch, t_switch)
-            t_last = msg.log_time_ns
-            if batch_s > 0:
-                # As a live converter takes what arrived while it converted: the power and flags are the
-                # same (handle_many), the outputs come out and are stamped at the end of each batch.
-                out.write(msg.topic, msg.payload, msg.log_time_ns)
-                if batch and (msg.log_time_ns - batch[0][2] > batch_s * 1e9 or batch_bytes > _BATCH_BYTES):
-                    run_batch()
-                batch.append((msg.topic, msg.payload, msg.log_time_ns))
-                batch_bytes += len(msg.payload)
-            else:
-                # Release what waited long enough *before* this message, as the live service's ticks do.
-                emit(pipe.tick(msg.log_time_ns), msg.log_time_ns)
-                out.write(msg.topic, msg.payload, msg.log_time_ns)
-                emit(pipe.handle(msg.topic, msg.payload, msg.log_time_ns), msg.log_time_ns)
+            emit(runner.feed(msg.topic, msg.payload, msg.log_time_ns))
             n_in += 1
             bar.update(1)
-        if pipe is not None:
-            run_batch()
-            emit(pipe.flush(), t_last)
-            add_status(pipe)
+        emit(runner.finish())
         bar.close()
         _mark_damage(session, out)
     return OfflineStats(
