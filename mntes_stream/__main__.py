@@ -1,5 +1,3 @@
-import sys
+from mntes_stream.cli import run
 
-from mntes_stream.cli import main
-
-sys.exit(main())
+run()
