@@ -710,7 +710,7 @@ if numba is not None:
         marks = np.zeros(n_samp, dtype=np.uint8)
         # The front end's results per sample, for the lookup and power passes.
         # Flags and "inside" kept 64 bits wide until the output: narrowed in the vector front pass, each
-        # flag's mask was packed to 16 bits on its own (AVX2, 4 lanes: three instructions a flag; -7 %).
+        # flag's mask was packed to 16 bits on its own (AVX2, 4 lanes: three instructions a flag).
         s_f, s_in, s_c = np.empty(n_samp, dtype=np.int64), np.empty(n_samp, dtype=np.int64), np.empty(n_samp, np.int64)
         s_r, s_m2, s_rc, s_w, s_its = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), \
             np.empty(n_samp)
