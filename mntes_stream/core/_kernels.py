@@ -438,8 +438,12 @@ if numba is not None:
 
     @_inline
     def _cell(r, q):
-        """Index into ``cell_interval`` of the lookup cell of ``r`` (within detector record ``q``'s table)."""
-        cell = int((r - q[_R_X_LO]) * q[_R_CPO])
+        """Index into ``cell_interval`` of the lookup cell of ``r`` (within detector record ``q``'s table).
+
+        The cell within the table is truncated to int32 (it lies in ``[0, n_cells]``): AVX2 has a
+        vector double-to-int32 conversion but none to int64, which the compiler did lane by lane in
+        the vector front-end loops (an AVX-512 CPU has both)."""
+        cell = np.int32((r - q[_R_X_LO]) * q[_R_CPO])
         n1 = int(q[_R_NCELL]) - 1
         return int(q[_R_C0]) + (cell if cell < n1 else n1)
 
@@ -705,7 +709,9 @@ if numba is not None:
         s_hk = np.empty(n_samp, dtype=np.uint16)
         marks = np.zeros(n_samp, dtype=np.uint8)
         # The front end's results per sample, for the lookup and power passes.
-        s_f, s_in, s_c = np.empty(n_samp, dtype=np.uint16), np.empty(n_samp, dtype=np.uint8), np.empty(n_samp, np.int64)
+        # Flags and "inside" kept 64 bits wide until the output: narrowed in the vector front pass, each
+        # flag's mask was packed to 16 bits on its own (AVX2, 4 lanes: three instructions a flag).
+        s_f, s_in, s_c = np.empty(n_samp, dtype=np.int64), np.empty(n_samp, dtype=np.int64), np.empty(n_samp, np.int64)
         s_r, s_m2, s_rc, s_w, s_its = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), \
             np.empty(n_samp)
         s_w1 = np.empty(n_samp if low_on else 0)
