@@ -208,11 +208,16 @@ def test_up_restarts_a_killed_converter_and_power_flows_again(tmp_path):
     counts = rec["by_kind"]["counts"]
     assert conv["chunks_converted"] > 20 and whole.pending == 0, conv
     if conv["chunks_lost"]:
-        # A machine so busy that the restart outlived the source's 10 s history (seen once at load ~6): the
-        # chunks that fell out of it are never received, stated by the converter, and the recording names
-        # them as counts without power (what offline convert fills): a hole, never a silent one.
+        # Why a restart loses chunks (seen once at load ~6): the new converter continues from its checkpoint
+        # (written with each status, 1 s), and the source keeps 10 s of history; a restart that outlives it
+        # (start, imports, snapshot, kernels, on a busy machine) finds the oldest chunks gone. So a loss needs
+        # the restart to have taken about the history plus the chunks lost (death noticed and the checkpoint's
+        # age: up to 2 s more); a quicker restart that loses chunks is a bug. The hole is stated: never
+        # received by the converter, counts without power in the recording (what offline convert fills).
         restart_s = float(re.search(r"converter restarted in ([\d.]+) s", err_text)[1])
-        assert whole.missing == conv["chunks_lost"] and restart_s > 2, (conv["ledger"], restart_s)
+        lost_s = conv["chunks_lost"] * 0.1  # up's chunks: --chunk-s 0.1
+        assert restart_s + 2.0 >= 10.0 + lost_s - 1.0, (restart_s, conv["chunks_lost"], conv["ledger"])
+        assert whole.missing == conv["chunks_lost"], conv["ledger"]
         assert "recorded without power" in rec.get("ledger_note", ""), rec
         assert rec["ledger_note"] in err_text
     else:  # the ledger covers both converter processes: every counts chunk the recorder has was converted
