@@ -1,3 +1,5 @@
-from mntes_stream.cli import run
+import sys
 
-run()
+from mntes_stream.cli import main
+
+sys.exit(main())

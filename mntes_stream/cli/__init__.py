@@ -13,10 +13,8 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
-import logging
 import os
 import pkgutil
-import signal
 import sys
 import textwrap
 
@@ -83,25 +81,6 @@ def build_parser(lazy: bool = False) -> argparse.ArgumentParser:
         for command in sub.choices.values():
             command.filled()
     return parser
-
-
-def run() -> None:
-    """The ``mntes-stream`` command: :func:`main`, then out at once, without the interpreter's teardown.
-
-    Native threads left waiting (spt3g's collector and builder threads, zenoh's) are what Python's teardown
-    kills: a daemon thread blocked in C++ or Rust is unwound by force there, and the process aborts ("FATAL:
-    exception not rethrown", exit -6) after a run that went well. Every file and session is closed when
-    :func:`main` returns, so the logs and standard streams are flushed and the process ends with its code.
-    """
-    code = main()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # done: a Ctrl-C now cannot turn the result into a traceback
-    logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:
