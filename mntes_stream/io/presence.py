@@ -30,13 +30,14 @@ import msgpack
 
 from mntes_stream.io import keys
 
-__all__ = ["Presence", "announce", "list_services", "DEAD_AFTER_S"]
+__all__ = ["Presence", "announce", "join_watchers", "list_services", "DEAD_AFTER_S"]
 
 log = logging.getLogger(__name__)
 
 #: A connect endpoint with no link for this long is reported (once).
 DEAD_AFTER_S = 5.0
 _POLL_S = 0.25
+_WATCHERS: list[tuple[threading.Thread, object]] = []  # (watch thread, its session)
 
 @dataclass(frozen=True)
 class Presence:
@@ -90,8 +91,30 @@ def announce(session, connect: tuple[str, ...] = (), p: Presence | None = None) 
         log.warning("%s %s: cannot declare liveliness on %s: %s", p.service, p.name, p.key, exc)
         return
     # The token is undeclared when dropped: this thread holds it (and the queryable) as long as the session lives.
-    threading.Thread(target=_watch, args=(session, p, connect, (token, queryable)),
-                     name=f"presence-{p.service}", daemon=True).start()
+    watcher = threading.Thread(target=_watch, args=(session, p, connect, (token, queryable)),
+                               name=f"presence-{p.service}", daemon=True)
+    watcher.start()
+    _WATCHERS.append((watcher, session))
+
+
+def join_watchers(timeout_s: float = 2.0) -> None:
+    """Wait for the watch threads of closed sessions to end (within ``timeout_s``).
+
+    A daemon thread still inside a zenoh call when the interpreter exits is unwound by force, and the
+    process aborts ("FATAL: exception not rethrown", exit -6) after a run that went well: a service
+    (:meth:`Service.start <mntes_stream.service.base.Service.start>`) calls this once its session is closed.
+    """
+    deadline = time.monotonic() + timeout_s
+    for watcher, session in list(_WATCHERS):
+        try:
+            closed = session.is_closed()
+        except RuntimeError:  # being closed on another thread
+            closed = True
+        if not closed:
+            continue
+        watcher.join(max(0.0, deadline - time.monotonic()))
+        if not watcher.is_alive():
+            _WATCHERS.remove((watcher, session))
 
 
 def _watch(session, p: Presence, connect: tuple[str, ...], _held) -> None:

@@ -285,12 +285,16 @@ class Service(abc.ABC):
         """:meth:`run` with the heartbeat's state kept, the service announced on its zenoh session,
         a client waiting for its router (``io/reconnect.py``) and its metrics served: what ``serve``
         and the supervisor call."""
+        from mntes_stream.io.presence import join_watchers
+
         try:
             with metrics_for(self) as metrics:
                 result = self._lifecycle(stop, _Ready(self.heartbeat, ready), metrics, announce=True)
         except BaseException:
             self.heartbeat.set_state("failed")
             raise
+        finally:
+            join_watchers()  # the session is closed: its watch thread ends now, not inside zenoh at exit
         self.heartbeat.set_state("stopped")
         return dict(result or {})
 
