@@ -270,7 +270,12 @@ def run_up(args) -> int:
                         # still queued are its own; the new one continues from its checkpoint).
                         while (item := sub.get()) is not None:
                             last_ledger = StatusMessage.from_bytes(item[1]).ledger
-                        before.merge(Ledger.from_dict(last_ledger))
+                        dead = Ledger.from_dict(last_ledger)
+                        for held in dead.streams.values():
+                            # What it held then was not converted: its checkpoint, saved with that status, has
+                            # the new one receive it again (or count it never received), so it is counted there.
+                            held.received -= held.pending
+                        before.merge(dead)
                         last_ledger = {}
                     give_up = _restart_dead(services, budget, stopping, say)
                     if give_up:
