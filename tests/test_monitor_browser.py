@@ -177,7 +177,7 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         stack.enter_context(_process(["serve", "--config", str(tmp_path / "converter.toml"), "--duration", "180"],
                                      tmp_path / "converter.log"))
         monitor = stack.enter_context(_process(
-            ["monitor", "--port", "0", "--setup", "lab", "--duration", "180", "--leakage-detectors", "8",
+            ["monitor", "--port", "0", "--setup", "lab", "--duration", "180",
              "--connect", f"tcp/127.0.0.1:{p_conv}", "--connect", f"tcp/127.0.0.1:{p_sim}"], tmp_path / "monitor.log"))
         publisher = Worker(_publish_normal_channel, p_conv, normal, stop)
         publisher.start()

@@ -162,9 +162,8 @@ class MonitorConfig(Settings):
                                 gt=0)
     max_selected: int = setting(16, "channels one page may plot at once", ge=2)
     latency_reports: int = setting(600, "page render reports kept for the latency figures", ge=2)
-    leakage_detectors: int = setting(0, "detectors whose linear-conversion leakage (2f -> 4f, against MNTES) is "
-                                     "measured live: their modules' counts are subscribed (0: off; 8 is a good "
-                                     "start)", ge=0, le=64)
+    leakage_detectors: int = setting(8, "detectors whose linear-conversion leakage (2f -> 4f, against MNTES) is "
+                                     "measured live: their modules' counts are subscribed (0: off)", ge=0, le=64)
     leakage_window_s: float = setting(60.0, "power window of the live leakage fit", unit="s", ge=10, le=300)
     leakage_every_s: float = setting(10.0, "period of the live leakage measurement", unit="s", ge=1, le=3600)
 
