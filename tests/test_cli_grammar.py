@@ -224,7 +224,7 @@ def test_docs_cli_lists_every_command_and_every_overwrite():
 
 
 def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_path, capsys):
-    """dfmux-bridge, simulate and monitor declare their flags from the settings (``add_settings_args``): each
+    """dfmux-bridge, g3-bridge, simulate and monitor declare their flags from the settings (``add_settings_args``): each
     flag, spelled as before, sets its setting over ``--config`` (simulate: ``--set`` wins over its flags, as
     documented), and is checked at parse time against the declaration (one line naming the flag)."""
     from mntes_stream.cli.dfmux import bridge_config
@@ -252,12 +252,21 @@ def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_
                                       "3", "--duration", "2", "--realm", "r"])).bridge
     assert (o.router, o.t_bath_field, o.stale_s, o.duration_s, o.realm, o.setup) == ("ws://h:1/ws", "a.b.c", 3.0,
                                                                                      2.0, "r", "lab")
+    from mntes_stream.cli.g3 import bridge_config as g3_config
+
+    cfg.write_text('[g3-bridge]\nchunk_samples = 8\nboards = [9]\n[g3]\nt_bath_default_k = 0.3\n')
+    g = g3_config(parser.parse_args(["g3-bridge", "--config", str(cfg), "--from", "run.g3", "--board", "3", "--board",
+                                     "4", "--duration", "2", "--t-bath-key", "A.B", "--set", "g3-bridge.setup=x2"]))
+    assert (g.bridge.source, g.bridge.boards, g.bridge.duration_s, g.bridge.chunk_samples, g.bridge.setup) == (
+        "run.g3", (3, 4), 2.0, 8, "x2")
+    assert (g.g3.t_bath_key, g.g3.t_bath_default_k) == ("A.B", 0.3)
     m = monitor_config(parser.parse_args(["monitor", "--port", "0", "--history-s", "20", "--f-hwp", "auto",
                                           "--update-s", "2"]))
     assert (m.port, m.view.history_s, m.view.f_hwp_hz, m.update_s) == (0, 20.0, None, 2.0)
     for argv, says in ((["dfmux-bridge", "--board", "-1"], "argument --board: expected an integer >= 0, got '-1'"),
                        (["dfmux-bridge", "--hk-every", "0"], "argument --hk-every: expected a number (s) > 0"),
                        (["simulate", "--sample-rate", "0"], "argument --sample-rate: expected a number (Hz) > 0"),
+                       (["g3-bridge", "--chunk-samples", "0"], "argument --chunk-samples: expected an integer >= 1"),
                        (["simulate", "--setup", "a/b"], "argument --setup: expected a name matching")):
         with pytest.raises(SystemExit):
             parser.parse_args(argv)

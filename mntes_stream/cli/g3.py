@@ -115,13 +115,34 @@ def _run_g3_convert(args, pipeline) -> int:
     return 0
 
 
-def run_bridge(args) -> int:
-    from mntes_stream.cli._common import zenoh_layer
-    from mntes_stream.g3.bridge import G3BridgeService, bridge_config, ledger_line
-    from mntes_stream.service.base import stop_on_signals
-    from mntes_stream.service.config import with_zenoh
+# The [g3-bridge] and [g3] settings the flags set (types, ranges and help from BridgeSettings and G3InputConfig);
+# --hk and --t-bath-field are declared by add_hk_args (shared with convert and replay) and set the same settings.
+_BRIDGE = ("source", "setup", "chunk_samples", "params", "boards", "duration_s")
+_HK = ("hk", "t_bath_field")
+_G3 = ("t_bath_key", "t_bath_default_k")
+_SPELLED = {"source": "--from", "boards": "--board"}
+_METAVARS = {"source": "tcp://HOST:PORT|RUN.g3", "boards": "SERIAL", "params": "FILE"}
 
-    cfg = with_zenoh(bridge_config(args), zenoh_layer(args))
+
+def bridge_config(args):
+    """The ``[g3-bridge]`` config the command line asks for (``--config``, ``--set``, flags, zenoh flags)."""
+    from mntes_stream.cli._common import service_config, settings_from_args, zenoh_layer
+    from mntes_stream.errors import ConfigError
+    from mntes_stream.g3.bridge import G3BridgeService
+
+    cfg = service_config(G3BridgeService, args.config, args.set,
+                         {"bridge": settings_from_args(args, _BRIDGE + _HK), "g3": settings_from_args(args, _G3)},
+                         zenoh_layer(args))
+    if not cfg.bridge.source:
+        raise ConfigError("g3-bridge: give the source (--from tcp://HOST:PORT or a G3 file, or source = in the config)")
+    return cfg
+
+
+def run_bridge(args) -> int:
+    from mntes_stream.g3.bridge import G3BridgeService, ledger_line
+    from mntes_stream.service.base import stop_on_signals
+
+    cfg = bridge_config(args)
     quiet_spt3g()
     with stop_on_signals() as stop:
         result = G3BridgeService(cfg).start(stop=stop)
@@ -141,19 +162,15 @@ def register(sub) -> None:
                                    "publish counts, bias and bath-temperature housekeeping as the project's messages, "
                                    "so the converter, recorder and monitor run unchanged on real readout. Reconnects "
                                    "when the DAQ restarts; missing samples are counted.")
-    p.add_argument("--from", dest="source", metavar="tcp://HOST:PORT|RUN.g3",
-                   help="the DAQ's network tee (e.g. tcp://daq:5353) or a G3 file")
+    from mntes_stream.cli._common import add_settings_args
+    from mntes_stream.g3.bridge import BridgeSettings
+    from mntes_stream.g3.mapping import G3InputConfig
+
     p.add_argument("--config", metavar="FILE", help="bridge TOML ([g3-bridge], [g3], [zenoh]); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
-    p.add_argument("--setup", help="setup name in the keys (default lab)")
-    p.add_argument("--chunk-samples", type=number(int, ge=1), help="Timepoints per counts chunk (default 16, ~0.1 s)")
-    p.add_argument("--params", metavar="FILE", help="the converter's parameter file: counts published in units of "
-                                                    "its gain, so DfMux gain changes apply (default: raw counts)")
-    p.add_argument("--boards", type=lambda t: tuple(int(x) for x in t.split(",")), metavar="SERIAL,...",
-                   help="only these board serials (one bridge per group of boards; default all)")
-    p.add_argument("--duration", dest="duration_s", type=number(float, "s", ge=0), metavar="S", help="stop after this long (0: never)")
-    p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
-    p.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature of a DAQ without one")
+    add_settings_args(p, BridgeSettings, _BRIDGE, {"duration_s": ("--duration",)}, spelled=_SPELLED,
+                      repeatable=("boards",), metavars=_METAVARS)
+    add_settings_args(p, G3InputConfig, _G3, metavars={"t_bath_key": "FRAME.ENTRY"})
     p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
     add_quiet(p)
     from mntes_stream.cli.ocs import add_hk_args

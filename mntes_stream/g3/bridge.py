@@ -40,7 +40,7 @@ from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
-__all__ = ["BridgeSettings", "G3BridgeConfig", "G3BridgeService", "bridge_config", "G3Source"]
+__all__ = ["BridgeSettings", "G3BridgeConfig", "G3BridgeService", "G3Source"]
 
 log = logging.getLogger("mntes_stream.g3.bridge")
 
@@ -276,28 +276,6 @@ class _OcsBath:
             if t > t_ns:
                 break
         return [(key, payload) for _, key, payload in out]
-
-
-def bridge_config(args) -> G3BridgeConfig:
-    """The config from ``--config``/``--set`` and the command line (which wins)."""
-    import dataclasses
-
-    from mntes_stream.service.config import config_of
-
-    cfg = config_of(G3BridgeService, args.config, args.set)
-    flags = {k: getattr(args, a) for k, a in (("source", "source"), ("setup", "setup"), ("boards", "boards"),
-                                              ("params", "params"), ("hk", "hk"), ("t_bath_field", "t_bath_field"),
-                                              ("chunk_samples", "chunk_samples"), ("duration_s", "duration_s"))
-             if getattr(args, a, None) is not None}
-    g3 = {k: getattr(args, k) for k in ("t_bath_key", "t_bath_default_k") if getattr(args, k) is not None}
-    try:
-        cfg = dataclasses.replace(cfg, bridge=dataclasses.replace(cfg.bridge, **flags),
-                                  g3=dataclasses.replace(cfg.g3, **g3))
-    except ConfigError as exc:
-        raise ConfigError(f"command line: {exc}") from None
-    if not cfg.bridge.source:
-        raise ConfigError("g3-bridge: give the source (--from tcp://HOST:PORT or a G3 file, or source = in the config)")
-    return cfg
 
 
 class G3BridgeService(Service):
