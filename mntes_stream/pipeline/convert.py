@@ -11,6 +11,8 @@ what flows between stages.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 
 import numpy as np
 
@@ -84,6 +86,10 @@ class Convert:
             self._configured = noise
         self._executor = None
         self._held: list[Ready] = []
+        # CPU seconds inside converter calls (each calling thread's own CPU, summed over threads): what a
+        # benchmark subtracts from the converter's CPU to see its per-chunk cost around the kernel.
+        self.kernel_cpu_s = 0.0
+        self._kernel_lock = threading.Lock()
 
     @property
     def noise(self):
@@ -185,7 +191,17 @@ class Convert:
 
     def _converted(self, ids, ci, cq, env) -> tuple:
         """p_opt, flags and sigma_P (None unless published) of a block: LOW_RESPONSIVITY flagged when the
-        pipeline has a noise model, in the conversion's own pass unless sigma_P is published."""
+        pipeline has a noise model, in the conversion's own pass unless sigma_P is published; the call's CPU
+        in ``kernel_cpu_s``."""
+        c0 = time.thread_time()
+        try:
+            return self._call(ids, ci, cq, env)
+        finally:
+            dt = time.thread_time() - c0
+            with self._kernel_lock:
+                self.kernel_cpu_s += dt
+
+    def _call(self, ids, ci, cq, env) -> tuple:
         if self._noise is None or not self._sigma_p:
             out = (self.converter.convert(ids, ci, cq, env) if self._noise is None else
                    low_responsivity_block(self.converter, ids, ci, cq, env, self._noise))
