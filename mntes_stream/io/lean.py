@@ -18,6 +18,8 @@ the array bytes.
 
 from __future__ import annotations
 
+import struct
+
 import msgpack
 import numpy as np
 
@@ -34,6 +36,34 @@ _MAX_HEADERS = 4096
 
 def _pack(value) -> bytes:
     return msgpack.packb(value, use_bin_type=True)
+
+
+_U8, _U16, _U32, _U64, _F64 = (struct.Struct(f).pack for f in (">B", ">H", ">I", ">Q", ">d"))
+
+
+def _pack_number(value) -> bytes:
+    """``_pack(value)`` for an int or float, written directly (msgpack's smallest form; a test compares bytes)."""
+    if type(value) is int and value >= 0:
+        if value < 0x80:
+            return _U8(value)
+        if value < 0x100:
+            return b"\xcc" + _U8(value)
+        if value < 0x10000:
+            return b"\xcd" + _U16(value)
+        if value < 0x100000000:
+            return b"\xce" + _U32(value)
+        if value < 0x10000000000000000:
+            return b"\xcf" + _U64(value)
+    elif type(value) is float:
+        return b"\xcb" + _F64(value)
+    return _pack(value)
+
+
+def _raw(a: np.ndarray, dtype: str):
+    """The bytes of ``a`` as ``dtype``, C order: the array's own buffer when it is laid out so (no copy)."""
+    if a.dtype == dtype and a.flags.c_contiguous and a.size:
+        return memoryview(a).cast("B")
+    return a.astype(dtype, copy=False).tobytes()
 
 
 class CountsDecoder:
@@ -170,11 +200,11 @@ class PowerEncoder:
         head, k_t0, k_rate, k_p, k_f, mid, k_pub, tail = self._template(
             chunk.board, chunk.module, chunk.channels, p_opt_w.shape, bool(late), sigma_p_w is not None,
             chunk.detector_ids)
-        return b"".join((head, _pack(chunk.seq), k_t0, _pack(chunk.t0_ns), k_rate, _pack(chunk.sample_rate_hz),
-                         k_p, p_opt_w.astype("<f8", copy=False).tobytes(), k_f,
-                         flags.astype("<u2", copy=False).tobytes(), mid, _pack(chunk.t_pub_ns), k_pub,
-                         _pack(int(t_pub_ns)), tail,
-                         b"" if sigma_p_w is None else sigma_p_w.astype("<f4", copy=False).tobytes()))
+        # One copy of the arrays: joined from their own buffers where they are laid out as the message wants.
+        return b"".join((head, _pack_number(chunk.seq), k_t0, _pack_number(chunk.t0_ns), k_rate,
+                         _pack_number(chunk.sample_rate_hz), k_p, _raw(p_opt_w, "<f8"), k_f, _raw(flags, "<u2"), mid,
+                         _pack_number(chunk.t_pub_ns), k_pub, _pack_number(int(t_pub_ns)), tail,
+                         b"" if sigma_p_w is None else _raw(sigma_p_w, "<f4")))
 
 
 def _map_head(n: int) -> bytes:
