@@ -411,10 +411,22 @@ class Environment:
         self.books, self.hk, self._known = books, hk, known
         self._rows: dict[tuple, tuple] = {}
         self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
+        self._last_rows: dict[tuple, tuple] = {}  # (board, module) -> (channels, detector_ids, rows) last seen
         self._last_env: tuple | None = None  # (t_bath flags, b_field flags, their union, any set) of the last step
 
     def rows_for(self, chunk: CountsChunk) -> tuple:
         """Detector ids of the rows and which the converter knows (cached per channel list)."""
+        last = self._last_rows.get((chunk.board, chunk.module))
+        # The decoder gives a stream's chunks one channels array while its header holds: no bytes to compare.
+        if last is not None and last[0] is chunk.channels and last[1] is chunk.detector_ids:
+            return last[2]
+        rows = self._rows_by_list(chunk)
+        if len(self._last_rows) > 4096:
+            self._last_rows.clear()
+        self._last_rows[(chunk.board, chunk.module)] = (chunk.channels, chunk.detector_ids, rows)
+        return rows
+
+    def _rows_by_list(self, chunk: CountsChunk) -> tuple:
         cache_key = (chunk.board, chunk.module, chunk.channels.tobytes(), chunk.detector_ids)
         rows = self._rows.get(cache_key)
         if rows is None:
