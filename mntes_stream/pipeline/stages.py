@@ -412,7 +412,7 @@ class Environment:
         self._rows: dict[tuple, tuple] = {}
         self._unmatched = 0  # channel lists none of whose rows has parameters (said once per list)
         self._last_rows: dict[tuple, tuple] = {}  # (board, module) -> (channels, detector_ids, rows) last seen
-        self._last_env: tuple | None = None  # (t_bath flags, b_field flags, their union, any set) of the last step
+        self._last_env: tuple | None = None  # (t_bath flags, b_field flags, their union) of the last step
 
     def rows_for(self, chunk: CountsChunk) -> tuple:
         """Detector ids of the rows and which the converter knows (cached per channel list)."""
@@ -455,7 +455,7 @@ class Environment:
         else:
             env_flags_t = f_tb | f_b
             env_flags_t.setflags(write=False)
-            self._last_env = (f_tb, f_b, env_flags_t, bool(env_flags_t.any()))
+            self._last_env = (f_tb, f_b, env_flags_t)
         ids, known, n_unknown = self.rows_for(chunk)
         v_bias, f_bias = self.hk.bias(chunk, t, ids)
         f_board = self.hk.readout_flags(chunk, t)
