@@ -3,9 +3,8 @@
 Feeds ``ConverterPipeline.handle_many`` the messages of a ``MinimalSource`` (40 modules x 128 channels,
 200 Hz, 0.1 s chunks: ``bench stream``'s array), ``--steps`` readout steps per batch (1: a converter that
 keeps up; 8: one catching up), and prints CPU microseconds per chunk (the best of ``--repeat``) and a
-SHA-256 of every power chunk's values, flags and identity (and one of the whole power messages, and the
-ledger), so two versions of the code can be compared
-for speed and for bit-identical power::
+SHA-256 of every power chunk's values, flags and identity, one of the whole power messages, and the
+ledger, so two versions of the code can be compared for speed and for bit-identical power::
 
     PYTHONPATH=OLD_CHECKOUT python benchmarks/pipeline_inprocess.py --json
     python benchmarks/pipeline_inprocess.py --json
