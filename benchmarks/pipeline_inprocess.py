@@ -3,8 +3,8 @@
 Feeds ``ConverterPipeline.handle_many`` the messages of a ``MinimalSource`` (40 modules x 128 channels,
 200 Hz, 0.1 s chunks: ``bench stream``'s array), ``--steps`` readout steps per batch (1: a converter that
 keeps up; 8: one catching up), and prints CPU microseconds per chunk (the best of ``--repeat``) and a
-SHA-256 of every power chunk's values, flags and identity, so two versions of the code can be compared
-for speed and for bit-identical power::
+SHA-256 of every power chunk's values, flags and identity, one of the whole power messages, and the
+ledger, so two versions of the code can be compared for speed and for bit-identical power::
 
     PYTHONPATH=OLD_CHECKOUT python benchmarks/pipeline_inprocess.py --json
     python benchmarks/pipeline_inprocess.py --json
@@ -51,16 +51,18 @@ def main() -> None:
             cpu = time.process_time() - c0
             best = cpu if best is None else min(best, cpu)
             chunks = pipe.counters.chunks_converted
-            h = hashlib.sha256()
+            h, whole = hashlib.sha256(), hashlib.sha256()
             for key, payload in power:
                 if "/power/" in key:
                     pc = PowerChunk.from_bytes(payload)
                     h.update(key.encode() + pc.p_opt_w.tobytes() + pc.flags.tobytes())
                     h.update(repr((pc.seq, pc.t0_ns, pc.late, pc.detector_ids)).encode())
+                    whole.update(key.encode() + bytes(payload))  # clock None: publication times are receive times
             digest = h.hexdigest()
         samples = chunks * args.channels * round(0.1 * 200.0)
         out[f"steps_{steps}"] = {"chunks": chunks, "us_per_chunk": round(best / chunks * 1e6, 1),
-                                 "msamples_per_cpu_s": round(samples / best / 1e6, 2), "power_sha256": digest}
+                                 "msamples_per_cpu_s": round(samples / best / 1e6, 2), "power_sha256": digest,
+                                 "payload_sha256": whole.hexdigest(), "ledger": pipe.ledger_now().line()}
     print(json.dumps(out, indent=1) if args.json else out)
 
 

@@ -167,6 +167,15 @@ def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
     assert stream["relay"]["msamples_per_cpu_s"] is None and relay["converter"]["msamples_per_cpu_s"] is None
     assert out["converter_ratio_to_relay"] > 0 and out["converter_ratio_to_relay"] == pytest.approx(
         out["converter_msamples_per_core_s"] / out["relay_msamples_per_core_s"], rel=0.01, abs=1e-3)
+    # Per chunk: the converter's CPU inside its kernel calls is part of its CPU (threads 2: summed over both), and
+    # the overhead is its CPU outside them over the relay's, from the figures beside it.
+    per_chunk = out["converter_cpu_us_per_chunk"]
+    kernel = out["converter_kernel_us_per_chunk"]
+    assert out["converter_kernel_cpu_s"] > 0 and 0 < kernel < per_chunk
+    assert per_chunk == pytest.approx(conv["cpu_s"] / out["chunks_converted"] * 1e6, rel=0.01)
+    assert out["relay_cpu_us_per_chunk"] == pytest.approx(relay["relay"]["cpu_s"] / out["relay_chunks"] * 1e6, rel=0.05)
+    assert out["converter_overhead_per_relay"] == pytest.approx((per_chunk - kernel) / out["relay_cpu_us_per_chunk"],
+                                                                rel=0.02, abs=2e-3)
     rt = out["real_time"]
     (trial,) = rt["trials"]
     assert trial["offered_msamples_per_s"] == pytest.approx(out["msamples_per_s"] * 1.05 / 2, rel=1e-3)

@@ -68,6 +68,33 @@ def test_a_known_stream_s_bad_chunk_is_rejected_as_the_full_decoder_rejects_it(c
     _same(dec.decode(KEY, good), CountsChunk.from_bytes(good))  # and the stream goes on
 
 
+def test_a_known_stream_s_chunks_are_read_from_their_bytes_as_the_full_decoder_reads_them():
+    """Numbers of every msgpack width, and messages cut or grown, against ``from_bytes``."""
+    dec = CountsDecoder()
+    dec.decode(KEY, _chunk(0).to_bytes())  # the stream's header (and its bytes) are now known
+    t0 = 1_700_000_000_000_000_000
+    for seq in (1, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**40):
+        c = _chunk(seq % 1000)
+        c = CountsChunk("lab", 3, 7, c.channels, seq, t0 + seq, c.sample_rate_hz, c.counts_i, c.counts_q,
+                        t0 + seq + 5)
+        payload = c.to_bytes()
+        got = dec.decode(KEY, payload)
+        _same(got, CountsChunk.from_bytes(payload))
+        for a in (got.counts_i, got.counts_q):  # read-only and aligned, as the kernels take them
+            assert a.flags.aligned and not a.flags.writeable
+    good = _chunk(3).to_bytes()
+    for bad in (good[:-1], good + b"\x00", good[:-10] + b"\xa1x" + good[-8:]):  # cut, grown, a bad key
+        with pytest.raises(SchemaError) as full:
+            CountsChunk.from_bytes(bad)
+        with pytest.raises(SchemaError) as lean:
+            dec.decode(KEY, bad)
+        assert lean.value.reason == full.value.reason
+    # t_pub_ns packed as int64 (0xd3) of the same value: not the template's form, read in full and accepted.
+    signed = good[:-9] + b"\xd3" + good[-8:]
+    _same(dec.decode(KEY, signed), CountsChunk.from_bytes(signed))
+    _same(dec.decode(KEY, good), CountsChunk.from_bytes(good))
+
+
 @pytest.mark.parametrize("sigma", [False, True])
 @pytest.mark.parametrize("late", [False, True])
 @pytest.mark.parametrize("shape", [(5, 7), (1, 1), (128, 20), (20, 4000)])

@@ -576,6 +576,17 @@ def run_once(args) -> dict:
     def ratio(a, b):
         return round(a / b, 3) if a and b else None
 
+    # Per chunk, same run: the converter's CPU in the stream phase outside its kernel calls (their CPU it counts
+    # itself) over the relay's CPU in its phase: what the converter's Python costs next to the transport's floor.
+    conv_cpu = procs_stream.get("converter", {}).get("cpu_s")
+    kernel_cpu = conv.get("kernel_cpu_s") if isinstance(conv, dict) else None
+    n_conv = conv.get("chunks_converted") if isinstance(conv, dict) else None
+    relay_cpu, n_relayed = procs_relay.get("relay", {}).get("cpu_s"), relayed.get("messages")
+    conv_us = conv_cpu / n_conv * 1e6 if conv_cpu and n_conv else None
+    kernel_us = kernel_cpu / n_conv * 1e6 if kernel_cpu is not None and n_conv else None
+    relay_us = relay_cpu / n_relayed * 1e6 if relay_cpu and n_relayed else None
+    outside_us = conv_us - kernel_us if conv_us is not None and kernel_us is not None else None
+
     out = {
         "channels": args.modules * args.channels,
         "modules": args.modules,
@@ -621,6 +632,14 @@ def run_once(args) -> dict:
         "relay_msamples_per_core_s": relay_per_core,
         "relay_ratio_per_core": ratio(relay_per_core, pass_per_core),
         "converter_ratio_to_relay": ratio(per_core, relay_per_core),
+        # CPU microseconds per chunk: the converter's in the stream phase, of it inside its kernel calls (the
+        # converter's own thread CPU around them), the relay's in its phase; and the converter's outside its
+        # kernel over the relay's (issue 35: target <= 1.3).
+        "converter_cpu_us_per_chunk": round(conv_us, 1) if conv_us else None,
+        "converter_kernel_cpu_s": kernel_cpu,
+        "converter_kernel_us_per_chunk": round(kernel_us, 1) if kernel_us is not None else None,
+        "relay_cpu_us_per_chunk": round(relay_us, 1) if relay_us else None,
+        "converter_overhead_per_relay": ratio(outside_us, relay_us),
         "recorder_msamples_per_cpu_s": round(rec_per_cpu, 3) if rec_per_cpu else None,
         "cpu_fraction": {"source": cpu(src), "converter": cpu(conv), **({"sink": cpu(sink)} if with_pass else {}),
                          **({"relay": cpu(relay)} if with_relay else {}),

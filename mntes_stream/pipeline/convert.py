@@ -11,6 +11,8 @@ what flows between stages.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 
 import numpy as np
 
@@ -84,6 +86,11 @@ class Convert:
             self._configured = noise
         self._executor = None
         self._held: list[Ready] = []
+        # CPU seconds inside converter calls (each calling thread's own CPU, summed over threads): what a
+        # benchmark subtracts from the converter's CPU to see its per-chunk cost around the kernel.
+        self.kernel_cpu_s = 0.0
+        self._ids_cache: dict[tuple, tuple] = {}
+        self._kernel_lock = threading.Lock()
 
     @property
     def noise(self):
@@ -163,6 +170,8 @@ class Convert:
         steps = len(run)
 
         def block(field):  # modules stacked, each module's steps side by side
+            if steps == 1:
+                return np.concatenate([field(r) for r in rows])
             return np.concatenate([np.concatenate([field(g[o[m]]) for g, o in zip(run, orders)], axis=1)
                                    for m in range(m0, m1)])
 
@@ -177,15 +186,39 @@ class Convert:
             v_bias = block(lambda r: r.v_bias)
             env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
         env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
-        ids = [d for r in rows for d in r.ids]
+        ids = self._ids(rows)
         p_opt, flags, sigma = self._converted(ids, ci, cq, env)
         if p_opt.shape != ci.shape or flags.shape != ci.shape:
             raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {ci.shape}")
         return p_opt, flags, env_flags, rows, sigma
 
+    def _ids(self, rows: list[Ready]) -> tuple:
+        """The detector ids of a block's rows, module by module (kept per row layout: a batch repeats it)."""
+        per = [r.ids for r in rows]
+        hit = self._ids_cache.get(tuple(map(id, per)))
+        # The rows' id tuples are the Environment's cached ones: the same objects batch after batch (checked,
+        # as an id may be reused once its object is gone).
+        if hit is not None and all(a is b for a, b in zip(hit[0], per)):
+            return hit[1]
+        ids = tuple(d for r in per for d in r)
+        if len(self._ids_cache) >= 256:
+            self._ids_cache.clear()
+        self._ids_cache[tuple(map(id, per))] = (per, ids)
+        return ids
+
     def _converted(self, ids, ci, cq, env) -> tuple:
         """p_opt, flags and sigma_P (None unless published) of a block: LOW_RESPONSIVITY flagged when the
-        pipeline has a noise model, in the conversion's own pass unless sigma_P is published."""
+        pipeline has a noise model, in the conversion's own pass unless sigma_P is published; the call's CPU
+        in ``kernel_cpu_s``."""
+        c0 = time.thread_time()
+        try:
+            return self._call(ids, ci, cq, env)
+        finally:
+            dt = time.thread_time() - c0
+            with self._kernel_lock:
+                self.kernel_cpu_s += dt
+
+    def _call(self, ids, ci, cq, env) -> tuple:
         if self._noise is None or not self._sigma_p:
             out = (self.converter.convert(ids, ci, cq, env) if self._noise is None else
                    low_responsivity_block(self.converter, ids, ci, cq, env, self._noise))
@@ -310,6 +343,7 @@ class Encode:
         self.books = books
         self._encoder = PowerEncoder(books.config.setup, table_identity, kind)
         self._keys: dict[tuple[int, int], str] = {}  # power key per stream (bounded by the known modules)
+        self._hk_counts: tuple = (None, 0, 0)  # (a step's aligned flags, its stale samples, its missing samples)
 
     def __call__(self, items: list) -> list:
         out = []
@@ -334,9 +368,13 @@ class Encode:
         c = books.counters
         c.chunks_converted += 1
         c.samples_converted += n_ch * n
-        if r.env_flags_t.any():
-            c.hk_stale_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_STALE))
-            c.hk_missing_samples += int(np.count_nonzero(r.env_flags_t & fl.HK_MISSING))
+        hk = self._hk_counts
+        if hk[0] is not r.env_flags_t:  # counted once per step: its modules share the (read-only) array
+            f = r.env_flags_t
+            hk = self._hk_counts = ((f, int(np.count_nonzero(f & fl.HK_STALE)),
+                                     int(np.count_nonzero(f & fl.HK_MISSING))) if f.any() else (f, 0, 0))
+        c.hk_stale_samples += hk[1]
+        c.hk_missing_samples += hk[2]
         books.interval.add(n_ch * n, (t_pub - chunk.t_pub_ns) / 1e6)
         key = self._keys.get(stream)
         if key is None:

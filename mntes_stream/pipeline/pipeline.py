@@ -182,6 +182,7 @@ class ConverterPipeline:
         self._sequence: Sequence = self.stages["sequence"]
         self._align: Align = self.stages["housekeeping"]
         self._status: Status = self.stages["status"]
+        self._convert: Convert = self.stages["convert"]
 
     # ------------------------------------------------------------------ running the stages
 
@@ -307,6 +308,11 @@ class ConverterPipeline:
     @owns_status.setter
     def owns_status(self, fn) -> None:
         self._status.owns_status = fn
+
+    @property
+    def kernel_cpu_s(self) -> float:
+        """CPU seconds spent inside the converter's calls so far (the kernel; summed over threads)."""
+        return self._convert.kernel_cpu_s
 
     @property
     def hk(self) -> Housekeeping:

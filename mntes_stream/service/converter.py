@@ -387,5 +387,5 @@ class ConverterService(Service):
         log.info("converter %s stopped: %s", cfg.name, line)
         # The receive queue's peak in bytes: bounded by queue_mb whatever comes (a flood of big messages).
         return {f.name: getattr(final, f.name) for f in fields(final)} | {
-            "dropped_on_close": sub.dropped_on_close, "ledger_line": line,
+            "dropped_on_close": sub.dropped_on_close, "ledger_line": line, "kernel_cpu_s": round(pipe.kernel_cpu_s, 4),
             "queue_high_water_mb": round(sub.high_water_bytes / 1e6, 3)}
