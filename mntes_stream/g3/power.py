@@ -57,8 +57,6 @@ from mntes_stream.g3.mapping import (
 from mntes_stream.g3.runtime import spt3g
 from mntes_stream.g3.translate import FrameTranslator
 from mntes_stream.io import keys
-from mntes_stream.io.lean import CountsDecoder
-from mntes_stream.io.messages import PowerChunk
 from mntes_stream.pipeline.build import ConverterSpec, build_converter, default_table_cache
 from mntes_stream.pipeline.config import PipelineConfig
 from mntes_stream.pipeline.pipeline import ConverterPipeline
@@ -141,13 +139,13 @@ class OpticalPower:
         self._tr: FrameTranslator | None = None
         if self.params is not None:
             self.pipeline_config = pipeline_config or PipelineConfig()
-            self._tr = FrameTranslator(self.pipeline_config.setup, self.config)
+            # Typed: counts chunks and power chunks pass as objects, never as bytes (ConverterPipeline(typed=True)).
+            self._tr = FrameTranslator(self.pipeline_config.setup, self.config, typed=True)
             self._early: deque = deque(maxlen=10_000)  # housekeeping before the first scan (the pipeline's input)
             self._held: deque[list] = deque()  # [frame, wanted (board, module, seq), power chunks got]
             self._wanted: dict[tuple, list] = {}
             self._names: dict[str, str] = {}
             self._keep: frozenset = frozenset()
-            self._decoder = CountsDecoder()
         for frame in preload:
             if self._tr is None or frame.type == spt3g()[0].G3FrameType.GcpSlow:
                 self._guarded(self._metadata, frame)
@@ -237,8 +235,7 @@ class OpticalPower:
             self._feed(msgs)
             return None
         entry = [frame, set(), {}]
-        for _, key, payload in counts:
-            c = self._decoder.decode(key, payload)
+        for _, _, c in counts:
             want = (c.board, c.module, c.seq)
             entry[1].add(want)
             self._wanted[want] = entry
@@ -261,7 +258,8 @@ class OpticalPower:
         spec = ConverterSpec(kind=self.kind, params=tuple(pdict.items()), table_cache=self.table_cache,
                              options=tuple(self.converter_options.items()))
         self._converter = build_converter(spec).converter
-        self._pipe = ConverterPipeline(self._converter, self.pipeline_config, params=list(pdict.values()), clock=None)
+        self._pipe = ConverterPipeline(self._converter, self.pipeline_config, params=list(pdict.values()), clock=None,
+                                       typed=True)
         self._runner = Runner.around(self._pipe)
         self._names = dict(zip(tr.wiring.detector_ids, tr.wiring.names))
         self._keep = frozenset(pdict)
@@ -277,10 +275,9 @@ class OpticalPower:
             self._route(self._runner.feed_batch([(k, p, t) for t, k, p in msgs], msgs[-1][0]))
 
     def _route(self, outs) -> None:
-        for key, payload, _ in outs:
+        for key, chunk, _ in outs:
             if keys.kind_of(key) != "power":
                 continue
-            chunk = PowerChunk.from_bytes(payload)
             entry = self._wanted.pop((chunk.board, chunk.module, chunk.seq), None)
             if entry is not None:
                 entry[2][(chunk.board, chunk.module)] = chunk

@@ -115,12 +115,15 @@ class FrameTranslator:
     max_held : int
         Scan/Timepoint frames kept while no Wiring frame has come (then translated); beyond, the oldest are
         counted ``before_wiring`` and dropped.
+    typed : bool
+        Counts messages carry the ``CountsChunk`` itself, not its bytes (an in-process consumer: the G3
+        module's ``ConverterPipeline(typed=True)``); housekeeping stays bytes.
     """
 
     LOG_EVERY_S = 10.0
 
     def __init__(self, setup: str = keys.DEFAULT_SETUP, config: G3InputConfig | None = None, chunk_samples: int = 16,
-                 boards=(), gain_reference=None, max_held: int = 256):
+                 boards=(), gain_reference=None, max_held: int = 256, typed: bool = False):
         keys.counts_key(setup)
         if chunk_samples < 1:
             raise ConfigError("chunk_samples must be >= 1")
@@ -142,6 +145,7 @@ class FrameTranslator:
         self.gain_changed_at: list[int] = []
         self._times: list[int] = []  # data time of each message made, in order (see timed)
         self.max_held = int(max_held)
+        self.typed = bool(typed)
         self._held: deque = deque()
         self._logged: dict[str, float] = {}
         self.last_error: dict[str, str] = {}
@@ -257,7 +261,7 @@ class FrameTranslator:
                                 channels=self.wiring.channel[rows].astype(np.int32), seq=self._next_seq(stream),
                                 t0_ns=None, sample_rate_hz=None, counts_i=ci, counts_q=cq,
                                 t_pub_ns=int(t_pub_ns), t_ns=blk.t_ns)
-            out.append((keys.counts_key(self.setup, int(b), int(m)), chunk.to_bytes()))
+            out.append((keys.counts_key(self.setup, int(b), int(m)), chunk if self.typed else chunk.to_bytes()))
             self._times.append(int(blk.t_ns[-1]))
         self._t_last_ns = int(blk.t_ns[-1])
         self.hk.prune(self._t_last_ns)  # bounded in a long run: what is in force now and the retention before it

@@ -288,6 +288,16 @@ class PowerEncoder:
             self._templates[key] = t
         return t
 
+    def chunk(self, chunk: CountsChunk, p_opt_w: np.ndarray, flags: np.ndarray, t_pub_ns: int,
+              late: bool = False, sigma_p_w: np.ndarray | None = None) -> PowerChunk:
+        """The power chunk :meth:`encode` writes, as an object (from checked inputs: not checked again)."""
+        return PowerChunk.unchecked(
+            setup=self._setup, board=chunk.board, module=chunk.module, channels=chunk.channels,
+            detector_ids=chunk.row_ids(), seq=chunk.seq,
+            t0_ns=chunk.t0_ns, sample_rate_hz=chunk.sample_rate_hz, p_opt_w=p_opt_w, flags=flags,
+            table_identity=self._identity, converter_kind=self._kind, source_t_pub_ns=chunk.t_pub_ns,
+            t_pub_ns=t_pub_ns, t_ns=chunk.t_ns, late=True if late else None, sigma_p_w=sigma_p_w)
+
     def encode(self, chunk: CountsChunk, p_opt_w: np.ndarray, flags: np.ndarray, t_pub_ns: int,
                late: bool = False, sigma_p_w: np.ndarray | None = None) -> bytes:
         """The power message of ``chunk`` with ``p_opt_w`` (float64), ``flags`` (uint16), ``sigma_p_w`` (float32).
@@ -296,13 +306,7 @@ class PowerEncoder:
         once); ``sigma_p_w`` None: not in the message.
         """
         if chunk.t_ns is not None:  # explicit times: the general encoder
-            return PowerChunk.unchecked(
-                setup=self._setup, board=chunk.board, module=chunk.module, channels=chunk.channels,
-                detector_ids=chunk.row_ids(), seq=chunk.seq,
-                t0_ns=chunk.t0_ns, sample_rate_hz=chunk.sample_rate_hz, p_opt_w=p_opt_w, flags=flags,
-                table_identity=self._identity, converter_kind=self._kind, source_t_pub_ns=chunk.t_pub_ns,
-                t_pub_ns=t_pub_ns, t_ns=chunk.t_ns, late=True if late else None,
-                sigma_p_w=sigma_p_w).to_bytes()
+            return self.chunk(chunk, p_opt_w, flags, t_pub_ns, late, sigma_p_w).to_bytes()
         stream, shape, late, sigma = (chunk.board, chunk.module), p_opt_w.shape, bool(late), sigma_p_w is not None
         last = self._last.get(stream)
         # A stream's chunks share one channels array while its header holds (CountsDecoder): no bytes to compare.

@@ -339,9 +339,10 @@ class Encode:
     name = "encode"
     takes, gives = (Flagged,), (Output,)
 
-    def __init__(self, books: Books, table_identity: str, kind: str):
+    def __init__(self, books: Books, table_identity: str, kind: str, typed: bool = False):
         self.books = books
         self._encoder = PowerEncoder(books.config.setup, table_identity, kind)
+        self._make = self._encoder.chunk if typed else self._encoder.encode  # typed: the PowerChunk, not its bytes
         self._keys: dict[tuple[int, int], str] = {}  # power key per stream (bounded by the known modules)
         self._hk_counts: tuple = (None, 0, 0)  # (a step's aligned flags, its stale samples, its missing samples)
 
@@ -362,7 +363,7 @@ class Encode:
         chunk, cfg = r.chunk, books.config
         n_ch, n = chunk.counts_i.shape
         t_pub = books.stamp()
-        payload = self._encoder.encode(chunk, item.p_opt, item.flags, t_pub, r.late, item.sigma)
+        payload = self._make(chunk, item.p_opt, item.flags, t_pub, r.late, item.sigma)
         stream = (chunk.board, chunk.module)
         books.ledger.done(stream, late=r.late)
         c = books.counters

@@ -65,7 +65,8 @@ log = logging.getLogger("mntes_stream.converter")
 
 
 def converter_stages(books: Books, converter, *, params: list, modules, owns: dict, threads: int,
-                     set_aside_bytes: int, noise=None, sigma_p: bool = False, params_toml: str | None = None) -> Stages:
+                     set_aside_bytes: int, noise=None, sigma_p: bool = False, params_toml: str | None = None,
+                     typed: bool = False) -> Stages:
     """The converter's stages, in order: the one declaration every path runs.
 
     Returns
@@ -85,7 +86,7 @@ def converter_stages(books: Books, converter, *, params: list, modules, owns: di
         align,
         convert,
         Flags(books),
-        Encode(books, str(converter.identity), str(converter.kind)),
+        Encode(books, str(converter.identity), str(converter.kind), typed),
         # The provenance names the noise in use now (measured live: renewed window by window).
         Status(books, sequence, align, converter, params, owns, (lambda: convert.noise) if noise else None, sigma_p,
                params_toml),
@@ -131,6 +132,10 @@ class ConverterPipeline:
         With ``uncertainty`` and without ``sigma_p``: LOW_RESPONSIVITY only where the
         converter flags it in its own pass (``fuses_low_responsivity``); elsewhere not
         (logged once), rather than a second pass (``[converter] low_responsivity = "auto"``).
+    typed : bool
+        The typed entry of an in-process driver (the G3 module): a counts message's payload may be the
+        ``CountsChunk`` itself, not its bytes, and power comes out as ``(key, PowerChunk)``, the chunk the
+        message would carry, not its bytes (status and provenance stay messages). No byte round trip.
 
     Attribute ``overloaded`` (False unless the live service sets it, so offline
     runs never shed): while True, a chunk further behind its stream's pace than
@@ -145,7 +150,7 @@ class ConverterPipeline:
     def __init__(self, converter, config: PipelineConfig | None = None, params=None,
                  clock: Callable[[], int] | None = time.time_ns, owns: dict | None = None, threads: int = 1,
                  set_aside_bytes: int = 256 << 20, uncertainty=None, sigma_p: bool = False,
-                 only_fused: bool = False, params_toml: str | None = None):
+                 only_fused: bool = False, params_toml: str | None = None, typed: bool = False):
         if not isinstance(threads, int) or threads < 1:
             raise ConfigError(f"threads must be an integer >= 1, got {threads!r}")
         self.converter = converter
@@ -178,7 +183,8 @@ class ConverterPipeline:
             noise = noise_model_for(list(converter.params), uncertainty, nominal_gradients(converter))
         self.stages = converter_stages(self.books, converter, params=params, modules=modules, owns=dict(owns or {}),
                                        threads=threads, set_aside_bytes=set_aside_bytes, noise=noise,
-                                       sigma_p=bool(sigma_p) and noise is not None, params_toml=params_toml)
+                                       sigma_p=bool(sigma_p) and noise is not None, params_toml=params_toml,
+                                       typed=typed)
         self._sequence: Sequence = self.stages["sequence"]
         self._align: Align = self.stages["housekeeping"]
         self._status: Status = self.stages["status"]

@@ -166,7 +166,7 @@ class Decode:
             hit = taken.get(key)
             if hit is not None:
                 try:
-                    chunk = decode(key, payload)
+                    chunk = payload if type(payload) is CountsChunk else decode(key, payload)
                 except Exception:  # noqa: BLE001 - the whole way books it by reason
                     chunk = None
                 if chunk is not None and chunk.board == hit[1] and chunk.module == hit[2] and chunk.setup == setup:
@@ -202,8 +202,8 @@ class Decode:
             return None
         kind = info["kind"]
         if kind == "counts":
-            try:
-                chunk = self._decoder.decode(key, payload)
+            try:  # the typed entry (``ConverterPipeline(typed=True)``) hands the chunk itself
+                chunk = payload if type(payload) is CountsChunk else self._decoder.decode(key, payload)
             except SchemaError as exc:  # the key names its stream: booked there as received and rejected
                 reject(books, self.modules, info, exc.reason)
                 raise
