@@ -759,9 +759,10 @@ if numba is not None:
         s_hk = np.empty(n_samp, dtype=np.uint16)
         marks = np.zeros(n_samp, dtype=np.uint8)
         # The front end's results per sample, for the lookup and power passes.
-        # Flags and "inside" kept 64 bits wide until the output: narrowed in the vector front pass, each
-        # flag's mask was packed to 16 bits on its own (AVX2, 4 lanes: three instructions a flag).
-        s_f, s_in, s_c = np.empty(n_samp, dtype=np.int64), np.empty(n_samp, dtype=np.int64), np.empty(n_samp, np.int64)
+        # Flags kept 64 bits wide until the output: narrowed in the vector front pass, each flag's mask was
+        # packed to 16 bits on its own (AVX2, 4 lanes: three instructions a flag). "Inside" rides in bit 32
+        # of the same word: one array fewer to write and read (the plain conversion 0.95-0.98x).
+        s_f, s_c = np.empty(n_samp, dtype=np.int64), np.empty(n_samp, np.int64)
         s_r, s_m2, s_rc, s_w, s_its = np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), np.empty(n_samp), \
             np.empty(n_samp)
         # W' (LOW_RESPONSIVITY) goes over the looked-up R, read just before in the same sample: its line is in
@@ -810,7 +811,7 @@ if numba is not None:
                 for s in range(n_samp):
                     f, r, m2, inside, rc = _lane_front(float(ci_[row, s]), float(cq_[row, s]), s_tb[s], s_b[s],
                                                        s_v[s], int(s_hk[s]), q, dm)
-                    s_f[s], s_r[s], s_m2[s], s_in[s], s_rc[s] = f, r, m2, inside, rc
+                    s_f[s], s_r[s], s_m2[s], s_rc[s] = f | (np.int64(inside) << 32), r, m2, rc
                     s_c[s] = _cell(rc, q)
                 for s in range(n_samp):
                     c = s_c[s]
@@ -838,7 +839,8 @@ if numba is not None:
                         s_w1[s] = t2 + u * (t3 + p3)
                 if not low_on:
                     for s in range(n_samp):
-                        tbs, bs, vs, f, inside = s_tb[s], s_b[s], s_v[s], s_f[s], s_in[s] != 0
+                        tbs, bs, vs, fx = s_tb[s], s_b[s], s_v[s], s_f[s]
+                        f, inside = fx & 0xFFFF, (fx >> 32) != 0
                         p, beyond, _, _ = _lane_power(s_w[s], s_its[s], s_r[s], s_m2[s], tbs, bs, vs, q)
                         out_p[row, s] = p if inside & ((f & _UNUSABLE) == 0) else math.nan
                         out_f[row, s] = f
@@ -862,7 +864,8 @@ if numba is not None:
                     # elsewhere the margin is infinite: every usable lane is near, the exact sigma_P decides.
                     mg = _LOW_MARGIN if (lq[10] != 0.0) & (tau < math.inf) else math.inf
                     for s in range(n_samp):
-                        tbs, bs, vs, f, inside = s_tb[s], s_b[s], s_v[s], s_f[s], s_in[s] != 0
+                        tbs, bs, vs, fx = s_tb[s], s_b[s], s_v[s], s_f[s]
+                        f, inside = fx & 0xFFFF, (fx >> 32) != 0
                         r, m2, uu, w = s_r[s], s_m2[s], s_its[s], s_w[s]
                         p, beyond, xx, sn = _lane_power(w, uu, r, m2, tbs, bs, vs, q)
                         usable = inside & ((f & _UNUSABLE) == 0)
