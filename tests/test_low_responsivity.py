@@ -110,6 +110,38 @@ def test_fused_flags_equal_on_a_realistic_and_a_hostile_block():
         _check_fused(conv, ids, ci, cq, env, U.noise_model(conv.params, s))
 
 
+
+def test_the_screen_decides_only_where_its_w_prime_is_near_the_references():
+    """The kernel's W' (synthetic division) is trusted only where W''s terms stay within 1e4 of |W'| on every
+    interval (``_kernels.w1_screenable``); a detector that fails it has every sample decided by the exact
+    sigma_P, with the same flags."""
+    from mntes_stream.bench.convert import synthetic_block, synthetic_params
+    from mntes_stream.core import _kernels
+
+    # Three detectors of two unit intervals each: W' = 1 (fine); 1 - 2u, through zero on the first interval;
+    # 1e-5 + 2u, its terms 2e5 times its smallest value.
+    ko = np.array([0, 3, 6, 9])
+    x = np.tile([0.0, 1.0, 2.0], 3)
+    coef = np.zeros((9, 8))
+    coef[0:3, 1] = 1.0
+    coef[3:6, 1], coef[3, 2] = 1.0, -1.0
+    coef[6:9, 1], coef[6, 2] = 1e-5, 1.0
+    assert _kernels.w1_screenable(ko, x, coef).tolist() == [True, False, False]
+    assert _kernels.w1_screenable(ko, x, coef * -3.0).tolist() == [True, False, False]  # the sign does not matter
+
+    params = synthetic_params(24, seed=5)
+    ids, ci, cq, env = synthetic_block(params, 1200, seed=6, bad_fraction=0.02)
+    conv = make_converter("table", params)
+    noise = U.noise_model(conv.params)
+    rec = noise.low_record(conv)
+    assert np.all(rec[:, -1] == 1.0)  # the bench's detectors: all screenable
+    ref = U.sigma_p_block(conv, ids, ci, cq, env, conv.convert(ids, ci, cq, env), noise)
+    exact = np.array(rec)
+    exact[::2, -1] = 0.0  # every other detector by the exact sigma_P alone
+    out = conv.convert(ids, ci, cq, env, low_responsivity=exact)
+    assert np.array_equal(out.flags, ref.flags)
+    assert 0 < np.count_nonzero(out.flags[::2] & LOW) < out.flags[::2].size
+
 def test_unusable_setting_drops_the_value_and_a_foreign_record_is_refused():
     from mntes_stream.bench.convert import synthetic_block, synthetic_params
 

@@ -43,7 +43,7 @@ import numpy as np
 from mntes_stream.core import _uncertainty_kernel as _uk
 from mntes_stream.core import flags as fl
 from mntes_stream.core import model
-from mntes_stream.core._kernels import LOW_COLS, binomials
+from mntes_stream.core._kernels import LOW_COLS, binomials, w1_screenable
 from mntes_stream.core.ids import parse_detector_id
 from mntes_stream.core.params import DetectorParams
 from mntes_stream.core.settings import Settings, setting
@@ -319,7 +319,8 @@ class NoiseModel:
 
     def low_record(self, converter) -> np.ndarray:
         """The conversion kernel's LOW_RESPONSIVITY record (n_det, ``_kernels.LOW_COLS``) for ``converter``:
-        noise per quadrature, tolerance, ``C(n - 1, 1..8)`` (made once, kept)."""
+        noise per quadrature, tolerance, ``C(n - 1, 1..8)``, whether its screen may decide
+        (``_kernels.w1_screenable``) (made once, kept)."""
         key = (id(converter), converter.identity)
         cache = self.__dict__.setdefault("_low_records", {})
         rec = cache.get(key)
@@ -327,7 +328,9 @@ class NoiseModel:
             if self.detector_ids != converter.detector_ids:
                 raise ConfigError("the noise model was built for other detectors than the converter's")
             n = np.asarray(converter.kernel_constants, dtype=np.float64)[:, 7]
-            cols = [np.asarray(self.sigma_i_a, float), np.asarray(self.tolerance_w, float), *binomials(n - 1.0)]
+            a = converter.bank.arrays
+            screen = w1_screenable(a["knot_offset"], a["r_knot_ohm"], a["coeffs"]).astype(np.float64)
+            cols = [np.asarray(self.sigma_i_a, float), np.asarray(self.tolerance_w, float), *binomials(n - 1.0), screen]
             rec = np.ascontiguousarray(np.stack(cols, axis=1)) if len(n) else np.empty((0, LOW_COLS))
             rec.flags.writeable = False
             cache.clear()
