@@ -8,7 +8,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from mntes_stream.cli._common import add_quiet, add_zenoh_args, print_mapping
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, print_mapping
 from mntes_stream.options import number
 
 
@@ -156,12 +156,7 @@ def run_bridge(args) -> int:
     return 0
 
 
-def register(sub) -> None:
-    p = sub.add_parser("g3-bridge", help="publish SPT-3G DfMux readout (G3 over TCP or a G3 file) on zenoh",
-                       description="Read G3 frames from a DAQ's G3NetworkSender (tcp://HOST:PORT) or a G3 file and "
-                                   "publish counts, bias and bath-temperature housekeeping as the project's messages, "
-                                   "so the converter, recorder and monitor run unchanged on real readout. Reconnects "
-                                   "when the DAQ restarts; missing samples are counted.")
+def _bridge_args(p) -> None:
     from mntes_stream.cli._common import add_settings_args
     from mntes_stream.g3.bridge import BridgeSettings
     from mntes_stream.g3.mapping import G3InputConfig
@@ -177,6 +172,15 @@ def register(sub) -> None:
 
     add_hk_args(p)  # --hk, --t-bath-field: the bath from OCS HK files instead of the DAQ's
     add_zenoh_args(p)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("g3-bridge", help="publish SPT-3G DfMux readout (G3 over TCP or a G3 file) on zenoh",
+                       description="Read G3 frames from a DAQ's G3NetworkSender (tcp://HOST:PORT) or a G3 file and "
+                                   "publish counts, bias and bath-temperature housekeeping as the project's messages, "
+                                   "so the converter, recorder and monitor run unchanged on real readout. Reconnects "
+                                   "when the DAQ restarts; missing samples are counted.")
+    arguments(p, _bridge_args)
     p.set_defaults(func=run_bridge)
 
 
