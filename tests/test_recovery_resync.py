@@ -235,3 +235,21 @@ def test_any_damaged_byte_loses_only_its_chunk_and_is_found(walked, tmp_path_fac
     op = next((op for op, off, ln in recs if off <= k < off + ln), None)
     if op in (0x06, 0x07):
         assert not verify_file(path).ok
+
+
+def test_a_message_index_whose_opcode_reads_as_a_summary_record_is_damage(walked, tmp_path):
+    """A message index record's opcode byte hit so that it names a record of the summary section (0x07 ^ 9 =
+    0x0e, a summary offset): before the data end that is damage, found by verify, and every chunk is kept (it was
+    skipped unseen, which the random test above found once in 300 examples)."""
+    from mntes_stream.io.mcap.repair import verify_file
+
+    _, data, chunks, recs = walked
+    off = next(off for op, off, _ in recs if op == 0x07)
+    for opcode in (0x08, 0x0A, 0x0B, 0x0D, 0x0E):
+        bad = bytearray(data)
+        bad[off] = opcode
+        path = tmp_path / f"op{opcode:02x}.mcap"
+        path.write_bytes(bytes(bad))
+        assert {c.offset for c in index_file(path).chunks} >= {c.offset for c in chunks}
+        check = verify_file(path)
+        assert not check.ok and f"summary record (opcode {opcode:#x}) in the data section" in str(check.damage), check

@@ -47,6 +47,10 @@ _WINDOW = 1 << 22  # bytes searched at a time when resynchronising
 _ANCHOR = re.compile(rb"\x06.{36}(?:\x00\x00\x00\x00|\x04\x00\x00\x00zstd|\x03\x00\x00\x00lz4)", re.S)
 _TAG = re.compile(rb"\x04\x00\x00\x00zstd|\x03\x00\x00\x00lz4")  # a compressed chunk's compression field
 _INDEX_OPCODE = re.compile(rb"\x07")
+# Records of the summary section only (MCAP spec): before the data end record, one is a damaged opcode (a message
+# index whose opcode byte was hit reads as a summary offset, and would be skipped unseen).
+_SUMMARY_ONLY = frozenset({Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.STATISTICS, Opcode.METADATA_INDEX,
+                           Opcode.SUMMARY_OFFSET})
 # Records whose fields say how long they are (mcap's own parsers): checked against their length field.
 _WHOLE = {Opcode.HEADER: Header.read, Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read,
           Opcode.METADATA: Metadata.read, Opcode.ATTACHMENT: Attachment.read, Opcode.DATA_END: DataEnd.read}
@@ -593,6 +597,7 @@ def index_by_scan(idx: FileIndex, f) -> None:
     pos = len(_MAGIC)
     size = idx.size
     damaged: _Damage | None = None  # the message index records after a damaged chunk say what it held
+    summary = False  # past the data end record
     try:
         while True:
             f.seek(pos)
@@ -613,6 +618,15 @@ def index_by_scan(idx: FileIndex, f) -> None:
                     break
                 pos = idx.recovered = nxt
                 continue
+            if not summary and opcode in _SUMMARY_ONLY:
+                nxt = _resync(idx, f, pos, f"a summary record (opcode {opcode:#x}) in the data section: a damaged "
+                                           "opcode", (None, None), False)
+                if nxt is None:
+                    break
+                pos = idx.recovered = nxt
+                continue
+            if opcode == Opcode.DATA_END:
+                summary = True
             if opcode not in _OPCODES or (opcode == Opcode.HEADER and pos != len(_MAGIC)):
                 if opcode >= 0x80 and end <= size and not idx.pending:  # private records (MCAP spec): skipped
                     pos = idx.recovered = end
