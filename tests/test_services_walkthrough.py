@@ -167,6 +167,9 @@ def test_services_readme_walkthrough(tmp_path):
         conv3.wait_for(r"converter converter: 128 detectors")
         session, sub = _power_counter(port)
         try:
+            # The simulator started first: its session re-dials the converter every 0.5 s doubling to
+            # 4 s, so power may start up to ~4 s (more under load) after the converter is up.
+            assert sub.get(timeout_s=30.0) is not None, "no power from the simulator's counts within 30 s"
             assert _drain_count(sub, 4.0) > 10
         finally:
             sub.close()
