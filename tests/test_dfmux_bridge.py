@@ -430,7 +430,7 @@ def test_lab_recipe_as_written(netns, tmp_path):
     assert m and int(m[1]) >= 10 and int(m[2]) >= 1, where
     assert re.search(rf"^\s*{m[2]}\s+mntes/lab/hk/t_bath$", out, re.M), where
     shown = [float(v) for v in re.findall(r"housekeeping: t_bath (\d+\.\d+) mK", logs["monitor.log"])]
-    assert shown and all(80 < v < 120 for v in shown) and len(set(shown)) > 1, shown  # the agent's walk near 0.1 K
+    assert shown and all(50 < v < 150 for v in shown) and len(set(shown)) > 1, shown  # the agent's walk near 0.1 K
     assert proc.returncode == 0, where
     # the synthetic board's detectors: 15 a module in the transition, the 16th saturated (loading 3 x P_sat)
     assert re.search(r"^states: transition 120  saturated 8  superconducting 0  flagged 0", out, re.M), where
@@ -452,7 +452,7 @@ def test_lab_recipe_as_written(netns, tmp_path):
     # sender's shifts the power by exactly K (T_sender^n - T_ocs^n), whatever the detector's T
     t_ocs = np.concatenate([np.ravel(m.value) for r in iter_messages(tmp_path / "rec") if r.schema_name == "mntes.hk"
                             for m in [decode(r.payload)] if m.sensor == "t_bath"])
-    assert t_ocs.size and np.all((0.08 < t_ocs) & (t_ocs < 0.12)), t_ocs
+    assert t_ocs.size and np.all((0.05 < t_ocs) & (t_ocs < 0.15)), t_ocs  # the recipe's tables' range
     for dets, tod, fl in groups:
         for det, p, f in zip(dets, tod, fl):
             assert np.array_equal(np.isfinite(p), (f & UNUSABLE) == 0), det
