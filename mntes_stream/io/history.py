@@ -29,7 +29,8 @@ import math
 
 from mntes_stream.io import keys
 
-__all__ = ["HISTORY_KINDS", "POWER_CHUNK_S", "cache_chunks", "capped_chunks", "declare_history_publisher", "declare_recovering_subscriber"]
+__all__ = ["HISTORY_KINDS", "POWER_CHUNK_S", "HistoryTopUp", "cache_chunks", "capped_chunks",
+           "declare_history_publisher", "declare_recovering_subscriber"]
 
 # The data, and the converter's power (a recorder restarted after a crash records the power published meanwhile);
 # status and provenance are periodic.
@@ -81,3 +82,59 @@ def declare_recovering_subscriber(session, key_expr: str, handler, history: bool
         session, key_expr, handler,
         history=zx.HistoryConfig(detect_late_publishers=True) if history else None,
         recovery=zx.RecoveryConfig(heartbeat=True, periodic_queries=None))
+
+
+class HistoryTopUp:
+    """Asks a publisher's cache again for a key whose history zenoh dropped.
+
+    zenoh-ext's ``AdvancedSubscriber`` (1.x, ``handle_sample``) asks a publisher
+    it learns of late (liveliness) for its cache, but where a live sample of
+    that publisher arrives before the cache's replies it delivers the sample,
+    and then drops the replies as older than it: a recorder restarted while
+    the sources publish then lacks, for some keys, what the caches held
+    (seen in ``bench chaos``: one stream of four, 100 chunks). Here the first
+    message of each key after the subscriber was declared is looked at: one
+    published after that moment with a sequence number above 0 means the
+    history did not come first, so that key's cache is asked directly
+    (``<key>/@adv/pub/**``, the ``AdvancedPublisher``'s queryable) and its
+    messages numbered before the first one received join the queue.
+    Messages from the cache are never counted twice: the earlier ones only.
+
+    Parameters
+    ----------
+    session, subscriber
+        The zenoh session and the ``QueueSubscriber`` (callback mode) the replies join.
+    declared_ns : int
+        Wall-clock time (ns) the subscriber was declared.
+    max_keys : int
+        Keys remembered (a bound on memory; beyond it no key is looked at).
+    """
+
+    def __init__(self, session, subscriber, declared_ns: int, max_keys: int = 100_000):
+        self._session, self._sub, self._declared_ns = session, subscriber, int(declared_ns)
+        self._seen: set[str] = set()
+        self._max_keys = int(max_keys)
+        self.asked: list[tuple[str, int]] = []  # (key, first sequence number received)
+
+    def first(self, key: str, payload: bytes) -> str | None:
+        """Look at a received message; the line to log when its key's cache was asked again, else None."""
+        if key in self._seen or len(self._seen) >= self._max_keys:
+            return None
+        self._seen.add(key)
+        if not wants_history(key):
+            return None
+        from mntes_stream.io.mcap.envelope import peek_envelope
+
+        env = peek_envelope(payload)
+        if env.problem or not env.seq or env.publish_time_ns is None or env.publish_time_ns < self._declared_ns:
+            return None  # the history came first (or the key starts here): nothing missed
+        first = env.seq
+
+        def earlier(reply: bytes) -> bool:
+            seq = peek_envelope(reply).seq
+            return seq is not None and seq < first
+
+        self._sub.query(self._session, f"{key}/@adv/pub/**", timeout_s=5.0, keep=earlier)
+        self.asked.append((key, first))
+        return (f"{key}: its first message (seq {first}) was live, zenoh's history of it did not come first: "
+                f"asked its publisher's cache for the messages before it")

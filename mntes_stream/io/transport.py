@@ -427,20 +427,23 @@ class QueueSubscriber:
             self.high_water_bytes = max(self.high_water_bytes, self.queued_bytes)
             return True
 
-    def query(self, session, selector: str, timeout_s: float = 2.0) -> None:
+    def query(self, session, selector: str, timeout_s: float = 2.0, keep=None) -> None:
         """Ask the queryables under ``selector`` (e.g. a converter's provenance) once; their replies
-        join this queue as samples. Returns at once (callback mode only)."""
+        (those whose payload ``keep(payload)`` accepts, if given) join this queue as samples. Returns at
+        once (callback mode only)."""
         import zenoh
 
         if self.mode != "callback":
             raise ConfigError("QueueSubscriber.query needs mode='callback'")
 
         def on_reply(reply) -> None:
-            if reply.ok is not None:
+            if reply.ok is not None and (keep is None or keep(reply.ok.payload.to_bytes())):
                 self._on_sample(reply.ok)
 
         try:
-            session.get(selector, on_reply, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+            # Replies under any key: a publisher's cache answers on its samples' own keys, not the query's.
+            session.get(selector, on_reply, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s,
+                        accept_replies=zenoh.ReplyKeyExpr.ANY)
         except Exception as exc:
             raise TransportError(f"cannot query {selector!r}: {exc}") from None
 

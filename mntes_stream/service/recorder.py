@@ -269,6 +269,7 @@ class RecorderService(Service):
         return _reach_the_source(self.config.zenoh)
 
     def setup(self, ctx) -> None:
+        from mntes_stream.io.history import HistoryTopUp
         from mntes_stream.io.transport import QueueSubscriber
         from mntes_stream.service.recorder_sink import RecorderSink
 
@@ -282,12 +283,14 @@ class RecorderService(Service):
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
             # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
             # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
+            declared_ns = time.time_ns()
             self._sub = QueueSubscriber(ctx.session, [config.subscription], maxsize=config.queue_messages,
                                         max_bytes=int(config.queue_mb * 1e6), recover="history",
                                         sources=True)  # each message's publisher: two on one stream told apart
             # A converter's provenance, answered on request, is recorded from the start too (only that:
             # the heartbeat queryables under alive/ answer a wider query, and are not data).
             self._sub.query(ctx.session, keys.provenance_key(config.setup))
+            self._top_up = HistoryTopUp(ctx.session, self._sub, declared_ns)
         except BaseException as exc:  # the file is finished whatever happened
             sink.writer.close()
             raise _failed(exc) from exc
@@ -298,9 +301,14 @@ class RecorderService(Service):
         try:
             item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
             if item is not None:
+                top_up = self._top_up
                 sink.add(*item)
+                if (said := top_up.first(item[0], item[1])) is not None:
+                    log.warning("%s", said)
                 for item in sub.drain(10_000):  # then check the stop flags once per batch
                     sink.add(*item)
+                    if (said := top_up.first(item[0], item[1])) is not None:
+                        log.warning("%s", said)
             writer.tick()
         except BaseException as exc:
             raise _failed(exc) from exc
