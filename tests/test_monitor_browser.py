@@ -49,6 +49,11 @@ def _browser_or_skip():
     """Chromium + chromedriver + selenium, or a clear failure in CI / a clear skip elsewhere."""
     from mntes_stream.monitor.browser import find_chromium
 
+    # .ci/run installs Debian's chromium in the background while the tests run: wait for it when on its way.
+    apt = Path(__file__).resolve().parent.parent / ".chromium-apt"
+    deadline = time.monotonic() + 600
+    while apt.is_dir() and not any((apt / m).exists() for m in ("installed", "failed")) and time.monotonic() < deadline:
+        time.sleep(2)
     missing = []
     try:
         import selenium  # noqa: F401
