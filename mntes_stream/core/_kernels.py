@@ -863,6 +863,7 @@ if numba is not None:
                     # The screen decides alone only where its W' is near the reference's (lq[10]) and tau finite;
                     # elsewhere the margin is infinite: every usable lane is near, the exact sigma_P decides.
                     mg = _LOW_MARGIN if (lq[10] != 0.0) & (tau < math.inf) else math.inf
+                    mg2 = mg + mg
                     for s in range(n_samp):
                         tbs, bs, vs, fx = s_tb[s], s_b[s], s_v[s], s_f[s]
                         f, inside = fx & 0xFFFF, (fx >> 32) != 0
@@ -882,7 +883,7 @@ if numba is not None:
                         ap = wt - jx * (zz - r2)                         # dP/dR |R + z|^4 (1 + x)
                         aa = abs(wt) + jx * (zz + r2)                     # its terms' magnitude (it may cancel)
                         m2z = m2 * mz4
-                        bm = (bbc * w) * (uu * sn) * m2z                  # dP/d|i| |i|^2 |R + z|^4 (1 + x)
+                        bm = (bbc * uu) * (w * sn) * m2z                  # dP/d|i| |i|^2 |R + z|^4 (1 + x)
                         im = math.sqrt(m2) if gamma != 0.0 else 0.0
                         mk = m2z * x1
                         tk = tau * (mk * mk)
@@ -893,8 +894,10 @@ if numba is not None:
                         # The rounding of either form is below eps times the terms' magnitudes: the cross term
                         # is at most 2 V^2 ap^2 + bm^2 ((R + Re z) |i| <= sqrt(2) V, as
                         # R + Re z = sqrt(2) V Re(i) / |i|^2), and dP/dR's own terms bound it where they cancel
-                        # (aa for ap): M (2 (2 V^2 aa^2 + bm^2) + tau k).
-                        mag = mg * (2.0 * (vv2 * aa * aa + b2) + tk)
+                        # (aa for ap): S = 2 (2 V^2 aa^2 + bm^2). tau k needs no place in the margin: where
+                        # dd > M S, tau k < S + |error|, so the error is ~eps S; where dd < -M S, the error is
+                        # ~eps (S + |dd|), and M >> eps. (W sn is the power's K T^n term: computed once.)
+                        mag = mg2 * (vv2 * aa * aa + b2)
                         out_p[row, s] = p if usable else math.nan
                         out_f[row, s] = f | (_LOW * (usable & checks & (dd > mag)))
                         near = usable & checks & ~(abs(dd) > mag)
