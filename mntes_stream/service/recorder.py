@@ -301,13 +301,10 @@ class RecorderService(Service):
         try:
             item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
             if item is not None:
-                top_up = self._top_up
-                sink.add(*item)
-                if (said := top_up.first(item[0], item[1])) is not None:
-                    log.warning("%s", said)
-                for item in sub.drain(10_000):  # then check the stop flags once per batch
-                    sink.add(*item)
-                    if (said := top_up.first(item[0], item[1])) is not None:
+                first = self._top_up.first
+                for got in (item, *sub.drain(10_000)):  # then check the stop flags once per batch
+                    sink.add(*got)
+                    if (said := first(got[0], got[1])) is not None:
                         log.warning("%s", said)
             writer.tick()
         except BaseException as exc:
