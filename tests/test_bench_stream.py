@@ -11,7 +11,8 @@ import sys
 import pytest
 
 from mntes_stream.bench._stream_rate import find_rate, next_rate, trial_passes
-from mntes_stream.bench.stream import _cpu_in, _cpu_s, _per_process, _relay_template, _rss_growth, _rss_mb, _stamped
+from mntes_stream.bench.stream import (_cpu_in, _cpu_s, _per_process, _relay_template, _rss_growth, _rss_mb, _stamped,
+                                       _steps)
 
 
 def test_cores_come_from_the_samples_inside_the_window():
@@ -109,6 +110,18 @@ def test_the_search_finds_the_capacity_within_tolerance_and_budget():
                     {"mode": "flat-out", "msamples_per_s": 9.0, "passthrough_msamples_per_s": 90.0},
                     run_once=one_trial, clock=lambda: now[0], say=lines.append)
     assert len(res["trials"]) == 2 and "stopping" in lines[-1] and res["msamples_per_s"] <= capacity
+
+
+@pytest.mark.parametrize("duration_s, rate_hz, n", [(60.0, 200.0, 20), (5.0, 152.587890625, 15), (0.35, 200.0, 20),
+                                                   (1.0, 19.0, 2), (0.0999, 200.0, 20)])
+def test_the_bench_expects_as_many_steps_as_the_source_sends(duration_s, rate_hz, n):
+    # The wait for the converter ends on every chunk; counted apart from the source, so they must agree.
+    from mntes_stream.service.source import MinimalSource, SourceConfig
+
+    src = MinimalSource(SourceConfig(modules=1, channels=2, sample_rate_hz=rate_hz, chunk_s=n / rate_hz))
+    src.prepare()
+    sent = sum(1 for _ in src.batches(1_700_000_000_000_000_000, duration_s))
+    assert _steps(duration_s, rate_hz, n) == sent > 0
 
 
 def test_relay_power_is_the_converters_encoding_with_both_times_stamped():

@@ -325,6 +325,17 @@ class BenchSource(Service):
         return out
 
 
+STALL_S = 60.0  # without every chunk, this long without the converter's progress ends a run
+
+
+def _steps(duration_s: float, rate_hz: float, n: int) -> int:
+    """Readout steps in ``duration_s`` of data, counted as ``MinimalSource.batches`` counts them."""
+    step = 0
+    while round(step * n * 1e9 / rate_hz) < duration_s * 1e9:
+        step += 1
+    return step
+
+
 def _analyse(rec_dir: Path, setup: str, t_start_ns: int, warmup_s: float, window_end_ns: int | None):
     from mntes_stream.io.mcap import iter_messages
     from mntes_stream.io.messages import PowerChunk
@@ -503,16 +514,24 @@ def run_once(args) -> dict:
             services.start("relay", _Relay, relay_cfg)
         services.start("source", BenchSource, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
+        expected = _steps(args.duration, args.sample_rate, n) * args.modules  # counts chunks the source will send
+        stalled = None
         pids = {name: proc.pid for name, proc in services.procs.items()}
         cpu_samples = []  # (wall ns, CPU seconds of each process so far): what each used in each phase
         rss_samples = []  # (wall ns, resident MB of each process): growth in each half of the stream
         with open_session(zenoh.over(loopback(None, [p_conv]))) as z:
             sub = QueueSubscriber(z, [keys.status_key(setup, conv_cfg.name)])
             # The source keeps its session open after publishing (queued is not delivered): wait
-            # until the converter has received something, holds nothing and has made no progress
+            # until the converter has received every chunk, holds nothing and has made no progress
             # for 4.5 s. Its power went out before that, so the recorder has had as long to take it in.
+            # Short of every chunk, only a stall of STALL_S ends the wait (a host stalled for seconds,
+            # e.g. writing back a cold disk, is not a loss), and the result says so (``stalled_s``).
             received, pending, last_change = 0, 0, time.monotonic()
-            while time.monotonic() - last_change < 4.5 and time.monotonic() < deadline and services.alive():
+            while time.monotonic() < deadline and services.alive():
+                quiet = time.monotonic() - last_change
+                if quiet >= (4.5 if received >= expected else STALL_S):
+                    stalled = None if received >= expected else round(quiet, 1)
+                    break
                 t_ns = time.time_ns()
                 cpu_samples.append((t_ns, {name: _cpu_s(pid) for name, pid in pids.items()}))
                 rss_samples.append((t_ns, {name: _rss_mb(pid) for name, pid in pids.items()}))
@@ -524,6 +543,8 @@ def run_once(args) -> dict:
                 if n_in != received or received == 0 or pending:
                     last_change = time.monotonic()
                 received = n_in
+            if received < expected and stalled is None:  # the deadline, or a service gone
+                stalled = round(time.monotonic() - last_change, 1)
             sub.close()
         stopped = {name: services.stop(name) for name in names}  # source first: the others drain after it
     finally:
@@ -606,6 +627,9 @@ def run_once(args) -> dict:
         "counts_recorded": counts_msgs,
         "power_duplicates_recorded": power_msgs - unique_power,
         "lost": src["chunks_sent"] - unique_power,
+        # Set when the run ended on the converter's stall short of every chunk (seconds without progress):
+        # the chunks it had not taken by then count as lost above, though a longer wait might have seen them.
+        "stalled_s": stalled,
         "converter_lost": conv.get("chunks_lost") if isinstance(conv, dict) else None,
         # Overload (a real one: behind without a break for overload_after_s): set aside, converted late when
         # there was time, shed beyond the set-aside budget; in the converter's ledger either way.
