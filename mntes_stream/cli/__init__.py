@@ -89,9 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    from mntes_stream.service.heap import pad_heap
+    from mntes_stream.service.heap import own_process, pad_heap
 
     pad_heap()  # commands move payloads too (convert, record, bench): see service.heap
+    if argv is None:  # the executable, not a caller's process (a test): a service's setup may be frozen there
+        own_process()
     import warnings
 
     # A warning is one line, as an error is (Python's own format adds the file, line and source line).

@@ -352,7 +352,7 @@ class Service(abc.ABC):
 
     def _lifecycle(self, stop, ready, metrics, announce: bool) -> Mapping[str, Any]:
         from mntes_stream.io.transport import Publishers, open_session
-        from mntes_stream.service.heap import pad_heap
+        from mntes_stream.service.heap import freeze_setup, pad_heap
 
         pad_heap()  # a payload per message: the heap grown in steps, not trimmed and faulted in per message
 
@@ -374,6 +374,7 @@ class Service(abc.ABC):
             ctx = Context(stopping, self.heartbeat, session, pubs, metrics, mark_ready,
                           getattr(ready, "progress", lambda text: None))
             self.setup(ctx)
+            freeze_setup()  # in a process of its own: a full collection in the loop walks only what the loop made
             if self.ready_after_setup:
                 mark_ready()
             duration = self.duration_s()

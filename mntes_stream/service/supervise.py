@@ -110,6 +110,9 @@ def child_main(label: str, service, config, stop, ready, results) -> None:
         import zenoh
 
         zenoh.try_init_log_from_env()  # zenoh's own log, e.g. RUST_LOG=zenoh=warn
+    from mntes_stream.service.heap import own_process
+
+    own_process()  # a process of its own: its service's setup leaves the collector's sight (service.heap)
     wall0, cpu0 = time.monotonic(), time.process_time()
     try:
         svc = (service if isinstance(service, type) else service_class(service))(config)
