@@ -35,7 +35,10 @@ log = logging.getLogger("mntes_stream.converter")
 
 def _layout(group: list[Ready]) -> tuple | None:
     """A group's rows, module by module (None when a module appears twice: not merged)."""
-    rows = sorted((r.chunk.board, r.chunk.module, r.chunk.channels.tobytes(), r.v_bias is None) for r in group)
+    # A chunk's ``ids`` is the one tuple ``Environment`` keeps per module and channel list: the same object is
+    # the same rows (every Ready of the batch holds its tuple, so no id is reused within it), and a list
+    # cached anew only splits a run in two (the same power, one more call), never merges unlike rows.
+    rows = sorted((r.chunk.board, r.chunk.module, id(r.ids), r.v_bias is None) for r in group)
     return tuple(rows) if len({row[:2] for row in rows}) == len(rows) else None
 
 

@@ -286,7 +286,7 @@ class Sequence:
         stream = (chunk.board, chunk.module)
         books.counters.chunks_received += 1
         books.ledger.received(stream)
-        t = self._times(chunk)
+        t, t_last = self._times(chunk)
         t_first = int(t[0]) if t.size else chunk.t_pub_ns
         verdict = self._sequence(stream, chunk.seq, t_first, item.key, item.source)
         if verdict is Verdict.DUPLICATE:
@@ -297,7 +297,7 @@ class Sequence:
         if pace is None or verdict is Verdict.RESET:
             pace = self.pace[stream] = DelayFloor()
         lag = delay - pace.add(t_first, delay)
-        p = Pending(chunk, item.t_recv_ns, t, int(t.max()) if t.size else None)
+        p = Pending(chunk, item.t_recv_ns, t, t_last)
         if self.overloaded and lag > self._max_lag_ns and books.config.overload == "shed":
             # A real overload (the service says so), and behind its own stream's pace: converting it now
             # would make every later chunk later too. Kept for when there is time (late power).
@@ -305,18 +305,21 @@ class Sequence:
             return None
         return p
 
-    def _times(self, chunk: CountsChunk) -> np.ndarray:
-        """A chunk's sample times, computed once per readout step (the modules of a step share them; read-only)."""
+    def _times(self, chunk: CountsChunk) -> tuple[np.ndarray, int | None]:
+        """A chunk's sample times and the latest of them (None: no samples), computed once per readout step
+        (the modules of a step share them; read-only)."""
         if chunk.t_ns is not None:
-            return chunk.t_ns
+            t = chunk.t_ns
+            return t, int(t.max()) if t.size else None
         key = (chunk.t0_ns, chunk.sample_rate_hz, chunk.counts_i.shape[1])
-        t = self._step_times.get(key)
-        if t is None:
+        hit = self._step_times.get(key)
+        if hit is None:
             if len(self._step_times) >= 256:
                 self._step_times.clear()
-            t = self._step_times[key] = chunk.times_ns()
+            t = chunk.times_ns()
             t.setflags(write=False)
-        return t
+            hit = self._step_times[key] = (t, int(t.max()) if t.size else None)
+        return hit
 
     def _sequence(self, stream_id: tuple[int, int], seq: int, t_first_ns: int, key: str,
                   source: str | None = None) -> Verdict:
