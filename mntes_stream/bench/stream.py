@@ -143,8 +143,9 @@ class _Sink(Service):
 class _Relay(Service):
     """A converter whose conversion costs nothing: the ceiling of a converter's rate per core on this transport.
 
-    It receives counts chunks as the converter does (a bounded callback queue, recovering subscriber,
-    the lean decoder of the converter's hot path), and publishes for each a power message of the size
+    It receives counts chunks as the converter does (the callback queue bounded in count and bytes as the
+    converter's, each sample's publisher read, recovering subscriber, the lean decoder of the converter's
+    hot path), and publishes for each a power message of the size
     and shape the converter would publish for it, encoded once per stream by the converter's encoder
     (zeros for power and flags); per chunk only the two publication times at the end of the message
     are stamped anew (fixed-width integers: a slice and a pack). Publishers keep the converter's
@@ -164,12 +165,18 @@ class _Relay(Service):
         return cache_chunks(self.config["zenoh"].history_seconds, POWER_CHUNK_S)
 
     def setup(self, ctx) -> None:
+        import dataclasses
+
         from mntes_stream.io.lean import CountsDecoder, PowerEncoder
         from mntes_stream.io.transport import QueueSubscriber
+        from mntes_stream.service.converter import ConverterConfig
 
-        # Bounded as the converter's: a relay behind the source pushes back on it instead of piling up.
-        self._sub = QueueSubscriber(ctx.session, [self.config["key"]], maxsize=256, stop=ctx.stop,
-                                    mode="callback", recover="history")
+        # Received as the converter receives (service/converter.py): bounded in count and in bytes (a relay
+        # behind the source pushes back on it instead of piling up), each sample's publisher read.
+        conv = {f.name: f.default for f in dataclasses.fields(ConverterConfig)}  # its defaults
+        self._sub = QueueSubscriber(ctx.session, [self.config["key"]], maxsize=conv["queue_size"], stop=ctx.stop,
+                                    mode="callback", max_bytes=int(conv["queue_mb"] * 1e6), recover="history",
+                                    sources=True)
         self._decoder = CountsDecoder()
         self._encoder = PowerEncoder(self.config["setup"], "relay", "relay")
         self._templates: dict = {}  # counts key -> (power key, message head up to source_t_pub_ns, middle)
@@ -179,7 +186,7 @@ class _Relay(Service):
         pubs, decode, templates, setup = ctx.publishers, self._decoder.decode, self._templates, self.config["setup"]
         item = self._sub.get(timeout_s=0.05)
         while item is not None:
-            key, payload, _ = item
+            key, payload = item[0], item[1]
             chunk = decode(key, payload)
             t = templates.get(key)
             if t is None:
