@@ -22,3 +22,39 @@ def _run(env_extra: dict) -> str:
 def test_the_heap_is_padded_once_and_a_users_setting_wins():
     assert _run({}) == ["True", "True", "True"]                            # padded, then idempotent
     assert _run({"MALLOC_TOP_PAD_": "1048576"}) == ["False", "False", "False"]  # the environment's pad stands
+
+
+FREEZE = """
+import gc, sys
+from mntes_stream.service.base import Service
+from mntes_stream.service.heap import own_process
+
+class Once(Service):
+    name = "once"
+    Config = dict
+    def zenoh_settings(self):
+        return None
+    def setup(self, ctx):
+        self.built = [[i] for i in range(1000)]  # what a setup builds (containers the collector tracks)
+    def step(self, ctx):
+        self.frozen = gc.get_freeze_count()
+        return False
+    def finish(self, ctx):
+        return {"frozen": self.frozen}
+
+if sys.argv[1] == "own":
+    own_process()
+before = gc.get_freeze_count()
+print(before, Once({}).run()["frozen"])
+"""
+
+
+def test_setup_is_frozen_only_in_a_process_of_its_own():
+    def frozen(mode: str) -> list[int]:
+        out = subprocess.run([sys.executable, "-c", FREEZE, mode], capture_output=True, text=True, check=True,
+                             timeout=60).stdout.split()
+        return [int(n) for n in out]
+
+    before, during = frozen("own")
+    assert before == 0 and during > 1000  # the setup's lists, and everything imported, out of the collector's walks
+    assert frozen("embedded") == [0, 0]   # a process embedding services (a test, a notebook) keeps its collector
