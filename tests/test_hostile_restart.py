@@ -245,6 +245,50 @@ def test_a_resumed_pipeline_drops_the_history_its_checkpoint_had_converted_as_du
     assert st.chunks_duplicated == 20 and st.chunks_lost == 0 and not st.last_error.startswith("internal")
 
 
+def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoints_floor(tmp_path, source):
+    """A status's checkpoint claims chunks whose power may still sit in zenoh's queue when SIGKILL comes. Its floor
+    (the numbers of the status before) says what surely went out: the history above it is converted again, once
+    (a second copy is a duplicate), below it dropped; nothing is lost, and missed chunks count from the newest."""
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.core.ledger import Ledger
+    from mntes_stream.io.messages import PowerChunk
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
+
+    conv = make_converter("exact", {p.detector_id: p for p in source.params})
+    steps = list(source.batches(T0, duration_s=3.0))
+    first = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    _feed(first, steps[:6])
+    first.flush()
+    floor = first.sequence_state()  # the status before: seq 5
+    _feed(first, steps[6:10])
+    first.flush()
+    f = tmp_path / "ck.json"
+    save_checkpoint(str(f), "lab", "converter", first.sequence_state(), floor=floor)  # the last status: seq 9
+    state, _ = load_checkpoint(str(f), "lab", "converter")
+    assert {v for v in state.values()} == {(9, v[1], 5, v[3]) for v in state.values()}
+
+    # Killed with the power of seq 6-9 unsent; the sources' history gives steps 0-9 again, then the new steps
+    # 10-14; one history chunk comes twice (recovered twice).
+    second = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    assert second.resume_sequences(state) == 2
+    power = [PowerChunk.from_bytes(p) for k, p in _feed(second, steps[:10] + steps[7:8] + steps[10:15])
+             if "/power/" in k]
+    power += [PowerChunk.from_bytes(p) for k, p in second.flush() if "/power/" in k]
+    st = second.status()
+    assert sorted({pc.seq for pc in power}) == list(range(6, 15))  # 6-9 again, then the new ones
+    assert len(power) == 2 * 9  # each once, on both streams
+    tot = Ledger.from_dict(st.ledger).totals()
+    assert (tot.received, tot.duplicate, tot.done, tot.lost) == (32, 14, 18, 0), st.ledger
+    assert st.chunks_lost == 0 and second.counters.chunks_missed_while_down == 0 and st.chunks_out_of_order == 0
+
+    # No history: the first chunk after the restart is seq 20; missed 10-19 count from the newest (9), not the floor.
+    third = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    third.resume_sequences(state)
+    _feed(third, steps[20:])
+    assert third.counters.chunks_missed_while_down == 20 and third.status().chunks_lost == 20
+
+
 def test_checkpoint_files_are_checked_before_use(tmp_path, caplog):
     from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
 

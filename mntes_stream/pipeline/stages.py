@@ -263,6 +263,9 @@ class Sequence:
         self._resumed: dict[tuple[int, int], tuple[int, int]] = {}
         # ... and for good: older chunks (history from the sources' caches) were converted before the restart.
         self._floor: dict[tuple[int, int], tuple[int, int]] = {}
+        # Between a checkpoint's floor and its newest number: converted before the restart, but perhaps never
+        # sent (service/checkpoint.py): (first, last number, last's sample time, the numbers taken again).
+        self._refill: dict[tuple[int, int], tuple[int, int, int, set]] = {}
         # Streams not continued from a checkpoint: the lowest number this converter took (status ``began_at``).
         # A converter started after the sources' history moved past a stream's first chunks never sees those.
         self.began: dict[tuple[int, int], int] = {}
@@ -340,7 +343,18 @@ class Sequence:
         if floor is not None and seq < floor[0] and t_first_ns <= floor[1]:
             s.dup_known += 1  # converted by the converter that ran before this restart (its checkpoint says so)
             return Verdict.DUPLICATE
-        resumed = self._resumed.pop(stream_id, None) if self._resumed else None
+        refill = self._refill.get(stream_id) if self._refill else None
+        if refill is not None and refill[0] <= seq <= refill[1] and t_first_ns <= refill[2]:
+            if seq in refill[3]:
+                s.dup_known += 1
+                return Verdict.DUPLICATE
+            refill[3].add(seq)  # the tracker stands at the newest number already: this one is not news to it
+            return Verdict.LATE
+        resumed = self._resumed.get(stream_id) if self._resumed else None
+        if resumed is not None and (seq >= resumed[0] or t_first_ns > resumed[1]):
+            del self._resumed[stream_id]  # the first chunk past the checkpoint (history before it: still to come)
+        else:
+            resumed = None
         verdict = s.observe(seq, t_first_ns, source)
         if s.conflict and self.conflicts.get(stream_id) != s.publishers:
             self.conflicts[stream_id] = s.publishers
@@ -360,14 +374,25 @@ class Sequence:
         return verdict
 
     def resume(self, state: dict) -> int:
-        """Continue streams from a checkpoint (``ConverterPipeline.resume_sequences``); returns the streams resumed."""
-        for stream, (seq, t_ns) in state.items():
+        """Continue streams from a checkpoint (``ConverterPipeline.resume_sequences``); returns the streams resumed.
+
+        A value ``(seq, t_ns)``, or ``(seq, t_ns, floor_seq, floor_t_ns)`` (``service.checkpoint``): numbers
+        and missed chunks count from ``seq``, while history at or below ``floor_seq`` (default ``seq``; -1:
+        none) is what the previous converter had sent and is dropped as a duplicate; history above it is
+        converted again (a number below the newest: late, not lost)."""
+        for stream, value in state.items():
             stream = (int(stream[0]), int(stream[1]))
             if stream in self.streams or (self.modules is not None and stream not in self.modules):
                 continue
+            seq, t_ns = int(value[0]), int(value[1])
+            floor_seq, floor_t = (int(value[2]), int(value[3])) if len(value) > 2 else (seq, t_ns)
             s = self.streams[stream] = PublisherSequences()
-            s.observe(int(seq), int(t_ns))
-            self._resumed[stream] = self._floor[stream] = (s.next, int(t_ns))
+            s.observe(seq, t_ns)
+            self._resumed[stream] = (s.next, t_ns)
+            if floor_seq >= 0:
+                self._floor[stream] = (floor_seq + 1, floor_t)
+            if floor_seq < seq:  # converted, maybe never sent: taken again once each, past the tracker
+                self._refill[stream] = (max(floor_seq + 1, 0), seq, t_ns, set())
         return len(self._resumed)
 
     def _set_aside(self, p: Pending, lag_ns: int, key: str) -> None:

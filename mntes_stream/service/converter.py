@@ -311,6 +311,7 @@ class ConverterService(Service):
             self._close()
             raise
         self._next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
+        self._ckpt_sent: dict = {}  # the state of the last checkpoint written: the floor of the next one
         self._behind_since = None  # monotonic time since when every batch was full (None: caught up)
         self._next_trim = time.monotonic() + _TRIM_EVERY_S
         log.info("converter %s: %d detectors, kind %s, tables %s; %s; subscribed to %s", cfg.name,
@@ -348,7 +349,11 @@ class ConverterService(Service):
         for key, payload in outs:
             # The checkpoint before the status: what a status says converted is on disk when it is seen.
             if key == self._status_key and cfg.checkpoint:
-                save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, pipe.sequence_state())
+                # Floored at the previous status's numbers: what was converted since may still sit in zenoh's
+                # queue, unsent, if this process is killed now (service/checkpoint.py).
+                state = pipe.sequence_state()
+                save_checkpoint(cfg.checkpoint, cfg.setup, cfg.name, state, floor=self._ckpt_sent)
+                self._ckpt_sent = state
             pubs.put(key, payload)
             if key == self._status_key:  # what the status says, in the heartbeat too (ps)
                 st = decode(payload)
