@@ -11,8 +11,16 @@ import sys
 import pytest
 
 from mntes_stream.bench._stream_rate import find_rate, next_rate, trial_passes
-from mntes_stream.bench.stream import (_cpu_in, _cpu_s, _per_process, _relay_template, _rss_growth, _rss_mb, _stamped,
-                                       _steps)
+from mntes_stream.bench.stream import (
+    _cpu_in,
+    _cpu_s,
+    _per_process,
+    _relay_template,
+    _rss_growth,
+    _rss_mb,
+    _stamped,
+    _steps,
+)
 
 
 def test_cores_come_from_the_samples_inside_the_window():
