@@ -8,6 +8,7 @@ here, the mechanism: the snapshot is used, gives the same power, and is refused 
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -356,6 +357,38 @@ def test_a_killed_converter_restarted_reports_what_it_missed(tmp_path, source):
     text = log.read_text()
     assert "2 streams continue from the checkpoint" in text and text.count("while no converter ran") == 2
     assert "Traceback" not in text
+
+
+def test_a_restarted_converters_first_checkpoint_keeps_the_floor_it_started_from(tmp_path, source):
+    """Killed again before its second status, a restarted converter must not have claimed less than its predecessor
+    surely sent: its first checkpoint's floor is the one it loaded (an empty floor would send the sources' whole
+    history again as power)."""
+    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
+
+    dump_params(source.params, tmp_path / "params.toml")
+    port = free_tcp_port()
+    (tmp_path / "converter.toml").write_text(
+        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
+        'checkpoint = "converter.json"\n[status]\ninterval_s = 3\n'
+        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+    ck = tmp_path / "converter.json"
+    save_checkpoint(str(ck), "lab", "converter", {(0, 0): (9, T0 + 9 * 10**8), (0, 1): (9, T0 + 9 * 10**8)},
+                    floor={(0, 0): (5, T0 + 5 * 10**8)})
+    written = ck.stat().st_mtime_ns
+    with open(tmp_path / "serve.log", "wb") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml"],
+                                stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 120  # the first status, then the next 3 s later
+        while ck.stat().st_mtime_ns == written:
+            assert time.monotonic() < deadline and proc.poll() is None, (tmp_path / "serve.log").read_text()
+            time.sleep(0.05)
+        time.sleep(0.2)  # written whole (renamed over): read it as the converter left it
+        state, _ = load_checkpoint(str(ck), "lab", "converter")
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    assert state == {(0, 0): (9, T0 + 9 * 10**8, 5, T0 + 5 * 10**8), (0, 1): (9, T0 + 9 * 10**8, -1, -1)}
 
 
 def test_bench_restart_smoke():

@@ -17,7 +17,9 @@ is queued in zenoh when the checkpoint is written, and a converter killed
 then (SIGKILL) never sends it. Only what the sources' history gives again
 at or below the floor is dropped as a duplicate on restart; newer chunks
 from it are converted again (their power twice at worst, never lost),
-while what was missed is still counted from the newest number. The
+while what was missed is still counted from the newest number. A
+restarted converter's first floor is the one it loaded (killed again
+before its second status, it claims no less and no more). The
 checkpoint of a clean stop, whose power was sent, has no floor: its
 numbers are the floor.
 

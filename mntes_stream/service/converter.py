@@ -278,7 +278,11 @@ class ConverterService(Service):
                                               uncertainty=cfg.uncertainty_used, sigma_p=cfg.sigma_p,
                                               only_fused=cfg.low_responsivity == "auto")
         self._runner = Runner.around(pipe)  # batches are what piled up (step); ticks and late power when idle
+        # The state of the last checkpoint written (the floor of the next one): at start, what the previous
+        # converter surely sent (its checkpoint's floor).
+        self._ckpt_sent: dict = {}
         if cfg.checkpoint and (ckpt := load_checkpoint(cfg.checkpoint, cfg.setup, cfg.name)) is not None:
+            self._ckpt_sent = {k: v[2:] if len(v) > 2 else v for k, v in ckpt[0].items() if len(v) < 3 or v[2] >= 0}
             n = pipe.resume_sequences(ckpt[0])
             log.info("converter %s: %d streams continue from the checkpoint of %.1f s ago (%s); what was published "
                      "since counts as missed", cfg.name, n, (time.time_ns() - ckpt[1]) / 1e9, cfg.checkpoint)
@@ -311,7 +315,6 @@ class ConverterService(Service):
             self._close()
             raise
         self._next_prov = time.monotonic() + (cfg.provenance_interval_s or float("inf"))
-        self._ckpt_sent: dict = {}  # the state of the last checkpoint written: the floor of the next one
         self._behind_since = None  # monotonic time since when every batch was full (None: caught up)
         self._next_trim = time.monotonic() + _TRIM_EVERY_S
         log.info("converter %s: %d detectors, kind %s, tables %s; %s; subscribed to %s", cfg.name,
