@@ -20,6 +20,7 @@ from mntes_stream.bench.stream import (
     _rss_mb,
     _stamped,
     _steps,
+    repeated,
 )
 
 
@@ -130,6 +131,17 @@ def test_the_bench_expects_as_many_steps_as_the_source_sends(duration_s, rate_hz
     src.prepare()
     sent = sum(1 for _ in src.batches(1_700_000_000_000_000_000, duration_s))
     assert _steps(duration_s, rate_hz, n) == sent > 0
+
+
+def test_repeated_runs_give_medians_of_the_ratios_and_totals_of_what_went_missing():
+    runs = [{"converter_overhead_per_relay": r, "converter_ratio_to_relay": 1 / r, "lost": lost, "converter_shed": 0,
+             "msamples_per_s": 2.0, "converter_cpu_us_per_chunk": None, "stalled_s": stalled}
+            for r, lost, stalled in ((1.4, 0, None), (1.2, 3, 61.0), (1.3, 0, None))]
+    rep = repeated(runs)
+    assert rep["runs"] == 3 and rep["per_run"]["lost"] == [0, 3, 0] and rep["per_run"]["stalled_s"] == [None, 61.0, None]
+    assert rep["median"]["converter_overhead_per_relay"] == 1.3 and rep["median"]["msamples_per_s"] == 2.0
+    assert "converter_cpu_us_per_chunk" not in rep["median"]  # a figure the runs lack has no median
+    assert rep["total"] == {"lost": 3, "converter_shed": 0}  # a loss in one run is not hidden by a median of 0
 
 
 def test_relay_power_is_the_converters_encoding_with_both_times_stamped():

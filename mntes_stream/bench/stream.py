@@ -59,6 +59,10 @@ def add_arguments(p) -> None:
     p.add_argument("--compression", default=None, choices=("zstd", "lz4", "none"),
                    help="recorder chunk compression (default: the recorder's own, lz4)")
     p.add_argument("--keep", metavar="DIR", help="keep the recording and parameters in DIR")
+    p.add_argument("--repeat", type=int, default=1, metavar="N",
+                   help="N runs, one after another: the figures of the last, and under \"repeat\" each run's and "
+                        "the median of the per-chunk CPU figures and ratios (single runs scatter by +-15 %% on a "
+                        "shared host; default 1)")
     p.add_argument("--find-rate", action="store_true",
                    help="then find the real-time rate: the highest offered rate (by sample rate) sustained for "
                         "--sustain s with 0 lost, 0 shed, 0 late and p99 latency < --p99-ms, recorder on "
@@ -443,9 +447,44 @@ def _per_process(samples: list, t0_ns, t1_ns, msamples_per_s: float, handled: di
     return out
 
 
+# The figures ``--repeat`` gives per run and as medians (rates, per-chunk CPU, ratios), and per run and summed
+# (what went missing: a loss in any run counts, not its median).
+MEDIANS = ("msamples_per_s", "converter_cpu_us_per_chunk", "converter_kernel_us_per_chunk", "relay_cpu_us_per_chunk",
+           "converter_overhead_per_relay", "converter_ratio_to_relay")
+TOTALS = ("lost", "converter_shed")
+
+
+def repeated(runs: list[dict]) -> dict:
+    """``--repeat``'s summary of several runs' results: each figure per run, medians and totals over them
+    (a figure some run lacks, e.g. a run too short to sample its CPU, has no median)."""
+    per_run = {key: [r.get(key) for r in runs] for key in (*MEDIANS, *TOTALS, "stalled_s")}
+
+    def numbers(v):
+        return v and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+
+    return {"runs": len(runs), "per_run": per_run,
+            "median": {key: statistics.median(per_run[key]) for key in MEDIANS if numbers(per_run[key])},
+            "total": {key: sum(per_run[key]) for key in TOTALS if numbers(per_run[key])}}
+
+
 def run(args) -> dict:
-    """One run (passthrough, then the stream phase); with ``--find-rate`` then the search for the real-time rate."""
-    out = run_once(args)
+    """One run (passthrough, then the stream phase), or ``--repeat`` runs; with ``--find-rate`` then the search for
+    the real-time rate."""
+    import sys
+
+    from mntes_stream.errors import ConfigError
+
+    n = int(getattr(args, "repeat", 1) or 1)
+    if n < 1:
+        raise ConfigError("--repeat takes a count >= 1")
+    runs = []
+    for k in range(n):
+        if n > 1:
+            print(f"bench stream: run {k + 1} of {n}", file=sys.stderr, flush=True)
+        runs.append(run_once(args))
+    out = runs[-1]
+    if n > 1:
+        out["repeat"] = repeated(runs)
     if args.find_rate:
         from mntes_stream.bench._stream_rate import find_rate
 
