@@ -314,16 +314,23 @@ def test_checkpoint_files_are_checked_before_use(tmp_path, caplog):
         f.parent.chmod(0o700)
 
 
-def test_a_killed_converter_restarted_reports_what_it_missed(tmp_path, source):
-    """SIGKILL, a second of data no converter took, restart: the status says 10 chunks per module were missed."""
-    import signal
-
+def _checkpointed(tmp_path, source, checkpoint: str, status_s: float) -> int:
+    """``converter.toml`` (and its parameters) in ``tmp_path`` for ``serve``: a converter keeping ``checkpoint``,
+    a status every ``status_s``; returns the port it listens on."""
     dump_params(source.params, tmp_path / "params.toml")
     port = free_tcp_port()
     (tmp_path / "converter.toml").write_text(
         '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
-        'checkpoint = "state/converter.json"\n[alignment]\nmax_lag_s = 1e6\n'
-        f'[status]\ninterval_s = 0.5\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+        f'checkpoint = "{checkpoint}"\n[alignment]\nmax_lag_s = 1e6\n'
+        f'[status]\ninterval_s = {status_s}\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+    return port
+
+
+def test_a_killed_converter_restarted_reports_what_it_missed(tmp_path, source):
+    """SIGKILL, a second of data no converter took, restart: the status says 10 chunks per module were missed."""
+    import signal
+
+    port = _checkpointed(tmp_path, source, "state/converter.json", 0.5)
     steps = list(source.batches(T0, duration_s=3.0))
     assert len(steps) == 30
     log = tmp_path / "serve.log"
@@ -365,12 +372,7 @@ def test_a_restarted_converters_first_checkpoint_keeps_the_floor_it_started_from
     history again as power)."""
     from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
 
-    dump_params(source.params, tmp_path / "params.toml")
-    port = free_tcp_port()
-    (tmp_path / "converter.toml").write_text(
-        '[converter]\nsetup = "lab"\nparams = "params.toml"\nkind = "table"\ntable_cache = "cache"\n'
-        'checkpoint = "converter.json"\n[status]\ninterval_s = 3\n'
-        f'[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+    _checkpointed(tmp_path, source, "converter.json", 3.0)
     ck = tmp_path / "converter.json"
     save_checkpoint(str(ck), "lab", "converter", {(0, 0): (9, T0 + 9 * 10**8), (0, 1): (9, T0 + 9 * 10**8)},
                     floor={(0, 0): (5, T0 + 5 * 10**8)})

@@ -474,7 +474,7 @@ def run(args) -> dict:
 
     from mntes_stream.errors import ConfigError
 
-    n = int(getattr(args, "repeat", 1) or 1)
+    n = args.repeat
     if n < 1:
         raise ConfigError("--repeat takes a count >= 1")
     runs = []
@@ -561,7 +561,6 @@ def run_once(args) -> dict:
         services.start("source", BenchSource, src_cfg)
         deadline = time.monotonic() + args.passthrough_s + args.duration * (1 if not args.flat_out else 10) + 120
         expected = _steps(args.duration, args.sample_rate, n) * args.modules  # counts chunks the source will send
-        stalled = None
         pids = {name: proc.pid for name, proc in services.procs.items()}
         cpu_samples = []  # (wall ns, CPU seconds of each process so far): what each used in each phase
         rss_samples = []  # (wall ns, resident MB of each process): growth in each half of the stream
@@ -574,9 +573,7 @@ def run_once(args) -> dict:
             # e.g. writing back a cold disk, is not a loss), and the result says so (``stalled_s``).
             received, pending, last_change = 0, 0, time.monotonic()
             while time.monotonic() < deadline and services.alive():
-                quiet = time.monotonic() - last_change
-                if quiet >= (4.5 if received >= expected else STALL_S):
-                    stalled = None if received >= expected else round(quiet, 1)
+                if time.monotonic() - last_change >= (4.5 if received >= expected else STALL_S):
                     break
                 t_ns = time.time_ns()
                 cpu_samples.append((t_ns, {name: _cpu_s(pid) for name, pid in pids.items()}))
@@ -589,8 +586,8 @@ def run_once(args) -> dict:
                 if n_in != received or received == 0 or pending:
                     last_change = time.monotonic()
                 received = n_in
-            if received < expected and stalled is None:  # the deadline, or a service gone
-                stalled = round(time.monotonic() - last_change, 1)
+            # Short of every chunk (a stall, the deadline, a service gone): how long without progress.
+            stalled = round(time.monotonic() - last_change, 1) if received < expected else None
             sub.close()
         stopped = {name: services.stop(name) for name in names}  # source first: the others drain after it
     finally:
