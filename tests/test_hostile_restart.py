@@ -290,6 +290,40 @@ def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoin
     assert third.counters.chunks_missed_while_down == 20 and third.status().chunks_lost == 20
 
 
+def test_history_that_comes_after_a_live_chunk_is_no_longer_missed(tmp_path, source):
+    """zenoh-ext can deliver a restarted converter's first live chunk before the sources' caches, and then drops
+    them; the converter asks the caches again (io/history.HistoryTopUp), so the history comes after the live
+    chunk: what the first chunk made 'missed while down' is converted late instead, and counted neither missed
+    nor lost."""
+    from mntes_stream.core.convert import make_converter
+    from mntes_stream.io.messages import PowerChunk
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
+    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
+
+    conv = make_converter("exact", {p.detector_id: p for p in source.params})
+    steps = list(source.batches(T0, duration_s=3.0))
+    first = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    _feed(first, steps[:6])
+    first.flush()
+    floor = first.sequence_state()
+    _feed(first, steps[6:10])
+    first.flush()
+    f = tmp_path / "ck.json"
+    save_checkpoint(str(f), "lab", "converter", first.sequence_state(), floor=floor)
+    state, _ = load_checkpoint(str(f), "lab", "converter")
+
+    second = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
+    second.resume_sequences(state)
+    out = _feed(second, steps[15:16])  # live first: 10-14 missed so far
+    assert second.counters.chunks_missed_while_down == 10 and second.status().chunks_lost == 10
+    out += _feed(second, steps[:15] + steps[16:20]) + second.flush()  # the caches asked again, then live on
+    power = [PowerChunk.from_bytes(p) for k, p in out if "/power/" in k]
+    st = second.status()
+    assert sorted(pc.seq for pc in power) == sorted(2 * list(range(6, 20)))  # each once, on both streams
+    assert second.counters.chunks_missed_while_down == 0 and st.chunks_lost == 0
+    assert st.chunks_out_of_order == 10  # 10-14 of both streams came after 15: late, and said so
+
+
 def test_checkpoint_files_are_checked_before_use(tmp_path, caplog):
     from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
 

@@ -92,12 +92,14 @@ class HistoryTopUp:
     that publisher arrives before the cache's replies it delivers the sample,
     and then drops the replies as older than it: a recorder restarted while
     the sources publish then lacks, for some keys, what the caches held
-    (seen in ``bench chaos``: one stream of four, 100 chunks). Here the first
-    message of each key after the subscriber was declared is looked at: one
-    published after that moment with a sequence number above 0 means the
-    history did not come first, so that key's cache is asked directly
-    (``<key>/@adv/pub/**``, the ``AdvancedPublisher``'s queryable) and its
-    messages numbered before the first one received join the queue.
+    (seen in ``bench chaos``: one stream of four, 100 chunks, in a recorder;
+    three of four in a converter). Here the first message of each key after
+    the subscriber was declared is looked at: one published after that moment
+    (housekeeping, which has no publish time: whose first sample is after it)
+    with a sequence number above 0 means the history did not come first, so
+    that key's cache is asked directly (``<key>/@adv/pub/**``, the
+    ``AdvancedPublisher``'s queryable) and its messages numbered before the
+    first one received join the queue.
     Messages from the cache are never counted twice: the earlier ones only.
 
     Parameters
@@ -126,7 +128,10 @@ class HistoryTopUp:
         from mntes_stream.io.mcap.envelope import peek_envelope
 
         env = peek_envelope(payload)
-        if env.problem or not env.seq or env.publish_time_ns is None or env.publish_time_ns < self._declared_ns:
+        published_ns = env.publish_time_ns
+        if published_ns is None and env.seq and not env.problem:
+            published_ns = _first_sample_ns(payload)  # housekeeping: no publish time, its first sample's
+        if env.problem or not env.seq or published_ns is None or published_ns < self._declared_ns:
             return None  # the history came first (or the key starts here): nothing missed
         first = env.seq
 
@@ -138,3 +143,14 @@ class HistoryTopUp:
         self.asked.append((key, first))
         return (f"{key}: its first message (seq {first}) was live, zenoh's history of it did not come first: "
                 f"asked its publisher's cache for the messages before it")
+
+
+def _first_sample_ns(payload: bytes) -> int | None:
+    """A message's first sample time (ns) when it has sample times (housekeeping), else None; never raises."""
+    from mntes_stream.io.messages import decode
+
+    try:
+        t = getattr(decode(payload), "t_ns", None)
+        return int(t[0]) if t is not None and len(t) else None
+    except Exception:  # noqa: BLE001 - a message the converter will reject: nothing to ask for
+        return None

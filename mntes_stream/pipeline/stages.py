@@ -266,6 +266,9 @@ class Sequence:
         # Between a checkpoint's floor and its newest number: converted before the restart, but perhaps never
         # sent (service/checkpoint.py): (first, last number, last's sample time, the numbers taken again).
         self._refill: dict[tuple[int, int], tuple[int, int, int, set]] = {}
+        # Numbers a resumed stream's first chunk skipped (counted missed while down): one that turns up after
+        # all (history asked again, io/history.HistoryTopUp) is no longer missed.
+        self._missed: dict[tuple[int, int], tuple[int, int]] = {}
         # Streams not continued from a checkpoint: the lowest number this converter took (status ``began_at``).
         # A converter started after the sources' history moved past a stream's first chunks never sees those.
         self.began: dict[tuple[int, int], int] = {}
@@ -365,9 +368,13 @@ class Sequence:
         if resumed is not None and seq > resumed[0] and t_first_ns > resumed[1]:  # newer data, later numbers
             missed = seq - resumed[0]  # (a gap too long for the tracker is a reset there, but missed all the same)
             self.books.counters.chunks_missed_while_down += missed
+            self._missed[stream_id] = (expected, seq - 1)
             self.books.last_error = (f"restart: {key} missed {missed} chunks (seq {expected}..{seq - 1}) while no "
                                      "converter ran")
             log.warning("%s", self.books.last_error)
+        elif verdict is Verdict.LATE and self._missed and (gap := self._missed.get(stream_id)) is not None \
+                and gap[0] <= seq <= gap[1]:
+            self.books.counters.chunks_missed_while_down -= 1
         if verdict is Verdict.RESET:
             # Counted as a reset, not as a jump of lost chunks or a run of late ones.
             self.books.bad("seq_reset", f"sequence number {seq}, expected {expected}: stream restarted", key)
