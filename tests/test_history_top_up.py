@@ -71,3 +71,17 @@ def test_a_first_message_from_the_history_asks_nothing():
             assert _seqs(sub, 1.0) == [1, 2, 3, 4]
             sub.close()
         pubs.close()
+
+
+def test_a_source_without_caches_gives_a_few_lines_not_one_per_key():
+    """Every key's first message is live where the sources keep no cache: each is asked, eight said, then one line."""
+    port = free_tcp_port()
+    with open_session(loopback(port)) as zs:
+        sub = QueueSubscriber(zs, ["mntes/t/**"])
+        top_up = HistoryTopUp(zs, sub, time.time_ns() - 1)
+        said = [top_up.first(keys.counts_key("t", 0, m), _msg(7)) for m in range(12)]
+        assert len(top_up.asked) == 12
+        assert [s is not None for s in said] == [True] * 9 + [False] * 3
+        assert "further keys" in said[8] and all("seq 7" in s for s in said[:8])
+        assert _seqs(sub, 0.5) == []  # nobody answers
+        sub.close()

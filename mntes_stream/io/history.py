@@ -36,6 +36,7 @@ __all__ = ["HISTORY_KINDS", "POWER_CHUNK_S", "HistoryTopUp", "cache_chunks", "ca
 # status and provenance are periodic.
 HISTORY_KINDS = ("counts", "hk", "power")
 POWER_CHUNK_S = 0.1  # the converter does not know its streams' chunk length before they come: caches assume this
+_SAID = 8  # keys asked again with a line each (a source without caches would give one per key of the array)
 _HEARTBEAT_S = 0.5  # how soon a subscriber learns of a sample it missed when no later sample comes
 
 
@@ -141,6 +142,10 @@ class HistoryTopUp:
 
         self._sub.query(self._session, f"{key}/@adv/pub/**", timeout_s=5.0, keep=earlier)
         self.asked.append((key, first))
+        if len(self.asked) > _SAID:
+            return None if len(self.asked) > _SAID + 1 else (
+                f"{key} and further keys whose first message was live: their publishers' caches asked again too "
+                "(no line each)")
         return (f"{key}: its first message (seq {first}) was live, zenoh's history of it did not come first: "
                 f"asked its publisher's cache for the messages before it")
 
