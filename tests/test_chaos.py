@@ -26,5 +26,6 @@ def test_every_stall_and_kill_leaves_a_balanced_ledger_and_a_complete_recording(
     assert res["checks"]["offline_converts_every_recorded_chunk"], res["offline_ledger_line"]
     # No summary hides a chunk: counts recorded without power are at most what the converters reported lost.
     assert res["checks"]["no_summary_hides_a_chunk"], (res["recorded_counts_without_power"],
-                                                       res["converter_lost_reported_all_runs"])
+                                                       res["converter_lost_reported_all_runs"],
+                                                       res["without_power_seq_t_s"], res["events"], res["warnings"])
     assert res["ok"] and res["recorded_counts_chunks"] > 1000

@@ -272,8 +272,10 @@ def _analyse(work: Path, procs: dict, rcs: dict, log: list, down: dict, duration
     for stream, chunks in counts.items():
         seqs = [s for s, _ in sorted(chunks, key=lambda k: k[1])]
         gaps[stream] = sum(b - a - 1 for a, b in zip(seqs, seqs[1:]) if b > a + 1)
-    without_power = {s: sum(1 for k in chunks if k not in power.get(s, ()) and k not in late.get(s, ()))
-                     for s, chunks in counts.items()}
+    powerless = {s: sorted(k for k in chunks if k not in power.get(s, ()) and k not in late.get(s, ()))
+                 for s, chunks in counts.items()}
+    without_power = {s: len(v) for s, v in powerless.items()}
+    t_first = min((t for chunks in counts.values() for _, t in chunks), default=0)
     conv_runs = procs["converter"].results() if "converter" in procs else []
     last = next((r for r in reversed(conv_runs) if r), None)
     ledger = Ledger.from_dict(last.get("ledger", {}) if last else {})
@@ -305,9 +307,26 @@ def _analyse(work: Path, procs: dict, rcs: dict, log: list, down: dict, duration
         "recorded_counts_chunks": sum(len(c) for c in counts.values()),
         "recording_gaps": gaps,
         "recorded_counts_without_power": without_power,
+        # Which ones, and when (s after the first recorded sample; the events' clock starts about then), and what
+        # the services warned of: a failed check says where to look.
+        "without_power_seq_t_s": {s: [(q, round((t - t_first) / 1e9, 2)) for q, t in v[:12]]
+                                  for s, v in powerless.items() if v},
+        "warnings": _warnings(work),
         "late_power_chunks": sum(len(v) for v in late.values()),
         "offline_ledger_line": offline.ledger_line,
         "checks": checks,
         "ok": all(checks.values()),
     }
 
+
+def _warnings(work: Path, most: int = 30) -> list[str]:
+    """The services' lines about losses, gaps and history (each run's log; the first ``most``), without time stamps."""
+    import re
+
+    notable = re.compile(r"missed|lost [1-9]|gap|asked|dropped|never received|did not|error", re.IGNORECASE)
+    lines = []
+    for log in sorted(work.glob("*-[0-9]*.log")):
+        for line in log.read_text(errors="replace").splitlines():
+            if notable.search(line) and "running, up" not in line:
+                lines.append(f"{log.stem}: {line.split(': ', 1)[-1][:300]}")
+    return lines[:most]
