@@ -258,12 +258,16 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
             pts = {x: (y, e) for t in s["leakage"] if t["err"] is not None for x, y, e in zip(t["x"], t["y"], t["err"])}
             return pts if len(pts) == len(measured) else None
 
-        s = _wait(driver, leak_points, 90, "the leakage panel with every measured detector resolved",
+        def resolved(s):  # every point's error bar under 10 % (the fit's window fills over 60 s; slower under load)
+            pts = leak_points(s)
+            return pts if pts and all(0 < e < 0.1 * y for y, e in pts.values()) else None
+
+        s = _wait(driver, resolved, 90, "the leakage panel with every measured detector resolved to 10 %",
                   lambda s: json.dumps(s["leakage"])[:800] + " " + s["leakage_info"])
         truth = {p.detector_id: p for p in sim.truth_params}
         for det, (y, err) in leak_points(s).items():
             expected = abs(validation.expected_linear_nonlinearity_per_w(truth[det])) * 1e-12
-            assert y == pytest.approx(expected, rel=0.2) and 0 < err < 0.1 * y, (det, y, err, expected)
+            assert y == pytest.approx(expected, rel=0.2), (det, y, err, expected)
         assert "requirement 0.014 pW⁻¹" in s["leakage_notes"]
         assert "MNTES residual: not measurable live" in s["leakage_info"] and " s fitted of 60 s " in s["leakage_info"]
         time.sleep(1.0)
