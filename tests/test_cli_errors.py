@@ -173,6 +173,8 @@ def test_out_of_range_is_refused(capsys, argv, says):
     (["calib", "fitt"], "mntes-stream calib: error: unknown action 'fitt'; did you mean 'fit'?"),
     (["up", "--durration", "5"], "unrecognized arguments: --durration 5; did you mean --duration?"),
     (["up", "--kind", "tabel"], "invalid choice: 'tabel'; did you mean 'table'?"),
+    # A setting's choices too (add_settings_args): the recorder's compression.
+    (["record", "--compression", "lz5"], "invalid choice: 'lz5'; did you mean 'lz4'?"),
 ])
 def test_a_misspelling_gets_the_close_name(capsys, argv, says):
     assert says in _one_line(capsys, argv)

@@ -199,7 +199,10 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
         default = fields[name].default
         many = typing.get_origin(hint) is tuple
         inner = typing.get_args(hint)[0] if many else _not_none(hint)
-        if not many and inner in (int, float, str):
+        choices = s.choices if not many and inner is str and s.choices else None
+        if choices:  # argparse checks them: its one line names the closest choice (OneLineParser)
+            parse = str
+        elif not many and inner in (int, float, str):
             parse = _declared_type(cls, name, hint, s, inner)
         elif many and name in repeatable and inner in (int, float):
             from mntes_stream.options import number
@@ -223,7 +226,7 @@ def add_settings_args(p, cls, names, aliases: dict | None = None, title: str | N
             g.add_argument(*flags, dest=name, nargs="+", type=inner, default=None, metavar=metavar or name.upper(),
                            help=text)
         else:
-            g.add_argument(*flags, dest=name, type=parse, default=None, help=text,
+            g.add_argument(*flags, dest=name, type=parse, default=None, help=text, choices=choices,
                            metavar=metavar or ((s.unit or name).upper() if inner in (int, float) else None))
 
 

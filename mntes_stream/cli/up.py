@@ -25,38 +25,36 @@ import time
 from pathlib import Path
 
 from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, setup_logging, zenoh_layer
-from mntes_stream.core.timing import DFMUX_SAMPLE_RATE_HZ
-from mntes_stream.options import number
 
 
-def _pick_source(setup: str, args, zenoh):
+def _pick_source(setup: str, up, zenoh):
     """The array simulator (unless ``--minimal``), else the minimal physics source.
 
     Returns
     -------
     (description, truth parameters, registry service name, its config)
     """
-    n = max(1, round(args.chunk_s * args.sample_rate))
-    if not args.minimal:
+    n = max(1, round(up.chunk_s * up.sample_rate_hz))
+    if not up.minimal:
         from mntes_stream.core.sim import SimConfig
         from mntes_stream.service.simulator import SimulatorServiceConfig, SimulatorSource
 
-        cfg = SimConfig(boards=1, modules=args.modules, channels=args.channels, sample_rate_hz=args.sample_rate)
-        params = SimulatorSource(cfg, setup, args.chunk_s).params
+        cfg = SimConfig(boards=1, modules=up.modules, channels=up.channels, sample_rate_hz=up.sample_rate_hz)
+        params = SimulatorSource(cfg, setup, up.chunk_s).params
         return "array simulator", params, "simulator", SimulatorServiceConfig(sim=cfg, setup=setup,
-                                                                               chunk_s=args.chunk_s, zenoh=zenoh)
+                                                                               chunk_s=up.chunk_s, zenoh=zenoh)
     from mntes_stream.service.source import MinimalSource, SourceConfig, SourceServiceConfig
 
     # Housekeeping once per chunk, read at the chunk boundaries: every chunk is
     # bracketed when it arrives, so nothing waits (see README: latency).
-    cfg = SourceConfig(setup=setup, boards=1, modules=args.modules, channels=args.channels,
-                       sample_rate_hz=args.sample_rate, chunk_s=args.chunk_s, hk_interval_s=n / args.sample_rate)
+    cfg = SourceConfig(setup=setup, boards=1, modules=up.modules, channels=up.channels,
+                       sample_rate_hz=up.sample_rate_hz, chunk_s=up.chunk_s, hk_interval_s=n / up.sample_rate_hz)
     return "minimal source", MinimalSource(cfg).params, "source", SourceServiceConfig(source=cfg, zenoh=zenoh)
 
 
-def _metrics_ports(args) -> dict:
+def _metrics_ports(up) -> dict:
     """``--metrics-port``: each service serves its own endpoint on a free loopback port (merged by the parent)."""
-    if args.metrics_port is None:
+    if up.metrics_port is None:
         return {}
     from mntes_stream.io.transport import free_tcp_port
     from mntes_stream.service.metrics import MetricsSettings, require_metrics
@@ -69,12 +67,12 @@ def _metrics_of(metrics: dict, label: str) -> dict:
     return {"metrics": metrics[label]} if metrics else {}
 
 
-def _serve_merged(args, metrics: dict, say):
+def _serve_merged(up, metrics: dict, say):
     """The services' metrics on one endpoint, ``127.0.0.1:--metrics-port`` (0: any free port)."""
     from mntes_stream.service.metrics import MergedMetrics, MetricsSettings
 
     merged = MergedMetrics({label: f"http://{m.bind}:{m.port}/metrics" for label, m in metrics.items()})
-    port = merged.serve(MetricsSettings(port=args.metrics_port))
+    port = merged.serve(MetricsSettings(port=up.metrics_port))
     say(f"  Prometheus metrics of every service: http://127.0.0.1:{port}/metrics "
         f"(dashboard: services/grafana/mntes.json)")
     return merged
@@ -185,6 +183,8 @@ def monitor_command(setup: str, p_conv: int, p_src: int) -> str:
 def run_up(args) -> int:
     import dataclasses
 
+    from mntes_stream.cli._common import settings_from_args
+    from mntes_stream.cli.up_config import UpSettings
     from mntes_stream.core.lag import who_is_behind
     from mntes_stream.core.ledger import Ledger
     from mntes_stream.errors import MntesError
@@ -197,6 +197,7 @@ def run_up(args) -> int:
     from mntes_stream.service.recorder import RecorderConfig
     from mntes_stream.service.supervise import RestartBudget, Services
 
+    up = UpSettings(**settings_from_args(args, [f.name for f in dataclasses.fields(UpSettings)]))
     setup_logging(args.verbose)
     stdout = sys.stderr if args.json else sys.stdout  # --json: stdout is the JSON document alone
 
@@ -212,14 +213,14 @@ def run_up(args) -> int:
     # a zenoh file, if given, says how instead.
     redial = () if flags.file else ("connect/retry:{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2}",)
     layered = lambda z: flags.over(dataclasses.replace(z, cfg=z.cfg + redial))  # noqa: E731
-    setup = args.setup
-    out = Path(args.out).resolve()
+    setup = up.setup
+    out = Path(up.out).resolve()
     rec_dir = out / "recordings"
     rec_dir.mkdir(parents=True, exist_ok=True)
     files = _Files(rec_dir)
     p_rec, p_conv, p_src = free_tcp_port(), free_tcp_port(), free_tcp_port()
-    what, truth, src_service, src_cfg = _pick_source(setup, args, layered(loopback(p_src, [p_conv, p_rec])))
-    metrics = _metrics_ports(args)  # {label: MetricsSettings} of each service, or {} without --metrics-port
+    what, truth, src_service, src_cfg = _pick_source(setup, up, layered(loopback(p_src, [p_conv, p_rec])))
+    metrics = _metrics_ports(up)  # {label: MetricsSettings} of each service, or {} without --metrics-port
     if metrics:
         src_cfg = dataclasses.replace(src_cfg, metrics=metrics["source"])
     params_file = out / "params.toml"
@@ -227,14 +228,14 @@ def run_up(args) -> int:
     dump_params(truth, params_file, metadata={"source": f"mntes-stream up ({what}, truth)"})
     rec_cfg = RecorderConfig(setup=setup, directory=str(rec_dir), flush_interval_s=1.0, rotate_s=0,
                              log_interval_s=3600, zenoh=layered(loopback(p_rec)), **_metrics_of(metrics, "recorder"))
-    conv_cfg = ConverterConfig(setup=setup, params=str(params_file), kind=args.kind, zenoh=layered(loopback(p_conv, [p_rec])),
-                               **_metrics_of(metrics, "converter"))
+    conv_cfg = ConverterConfig(setup=setup, params=str(params_file), zenoh=layered(loopback(p_conv, [p_rec])),
+                               **settings_from_args(args, ("kind",)), **_metrics_of(metrics, "converter"))
     # A restarted converter continues from this run's checkpoint (an older run's would be a different stream).
     checkpoint = out / "converter-checkpoint.json"
     checkpoint.unlink(missing_ok=True)
     conv_cfg = dataclasses.replace(conv_cfg, status=dataclasses.replace(conv_cfg.status, interval_s=1.0),
                                    checkpoint=str(checkpoint))
-    budget = RestartBudget(args.restarts)
+    budget = RestartBudget(up.restarts)
     before, last_ledger = Ledger("converted"), {}  # converters that died: their ledgers, as their last status said
 
     services = Services()
@@ -242,10 +243,10 @@ def run_up(args) -> int:
     # A first start compiles kernels and builds tables (tens of seconds): say so, not nothing.
     if not args.quiet:  # -q: no start lines (docs/cli.md)
         services.on_progress = lambda label, text: say(f"  {label}: {text}")
-    say(f"mntes-stream up: {what}, {len(truth)} detectors ({args.modules} modules x {args.channels} channels) "
-        f"at {args.sample_rate} Hz -> {args.kind} conversion -> MCAP in {rec_dir}")
+    say(f"mntes-stream up: {what}, {len(truth)} detectors ({up.modules} modules x {up.channels} channels) "
+        f"at {up.sample_rate_hz} Hz -> {conv_cfg.kind} conversion -> MCAP in {rec_dir}")
     say(f"  zenoh peers on 127.0.0.1: recorder :{p_rec}, converter :{p_conv}, source :{p_src}; "
-        f"{'until Ctrl-C' if not args.duration else f'for {args.duration:g} s (Ctrl-C stops earlier)'}")
+        f"{'until Ctrl-C' if not up.duration_s else f'for {up.duration_s:g} s (Ctrl-C stops earlier)'}")
     say(f"  monitor, from a second terminal: {monitor_command(setup, p_conv, p_src)}")
     status_key = keys.status_key(setup, conv_cfg.name)
     failed = interrupted = False
@@ -260,10 +261,10 @@ def run_up(args) -> int:
                     "publishes once its subscribers are connected")
             first_power = not args.quiet
             if metrics:
-                merged = _serve_merged(args, metrics, say)
+                merged = _serve_merged(up, metrics, say)
             with open_session(layered(loopback(None, [p_rec, p_conv, p_src]))) as session:
                 sub = QueueSubscriber(session, [status_key])
-                t_end = time.monotonic() + args.duration if args.duration else float("inf")
+                t_end = time.monotonic() + up.duration_s if up.duration_s else float("inf")
                 while not stopping.is_set() and time.monotonic() < t_end:
                     if "converter" in services.dead():
                         # Its last status holds its ledger: what it did before it died (the statuses
@@ -363,28 +364,20 @@ def run_up(args) -> int:
 
 
 def _up_args(p) -> None:
-    from mntes_stream.core.convert import CONVERTER_KINDS  # core.convert imports numba: `up` alone needs it
-    from mntes_stream.io.keys import DEFAULT_SETUP
+    import dataclasses
 
-    p.add_argument("--duration", type=number(float, "s", ge=0), default=60.0, metavar="S", help="seconds to run (0: until Ctrl-C; default 60)")
-    p.add_argument("--out", default="mntes-up", metavar="DIR", help="parameters and recordings go here (default ./mntes-up)")
-    p.add_argument("--setup", default=DEFAULT_SETUP, help=f"setup name in the keys (default {DEFAULT_SETUP})")
-    p.add_argument("--modules", type=number(int, ge=1), default=4, help="readout modules (default 4)")
-    p.add_argument("--channels", type=number(int, ge=1), default=64, help="channels per module (default 64)")
-    p.add_argument("--sample-rate", type=number(float, "Hz", gt=0), default=DFMUX_SAMPLE_RATE_HZ, metavar="HZ",
-                   help=f"default {DFMUX_SAMPLE_RATE_HZ} (DfMux ground rate, 20 MHz / 2**17)")
-    p.add_argument("--chunk-s", type=number(float, "s", gt=0), default=0.1, help="counts chunk length (s)")
-    p.add_argument("--kind", default="table", choices=CONVERTER_KINDS, help="conversion kind (default table)")
-    p.add_argument("--minimal", action="store_true", help="the minimal physics source instead of the array simulator")
+    from mntes_stream.cli._common import add_settings_args
+    from mntes_stream.cli.up_config import UP_FLAGS, UpSettings
+    from mntes_stream.service.converter import ConverterConfig  # its kind setting (imports numba: `up` needs it)
+
+    names, (aliases, spelled) = tuple(f.name for f in dataclasses.fields(UpSettings)), UP_FLAGS
+    metavars = {"out": "DIR", "sample_rate_hz": "HZ", "metrics_port": "PORT", "restarts": "N"}
+    add_settings_args(p, UpSettings, names[:7], aliases, spelled=spelled, metavars=metavars)
+    add_settings_args(p, ConverterConfig, ("kind",))
+    add_settings_args(p, UpSettings, names[7:], aliases, spelled=spelled, metavars=metavars)
     p.add_argument("--json", action="store_true", help="print one JSON document (the services' final statistics) "
                                                        "on stdout; progress goes to stderr")
     add_quiet(p)
-    p.add_argument("--metrics-port", type=number(int, ge=0, le=65535), metavar="PORT",
-                   help="serve every service's Prometheus metrics on http://127.0.0.1:PORT/metrics (0: any free port; "
-                        "needs the metrics extra)")
-    p.add_argument("--restarts", type=number(int, ge=0), default=3, metavar="N",
-                   help="restart a service that dies, at most N times a minute each (0: a death ends the run; "
-                        "default 3)")
     p.add_argument("-v", "--verbose", action="store_true", help="log from every service")
     add_zenoh_args(p)
     p.set_defaults(func=run_up)
