@@ -11,27 +11,25 @@ from pathlib import Path
 from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, print_mapping
 from mntes_stream.options import number
 
-_G3_INPUT = ("t_bath_key", "t_bath_unit", "t_bath_default_k", "b_field_t")
-
 
 def add_g3_convert_args(p) -> None:
     """``convert``'s options for G3 input or output (an error where they do not apply, never ignored)."""
     g = p.add_argument_group("G3 (SPT-3G)", "when IN or OUT is a .g3 file: RUN.g3 -> OUT.g3 appends MntesOpticalPower "
                                             "and MntesFlags to every Scan frame; RUN.g3 -> OUT.mcap converts through "
-                                            "the live pipeline; REC.mcap -> OUT.g3 writes the power as Scan frames. "
-                                            "--t-bath-* and --b-field-t: G3 input only")
+                                            "the live pipeline; REC.mcap -> OUT.g3 writes the power as Scan frames")
     g.add_argument("--kind", default=None, choices=("table", "grid", "exact", "linear", "electrical"),
                    help="RUN.g3 -> OUT.g3: converter kind (default table; electrical needs no --params: minus "
                         "spt3g's electrical power); REC.mcap -> OUT.mcap: instead of the recorded kind (or the "
                         "--config's [converter] kind), e.g. linear: the linear baseline of the same counts")
     g.add_argument("--wiring", metavar="RUN.g3", help="REC.mcap -> OUT.g3: a G3 file whose wiring map names the "
                                                       "bolometers (default: detector ids as names)")
-    from mntes_stream.cli._common import add_settings_args
-    from mntes_stream.g3.mapping import G3InputConfig
-
-    # G3 input only (refuse_inapplicable): the settings of the bridge's [g3] table.
-    add_settings_args(g, G3InputConfig, _G3_INPUT, metavars={"t_bath_key": "FRAME.ENTRY", "t_bath_default_k": "K",
-                                                             "b_field_t": "T"})
+    g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="G3 input: GcpSlow bath thermometer "
+                                                               "(default CryoStatus.UC_Head)")
+    g.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="G3 input: its unit (default G3Units)")
+    g.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="G3 input: bath temperature of a run "
+                                                                       "without one")
+    g.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="G3 input: constant field (spt3g has no field "
+                                                                "source; default 0)")
     g.add_argument("--setup", default=None, help="RUN.g3 -> OUT.mcap: the setup name of the messages (default lab)")
     g.add_argument("--scan-samples", type=number(int, ge=1), default=None, help="RUN.g3 -> OUT.g3 of raw Timepoints: samples per "
                                                                   "Scan frame (default 1000)")
@@ -54,10 +52,11 @@ def refuse_inapplicable(args, g3_in: bool, g3_out: bool) -> None:
 
 
 def g3_input_config(args):
-    from mntes_stream.cli._common import settings_from_args
     from mntes_stream.g3.mapping import G3InputConfig
 
-    return G3InputConfig(**settings_from_args(args, _G3_INPUT))
+    given = {"t_bath_key": args.t_bath_key, "t_bath_unit": args.t_bath_unit,
+             "t_bath_default_k": args.t_bath_default_k, "b_field_t": args.b_field_t}
+    return G3InputConfig(**{k: v for k, v in given.items() if v is not None})
 
 
 def quiet_spt3g() -> None:
