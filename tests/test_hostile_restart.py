@@ -246,13 +246,10 @@ def test_a_resumed_pipeline_drops_the_history_its_checkpoint_had_converted_as_du
     assert st.chunks_duplicated == 20 and st.chunks_lost == 0 and not st.last_error.startswith("internal")
 
 
-def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoints_floor(tmp_path, source):
-    """A status's checkpoint claims chunks whose power may still sit in zenoh's queue when SIGKILL comes. Its floor
-    (the numbers of the status before) says what surely went out: the history above it is converted again, once
-    (a second copy is a duplicate), below it dropped; nothing is lost, and missed chunks count from the newest."""
+def _killed_after_a_status(tmp_path, source):
+    """A converter's checkpoint as written at a status (seq 9 of both streams) with the status before as its
+    floor (seq 5), read back: (the converter, 3 s of source steps, the checkpoint's state)."""
     from mntes_stream.core.convert import make_converter
-    from mntes_stream.core.ledger import Ledger
-    from mntes_stream.io.messages import PowerChunk
     from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
     from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
 
@@ -266,7 +263,18 @@ def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoin
     first.flush()
     f = tmp_path / "ck.json"
     save_checkpoint(str(f), "lab", "converter", first.sequence_state(), floor=floor)  # the last status: seq 9
-    state, _ = load_checkpoint(str(f), "lab", "converter")
+    return conv, steps, load_checkpoint(str(f), "lab", "converter")[0]
+
+
+def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoints_floor(tmp_path, source):
+    """A status's checkpoint claims chunks whose power may still sit in zenoh's queue when SIGKILL comes. Its floor
+    (the numbers of the status before) says what surely went out: the history above it is converted again, once
+    (a second copy is a duplicate), below it dropped; nothing is lost, and missed chunks count from the newest."""
+    from mntes_stream.core.ledger import Ledger
+    from mntes_stream.io.messages import PowerChunk
+    from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
+
+    conv, steps, state = _killed_after_a_status(tmp_path, source)
     assert {v for v in state.values()} == {(9, v[1], 5, v[3]) for v in state.values()}
 
     # Killed with the power of seq 6-9 unsent; the sources' history gives steps 0-9 again, then the new steps
@@ -295,23 +303,10 @@ def test_history_that_comes_after_a_live_chunk_is_no_longer_missed(tmp_path, sou
     them; the converter asks the caches again (io/history.HistoryTopUp), so the history comes after the live
     chunk: what the first chunk made 'missed while down' is converted late instead, and counted neither missed
     nor lost."""
-    from mntes_stream.core.convert import make_converter
     from mntes_stream.io.messages import PowerChunk
     from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
-    from mntes_stream.service.checkpoint import load_checkpoint, save_checkpoint
 
-    conv = make_converter("exact", {p.detector_id: p for p in source.params})
-    steps = list(source.batches(T0, duration_s=3.0))
-    first = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
-    _feed(first, steps[:6])
-    first.flush()
-    floor = first.sequence_state()
-    _feed(first, steps[6:10])
-    first.flush()
-    f = tmp_path / "ck.json"
-    save_checkpoint(str(f), "lab", "converter", first.sequence_state(), floor=floor)
-    state, _ = load_checkpoint(str(f), "lab", "converter")
-
+    conv, steps, state = _killed_after_a_status(tmp_path, source)
     second = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
     second.resume_sequences(state)
     out = _feed(second, steps[15:16])  # live first: 10-14 missed so far
