@@ -102,6 +102,8 @@ class HistoryTopUp:
     ``AdvancedPublisher``'s queryable) and its messages numbered before the
     first one received join the queue.
     Messages from the cache are never counted twice: the earlier ones only.
+    ``QueueSubscriber(recover="history")`` (callback mode) does this for every
+    message it hands out.
 
     Parameters
     ----------

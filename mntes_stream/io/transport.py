@@ -386,6 +386,10 @@ class QueueSubscriber:
         self._leftover: collections.deque = collections.deque()
         if recover not in ("", "recovery", "history"):
             raise ConfigError(f"QueueSubscriber recover must be '', 'recovery' or 'history', got {recover!r}")
+        # With history: a key whose history zenoh-ext dropped (a live sample came first) is asked of its
+        # publisher's cache again as its first message is taken (callback mode: the replies join the queue).
+        self._top_up = history.HistoryTopUp(session, self, time.time_ns()) \
+            if recover == "history" and mode == "callback" else None
         for expr in key_exprs:
             try:
                 import zenoh
@@ -476,6 +480,9 @@ class QueueSubscriber:
             with self._bytes_free:
                 self.queued_bytes -= len(item[1])
                 self._bytes_free.notify()
+        if self._top_up is not None and not self._closing.is_set() \
+                and (said := self._top_up.first(item[0], item[1])) is not None:
+            log.warning("%s", said)
         return item
 
     def drain(self, limit: int = 1 << 30, max_bytes: int = 0) -> Iterator[tuple[str, bytes, int]]:

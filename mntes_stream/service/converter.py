@@ -250,7 +250,6 @@ class ConverterService(Service):
 
     def setup(self, ctx) -> None:
         from mntes_stream.io.claims import StreamClaims
-        from mntes_stream.io.history import HistoryTopUp
         from mntes_stream.pipeline import ConverterPipeline
         from mntes_stream.pipeline.build import build_converter, owned_part
         from mntes_stream.pipeline.housekeeping import known_modules
@@ -298,14 +297,11 @@ class ConverterService(Service):
         # Samples come in arrival order: a step's housekeeping (published first) before its counts.
         # What the sources' caches hold (io/history.py) comes first, so a converter restarted after a crash
         # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
-        # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too.
-        declared_ns = time.time_ns()
+        # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too, and a
+        # key whose history zenoh-ext dropped is asked again (io/history.HistoryTopUp; bench chaos: 3 streams of 4).
         self._sub = QueueSubscriber(session, topics, maxsize=cfg.queue_size, stop=ctx.stop, mode="callback",
                                     max_bytes=int(cfg.queue_mb * 1e6), recover="history",
                                     sources=True)  # each chunk's publisher: two on one key
-        # zenoh-ext sometimes drops a publisher's cache when a live sample came first (io/history.HistoryTopUp):
-        # a restarted converter then missed what its sources' caches held (seen in bench chaos: 3 streams of 4).
-        self._top_up = HistoryTopUp(session, self._sub, declared_ns)
         try:
             # Provenance on request too: a recorder started later asks instead of waiting for the next one.
             answer(session, self._prov_key, pipe.provenance_bytes())
@@ -346,10 +342,6 @@ class ConverterService(Service):
             # A batch in bytes too: it leaves the queue (whose room fills again), so at most 2 x queue_mb is held.
             cap = int(cfg.queue_mb * 1e6)
             batch = [item, *sub.drain(cfg.batch_max - 1, max_bytes=max(1, cap - len(item[1])))]
-            first = self._top_up.first
-            for got in batch:
-                if (said := first(got[0], got[1])) is not None:
-                    log.warning("%s", said)
             full = len(batch) >= cfg.batch_max or sum(len(b[1]) for b in batch) >= cap
             mono = time.monotonic()
             self._behind_since = (self._behind_since or mono) if full else None

@@ -269,7 +269,6 @@ class RecorderService(Service):
         return _reach_the_source(self.config.zenoh)
 
     def setup(self, ctx) -> None:
-        from mntes_stream.io.history import HistoryTopUp
         from mntes_stream.io.transport import QueueSubscriber
         from mntes_stream.service.recorder_sink import RecorderSink
 
@@ -282,15 +281,14 @@ class RecorderService(Service):
             # The callback only timestamps and queues; a full queue makes it wait,
             # which BLOCK publishers feel as back-pressure (nothing is dropped).
             # History: what the sources' caches hold (io/history.py) is recorded too, so a recorder restarted
-            # after a crash, or started late, fills what it missed; a gap seen later is recovered from them.
-            declared_ns = time.time_ns()
+            # after a crash, or started late, fills what it missed; a gap seen later is recovered from them
+            # (and a key whose history zenoh dropped is asked again: io/history.HistoryTopUp).
             self._sub = QueueSubscriber(ctx.session, [config.subscription], maxsize=config.queue_messages,
                                         max_bytes=int(config.queue_mb * 1e6), recover="history",
                                         sources=True)  # each message's publisher: two on one stream told apart
             # A converter's provenance, answered on request, is recorded from the start too (only that:
             # the heartbeat queryables under alive/ answer a wider query, and are not data).
             self._sub.query(ctx.session, keys.provenance_key(config.setup))
-            self._top_up = HistoryTopUp(ctx.session, self._sub, declared_ns)
         except BaseException as exc:  # the file is finished whatever happened
             sink.writer.close()
             raise _failed(exc) from exc
@@ -301,11 +299,8 @@ class RecorderService(Service):
         try:
             item = sub.get(timeout_s=min(0.1, max(writer.next_tick_s(), 0.005)))
             if item is not None:
-                first = self._top_up.first
                 for got in (item, *sub.drain(10_000)):  # then check the stop flags once per batch
                     sink.add(*got)
-                    if (said := first(got[0], got[1])) is not None:
-                        log.warning("%s", said)
             writer.tick()
         except BaseException as exc:
             raise _failed(exc) from exc
