@@ -162,6 +162,7 @@ def test_numbers_are_finite_everywhere_outside_the_benchmarks(capsys):
     (["record", "--rotate-mb", "-5"], "argument --rotate-mb: expected a number (MiB) >= 0, got '-5'"),
     (["ps", "--timeout", "0"], "argument --timeout: expected a number (s) > 0"),
     (["simulate", "--nuller-gain", "16"], "expected an integer >= 0 and <= 15, got '16'"),
+    (["convert", "run.g3", "out.mcap", "--t-bath-default-k", "0"], "argument --t-bath-default-k: expected a number (K) > 0"),
 ])
 def test_out_of_range_is_refused(capsys, argv, says):
     assert says in _one_line(capsys, argv)
@@ -175,6 +176,10 @@ def test_out_of_range_is_refused(capsys, argv, says):
     (["up", "--kind", "tabel"], "invalid choice: 'tabel'; did you mean 'table'?"),
     # A setting's choices too (add_settings_args): the recorder's compression.
     (["record", "--compression", "lz5"], "invalid choice: 'lz5'; did you mean 'lz4'?"),
+    # How a G3 file is read (G3InputConfig's declarations), for convert and params alike.
+    (["convert", "run.g3", "out.mcap", "--t-bath-unit", "mk"], "invalid choice: 'mk'; did you mean 'mK'?"),
+    (["params", "--from", "run.g3", "--params", "p.toml", "--out", "o.toml", "--t-bath-unit", "k"],
+     "invalid choice: 'k'; did you mean 'K'?"),
 ])
 def test_a_misspelling_gets_the_close_name(capsys, argv, says):
     assert says in _one_line(capsys, argv)

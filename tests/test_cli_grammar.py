@@ -260,6 +260,21 @@ def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_
     assert (g.bridge.source, g.bridge.boards, g.bridge.duration_s, g.bridge.chunk_samples, g.bridge.setup) == (
         "run.g3", (3, 4), 2.0, 8, "x2")
     assert (g.g3.t_bath_key, g.g3.t_bath_default_k) == ("A.B", 0.3)
+    # convert and params read a G3 file with the same [g3] settings, from the same declarations (G3InputConfig).
+    from mntes_stream.cli.g3 import g3_input_config
+    from mntes_stream.g3.settings import G3InputConfig
+
+    given = ["--t-bath-key", "A.B", "--t-bath-unit", "mK", "--t-bath-default-k", "0.25", "--b-field-t", "-0.00002"]
+    for argv in (["convert", "run.g3", "out.mcap", *given],
+                 ["params", "--from", "run.g3", "--params", "p.toml", "--out", "o.toml", *given]):
+        assert g3_input_config(parser.parse_args(argv)) == G3InputConfig(
+            t_bath_key="A.B", t_bath_unit="mK", t_bath_default_k=0.25, b_field_t=-2e-5), argv
+    assert g3_input_config(parser.parse_args(["convert", "run.g3", "out.mcap"])) == G3InputConfig()
+    helps = {path: action.help for path, action in _walk(parser) if "--t-bath-unit" in action.option_strings}
+    assert set(helps) == {("convert",), ("params",)} and len(set(helps.values())) == 1, helps
+    from mntes_stream.core.settings import declared
+
+    assert declared(G3InputConfig.__dataclass_fields__["t_bath_unit"]).doc in helps[("convert",)]
     m = monitor_config(parser.parse_args(["monitor", "--port", "0", "--history-s", "20", "--f-hwp", "auto",
                                           "--update-s", "2"]))
     assert (m.port, m.view.history_s, m.view.f_hwp_hz, m.update_s) == (0, 20.0, None, 2.0)

@@ -16,7 +16,8 @@ from mntes_stream.core import flags as fl  # noqa: E402
 from mntes_stream.core.timing import DFMUX_TICKS_PER_SAMPLE, G3_TICK_NS  # noqa: E402
 from mntes_stream.g3 import frames as F  # noqa: E402
 from mntes_stream.g3 import spt3g  # noqa: E402
-from mntes_stream.g3.mapping import G3InputConfig, Wiring  # noqa: E402
+from mntes_stream.g3.mapping import Wiring  # noqa: E402
+from mntes_stream.g3.settings import G3InputConfig  # noqa: E402
 
 T0_NS = 1_700_000_000 * 10**9
 SAMPLE_NS = DFMUX_TICKS_PER_SAMPLE * G3_TICK_NS

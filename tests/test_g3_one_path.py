@@ -75,7 +75,8 @@ def test_g3_to_g3_equals_g3_to_mcap_flags_and_all(tmp_path, staleness_s, monkeyp
 
 
 def test_g3_housekeeping_histories_stay_bounded_in_a_long_run():
-    from mntes_stream.g3.mapping import BathHistory, G3InputConfig, HkHistory, HkSnapshot
+    from mntes_stream.g3.mapping import BathHistory, HkHistory, HkSnapshot
+    from mntes_stream.g3.settings import G3InputConfig
 
     cfg = G3InputConfig(hk_retention_s=10.0)
     bath, hk = BathHistory(cfg), HkHistory(int(10e9))

@@ -105,7 +105,8 @@ def test_round_trip_g3_bridge_converter_recorder_back_to_g3(tmp_path):
     from mntes_stream.cli import main
     from mntes_stream.g3.bridge import BridgeSettings, G3BridgeConfig, G3BridgeService
     from mntes_stream.g3.files import converter_params, g3_to_g3
-    from mntes_stream.g3.mapping import G3InputConfig, Wiring
+    from mntes_stream.g3.mapping import Wiring
+    from mntes_stream.g3.settings import G3InputConfig
     from mntes_stream.g3.sim import write_g3
     from mntes_stream.io.paramfile import dump_params
     from mntes_stream.io.transport import free_tcp_port, loopback

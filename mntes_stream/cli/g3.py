@@ -23,13 +23,7 @@ def add_g3_convert_args(p) -> None:
                         "--config's [converter] kind), e.g. linear: the linear baseline of the same counts")
     g.add_argument("--wiring", metavar="RUN.g3", help="REC.mcap -> OUT.g3: a G3 file whose wiring map names the "
                                                       "bolometers (default: detector ids as names)")
-    g.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="G3 input: GcpSlow bath thermometer "
-                                                               "(default CryoStatus.UC_Head)")
-    g.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="G3 input: its unit (default G3Units)")
-    g.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="G3 input: bath temperature of a run "
-                                                                       "without one")
-    g.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="G3 input: constant field (spt3g has no field "
-                                                                "source; default 0)")
+    add_g3_input_args(g)
     g.add_argument("--setup", default=None, help="RUN.g3 -> OUT.mcap: the setup name of the messages (default lab)")
     g.add_argument("--scan-samples", type=number(int, ge=1), default=None, help="RUN.g3 -> OUT.g3 of raw Timepoints: samples per "
                                                                   "Scan frame (default 1000)")
@@ -51,12 +45,26 @@ def refuse_inapplicable(args, g3_in: bool, g3_out: bool) -> None:
                           f"(convert --help says which conversion takes which option){hint}")
 
 
-def g3_input_config(args):
-    from mntes_stream.g3.mapping import G3InputConfig
+# The [g3] settings a G3 file's reader takes from the command line (convert, params): flags, types, ranges and
+# help from G3InputConfig's declarations.
+_G3_INPUT = ("t_bath_key", "t_bath_unit", "t_bath_default_k", "b_field_t")
+_G3_METAVARS = {"t_bath_key": "FRAME.ENTRY"}
 
-    given = {"t_bath_key": args.t_bath_key, "t_bath_unit": args.t_bath_unit,
-             "t_bath_default_k": args.t_bath_default_k, "b_field_t": args.b_field_t}
-    return G3InputConfig(**{k: v for k, v in given.items() if v is not None})
+
+def add_g3_input_args(p) -> None:
+    """How a G3 file is read (``--t-bath-key``, ``--t-bath-unit``, ``--t-bath-default-k``, ``--b-field-t``)."""
+    from mntes_stream.cli._common import add_settings_args
+    from mntes_stream.g3.settings import G3InputConfig
+
+    add_settings_args(p, G3InputConfig, _G3_INPUT, metavars=_G3_METAVARS)
+
+
+def g3_input_config(args):
+    """The G3InputConfig of the flags given (the declared defaults for the rest)."""
+    from mntes_stream.cli._common import settings_from_args
+    from mntes_stream.g3.settings import G3InputConfig
+
+    return G3InputConfig(**settings_from_args(args, _G3_INPUT))
 
 
 def quiet_spt3g() -> None:
@@ -159,13 +167,13 @@ def run_bridge(args) -> int:
 def _bridge_args(p) -> None:
     from mntes_stream.cli._common import add_settings_args
     from mntes_stream.g3.bridge import BridgeSettings
-    from mntes_stream.g3.mapping import G3InputConfig
+    from mntes_stream.g3.settings import G3InputConfig
 
     p.add_argument("--config", metavar="FILE", help="bridge TOML ([g3-bridge], [g3], [zenoh]); flags override it")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
     add_settings_args(p, BridgeSettings, _BRIDGE, {"duration_s": ("--duration",)}, spelled=_SPELLED,
                       repeatable=("boards",), metavars=_METAVARS)
-    add_settings_args(p, G3InputConfig, _G3, metavars={"t_bath_key": "FRAME.ENTRY"})
+    add_settings_args(p, G3InputConfig, _G3, metavars=_G3_METAVARS)
     p.add_argument("--json", action="store_true", help="print the final statistics as one JSON document")
     add_quiet(p)
     from mntes_stream.cli.ocs import add_hk_args

@@ -14,7 +14,6 @@ as it is (no Python needed; ``g3.files.write_converter_params``).
 from __future__ import annotations
 
 from mntes_stream.cli._common import add_json, add_overwrite, add_quiet, claim_out, print_mapping
-from mntes_stream.options import number
 
 
 def run_boards(args) -> int:
@@ -68,6 +67,8 @@ def run(args) -> int:
 
 
 def register(sub) -> None:
+    from mntes_stream.cli.g3 import add_g3_input_args
+
     p = sub.add_parser("params", help="the converter's parameter file for a G3 run or IceBoards (detector ids, their gain)",
                        description="Write the detector parameters of PARAMS (keyed by bolometer name or detector id) "
                                    "for the bolometers wired in a G3 run, keyed by detector id, each gain the DfMux "
@@ -83,10 +84,7 @@ def register(sub) -> None:
                    help="detector parameters (TOML) keyed by bolometer name or detector id, e.g. the "
                         "RUN.bolometer-params.toml `simulate --format g3` writes")
     p.add_argument("--out", required=True, metavar="PARAMS.toml", help="the parameter file to write")
-    p.add_argument("--t-bath-key", metavar="FRAME.ENTRY", help="GcpSlow bath thermometer (default CryoStatus.UC_Head)")
-    p.add_argument("--t-bath-unit", choices=("G3Units", "K", "mK"), help="its unit (default G3Units)")
-    p.add_argument("--t-bath-default-k", type=number(float, "K", gt=0), metavar="K", help="bath temperature of a run without one")
-    p.add_argument("--b-field-t", type=number(float, "T"), metavar="T", help="constant field (spt3g has no field source; default 0)")
+    add_g3_input_args(p)
     add_overwrite(p, "replace an existing --out file")
     add_json(p)
     add_quiet(p)

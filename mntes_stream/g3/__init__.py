@@ -15,6 +15,7 @@ with one line instead of the segfault it would be. Work that needs both a G3
 file and a framework reads the G3 in a child process (:mod:`.isolated`).
 
 - :mod:`.runtime`: :func:`spt3g` (the package's one way to spt3g) and the so3g refusal.
+- :mod:`.settings`: :class:`G3InputConfig`, how G3 input is read (the ``[g3]`` settings; no numpy).
 - :mod:`.mapping`: the wiring map both ways (bolometer name <-> detector id),
   housekeeping -> per-channel amps-per-count and bias (spt3g's own
   functions), GcpSlow -> bath temperature.

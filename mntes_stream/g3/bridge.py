@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from mntes_stream.core.ids import NAME_PATTERN
 from mntes_stream.core.settings import Settings, setting
 from mntes_stream.errors import ConfigError
-from mntes_stream.g3.mapping import G3InputConfig
+from mntes_stream.g3.settings import G3InputConfig
 from mntes_stream.io import keys
 from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.service.base import Service

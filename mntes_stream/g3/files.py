@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from mntes_stream.errors import ConfigError
-from mntes_stream.g3.mapping import G3InputConfig, Wiring
+from mntes_stream.g3.mapping import Wiring
 from mntes_stream.g3.runtime import spt3g
+from mntes_stream.g3.settings import G3InputConfig
 from mntes_stream.g3.wire import AtomicG3Writer
 
 MAX_FRAME_BYTES = 512 << 20  # a frame of a G3 file claiming more is not read (the bridge's max_frame_mb)

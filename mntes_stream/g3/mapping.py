@@ -26,11 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mntes_stream.core.ids import detector_id
-from mntes_stream.core.settings import Settings, setting
 from mntes_stream.core.timing import G3_TICK_NS
 from mntes_stream.errors import ConfigError, SchemaError
+from mntes_stream.g3.settings import G3InputConfig
 
-__all__ = ["COUNTS_24BIT", "G3InputConfig", "Wiring", "HkSnapshot", "HkHistory", "BathHistory", "hk_snapshot",
+__all__ = ["COUNTS_24BIT", "Wiring", "HkSnapshot", "HkHistory", "BathHistory", "hk_snapshot",
            "hk_settings", "bath_reading", "g3_time_ns", "invalid_counts", "params_for_wiring", "SQRT2"]
 
 log = logging.getLogger("mntes_stream.g3")
@@ -38,26 +38,6 @@ log = logging.getLogger("mntes_stream.g3")
 SQRT2 = float(np.sqrt(2.0))
 # FLAC packs counts in 24 bits and wraps beyond +-2**23 silently: a value at or beyond it is not a reading.
 COUNTS_24BIT = 2**23
-
-
-@dataclass(frozen=True)
-class G3InputConfig(Settings):
-    """How G3 input is read (the ``[g3]`` settings of the bridge and of ``convert``)."""
-
-    t_bath_key: str = setting("CryoStatus.UC_Head", "GcpSlow frame key, then map entry, of the bath thermometer")
-    t_bath_unit: str = setting("G3Units", "unit of that value (G3Units: spt3g's base, K = 1000)",
-                               choices=("G3Units", "K", "mK"))
-    t_bath_time_key: str = setting("Time", "GcpSlow frame key of the reading's G3Time (absent: time of the data "
-                                   "seen last)")
-    t_bath_default_k: float | None = setting(None, "bath temperature when the run has no reading (None: an error)",
-                                             unit="K", gt=0)
-    b_field_t: float = setting(0.0, "spt3g has no magnetic-field source: this constant field", unit="T")
-    transfer_function: str = setting("spt3g_filtering_2017_full", "spt3g transfer function when the wiring frame "
-                                     "names none (DfMuxTransferFunction)")
-    readout_system: str = setting("ICE", "when the wiring frame has no ReadoutSystem", choices=("ICE", "DfMux"))
-    hk_retention_s: float = setting(600.0, "DfMux housekeeping and bath readings kept behind the newest data (older "
-                                    "ones but the one in force are dropped: bounded memory in a long run)",
-                                    unit="s", gt=0)
 
 
 def g3_time_ns(t) -> int:

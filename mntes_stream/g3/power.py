@@ -46,7 +46,6 @@ from mntes_stream.errors import ConfigError
 from mntes_stream.g3.counts import scan_block
 from mntes_stream.g3.mapping import (
     BathHistory,
-    G3InputConfig,
     HkHistory,
     Wiring,
     bath_reading,
@@ -55,6 +54,7 @@ from mntes_stream.g3.mapping import (
     params_for_wiring,
 )
 from mntes_stream.g3.runtime import spt3g
+from mntes_stream.g3.settings import G3InputConfig
 from mntes_stream.g3.translate import FrameTranslator
 from mntes_stream.io import keys
 from mntes_stream.pipeline.build import ConverterSpec, build_converter, default_table_cache
