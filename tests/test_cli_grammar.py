@@ -260,6 +260,17 @@ def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_
     assert (g.bridge.source, g.bridge.boards, g.bridge.duration_s, g.bridge.chunk_samples, g.bridge.setup) == (
         "run.g3", (3, 4), 2.0, 8, "x2")
     assert (g.g3.t_bath_key, g.g3.t_bath_default_k) == ("A.B", 0.3)
+    # replay: --speed, --topics and --wait-s set their [replay] settings over the file, --afap and --all theirs.
+    from mntes_stream.cli.record import replay_config
+
+    cfg.write_text('[replay]\nspeed = 3.0\nwait_subscribers_s = 7.0\ntopics = ["x/**"]\n')
+    r = replay_config(parser.parse_args(["replay", "a.mcap", "--config", str(cfg), "--speed", "4", "--topics", "a/**",
+                                         "b", "--wait-s", "2"]))
+    assert (r.source, r.speed, r.topics, r.wait_subscribers_s) == (("a.mcap",), 4.0, ("a/**", "b"), 2.0)
+    r = replay_config(parser.parse_args(["replay", "--config", str(cfg)]))
+    assert (r.speed, r.topics, r.wait_subscribers_s) == (3.0, ("x/**",), 7.0)  # the file's, where no flag is given
+    r = replay_config(parser.parse_args(["replay", "a.mcap", "--afap", "--all"]))
+    assert (r.speed, r.topics, r.wait_subscribers_s) == (0.0, ("**",), 5.0)
     # convert and params read a G3 file with the same [g3] settings, from the same declarations (G3InputConfig).
     from mntes_stream.cli.g3 import g3_input_config
     from mntes_stream.g3.settings import G3InputConfig
@@ -282,7 +293,9 @@ def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_
                        (["dfmux-bridge", "--hk-every", "0"], "argument --hk-every: expected a number (s) > 0"),
                        (["simulate", "--sample-rate", "0"], "argument --sample-rate: expected a number (Hz) > 0"),
                        (["g3-bridge", "--chunk-samples", "0"], "argument --chunk-samples: expected an integer >= 1"),
-                       (["simulate", "--setup", "a/b"], "argument --setup: expected a name matching")):
+                       (["simulate", "--setup", "a/b"], "argument --setup: expected a name matching"),
+                       (["replay", "--wait-s", "-1"], "argument --wait-s: expected a number (s) >= 0"),
+                       (["replay", "--speed", "2", "--afap"], "argument --afap: not allowed with argument --speed")):
         with pytest.raises(SystemExit):
             parser.parse_args(argv)
         assert says in capsys.readouterr().err, argv

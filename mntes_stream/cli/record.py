@@ -18,7 +18,6 @@ from mntes_stream.cli._common import (
     setup_logging,
     zenoh_layer,
 )
-from mntes_stream.options import number
 
 # ---------------------------------------------------------------------------- record
 
@@ -51,23 +50,25 @@ def run_record(args) -> int:
 # ---------------------------------------------------------------------------- replay
 
 
+def replay_config(args):
+    """The replay's config: ``--config``, ``--set``, then the flags given (``--afap``, ``--all`` as their settings)."""
+    from mntes_stream.service.replay import ReplayService
+
+    kw: dict = {"source": tuple(args.files)} if args.files else {}
+    kw.update(settings_from_args(args, _REPLAY))
+    if args.afap:
+        kw["speed"] = 0.0
+    if args.all:
+        kw["topics"] = ("**",)
+    return service_config(ReplayService, args.config, args.set, kw, zenoh_layer(args))
+
+
 def run_replay_cmd(args) -> int:
     from mntes_stream.errors import ConfigError
     from mntes_stream.io.mcap import Session
-    from mntes_stream.service.replay import ReplayService, parse_time, run_replay
+    from mntes_stream.service.replay import parse_time, run_replay
 
-    kw: dict = {"source": tuple(args.files)} if args.files else {}
-    if args.afap:
-        kw["speed"] = 0.0
-    elif args.speed is not None:
-        kw["speed"] = args.speed
-    if args.all:
-        kw["topics"] = ("**",)
-    elif args.topics:
-        kw["topics"] = tuple(args.topics)
-    if args.wait_s is not None:
-        kw["wait_subscribers_s"] = args.wait_s
-    cfg = service_config(ReplayService, args.config, args.set, kw, zenoh_layer(args))
+    cfg = replay_config(args)
     if not cfg.source:
         raise ConfigError("nothing to replay: give recordings (files or directories) or a config with source")
     if args.start is not None or args.end is not None:
@@ -303,6 +304,35 @@ def _record_args(p) -> None:
     p.set_defaults(func=run_record)
 
 
+# The [replay] settings the flags set (types, ranges and help from ReplayConfig), their spellings.
+_REPLAY = ("speed", "topics", "wait_subscribers_s")
+
+
+def _replay_args(p) -> None:
+    from mntes_stream.service.replay import ReplayConfig  # the replay's module: `replay` alone needs it
+
+    p.add_argument("files", nargs="*", metavar="FILE.mcap",
+                   help="recording(s), a directory of rotated files or the folder `up` writes (default: the config's source)")
+    p.add_argument("--config", metavar="FILE", help="replay TOML (services/replay.toml)")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
+    speed = p.add_mutually_exclusive_group()
+    add_settings_args(speed, ReplayConfig, ("speed",), metavars={"speed": "X"})
+    speed.add_argument("--afap", action="store_true", help="as fast as possible (same as --speed 0)")
+    # The times as a person gives them (seconds from the start, or ISO-8601); the settings hold ns since the epoch.
+    p.add_argument("--start", help="seconds after the first message, or an ISO-8601 time")
+    p.add_argument("--end", help="seconds after the first message, or an ISO-8601 time")
+    sel = p.add_mutually_exclusive_group()
+    sel.add_argument("--all", action="store_true", help="replay every topic (power, status, provenance too)")
+    add_settings_args(sel, ReplayConfig, ("topics",), metavars={"topics": "KEYEXPR"})
+    add_settings_args(p, ReplayConfig, ("wait_subscribers_s",), spelled={"wait_subscribers_s": "--wait-s"})
+    from mntes_stream.cli.ocs import add_hk_args
+
+    add_hk_args(p)
+    add_json(p, "print the statistics as one JSON document")
+    add_quiet(p)
+    add_zenoh_args(p)
+
+
 def register(sub) -> None:
     p = sub.add_parser("record", help="record mntes/<setup>/** from zenoh into rotated MCAP files",
                        description="Record every message of a setup into MCAP until SIGINT/SIGTERM (or --duration).")
@@ -311,25 +341,7 @@ def register(sub) -> None:
     p = sub.add_parser("replay", help="re-publish a recorded session onto zenoh",
                        description="Re-publish recorded messages (default: counts and housekeeping) in log-time order, "
                                    "payloads unchanged, with BLOCK congestion control.")
-    p.add_argument("files", nargs="*", metavar="FILE.mcap",
-                   help="recording(s), a directory of rotated files or the folder `up` writes (default: the config's source)")
-    p.add_argument("--config", metavar="FILE", help="replay TOML (services/replay.toml)")
-    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="override a config value")
-    speed = p.add_mutually_exclusive_group()
-    speed.add_argument("--speed", type=number(float, ge=0), help="multiple of real time (1: real time; 0: as fast as possible)")
-    speed.add_argument("--afap", action="store_true", help="as fast as possible (same as --speed 0)")
-    p.add_argument("--start", help="seconds after the first message, or an ISO-8601 time")
-    p.add_argument("--end", help="seconds after the first message, or an ISO-8601 time")
-    sel = p.add_mutually_exclusive_group()
-    sel.add_argument("--all", action="store_true", help="replay every topic (power, status, provenance too)")
-    sel.add_argument("--topics", nargs="+", metavar="KEYEXPR", help="topics or patterns such as mntes/lab/counts/**")
-    p.add_argument("--wait-s", type=number(float, "s", ge=0), help="wait this long for subscribers before starting")
-    from mntes_stream.cli.ocs import add_hk_args
-
-    add_hk_args(p)
-    add_json(p, "print the statistics as one JSON document")
-    add_quiet(p)
-    add_zenoh_args(p)
+    arguments(p, _replay_args)
     p.set_defaults(func=run_replay_cmd)
 
     p = sub.add_parser("convert", help="re-convert a recorded session offline (same code path as the live service)",
