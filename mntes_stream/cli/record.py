@@ -304,7 +304,7 @@ def _record_args(p) -> None:
     p.set_defaults(func=run_record)
 
 
-# The [replay] settings the flags set (types, ranges and help from ReplayConfig), their spellings.
+# The [replay] settings the flags set (types, ranges and help from ReplayConfig).
 _REPLAY = ("speed", "topics", "wait_subscribers_s")
 
 
