@@ -270,7 +270,7 @@ def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoin
     """A status's checkpoint claims chunks whose power may still sit in zenoh's queue when SIGKILL comes. Its floor
     (the numbers of the status before) says what surely went out: the history above it is converted again, once
     (a second copy is a duplicate), below it dropped; nothing is lost, and missed chunks count from the newest."""
-    from mntes_stream.core.ledger import Ledger
+    from mntes_stream.core.ledger import Ledger, merge_restarts
     from mntes_stream.io.messages import PowerChunk
     from mntes_stream.pipeline import ConverterPipeline, PipelineConfig
 
@@ -290,12 +290,58 @@ def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoin
     tot = Ledger.from_dict(st.ledger).totals()
     assert (tot.received, tot.duplicate, tot.done, tot.lost) == (32, 14, 18, 0), st.ledger
     assert st.chunks_lost == 0 and second.counters.chunks_missed_while_down == 0 and st.chunks_out_of_order == 0
+    # 6-9 of both streams were taken again: converted by both processes, counted once over the two
+    # (core.ledger.merge_restarts, what `up` reports): the first converter's ledger as its last status said it.
+    assert tot.again == 8
+    first_at_status = Ledger.from_dict({f"{b}/{m}": {"received": 10, "done": 10} for b, m in state})
+    whole = merge_restarts([first_at_status, Ledger.from_dict(st.ledger)]).totals()
+    assert (whole.received - whole.duplicate, whole.done, whole.pending, whole.lost) == (30, 30, 0, 0)
 
     # No history: the first chunk after the restart is seq 20; missed 10-19 count from the newest (9), not the floor.
     third = ConverterPipeline(conv, PipelineConfig(max_lag_s=1e6), clock=None)
     third.resume_sequences(state)
     _feed(third, steps[20:])
     assert third.counters.chunks_missed_while_down == 20 and third.status().chunks_lost == 20
+
+
+@pytest.mark.parametrize("again, new", [(10, 5), (5, 5), (0, 5), (2, 0)])
+def test_merged_ledger_counts_a_chunk_both_processes_converted_once(again, new):
+    """A converter killed at its status of seq 20 (floor 10), holding 18-20 (pending): its successor takes the
+    newest ``again`` of 11-20 again from the sources' caches (oldest first gone), then ``new`` chunks. Over the
+    two, 20 + new chunks were received, each counted once: converted, or lost where it was held at the kill
+    and never came again."""
+    from mntes_stream.core.ledger import Ledger, merge_restarts
+
+    dead = Ledger()
+    dead.received("0/0", 20)
+    dead.done("0/0", 17)
+    succ = Ledger()
+    succ.received("0/0", again + new)
+    succ.again("0/0", again)
+    succ.done("0/0", again + new)
+    whole = merge_restarts([dead, succ]).totals()
+    # Before merge_restarts, `up` counted 11-17 twice where they came again (17 + again + new converted), and
+    # lost nothing where 18-20 never came again: they went from its ledger, silently.
+    never = 3 - min(again, 3)
+    assert (whole.received, whole.done, whole.pending, whole.again) == (20 + new, 20 + new - never, 0, again)
+    assert (whole.shed_total, whole.lost) == (never, never) and (not never or "held at a kill" in whole.shed)
+
+
+def test_merged_ledger_over_three_processes_and_one_alone():
+    from mntes_stream.core.ledger import Ledger, merge_restarts
+
+    def led(received, done, again=0):
+        out = Ledger()
+        out.received("1/2", received)
+        out.done("1/2", done)
+        out.again("1/2", again)
+        return out
+
+    # 0-9 (holding 9) | again 5-9, then 10-19 (holding none) | again 15-19, then 20-29: 30 chunks, each once.
+    whole = merge_restarts([led(10, 9), led(15, 15, again=5), led(15, 15, again=5)]).totals()
+    assert (whole.received, whole.done, whole.pending) == (30, 30, 0)
+    alone = merge_restarts([led(7, 7)]).totals()
+    assert (alone.received, alone.done, alone.again) == (7, 7, 0)
 
 
 def test_history_that_comes_after_a_live_chunk_is_no_longer_missed(tmp_path, source):

@@ -186,7 +186,7 @@ def run_up(args) -> int:
     from mntes_stream.cli._common import settings_from_args
     from mntes_stream.cli.up_config import UpSettings
     from mntes_stream.core.lag import who_is_behind
-    from mntes_stream.core.ledger import Ledger
+    from mntes_stream.core.ledger import Ledger, merge_restarts
     from mntes_stream.errors import MntesError
     from mntes_stream.io import keys
     from mntes_stream.io.messages import StatusMessage
@@ -236,7 +236,7 @@ def run_up(args) -> int:
     conv_cfg = dataclasses.replace(conv_cfg, status=dataclasses.replace(conv_cfg.status, interval_s=1.0),
                                    checkpoint=str(checkpoint))
     budget = RestartBudget(up.restarts)
-    before, last_ledger = Ledger("converted"), {}  # converters that died: their ledgers, as their last status said
+    dead_ledgers, last_ledger = [], {}  # converters that died: their ledgers, as their last status said
 
     services = Services()
     t_start = time.monotonic()
@@ -271,12 +271,8 @@ def run_up(args) -> int:
                         # still queued are its own; the new one continues from its checkpoint).
                         while (item := sub.get()) is not None:
                             last_ledger = StatusMessage.from_bytes(item[1]).ledger
-                        dead = Ledger.from_dict(last_ledger)
-                        for held in dead.streams.values():
-                            # What it held then was not converted: its checkpoint, saved with that status, has
-                            # the new one receive it again (or count it never received), so it is counted there.
-                            held.received -= held.pending
-                        before.merge(dead)
+                        # Merged with its successors' at the end (core.ledger.merge_restarts: each chunk once).
+                        dead_ledgers.append(Ledger.from_dict(last_ledger))
                         last_ledger = {}
                     give_up = _restart_dead(services, budget, stopping, say)
                     if give_up:
@@ -334,11 +330,13 @@ def run_up(args) -> int:
     summary, ok = services.collect()
     if services.restarts["recorder"] and isinstance(summary.get("recorder"), dict):
         summary["recorder"] = {**summary["recorder"], **_recorded_ledger(files, services.restarts["recorder"] + 1)}
-    if before.streams and isinstance(summary.get("converter"), dict):  # the ledger of every converter process
-        whole = Ledger.from_dict(summary["converter"].get("ledger") or {})
-        whole.merge(before)
+    if dead_ledgers and isinstance(summary.get("converter"), dict):  # the ledger of every converter process
+        whole = merge_restarts([*dead_ledgers, Ledger.from_dict(summary["converter"].get("ledger") or {})])
+        again = whole.totals().again
+        both = f"; {again} chunk(s) converted again after a restart, counted once" if again else ""
         summary["converter"] = {**summary["converter"], "ledger": whole.as_dict(), "ledger_line":
-                                f"{whole.line()} (over {services.restarts['converter'] + 1} converter processes)"}
+                                f"{whole.line()} (over {services.restarts['converter'] + 1} converter processes"
+                                f"{both})"}
     failed |= not ok and not interrupted
     n_files, size = files.now()
     conv = summary.get("converter", {}) if isinstance(summary.get("converter"), dict) else {}

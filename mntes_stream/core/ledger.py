@@ -15,7 +15,11 @@ recorder, a bridge) keeps one :class:`Ledger`. For every stream
 
 so ``received = done + late + shed + rejected + duplicate + pending``, and
 besides, ``missing``: sequence numbers never received (gaps at the source or
-on the way; a chunk that comes late is no longer missing).
+on the way; a chunk that comes late is no longer missing), and ``again``: of
+the chunks received, those a converter restarted from its checkpoint took
+again because its predecessor may not have sent their power (the
+predecessor's last status interval): :func:`merge_restarts` counts each once
+over the two processes.
 
 **Lost** means one thing everywhere: chunks of a stream for which the stage
 put out nothing, ``lost = missing + shed + rejected``. A summary that says
@@ -38,11 +42,14 @@ from dataclasses import dataclass, field
 
 from mntes_stream.core.shards import StreamKey
 
-__all__ = ["Ledger", "StreamLedger", "OTHER", "LOST_MEANS", "stream_order", "summary_line", "totals_of"]
+__all__ = ["Ledger", "StreamLedger", "OTHER", "LOST_MEANS", "HELD_AT_KILL", "merge_restarts", "stream_order", "summary_line",
+           "totals_of"]
 
 OTHER = "other"  # chunks of streams a stage does not keep (unknown streams): one bounded entry
 LOST_MEANS = "lost = never received + shed + rejected (chunks the stage put out nothing for)"
-_INTS = ("received", "done", "late", "duplicate", "missing")
+_INTS = ("received", "done", "late", "duplicate", "missing", "again")
+# The shed reason of chunks a killed converter held that its successor never received again (merge_restarts).
+HELD_AT_KILL = "held at a kill"
 
 
 @dataclass
@@ -54,6 +61,7 @@ class StreamLedger:
     late: int = 0
     duplicate: int = 0
     missing: int = 0
+    again: int = 0  # of received: taken again after a restart (see the module docstring)
     shed: Counter = field(default_factory=Counter)
     rejected: Counter = field(default_factory=Counter)
 
@@ -144,6 +152,10 @@ class Ledger:
     def duplicate(self, stream, n: int = 1) -> None:
         self._s(stream).duplicate += int(n)
 
+    def again(self, stream, n: int = 1) -> None:
+        """Chunks received again after a restart (see the module docstring); also counted as received."""
+        self._s(stream).again += int(n)
+
     def set_missing(self, stream, n: int) -> None:
         """Sequence numbers of the stream never received, as its tracker counts them now (not cumulative)."""
         self._s(stream).missing = max(int(n), 0)
@@ -181,6 +193,41 @@ class Ledger:
     def line(self) -> str:
         """The whole ledger in one line: what a final summary says (zero columns left out, lost always)."""
         return summary_line(self.totals(), self.verb)
+
+
+def merge_restarts(ledgers) -> Ledger:
+    """One ledger over the successive processes of one converter, each chunk counted once.
+
+    ``ledgers``: each process's ledger, in order, as its last status said (the last process's may be its
+    final one). Every process but the last died, and its successor resumed from the checkpoint written with
+    that last status: it takes again, from the sources' caches, the chunks of that last status interval
+    (``again``), oldest first gone where the caches no longer hold them. The dead process had converted
+    them, but for what it held (``pending``): the newest of the interval (a chunk is held until its step's
+    housekeeping is there). So of a stream, ``min(again, pending)`` held chunks were converted by the
+    successor alone (counted there), the rest of ``again`` by both (taken out of the dead process's received
+    and converted), and ``pending - min(again, pending)`` by neither: shed, reason ``held at a kill``
+    (lost, never silently). Chunks set aside under an overload at the kill can be older than the interval;
+    those are counted as if they were the newest.
+    """
+    ledgers = list(ledgers)
+    whole = Ledger(ledgers[-1].verb if ledgers else "converted")
+    for k, led in enumerate(ledgers):
+        succ = ledgers[k + 1] if k + 1 < len(ledgers) else None
+        for key, s in led.streams.items():
+            s = StreamLedger.from_dict(s.as_dict())
+            if succ is not None:
+                held = max(s.pending, 0)
+                again = succ.streams[key].again if key in succ.streams else 0
+                held_again = min(again, held)
+                both = min(again - held_again, s.done + s.late)
+                s.received -= held_again + both
+                from_done = min(both, s.done)
+                s.done -= from_done
+                s.late -= min(both - from_done, s.late)
+                if held > held_again:
+                    s.shed[HELD_AT_KILL] += held - held_again
+            whole._s(key).add(s)
+    return whole
 
 
 def summary_line(t: StreamLedger, verb: str = "converted") -> str:

@@ -352,6 +352,7 @@ class Sequence:
                 s.dup_known += 1
                 return Verdict.DUPLICATE
             refill[3].add(seq)  # the tracker stands at the newest number already: this one is not news to it
+            self.books.ledger.again(stream_id)  # converted before the restart too (core.ledger.merge_restarts)
             return Verdict.LATE
         resumed = self._resumed.get(stream_id) if self._resumed else None
         if resumed is not None and (seq >= resumed[0] or t_first_ns > resumed[1]):
