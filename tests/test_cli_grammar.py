@@ -175,7 +175,8 @@ def test_simulate_set_takes_table_key_value(tmp_path, capsys):
                  "--set", "simulator.channels=2", "-q", "--json"]) == 0
     import json
 
-    assert json.loads(capsys.readouterr().out)["detectors"] == 2  # --set wins over the flag
+    # A flag wins over --set, as for every service (cli._common.service_config); before, simulate alone had --set win.
+    assert json.loads(capsys.readouterr().out)["detectors"] == 3
     assert main(["simulate", "--out", str(tmp_path / "t.mcap"), "--duration", "0.3",
                  "--set", "simulator.no_such_key=1"]) == 2
     assert "no_such_key" in capsys.readouterr().err
@@ -225,8 +226,8 @@ def test_docs_cli_lists_every_command_and_every_overwrite():
 
 def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_path, capsys):
     """dfmux-bridge, g3-bridge, simulate and monitor declare their flags from the settings (``add_settings_args``): each
-    flag, spelled as before, sets its setting over ``--config`` (simulate: ``--set`` wins over its flags, as
-    documented), and is checked at parse time against the declaration (one line naming the flag)."""
+    flag, spelled as before, sets its setting over ``--config`` and ``--set`` (simulate too, since it laid its flags
+    under ``--set``), and is checked at parse time against the declaration (one line naming the flag)."""
     from mntes_stream.cli.dfmux import bridge_config
     from mntes_stream.cli.monitor import monitor_config
     from mntes_stream.cli.simulate import _config as simulate_config
@@ -244,8 +245,16 @@ def test_service_flags_come_from_the_settings_they_set_with_their_spellings(tmp_
     s = simulate_config(parser.parse_args(
         ["simulate", "--modules", "3", "--sample-rate", "19.1", "--f-hwp", "1.5", "--duration", "2", "--chunk-s",
          "0.2", "--speed", "0", "--setup", "x1", "--seed", "4", "--set", "simulator.seed=5", "-e", "tcp/127.0.0.1:1"]))
-    assert (s.sim.modules, s.sim.sample_rate_hz, s.sim.f_hwp_hz, s.sim.seed) == (3, 19.1, 1.5, 5)
+    assert (s.sim.modules, s.sim.sample_rate_hz, s.sim.f_hwp_hz, s.sim.seed) == (3, 19.1, 1.5, 4)
     assert (s.duration_s, s.chunk_s, s.speed, s.setup) == (2.0, 0.2, 0.0, "x1")
+    # --set still sets what no flag gives, with or without --config; --config's file is below both.
+    cfg.write_text('[simulator]\nmodules = 5\nseed = 9\nchunk_s = 0.5\n')
+    s = simulate_config(parser.parse_args(["simulate", "--config", str(cfg), "--set", "simulator.seed=5", "--modules", "2"]))
+    assert (s.sim.modules, s.sim.seed, s.chunk_s) == (2, 5, 0.5)
+    s = simulate_config(parser.parse_args(["simulate", "--set", "simulator.channels=7", "--telescope", "MFT"]))
+    from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
+
+    assert (s.sim.channels, s.sim.f_hwp_hz) == (7, HWP_FREQUENCIES_HZ["MFT"])
     from mntes_stream.cli.ocs import bridge_config as ocs_config
 
     o = ocs_config(parser.parse_args(["ocs-bridge", "--router", "ws://h:1/ws", "--t-bath-field", "a.b.c", "--stale-s",

@@ -272,12 +272,15 @@ def service_config(service_cls, path, sets, flags: dict, zenoh_flags):
     for those of a sub-table (``{"bridge": {...}}``)."""
     from mntes_stream.service.config import config_of, with_zenoh
 
-    cfg = config_of(service_cls, path, sets)
+    return with_zenoh(with_flags(config_of(service_cls, path, sets), flags), zenoh_flags)
+
+
+def with_flags(cfg, flags: dict):
+    """``cfg`` with the settings given as flags (:func:`service_config`'s ``flags``) laid over it."""
     try:
-        cfg = _replaced(cfg, {k: v for k, v in flags.items() if v != {}})
+        return _replaced(cfg, {k: v for k, v in flags.items() if v != {}})
     except ConfigError as exc:
         raise ConfigError(f"command line: {exc}") from None
-    return with_zenoh(cfg, zenoh_flags)
 
 
 def print_mapping(d: dict, as_json: bool, width: int = 24) -> None:

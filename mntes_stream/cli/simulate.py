@@ -15,26 +15,24 @@ _SERVICE = ("setup", "duration_s", "chunk_s", "speed")
 
 
 def _config(args):
-    """The ``[simulator]`` service config: ``--config``, then the flags, then ``--set`` (which wins)."""
+    """The ``[simulator]`` service config: ``--config``, then ``--set``, then the flags, as every service's
+    (``cli._common.service_config``; ``--set`` needs no ``--config`` here: the defaults stand for the file)."""
     from pathlib import Path
 
-    from mntes_stream.cli._common import settings_from_args, zenoh_layer
+    from mntes_stream.cli._common import settings_from_args, with_flags, zenoh_layer
     from mntes_stream.core.sim import HWP_FREQUENCIES_HZ
     from mntes_stream.service.config import apply_overrides, read_toml, with_zenoh
     from mntes_stream.service.simulator import SimulatorService
 
     doc = read_toml(args.config) if args.config else {}
-    table = dict(doc.get("simulator", {})) if isinstance(doc.get("simulator", {}), dict) else doc["simulator"]
-    # Into the [simulator] table before --set, which wins over them here (as it always has for simulate).
-    table.update(settings_from_args(args, (*_SIM, "f_hwp_hz", *_SERVICE)))
-    if args.telescope:
-        table["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]
-    doc = apply_overrides({**doc, "simulator": table}, [_table_key(item) for item in args.set or []],
-                          SimulatorService)
+    doc = apply_overrides(doc, [_table_key(item) for item in args.set or []], SimulatorService)
     where = args.config or "command line"
     base = str(Path(args.config).resolve().parent) if args.config else None
     cfg = SimulatorService.config_from_document(doc, where, base_dir=base)
-    return with_zenoh(cfg, zenoh_layer(args))
+    sim = settings_from_args(args, (*_SIM, "f_hwp_hz"))
+    if args.telescope:
+        sim["f_hwp_hz"] = HWP_FREQUENCIES_HZ[args.telescope]
+    return with_zenoh(with_flags(cfg, {**settings_from_args(args, _SERVICE), "sim": sim}), zenoh_layer(args))
 
 
 def _table_key(item: str) -> str:
