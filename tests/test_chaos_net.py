@@ -48,7 +48,7 @@ def test_a_partition_longer_than_the_history_is_stated_in_every_summary(tmp_path
     assert c["recording_matches_recorder_ledger"], (res["recorded_counts_chunks"], res["recorder_ledger_line"])
     # Nobody was restarted by hand: after the link came back and after the router restart, counts were recorded.
     assert c["services_reconnected"], (res["reconnect_after_link_up_s"], res["reconnect_after_router_restart_s"])
-    assert c["monitor_saw_the_ledger"], res["monitor_last_ledger_line"]
+    assert c["monitor_saw_the_ledger"], (res["monitor_last_ledger_line"], res["monitor_traceback"])
     assert res["ok"]
 
 

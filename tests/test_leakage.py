@@ -98,6 +98,20 @@ def test_refine_f_hwp_finds_the_line_from_a_guess_a_bin_off():
     assert abs(f - f_true) < 1e-4  # 4f phase slip over the window < 0.07 rad
 
 
+def test_refine_f_hwp_never_finds_the_mirror_line_at_a_negative_frequency():
+    """A short window searches wide: around a low guess the search reached below 0 Hz, where a real series'
+    2f power mirrors the positive side, and the monitor's live leakage then refused the negative f_HWP with a
+    traceback (seen in the chaos-net run: -0.758 Hz after the link came back)."""
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 2.0, 1 / 152.587890625)  # 2 s: the search spans +-0.75 Hz
+    for f_true in (0.05, 0.1, 0.2):
+        rows = [P0_W + A_W * np.cos(4 * np.pi * f_true * t + ph) + 1e-17 * rng.standard_normal(t.size)
+                for ph in (0.3, 1.9)]
+        for guess in (f_true, f_true * 1.5, 0.3):
+            f = refine_f_hwp(t, np.array(rows), guess)
+            assert f > 0, (f_true, guess, f)
+
+
 @pytest.fixture(scope="module")
 def simulated():
     """Six scattered detectors, 25 s, HWP 2f = 10 fW, every noise but readout's: truth, linear and MNTES power."""

@@ -351,6 +351,10 @@ def _analyse(work: Path, procs: dict, rcs: dict, marks: dict, lab: Lab, partitio
         "converter_ledger_line": accounts["converter"]["line"],
         "recorder_ledger_line": accounts["recorder"]["line"],
         "monitor_last_ledger_line": monitor_ledgers[-1] if monitor_ledgers else None,
+        # What the monitor said where it raised (its log from the first traceback on, bounded): the failure explains
+        # itself (CI keeps no work directory).
+        "monitor_traceback": ("\n".join(monitor_log[monitor_log.index("Traceback"):].splitlines()[:40])
+                              if "Traceback" in monitor_log else None),
         "never_received": never,
         "expected_lost_chunks_per_stream_about": max(0, round(beyond_s / CHUNK_S)),
         "reconnect_after_link_up_s": reconnect_s,

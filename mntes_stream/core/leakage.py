@@ -238,7 +238,9 @@ def refine_f_hwp(t_s, p_w, f_guess_hz: float, span_bins: float = 3.0) -> float:
     is good to about a frequency bin, 1/window: at 4f that is a phase slip of
     several radians over the window. This searches ``f_guess +- span_bins /
     (2 window)`` on a grid a twentieth of a 2f bin fine, then interpolates the
-    peak (parabola through the best three points).
+    peak (parabola through the best three points). Only positive frequencies:
+    a real series' 2f power is the same at -f, so a short window (a wide
+    search) around a low guess would otherwise find the mirror line.
 
     Parameters
     ----------
@@ -262,6 +264,7 @@ def refine_f_hwp(t_s, p_w, f_guess_hz: float, span_bins: float = 3.0) -> float:
     half = span_bins / (2.0 * window_s)
     step = 1.0 / (40.0 * window_s)
     grid = np.arange(f_guess_hz - half, f_guess_hz + half + step / 2, step)
+    grid = grid[grid > step]  # f_guess > 0: still the span_bins / (2 window) above it, 60 points
     power = np.zeros(grid.size)
     for k, f in enumerate(grid):
         w = 4 * np.pi * f * t
@@ -272,7 +275,7 @@ def refine_f_hwp(t_s, p_w, f_guess_hz: float, span_bins: float = 3.0) -> float:
     y0, y1, y2 = power[i - 1], power[i], power[i + 1]
     denom = y0 - 2 * y1 + y2
     shift = 0.5 * (y0 - y2) / denom if denom < 0 else 0.0
-    return float(grid[i] + np.clip(shift, -1.0, 1.0) * step)
+    return float(grid[i] + np.clip(shift, -1.0, 1.0) * step)  # > 0: grid[i] > step
 
 
 def _result(t, ref_lines, lines_4f, f_hwp_hz, min_snr_2f, gain_ref=None, n_masked=0) -> Leakage:
