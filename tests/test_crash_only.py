@@ -225,7 +225,7 @@ def test_up_restarts_a_killed_converter_and_power_flows_again(tmp_path):
         assert whole.missing == 0 and whole.done + whole.late == counts, (conv["ledger_line"], counts)
     # The ledger over both processes holds the new one's and what the killed one converted that did not come
     # again (all of it came again when the kill followed its first status: then the two are equal).
-    assert whole.done >= conv["chunks_converted"] and whole.again > 0, conv["ledger"]
+    assert whole.done >= conv["chunks_converted"], conv["ledger"]
     assert re.search(r"\(over 2 converter processes(; \d+ chunk\(s\) converted again after a restart, counted once)?\)$",
                      conv["ledger_line"]), conv["ledger_line"]
     assert err_text.rstrip().splitlines()[-1] == f"  converter: {conv['ledger_line']}"
