@@ -348,6 +348,10 @@ class QueueSubscriber:
       travels upstream to BLOCK publishers instead of losing samples. After
       :meth:`close` (or once ``stop`` is set) a waiting callback gives up and
       counts the sample in ``dropped_on_close``, so a session can always close.
+      Each key expression's callback runs in a thread of its own (zenoh-python's
+      indirect callbacks), so samples of one key expression keep their order but
+      two key expressions' samples may interleave otherwise than they were sent
+      (a status overtaking the power published just before it).
     - ``mode="channel"``: zenoh's own bounded FIFO channels, read from the
       caller's thread (no second Python thread competing for the GIL: lower
       latency in a busy converter); ``t_recv_ns`` is when the sample was

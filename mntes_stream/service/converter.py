@@ -294,7 +294,9 @@ class ConverterService(Service):
         session = ctx.session
         # A blocking receive: zenoh's thread only queues each sample (bounded: a full queue makes it wait, which
         # pushes back on the publishers), and this thread sleeps until one is there instead of polling.
-        # Samples come in arrival order: a step's housekeeping (published first) before its counts.
+        # Each key expression's samples come in arrival order; housekeeping and counts are separate key
+        # expressions with a callback thread each, so a step's counts may come before its housekeeping: the
+        # housekeeping stage holds them until it comes ([alignment] hk_wait_s).
         # What the sources' caches hold (io/history.py) comes first, so a converter restarted after a crash
         # converts what was published while it was down (with a checkpoint, what it had converted is dropped as
         # a duplicate); samples missed on the way (a router restarting) are recovered from the caches too, and a
