@@ -139,6 +139,12 @@ def _wait(driver, predicate, timeout_s: float, what: str, detail=None):
     pytest.fail(f"page never showed {what} within {timeout_s} s{more}; last page state: {json.dumps(short)[:1500]}")
 
 
+def _charts(state) -> str:
+    """What each chart holds, in full (the page state printed on a failure is cut at 1,500 characters)."""
+    return json.dumps({k: state.get(k) for k in ("timestreams", "spectrum", "hk", "selection", "errors", "annotations",
+                                                  "window_s", "freshness")})
+
+
 def _click_cell(driver, target: str, clicks_before: int, timeout_s: float = 15.0):
     """Click ``target``'s cell of the focal plane until the page counts the click (a click that lands while the
     plot redraws, on a loaded machine, hits no point: tried again, at most 3 times), then wait for its plot."""
@@ -214,7 +220,8 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         # Charts hold live points: time streams and spectra of the default selection, housekeeping.
         s = _wait(driver, lambda s: len(s["timestreams"]) >= 3 and min(t["finite"] for t in s["timestreams"]) > 300
                   and s["spectrum"] and min(t["finite"] for t in s["spectrum"]) > 20
-                  and all(h["n"] > 5 for h in s["hk"]), 60, "filled time-stream, spectrum and housekeeping charts")
+                  and all(h["n"] > 5 for h in s["hk"]), 60, "filled time-stream, spectrum and housekeeping charts",
+                  _charts)
         assert all("(transition)" in t["name"] for t in s["timestreams"])
         assert s["harmonics"] == pytest.approx([0.77, 1.54, 3.08])  # 1f, 2f, 4f of the LFT default
         assert "converter" in s["health"] and "monitor (received)" in s["health"]
