@@ -200,14 +200,17 @@ def merge_restarts(ledgers) -> Ledger:
 
     ``ledgers``: each process's ledger, in order, as its last status said (the last process's may be its
     final one). Every process but the last died, and its successor resumed from the checkpoint written with
-    that last status: it takes again, from the sources' caches, the chunks of that last status interval
-    (``again``), oldest first gone where the caches no longer hold them. The dead process had converted
-    them, but for what it held (``pending``): the newest of the interval (a chunk is held until its step's
-    housekeeping is there). So of a stream, ``min(again, pending)`` held chunks were converted by the
-    successor alone (counted there), the rest of ``again`` by both (taken out of the dead process's received
-    and converted), and ``pending - min(again, pending)`` by neither: shed, reason ``held at a kill``
-    (lost, never silently). Chunks set aside under an overload at the kill can be older than the interval;
-    those are counted as if they were the newest.
+    that last status (``pipeline.ConverterPipeline.sequence_state``): each stream's newest number converted
+    below what was held, floored at the status before. Of a stream:
+
+    - the chunks between the floor and that number, the dead process had converted; its successor takes them
+      again from the sources' caches (``again``, oldest first gone where the caches no longer hold them):
+      converted by both, so taken out of the dead process's received and converted;
+    - what the dead process held (``pending``: waiting for housekeeping, set aside) lies above that number:
+      the successor converts it like any chunk after the checkpoint, or counts it never received (missed
+      while down) when the caches no longer hold it. Either way its ledger has it, so it goes from the dead
+      process's. Where the successor never received a chunk of the stream at all, it is shed there, reason
+      ``held at a kill`` (lost, never silently).
     """
     ledgers = list(ledgers)
     whole = Ledger(ledgers[-1].verb if ledgers else "converted")
@@ -217,15 +220,16 @@ def merge_restarts(ledgers) -> Ledger:
             s = StreamLedger.from_dict(s.as_dict())
             if succ is not None:
                 held = max(s.pending, 0)
-                again = succ.streams[key].again if key in succ.streams else 0
-                held_again = min(again, held)
-                both = min(again - held_again, s.done + s.late)
-                s.received -= held_again + both
+                nxt = succ.streams.get(key)
+                both = min(nxt.again if nxt is not None else 0, s.done + s.late)
                 from_done = min(both, s.done)
                 s.done -= from_done
-                s.late -= min(both - from_done, s.late)
-                if held > held_again:
-                    s.shed[HELD_AT_KILL] += held - held_again
+                s.late -= both - from_done
+                if nxt is not None and nxt.received + nxt.missing > 0:
+                    s.received -= both + held
+                else:
+                    s.received -= both
+                    s.shed[HELD_AT_KILL] += held
             whole._s(key).add(s)
     return whole
 
