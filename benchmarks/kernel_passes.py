@@ -32,8 +32,11 @@ from mntes_stream.core.tables import build_bank
 
 _LOOKUP_START = "                    rc = s_rc[s]\n                    j = k0 + cidx[np.uint64(c)]\n"
 _LOOKUP_END = "                if not low_on:\n                    for s in range(n_samp):"
-_STEP = ("                    j += (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
-         "                    marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n")
+_STEP = ("                    if (j + 1 < last) & (rc >= x[np.uint64(j + 1)]):\n"
+         "                        j += 1\n"
+         "                        marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
+         "                    else:\n"
+         "                        marks[s] = 0\n")
 _POWER = "p, beyond, _, _ = _lane_power(s_w[s], s_its[s], s_r[s], s_m2[s], tbs, bs, vs, q)"
 
 
@@ -63,6 +66,9 @@ VARIANTS = {
                  _replace(_POWER, "p, beyond = s_w[s] * s_its[s] + s_r[s], False")),
     "no_lookup": ("the whole lookup pass (cell, interval step, cubics)", _no_lookup),
     "cell_only": ("the lookup's interval step and cubics (its cell read stays)", _only_cell_read),
+    "branchless_step": ("the branch around the step (put back: the step as arithmetic, as before 2026-11-29)",
+                        _replace(_STEP, "                    j += (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
+                                        "                    marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n")),
     "no_step": ("the lookup's interval step (the compare with the next knot; one interval per cell)",
                 _replace(_STEP, "                    marks[s] = 0\n")),
 }

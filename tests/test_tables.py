@@ -18,6 +18,7 @@ from mntes_stream.core.tables import (
     TableBank,
     TableDomain,
     build_bank,
+    cell_floor,
     grid_bank_from_curves,
     hermite_coefficients,
     lookup_cells,
@@ -105,6 +106,41 @@ def test_lookup_cells_find_the_right_interval(widths, u):
     while j + 1 < x.size - 1 and r >= x[j + 1]:
         j += 1
     assert x[j] <= r and (r < x[j + 1] or j == x.size - 2)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(-10.0, 10.0), st.floats(1e-3, 10.0), st.lists(st.integers(0, 2**20), min_size=1, max_size=20))
+def test_cell_floor_is_the_first_float_of_its_cell(x0, span, ks):
+    """Smallest r with fl(fl(r - x0) * fl(1 / span)) >= t, checked against its neighbour below."""
+    t = np.array(ks, dtype=float) / 2**20
+    r = cell_floor(x0, span, t)
+    u0 = 1.0 / span
+    assert np.all((r - x0) * u0 >= t)
+    assert np.all((np.nextafter(r, -np.inf) - x0) * u0 < t)
+    # Cells of every power-of-two count begin there, by the kernels' own arithmetic.
+    for n in (2**10, 2**20):
+        assert np.all(((r - x0) * (n / span)).astype(np.int64) == np.floor(t * n))
+
+
+@pytest.mark.parametrize("which", ["arctan", "tabulated"])
+def test_knots_begin_lookup_cells_so_a_cell_needs_no_step(params, which):
+    """transition_knots places its knots where lookup cells begin: once the cells are as narrow as the
+    narrowest interval, every R (each knot, the float just below it, random R) finds its interval in its
+    cell's entry, with no step, except in a cell holding a measured transition's joint."""
+    p = next(q for q in params.values() if q.transition.kind == which)
+    r_lo, r_hi = resistance_range_ohm(p, TableDomain())
+    x, _ = transition_knots(p, r_lo, r_hi, 1e-20, 1e-11)
+    cells, per = lookup_cells(x, max_cells_per_interval=1 << 12)
+    assert per * np.min(np.diff(x)) >= 1.0  # cells resolve every interval
+    rng = np.random.default_rng(0)
+    r = np.concatenate([x[:-1], np.nextafter(x[1:-1], -np.inf), rng.uniform(r_lo, r_hi, 200_000)])
+    cell = np.minimum(((r - x[0]) * per).astype(np.int64), cells.size - 1)
+    truth = np.minimum(np.searchsorted(x, r, side="right") - 1, x.size - 2)
+    assert np.all(cells[cell] <= truth)  # never past the interval: the kernels step only to the right
+    pts = np.asarray(getattr(p.transition, "r_ohm", []), dtype=float)
+    joints = pts[(pts > r_lo) & (pts < r_hi)]
+    holds_joint = np.isin(cell, ((joints - x[0]) * per).astype(np.int64))
+    assert np.array_equal(cells[cell] != truth, (cells[cell] != truth) & holds_joint)
 
 
 def test_build_rejects_bad_input():

@@ -501,8 +501,9 @@ if numba is not None:
 
         The interval every kernel on a bank interpolates in: the O(1) lookup
         cell, one branch-free step (a cell holds at most one knot,
-        :func:`core.tables.lookup_cells`, unless its cap on cells applies),
-        then the rare rest. Inlined where called (numba IR).
+        :func:`core.tables.lookup_cells`, unless its cap on cells applies; none
+        where knots begin cells, as :func:`core.tables.transition_knots` places
+        them), then the rare rest. Inlined where called (numba IR).
         """
         j = int(q[_R_K0]) + cidx[_cell(r, q)]
         last = int(q[_R_LAST])
@@ -819,11 +820,16 @@ if numba is not None:
                         break
                     # find_interval's lookup, one step, and whether it needed more. Unsigned indices (all
                     # are >= 0): numba wraps a signed index that might be negative, a compare and select
-                    # on each of the eleven reads (+14 %).
+                    # on each of the eleven reads (+14 %). The step is a branch: knots begin lookup cells
+                    # (core.tables.transition_knots), so it is rarely taken (0.5 % of bench convert's
+                    # samples) and well predicted; the branch-free step cost 1.14x (benchmarks/README.md).
                     rc = s_rc[s]
                     j = k0 + cidx[np.uint64(c)]
-                    j += (j + 1 < last) & (rc >= x[np.uint64(j + 1)])
-                    marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])
+                    if (j + 1 < last) & (rc >= x[np.uint64(j + 1)]):
+                        j += 1
+                        marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])
+                    else:
+                        marks[s] = 0
                     u = rc - x[np.uint64(j)]
                     # The interval's eight coefficients from the flat table at a constant stride (a shift,
                     # where coef[j, k] multiplied j by the array's stride). W by Horner as the reference;

@@ -78,6 +78,7 @@ __all__ = [
     "resistance_range_ohm",
     "transition_knots",
     "hermite_coefficients",
+    "cell_floor",
     "lookup_cells",
     "params_identity",
 ]
@@ -253,7 +254,22 @@ def transition_knots(
         w = k * t**n
         return t, w, n * w / t * dt, 1.0 / t, -dt / (t * t)
 
-    x = np.union1d(np.linspace(r_lo, r_hi, _INITIAL_INTERVALS + 1), _breakpoints(tr, r_lo, r_hi))
+    # Knots at fractions t = k / 2^L of the range, placed where the lookup cells of any power-of-two count
+    # begin (cell_floor): a sample's cell then lies in one interval, with no step to the next
+    # (lookup_cells). A tabulated transition's joints stay where they are, with their own fraction NaN.
+    span = r_hi - r_lo
+    brk = _breakpoints(tr, r_lo, r_hi)
+    frac_k = np.arange(_INITIAL_INTERVALS + 1) / _INITIAL_INTERVALS
+    x = cell_floor(r_lo, span, frac_k)
+    x[0], x[-1] = r_lo, r_hi
+    if brk.size:  # a joint within a hair of a lattice knot replaces it (no interval of a few ulps)
+        near = np.abs(x[:, None] - brk[None, :]).min(axis=1) < 1e-9 * span
+        near[[0, -1]] = False
+        x, frac_k = x[~near], frac_k[~near]
+        x = np.concatenate([x, brk])
+        frac_k = np.concatenate([frac_k, np.full(brk.size, np.nan)])
+        order = np.argsort(x, kind="stable")
+        x, frac_k = x[order], frac_k[order]
     frac = np.array([0.25, 0.5, 0.75])
     for _ in range(_MAX_REFINE):
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -272,21 +288,55 @@ def transition_knots(
             return x, c
         if x.size + np.count_nonzero(bad) > max_knots or np.min(h[bad]) < 1e-12 * (r_hi - r_lo):
             break
-        x = np.sort(np.concatenate([x, x[:-1][bad] + 0.5 * h[bad]]))
+        f_mid = 0.5 * (frac_k[:-1][bad] + frac_k[1:][bad])
+        # Next to a joint: the point nearest the middle on a lattice of at most half the interval, so within a
+        # quarter of it from the middle, and no finer than the cells its smaller part calls for (lookup_cells).
+        joint = np.isnan(f_mid)
+        if joint.any():
+            hj = h[bad][joint]
+            per = 2.0 ** np.ceil(np.log2(span / hj) + 1.0)
+            f_mid[joint] = np.round((x[:-1][bad][joint] + 0.5 * hj - r_lo) / span * per) / per
+        x_mid = cell_floor(r_lo, span, f_mid)
+        x, frac_k = np.concatenate([x, x_mid]), np.concatenate([frac_k, f_mid])
+        order = np.argsort(x, kind="stable")
+        x, frac_k = x[order], frac_k[order]
     raise ConfigError(
         f"{p.detector_id}: response table did not reach {p_tol_w:.2g} W within {max_knots} knots on "
         f"R = [{r_lo:.6g}, {r_hi:.6g}] Ohm (is T_s(R) smooth there? narrow the domain?)"
     )
 
 
+def cell_floor(x0: float, span: float, t) -> np.ndarray:
+    """The smallest floats ``r`` with ``fl(fl(r - x0) * fl(1 / span)) >= t`` (``t`` >= 0, any shape).
+
+    A kernel's lookup cell of ``r`` is ``int((r - x0) * cells_per_ohm)``; with
+    ``2^P`` cells, ``cells_per_ohm = fl(2^P / span)`` is ``fl(1 / span)`` scaled
+    exactly by ``2^P``, so the cells of every power-of-two count begin at
+    ``cell_floor(x0, span, k / 2^P)``, in floating point and not only on paper.
+    """
+    t = np.asarray(t, dtype=float)
+    u0 = 1.0 / float(span)
+    r = x0 + t * float(span)
+    for _ in range(64):  # a few ulps from the start
+        lower = np.nextafter(r, -np.inf)
+        down = (lower - x0) * u0 >= t
+        up = (r - x0) * u0 < t
+        if not (down.any() or up.any()):
+            return r
+        r = np.where(down, lower, np.where(up, np.nextafter(r, np.inf), r))
+    raise ConfigError(f"lookup cells: no cell edge found on [{x0}, {x0 + span}] (span too small?)")
+
+
 def lookup_cells(x: np.ndarray, max_cells_per_interval: int = 16) -> tuple[np.ndarray, float]:
     """Uniform lookup cells over nonuniform knots: O(1) interval search.
 
-    Cell k covers ``[x0 + k w, x0 + (k+1) w)``; ``cell_interval[k]`` is the
-    interval containing its left end, so the interval of any point in the cell
-    is at most a few steps to the right (none when ``w <=`` the smallest
-    knot spacing, which holds unless that would exceed
-    ``max_cells_per_interval`` cells per interval).
+    A power-of-two count of cells, cell k holding the R whose
+    ``int((R - x0) * cells_per_ohm)`` is k; ``cell_interval[k]`` is the
+    interval containing its smallest R (:func:`cell_floor`), so the interval
+    of any R in the cell is that one or a few steps to the right. None at all
+    where the knots begin cells, as :func:`transition_knots` places them, and
+    the cells are no wider than the narrowest interval (unless that would
+    exceed ``max_cells_per_interval`` cells per interval).
 
     Returns
     -------
@@ -295,9 +345,10 @@ def lookup_cells(x: np.ndarray, max_cells_per_interval: int = 16) -> tuple[np.nd
     """
     span = float(x[-1] - x[0])
     m = x.size - 1
-    n_cells = int(min(math.ceil(span / float(np.min(np.diff(x)))), max_cells_per_interval * m))
-    n_cells = max(n_cells, 1)
-    left = x[0] + span * np.arange(n_cells) / n_cells
+    need = span / float(np.min(np.diff(x)))
+    p = min(math.ceil(math.log2(max(need, 1.0))), int(math.floor(math.log2(max(max_cells_per_interval * m, 1)))))
+    n_cells = 2 ** max(p, 0)
+    left = cell_floor(float(x[0]), span, np.arange(n_cells) / n_cells)
     j = np.clip(np.searchsorted(x, left, side="right") - 1, 0, m - 1)
     return j.astype(np.int32), n_cells / span
 
