@@ -822,7 +822,8 @@ if numba is not None:
                     # are >= 0): numba wraps a signed index that might be negative, a compare and select
                     # on each of the eleven reads (+14 %). The step is a branch: knots begin lookup cells
                     # (core.tables.transition_knots), so it is rarely taken (0.5 % of bench convert's
-                    # samples) and well predicted; the branch-free step cost 1.14x (benchmarks/README.md).
+                    # samples) and well predicted; the step as arithmetic was 1.02-1.06x slower
+                    # (benchmarks/README.md, variant branchless_step).
                     rc = s_rc[s]
                     j = k0 + cidx[np.uint64(c)]
                     if (j + 1 < last) & (rc >= x[np.uint64(j + 1)]):
