@@ -277,6 +277,26 @@ def test_default_selection_prefers_channels_in_transition():
     assert all(agg.state_of(d) == "transition" for d in sel)
 
 
+def test_a_default_selection_settles_only_on_channels_in_transition():
+    """CI saw a page keep [b0m0c000, b0m1c000, b0m2c000] with b0m2c000 saturated: the default was fixed at the
+    first tick with any channel in transition, when the others were not yet classified so."""
+    agg = Aggregator()
+    flags = np.full((8, 50), fl.HK_STALE, np.uint16)
+    flags[0] = 0  # only one channel usable yet (housekeeping not heard at the start)
+    agg.add_power(power_chunk(0, 0, flags=flags), T0)
+    agg.add_power(power_chunk(2, 0, channels=1, flags=np.full((1, 50), fl.SATURATED, np.uint16)), T0)
+    agg.tick(T0)
+    sel = agg.default_selection(3)
+    assert sel == ["b0m0c000", "b0m2c000", "b0m0c001"]  # then any channel, module by module
+    assert not agg.selection_settled(sel)
+    agg.add_power(power_chunk(0, 1), T0 + 10**8)
+    agg.add_power(power_chunk(2, 1, channels=1, flags=np.full((1, 50), fl.SATURATED, np.uint16)), T0 + 10**8)
+    agg.tick(T0 + 10**8)
+    sel = agg.default_selection(3)
+    assert sel == ["b0m0c000", "b0m0c001", "b0m0c002"] and agg.selection_settled(sel)
+    assert not agg.selection_settled(sel[:2])  # fewer than asked for: taken again as channels come
+
+
 def test_config_rejects_nonsense():
     with pytest.raises(ConfigError):
         MonitorConfig(history_s=0)

@@ -665,6 +665,15 @@ class Aggregator:
                         return picks
         return picks
 
+    def selection_settled(self, picks: list[str], n: int = 3) -> bool:
+        """Whether a page may keep :meth:`default_selection`'s ``picks``: ``n`` channels, all in transition.
+
+        A first classification can rest on a few samples, or come before some
+        modules are heard; a default fixed then could hold a saturated or
+        silent channel for good, so it is taken again until it settles.
+        """
+        return len(picks) >= n and all(self.state_of(d) == STATE_NAMES[STATE_TRANSITION] for d in picks)
+
     # ------------------------------------------------------------------ output
 
     def tick(self, now_ns: int) -> dict:

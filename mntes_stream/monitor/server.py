@@ -349,7 +349,7 @@ def make_app(subscriber, update_s: float = 0.5, guard: WebGuard | None = None, m
                 selection = client["selection"]
                 if selection is None:
                     selection = agg.default_selection()
-                    if tick["state_counts"]["transition"]:  # kept once channels are classified as usable
+                    if agg.selection_settled(selection):
                         client["selection"] = selection
                 agg.watch(selection)
                 view = agg.view(selection, client["f_hwp"], client["window_s"])
