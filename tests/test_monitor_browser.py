@@ -257,6 +257,13 @@ def test_page_shows_live_pipeline_states_and_latency(tmp_path):
         s = _wait(driver, lambda s: any(t["name"] == f"{NORMAL_ID} (saturated)" for t in s["timestreams"]), 10,
                   "the picked channel in the time streams")
         assert next(t for t in s["timestreams"] if t["name"].startswith(NORMAL_ID))["finite"] == 0  # NaN: flagged
+        # A dropped connection (a slow page is closed by the server) keeps the user's choice; the page reconnects.
+        updates = s["updates"]
+        driver.execute_script("window.droppedWs = window.mntesMonitor.ws; window.droppedWs.close()")
+        _wait(driver, lambda s: driver.execute_script("return window.mntesMonitor.ws !== window.droppedWs")
+              and s["updates"] > updates + 2 and s["conn"] == "connected"
+              and any(t["name"] == f"{NORMAL_ID} (saturated)" for t in s["timestreams"]), 20,
+              "the picked channel still plotted after a reconnect", lambda s: json.dumps(s["selection"]))
         # The live leakage panel: the linear conversion's nonlinearity per measured detector (the first 8 in
         # transition), each within 20 % of the model's I''/S, with error bars, against the requirement line.
         measured = [d for d in sorted(kinds) if kinds[d] == "ok"][:8]

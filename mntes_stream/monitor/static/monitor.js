@@ -14,6 +14,7 @@ const M = (window.mntesMonitor = {
   last: null,          // the last update message
   layout: null,        // [{board, module, channels}] grid rows
   selection: [],
+  chosen: false,       // the selection is the user's (else the server's default, which it may still change)
   errors: [],
   ws: null,
   fresh: { state: "waiting", text: "waiting for data" },  // what the badge says
@@ -36,7 +37,7 @@ function send(obj) {
 function connect() {
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
   M.ws = ws;
-  ws.onopen = () => { setConn("connected", "ok"); if (M.selection.length) send({ type: "select", channels: M.selection }); };
+  ws.onopen = () => { setConn("connected", "ok"); if (M.chosen) send({ type: "select", channels: M.selection }); };
   ws.onclose = () => { setConn("disconnected", "bad"); setTimeout(connect, 1000); };
   ws.onmessage = (ev) => {
     const msg = JSON.parse(ev.data);
@@ -77,6 +78,7 @@ function fillChannels() {
   $("pick-channel").innerHTML = (row ? row.channels : []).map((c) => `<option value="${c}">${c}</option>`).join("");
 }
 function select(ids) {
+  M.chosen = true;
   M.selection = [...new Set(ids)];
   renderSelected();
   send({ type: "select", channels: M.selection });
