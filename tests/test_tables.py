@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from mntes_stream.bench.convert import synthetic_params, tabulated_params
@@ -110,6 +110,8 @@ def test_lookup_cells_find_the_right_interval(widths, u):
 
 @settings(max_examples=50, deadline=None)
 @given(st.floats(-10.0, 10.0), st.floats(1e-3, 10.0), st.lists(st.integers(0, 2**20), min_size=1, max_size=20))
+@example(-4.25, 10.0, [439092])  # r near 0, x0 far from it: a step of r's ulp may leave fl(r - x0) as it was
+@example(-1.0, 2.0, [0, 2**19, 2**20])  # r through 0 and -0
 def test_cell_floor_is_the_first_float_of_its_cell(x0, span, ks):
     """Smallest r with fl(fl(r - x0) * fl(1 / span)) >= t, checked against its neighbour below."""
     t = np.array(ks, dtype=float) / 2**20

@@ -315,16 +315,46 @@ def cell_floor(x0: float, span: float, t) -> np.ndarray:
     ``cell_floor(x0, span, k / 2^P)``, in floating point and not only on paper.
     """
     t = np.asarray(t, dtype=float)
-    u0 = 1.0 / float(span)
-    r = x0 + t * float(span)
-    for _ in range(64):  # a few ulps from the start
-        lower = np.nextafter(r, -np.inf)
-        down = (lower - x0) * u0 >= t
-        up = (r - x0) * u0 < t
-        if not (down.any() or up.any()):
-            return r
-        r = np.where(down, lower, np.where(up, np.nextafter(r, np.inf), r))
-    raise ConfigError(f"lookup cells: no cell edge found on [{x0}, {x0 + span}] (span too small?)")
+    x0, span = float(x0), float(span)
+    u0 = 1.0 / span
+
+    def reaches(r):
+        return (r - x0) * u0 >= t
+
+    # fl(fl(r - x0) * u0) never falls as r rises, so its first float reaching t is found by bisection over
+    # the floats in order (their bits, the negative ones' reversed). Stepping one float at a time from
+    # x0 + t span is not enough: where |r| << |x0| a step of r's ulp may leave fl(r - x0) unchanged.
+    guess = x0 + t * span
+    pad = 8 * np.finfo(float).eps * (abs(x0) + span) + np.finfo(float).tiny
+    lo, hi = guess - pad, guess + pad
+    for _ in range(64):
+        low_ok = reaches(lo)
+        high_bad = ~reaches(hi)
+        if not (low_ok.any() or high_bad.any()):
+            break
+        pad *= 2
+        lo = np.where(low_ok, lo - pad, lo)
+        hi = np.where(high_bad, hi + pad, hi)
+    else:
+        raise ConfigError(f"lookup cells: no cell edge found on [{x0}, {x0 + span}] (span too small?)")
+    a, b = _ordered(lo), _ordered(hi)  # reaches(lo) false, reaches(hi) true
+    while np.any(b - a > 1):
+        mid = a + (b - a) // 2
+        ok = reaches(_unordered(mid))
+        a, b = np.where(ok, a, mid), np.where(ok, mid, b)
+    return _unordered(b)
+
+
+def _ordered(r: np.ndarray) -> np.ndarray:
+    """Floats as int64 keys in the floats' order (-0.0 and 0.0 alike)."""
+    i = np.asarray(r, dtype=np.float64).view(np.int64)
+    return np.where(i < 0, -(i & np.int64(0x7FFFFFFFFFFFFFFF)), i)
+
+
+def _unordered(k: np.ndarray) -> np.ndarray:
+    """The floats of :func:`_ordered`'s keys."""
+    k = np.asarray(k, dtype=np.int64)
+    return np.where(k < 0, (-k) | np.int64(-0x8000000000000000), k).view(np.float64)
 
 
 def lookup_cells(x: np.ndarray, max_cells_per_interval: int = 16) -> tuple[np.ndarray, float]:
