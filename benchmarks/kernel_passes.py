@@ -8,7 +8,10 @@ unchanged kernel on ``bench convert``'s block (512 detectors x 10,000 samples), 
 CPU time, median of ``--repeat``. What a part costs is the unchanged kernel's time less the variant's::
 
     python benchmarks/kernel_passes.py --json
+    python benchmarks/kernel_passes.py --json --no-parts --against ../old/mntes_stream/core/_kernels.py
 
+``--against``: another copy of the module (an older commit's, a worktree's) timed the same way, with
+whether its power and flags equal this one's bit for bit.
 A variant whose anchor text is no longer in the kernel (the kernel changed) is reported as such and skipped.
 """
 
@@ -30,26 +33,25 @@ from mntes_stream.core import _kernels
 from mntes_stream.core.convert import make_converter
 from mntes_stream.core.tables import build_bank
 
-_LOOKUP_START = "                    rc = s_rc[s]\n                    j = k0 + cidx[np.uint64(c)]\n"
+_I = " " * 20  # the lookup loop's body, inside the row loop
+_LOOKUP_START = f"{_I}rc = s_rc[s]\n{_I}j = k0 + cidx[np.uint64(c)]\n"
 _LOOKUP_END = "                if not low_on:\n                    for s in range(n_samp):"
-_STEP = ("                    if (j + 1 < last) & (rc >= x[np.uint64(j + 1)]):\n"
-         "                        j += 1\n"
-         "                        marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
-         "                    else:\n"
-         "                        marks[s] = 0\n")
+_STEP = (f"{_I}if (j + 1 < last) & (rc >= x[np.uint64(j + 1)]):\n"
+         f"{_I}    j += 1\n"
+         f"{_I}    marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
+         f"{_I}else:\n"
+         f"{_I}    marks[s] = 0\n")
 _POWER = "p, beyond, _, _ = _lane_power(s_w[s], s_its[s], s_r[s], s_m2[s], tbs, bs, vs, q)"
 
 
 def _no_lookup(src: str) -> str:
     a, b = src.index(_LOOKUP_START), src.index(_LOOKUP_END)
-    return src[:a] + ("                    rc = s_rc[s]\n                    s_w[s] = rc * 1.5\n"
-                      "                    s_its[s] = rc + 2.0\n                    marks[s] = 0\n") + src[b:]
+    return src[:a] + f"{_I}rc = s_rc[s]\n{_I}s_w[s] = rc * 1.5\n{_I}s_its[s] = rc + 2.0\n{_I}marks[s] = 0\n" + src[b:]
 
 
 def _only_cell_read(src: str) -> str:
     a, b = src.index(_LOOKUP_START), src.index(_LOOKUP_END)
-    return src[:a] + (_LOOKUP_START + "                    marks[s] = 0\n                    s_w[s] = rc * 1.5 + j\n"
-                      "                    s_its[s] = rc + 2.0\n") + src[b:]
+    return src[:a] + _LOOKUP_START + f"{_I}marks[s] = 0\n{_I}s_w[s] = rc * 1.5 + j\n{_I}s_its[s] = rc + 2.0\n" + src[b:]
 
 
 def _replace(old: str, new: str):
@@ -67,10 +69,10 @@ VARIANTS = {
     "no_lookup": ("the whole lookup pass (cell, interval step, cubics)", _no_lookup),
     "cell_only": ("the lookup's interval step and cubics (its cell read stays)", _only_cell_read),
     "branchless_step": ("the branch around the step (put back: the step as arithmetic, as before 2026-11-29)",
-                        _replace(_STEP, "                    j += (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
-                                        "                    marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n")),
+                        _replace(_STEP, f"{_I}j += (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n"
+                                        f"{_I}marks[s] = (j + 1 < last) & (rc >= x[np.uint64(j + 1)])\n")),
     "no_step": ("the lookup's interval step (the compare with the next knot; one interval per cell)",
-                _replace(_STEP, "                    marks[s] = 0\n")),
+                _replace(_STEP, f"{_I}marks[s] = 0\n")),
 }
 
 
@@ -88,6 +90,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=7, help="timed calls of each kernel (median; default 7)")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--against", type=Path, help="another core/_kernels.py to time against this one")
+    ap.add_argument("--no-parts", action="store_true", help="skip the variants that take a part out")
     args = ap.parse_args()
 
     params = bench_convert.synthetic_params(512, seed=3)
@@ -109,11 +113,13 @@ def main() -> None:
     src = Path(_kernels.__file__).read_text()
     kernels, skipped = {"unchanged": _kernels}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        for name, (_, edit) in VARIANTS.items():
+        for name, (_, edit) in ({} if args.no_parts else VARIANTS).items():
             try:
                 kernels[name] = _variant(name, edit(src), Path(tmp))
             except (KeyError, ValueError):
                 skipped[name] = "its anchor is no longer in core/_kernels.py"
+        if args.against is not None:
+            kernels["against"] = _variant("against", args.against.read_text(), Path(tmp))
         outputs = {name: (np.empty(ci.shape), np.empty(ci.shape, dtype=np.uint16)) for name in kernels}
         for name, mod in kernels.items():
             mod.table_numba(*base_args[:-2], *outputs[name])  # compiled here, not timed
@@ -135,9 +141,18 @@ def main() -> None:
         "unchanged_equals_converter": same,
         "variants": {name: {"takes_out": VARIANTS[name][0], "ms": med[name] * 1e3,
                             "part_ms": (whole - med[name]) * 1e3, "part_fraction": (whole - med[name]) / whole}
-                     for name in kernels if name != "unchanged"},
+                     for name in kernels if name in VARIANTS},
         "skipped": skipped,
     }
+    if args.against is not None:
+        p, f = outputs["against"]
+        result["against"] = {"path": str(args.against), "ms": med["against"] * 1e3,
+                             "speedup_of_this": med["against"] / whole,
+                             "power_and_flags_bit_for_bit": bool(np.array_equal(p.view(np.int64),
+                                                                                outputs["unchanged"][0].view(np.int64))
+                                                                 and np.array_equal(f, outputs["unchanged"][1])),
+                             "times_ms": [t * 1e3 for t in times["against"]],
+                             "this_times_ms": [t * 1e3 for t in times["unchanged"]]}
     if args.json:
         print(json.dumps(result, indent=2))
         return
@@ -147,6 +162,10 @@ def main() -> None:
               f"({100 * v['part_fraction']:.0f} %)")
     for name, why in skipped.items():
         print(f"  {name}: skipped ({why})")
+    if args.against is not None:
+        a = result["against"]
+        print(f"  against {a['path']}: {a['ms']:.1f} ms, this one {a['speedup_of_this']:.3f}x as fast, "
+              f"bit for bit: {a['power_and_flags_bit_for_bit']}")
 
 
 if __name__ == "__main__":
