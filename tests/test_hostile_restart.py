@@ -292,7 +292,7 @@ def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoin
     assert st.chunks_lost == 0 and second.counters.chunks_missed_while_down == 0 and st.chunks_out_of_order == 0
     # 6-9 of both streams were taken again: converted by both processes, counted once over the two
     # (core.ledger.merge_restarts, what `up` reports): the first converter's ledger as its last status said it.
-    assert tot.again == 8
+    assert tot.again == 8 and second.unconfirmed_before_restart() == {}  # every one of 6-9 taken again
     first_at_status = Ledger.from_dict({f"{b}/{m}": {"received": 10, "done": 10} for b, m in state})
     whole = merge_restarts([first_at_status, Ledger.from_dict(st.ledger)]).totals()
     assert (whole.received - whole.duplicate, whole.done, whole.pending, whole.lost) == (30, 30, 0, 0)
@@ -302,6 +302,8 @@ def test_power_queued_but_unsent_at_a_kill_is_converted_again_from_the_checkpoin
     third.resume_sequences(state)
     _feed(third, steps[20:])
     assert third.counters.chunks_missed_while_down == 20 and third.status().chunks_lost == 20
+    # ... and 6-9, converted by the first, perhaps never sent, not taken again: named, not counted lost.
+    assert third.unconfirmed_before_restart() == {stream: (6, 9, 4) for stream in state}
 
 
 def test_chunks_held_at_a_kill_are_the_successors_and_counted_once(tmp_path, source):
@@ -500,6 +502,48 @@ def test_a_restarted_converters_first_checkpoint_keeps_the_floor_it_started_from
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     assert state == {(0, 0): (9, T0 + 9 * 10**8, 5, T0 + 5 * 10**8), (0, 1): (9, T0 + 9 * 10**8, -1, -1)}
+
+
+def test_a_restarted_converter_names_the_chunks_it_could_not_take_again(tmp_path, source):
+    """Restarted from a checkpoint whose status claimed seq 6-9 above its floor (5), with no history to be had:
+    the converter cannot know whether its predecessor's power for 6-9 went out. Its closing line says so (a
+    WARNING naming the streams and numbers) and its result lists them; they are not counted lost."""
+    import json
+
+    from mntes_stream.service.checkpoint import save_checkpoint
+
+    port = _checkpointed(tmp_path, source, "converter.json", 0.5)
+    save_checkpoint(str(tmp_path / "converter.json"), "lab", "converter",
+                    {(0, 0): (9, T0 + 9 * 10**8), (0, 1): (9, T0 + 9 * 10**8)},
+                    floor={(0, 0): (5, T0 + 5 * 10**8), (0, 1): (5, T0 + 5 * 10**8)})
+    steps = list(source.batches(T0, duration_s=3.0))
+    with open(tmp_path / "serve.err", "wb") as err, open_session(loopback(None, [port])) as z:
+        proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml", "--json"],
+                                stdout=subprocess.PIPE, stderr=err, cwd=tmp_path)
+        try:
+            sub = QueueSubscriber(z, ["mntes/lab/status/**", "mntes/lab/provenance"])
+            deadline = time.monotonic() + 120
+            while (item := sub.get(timeout_s=0.1)) is None or "/provenance" not in item[0]:
+                assert time.monotonic() < deadline and proc.poll() is None, "converter not ready"
+            publish(z, steps[10:15], speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])  # new chunks, no history
+            st = None
+            while st is None or st.chunks_converted < 10 or st.chunks_pending:
+                assert time.monotonic() < deadline, st
+                item = sub.get(timeout_s=0.1)
+                st = decode(item[1]) if item is not None and "/status/" in item[0] else st
+            sub.close()
+        finally:
+            proc.send_signal(signal.SIGINT)
+            out, _ = proc.communicate(timeout=60)
+    result = json.loads(out)
+    text = (tmp_path / "serve.err").read_text()
+    want = {"first_seq": 6, "last_seq": 9, "chunks": 4}
+    assert result["unconfirmed_before_restart"] == {"0/0": want, "0/1": want}, result
+    assert result["chunks_lost"] == 0 and "lost 0 of 10" in result["ledger_line"]
+    closing = text.strip().splitlines()[-1]
+    assert closing.startswith("converter converter: received 10 chunks") and (
+        "; WARNING 8 chunks converted before the restart (0/0 seq 6..9, 0/1 seq 6..9) were not taken again") in closing
+    assert "Traceback" not in text
 
 
 def test_bench_restart_smoke():

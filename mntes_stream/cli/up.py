@@ -351,7 +351,8 @@ def run_up(args) -> int:
     if rec.get("ledger_line"):
         say(f"  recorder counts: {rec['ledger_line']}{rec.get('ledger_note') or ''}")
     # The last line is the converter's ledger: what happened to every chunk (lost = never received + shed + rejected).
-    say(f"  converter: {conv.get('ledger_line') or 'no final statistics (it did not stop cleanly): see its log'}")
+    say(f"  converter: {conv.get('ledger_line') or 'no final statistics (it did not stop cleanly): see its log'}"
+        f"{conv.get('ledger_note') or ''}")
     if args.json:
         print(json.dumps({"interrupted": interrupted, "ok": not failed, "params": str(params_file),
                           "services": summary, "restarts": dict(services.restarts), "deaths": services.deaths},

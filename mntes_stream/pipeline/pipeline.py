@@ -277,6 +277,11 @@ class ConverterPipeline:
         """The ledger with each stream's never-received count as its sequence tracker says now."""
         return self._sequence.ledger_now()
 
+    def unconfirmed_before_restart(self) -> dict[tuple[int, int], tuple[int, int, int]]:
+        """``(board, module) -> (first seq, last seq, chunks)``: converted by the converter before a restart
+        after its last status, and not taken again from the sources' history (``Sequence.unconfirmed``)."""
+        return self._sequence.unconfirmed()
+
     def status(self):
         """The status (``io.messages.StatusMessage``) as of the latest message."""
         return self._status.status()

@@ -420,6 +420,21 @@ class Sequence:
             books.bad("overload", f"chunk seq {old.chunk.seq} of {old.chunk.board}/{old.chunk.module} shed: the "
                       "set-aside budget is full (its counts are recorded: offline convert gives its power)", key)
 
+    def unconfirmed(self) -> dict[tuple[int, int], tuple[int, int, int]]:
+        """Chunks the converter before a restart converted after its last status, not taken again here.
+
+        ``(board, module) -> (first seq, last seq, how many)`` of the checkpoint's range above its floor (see
+        :meth:`resume`) less the chunks the sources' history gave again. The previous process may have died
+        before their power went out, and this one could not convert them again: whether they have power is
+        unknown here (a recording of the counts and power says).
+        """
+        out = {}
+        for stream, (lo, hi, _, taken) in self._refill.items():
+            n = hi - lo + 1 - len(taken)
+            if n > 0:
+                out[stream] = (lo, hi, n)
+        return out
+
     def ledger_now(self) -> Ledger:
         """The ledger with each stream's never-received count as its sequence tracker says now."""
         for (b, m), s in self.streams.items():

@@ -396,7 +396,23 @@ class ConverterService(Service):
         final = pipe.status()
         line = pipe.ledger_now().line()
         log.info("converter %s stopped: %s", cfg.name, line)
+        unconfirmed = {f"{b}/{m}": {"first_seq": lo, "last_seq": hi, "chunks": n}
+                       for (b, m), (lo, hi, n) in sorted(pipe.unconfirmed_before_restart().items())}
+        words = unconfirmed_line(unconfirmed) if unconfirmed else ""
+        if words:
+            log.warning("converter %s: %s", cfg.name, words)
         # The receive queue's peak in bytes: bounded by queue_mb whatever comes (a flood of big messages).
         return {f.name: getattr(final, f.name) for f in fields(final)} | {
             "dropped_on_close": sub.dropped_on_close, "ledger_line": line, "kernel_cpu_s": round(pipe.kernel_cpu_s, 4),
-            "queue_high_water_mb": round(sub.high_water_bytes / 1e6, 3)}
+            "queue_high_water_mb": round(sub.high_water_bytes / 1e6, 3), "unconfirmed_before_restart": unconfirmed,
+            "ledger_note": f"; WARNING {words}" if words else ""}
+
+
+def unconfirmed_line(unconfirmed: dict) -> str:
+    """In words: ``{"b/m": {"first_seq", "last_seq", "chunks"}}`` of ``ConverterPipeline.unconfirmed_before_restart``."""
+    n = sum(u["chunks"] for u in unconfirmed.values())
+    where = ", ".join(f"{k} seq {u['first_seq']}..{u['last_seq']}" for k, u in list(unconfirmed.items())[:4])
+    more = f" and {len(unconfirmed) - 4} streams more" if len(unconfirmed) > 4 else ""
+    return (f"{n} chunks converted before the restart ({where}{more}) were not taken again (the sources no longer "
+            "held them): whether their power went out is unknown here; a recording's coverage line names any "
+            "without power")
