@@ -28,4 +28,7 @@ def test_every_stall_and_kill_leaves_a_balanced_ledger_and_a_complete_recording(
     assert res["checks"]["no_summary_hides_a_chunk"], (res["recorded_counts_without_power"],
                                                        res["converter_lost_reported_all_runs"],
                                                        res["without_power_seq_t_s"], res["events"], res["warnings"])
+    # The ledger over every converter run (each chunk once, as `up` says it) loses no more than that bound.
+    assert res["converter_ledger_line_all_runs"].startswith("received ")
+    assert res["converter_lost_all_runs"] <= res["converter_lost_reported_all_runs"], res["converter_ledger_line_all_runs"]
     assert res["ok"] and res["recorded_counts_chunks"] > 1000

@@ -241,7 +241,7 @@ def run_chaos(work: Path, duration_s: float = 80.0, seed: int = 0, modules: int 
 
 
 def _analyse(work: Path, procs: dict, rcs: dict, log: list, down: dict, duration_s: float) -> dict:
-    from mntes_stream.core.ledger import Ledger
+    from mntes_stream.core.ledger import Ledger, merge_restarts
     from mntes_stream.io.mcap import Session
     from mntes_stream.io.messages import CountsChunk, PowerChunk, StatusMessage
     from mntes_stream.pipeline.offline import convert_recording
@@ -284,6 +284,9 @@ def _analyse(work: Path, procs: dict, rcs: dict, log: list, down: dict, duration
     killed = sum(1 for r in conv_runs if r is None)
     reported_lost = sum(r.get("chunks_lost", 0) for r in conv_runs if r) + sum(
         st.chunks_lost + st.chunks_pending + st.chunks_set_aside for st in runs[:-1])
+    # That bound counts a killed run's held chunks lost, though its successor converts them (or counts them never
+    # received): the ledger over every run, each chunk once, is what `up` reports (core.ledger.merge_restarts).
+    whole = merge_restarts([*(Ledger.from_dict(st.ledger) for st in runs[:-1]), ledger]) if last else None
     offline = convert_recording(work / "recordings", work / "offline.mcap", progress=False)
     off = Ledger.from_dict(offline.ledger).totals()
     tot = ledger.totals()
@@ -303,6 +306,9 @@ def _analyse(work: Path, procs: dict, rcs: dict, log: list, down: dict, duration
         "converter_ledger_line": last.get("ledger_line") if last else None,
         "converter_ledger_totals": tot.as_dict(),
         "converter_lost_reported_all_runs": reported_lost,
+        "converter_ledger_line_all_runs": whole.line() if whole else None,
+        "converter_lost_all_runs": whole.totals().lost if whole else None,
+        "converter_unconfirmed_before_restart": last.get("unconfirmed_before_restart") if last else None,
         "recorder_lines": [r.get("ledger_line") for r in procs["recorder"].results() if r] if "recorder" in procs else [],
         "recorded_counts_chunks": sum(len(c) for c in counts.values()),
         "recording_gaps": gaps,
