@@ -122,21 +122,13 @@ def synthetic_block(params: dict, n_samp: int, seed: int = 0, bad_fraction: floa
 
 def _timed(fn, repeats: int) -> tuple[float, float]:
     """Median wall and CPU seconds of ``fn()``."""
-    return _timed_alternately((fn,), repeats)[0]
-
-
-def _timed_alternately(fns, repeats: int) -> list[tuple[float, float]]:
-    """Median wall and CPU seconds of each of ``fns``, called in turn ``repeats`` times: a ratio of two is then
-    measured under the same load (timed one after the other, each would see another moment of a shared
-    machine's load)."""
-    wall, cpu = [[] for _ in fns], [[] for _ in fns]
+    wall, cpu = [], []
     for _ in range(repeats):
-        for k, fn in enumerate(fns):
-            w0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            wall[k].append(time.perf_counter() - w0)
-            cpu[k].append(time.process_time() - c0)
-    return [(float(np.median(w)), float(np.median(c))) for w, c in zip(wall, cpu)]
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall)), float(np.median(cpu))
 
 
 def _max_err(a: np.ndarray, ref: np.ndarray) -> float:
@@ -167,8 +159,8 @@ def run(args) -> dict:
     conv = make_converter("table", None, bank=bank, backend="auto")
     conv.convert(ids[:1], ci[:1, :10], cq[:1, :10], env.__class__(env.t_bath_k[:10], env.b_field_t[:10], env.v_thev_v[:1]))
     out = conv.convert(ids, ci, cq, env)
-    (wall, cpu), (axpy_wall, axpy_cpu) = _timed_alternately(
-        (lambda: conv.convert(ids, ci, cq, env), lambda: 1.5 * ci + 2.0), args.repeats)
+    wall, cpu = _timed(lambda: conv.convert(ids, ci, cq, env), args.repeats)
+    axpy_wall, axpy_cpu = _timed(lambda: 1.5 * ci + 2.0, args.repeats)
     chunks_cpu = float(np.median([_live_chunks(conv, ids, ci, cq, env) for _ in range(3)]))
 
     exact = make_converter("exact", params)
