@@ -437,6 +437,25 @@ def _checkpointed(tmp_path, source, checkpoint: str, status_s: float) -> int:
     return port
 
 
+def _publish_until_converted(z, proc, batches, n: int, timeout_s: float = 120.0):
+    """Once ``serve``'s converter ``proc`` is up (its provenance), publish ``batches`` through session ``z`` and
+    return its first status with ``n`` chunks converted and none pending."""
+    sub = QueueSubscriber(z, ["mntes/lab/status/**", "mntes/lab/provenance"])
+    try:
+        deadline = time.monotonic() + timeout_s
+        while (item := sub.get(timeout_s=0.1)) is None or "/provenance" not in item[0]:
+            assert time.monotonic() < deadline and proc.poll() is None, "converter not ready"
+        publish(z, batches, speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
+        st = None
+        while st is None or st.chunks_converted < n or st.chunks_pending:
+            assert time.monotonic() < deadline, st
+            item = sub.get(timeout_s=0.1)
+            st = decode(item[1]) if item is not None and "/status/" in item[0] else st
+        return st
+    finally:
+        sub.close()
+
+
 def test_a_killed_converter_restarted_reports_what_it_missed(tmp_path, source):
     """SIGKILL, a second of data no converter took, restart: the status says 10 chunks per module were missed."""
     import signal
@@ -451,17 +470,7 @@ def test_a_killed_converter_restarted_reports_what_it_missed(tmp_path, source):
             proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml"],
                                     stdout=f, stderr=subprocess.STDOUT, cwd=tmp_path)
             try:
-                sub = QueueSubscriber(z, ["mntes/lab/status/**", "mntes/lab/provenance"])
-                deadline = time.monotonic() + 120
-                while (item := sub.get(timeout_s=0.1)) is None or "/provenance" not in item[0]:
-                    assert time.monotonic() < deadline and proc.poll() is None, "converter not ready"
-                publish(z, batches, speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])
-                st = None
-                while st is None or st.chunks_converted < 20 or st.chunks_pending:
-                    assert time.monotonic() < deadline, st
-                    item = sub.get(timeout_s=0.1)
-                    st = decode(item[1]) if item is not None and "/status/" in item[0] else st
-                sub.close()
+                st = _publish_until_converted(z, proc, batches, 20)
             finally:
                 proc.send_signal(signal.SIGKILL)  # a crash: only the checkpoint of the last status remains
                 proc.wait(30)
@@ -521,17 +530,7 @@ def test_a_restarted_converter_names_the_chunks_it_could_not_take_again(tmp_path
         proc = subprocess.Popen([sys.executable, "-m", "mntes_stream", "serve", "--config", "converter.toml", "--json"],
                                 stdout=subprocess.PIPE, stderr=err, cwd=tmp_path)
         try:
-            sub = QueueSubscriber(z, ["mntes/lab/status/**", "mntes/lab/provenance"])
-            deadline = time.monotonic() + 120
-            while (item := sub.get(timeout_s=0.1)) is None or "/provenance" not in item[0]:
-                assert time.monotonic() < deadline and proc.poll() is None, "converter not ready"
-            publish(z, steps[10:15], speed=0, wait_keys=[keys.counts_key("lab", 0, 0)])  # new chunks, no history
-            st = None
-            while st is None or st.chunks_converted < 10 or st.chunks_pending:
-                assert time.monotonic() < deadline, st
-                item = sub.get(timeout_s=0.1)
-                st = decode(item[1]) if item is not None and "/status/" in item[0] else st
-            sub.close()
+            _publish_until_converted(z, proc, steps[10:15], 10)  # new chunks, no history
         finally:
             proc.send_signal(signal.SIGINT)
             out, _ = proc.communicate(timeout=60)
