@@ -72,14 +72,23 @@ class Proc:
         raise AssertionError(f"{self.command}: no {pattern!r} within {timeout_s} s: {''.join(self.seen[-30:])}")
 
     def interrupt(self, timeout_s: float = 60.0) -> int:
+        """SIGINT, then the exit code. Any code but 0 or 130 prints the command's last output, which pytest shows
+        with a failed check of it (test_shards_recipe once read -2, which is how Python exits when a
+        KeyboardInterrupt escapes: where it came from was never seen)."""
         if self.p.poll() is None:
             self.p.send_signal(signal.SIGINT)
         try:
-            return self.p.wait(timeout=timeout_s)
+            rc = self.p.wait(timeout=timeout_s)
         finally:
             if self.p.poll() is None:
                 self.p.kill()
                 self.p.wait()
+        if rc not in (0, 130):
+            time.sleep(0.5)  # the pump threads read what is left
+            while not self.lines.empty():
+                self.seen.append(self.lines.get_nowait())
+            print(f"{self.command} exited with {rc}; its last output:\n{''.join(self.seen[-40:])}")
+        return rc
 
 
 def _power_counter(port: int):
