@@ -288,9 +288,8 @@ class RecorderService(Service):
                                         sources=True)  # each message's publisher: two on one stream told apart
             # A converter's provenance, answered on request, is recorded from the start too (only that:
             # the heartbeat queryables under alive/ answer a wider query, and are not data). Replies are taken
-            # for 30 s: on a loaded host a converter busy with its first data answered after more than 2 s (CI:
-            # one of three shards' provenance missing from a 6 s recording), and the query ends as soon as every
-            # converter has answered anyway.
+            # for 30 s, so a converter slow to answer is still recorded; the query ends as soon as every converter
+            # has answered anyway.
             self._sub.query(ctx.session, keys.provenance_key(config.setup), timeout_s=30.0)
         except BaseException as exc:  # the file is finished whatever happened
             sink.writer.close()
