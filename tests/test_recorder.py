@@ -67,6 +67,75 @@ def test_a_converter_slow_to_answer_still_has_its_provenance_recorded(tmp_path):
     assert result["stats"].by_kind == {"provenance": 1}
 
 
+def _shard_owns(i: int) -> dict:
+    return {"shard": f"{i}/2", "boards": "*", "modules": "*", "streams": 1, "stream_list": [f"0/{i}"]}
+
+
+def _stand_in_converter(z, i: int, answer_from: int | None, stop, asked: list) -> None:
+    """A converter shard as the recorder sees it: its status every 0.2 s (what it owns, and its state), and its
+    provenance answered from the ``answer_from``-th query on (None: never)."""
+    from mntes_stream.io.messages import Provenance, StatusMessage
+
+    owns = _shard_owns(i)
+    prov = Provenance(setup="t", params_toml='schema = "mntes-params"\nversion = 1\n', table_identity=f"sha256:{i}",
+                      converter_kind="exact", software_version="test", t_ns=1, owns=owns).to_bytes()
+
+    def on_query(query) -> None:
+        asked.append(time.monotonic())
+        if answer_from is not None and len(asked) >= answer_from:
+            query.reply("mntes/t/provenance", prov)
+
+    queryable = z.declare_queryable("mntes/t/provenance", on_query)
+    pub = z.declare_publisher(f"mntes/t/status/converter-{i}of2")
+    while not stop.is_set():
+        pub.put(StatusMessage("t", f"converter-{i}of2", time.time_ns(), 1.0, 0.2,
+                              owns={**owns, "role": "primary", "held": []}).to_bytes())
+        stop.wait(0.2)
+    queryable.undeclare()
+
+
+def test_a_converter_whose_provenance_did_not_come_is_asked_again_and_named_if_it_never_does(tmp_path):
+    """A recorder asks the converters for their provenance as it starts. One whose statuses come and whose
+    provenance does not (shard 1 ignores the first query) is asked again; one that never answers (shard 0, here)
+    is named in the closing line."""
+    import threading
+
+    from mntes_stream.service.recorder import run_recorder
+
+    ep = free_endpoint()
+    stop_convs, asked = threading.Event(), {0: [], 1: []}
+    with open_session(ZenohSettings(listen=(ep,))) as z:
+        convs = [threading.Thread(target=_stand_in_converter, args=(z, i, (None, 2)[i], stop_convs, asked[i]),
+                                  daemon=True) for i in (0, 1)]
+        for t in convs:
+            t.start()
+        cfg = RecorderConfig(directory=str(tmp_path), setup="t", flush_interval_s=0.1,
+                             zenoh=ZenohSettings(connect=(ep,)))
+        stop, ready, result = threading.Event(), threading.Event(), {}
+        thread = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg, stop, ready)), daemon=True)
+        thread.start()
+        try:
+            assert ready.wait(30), "recorder not ready"
+            _wait_for(lambda: any(m.topic == "mntes/t/provenance" for m in readable_messages(tmp_path)), 20,
+                      "shard 1's provenance, asked again")
+            _wait_for(lambda: len(asked[0]) >= 3, 20, "shard 0 asked a third time")
+        finally:
+            stop.set()
+            thread.join(30)
+            stop_convs.set()
+            for t in convs:
+                t.join(10)
+    stats = result["stats"]
+    assert len(asked[1]) >= 2 and asked[1][1] - asked[1][0] >= 1.5  # the second query came a while after
+    from mntes_stream.io.messages import Provenance
+
+    # Shard 1's answers (to the second query and to those asking for shard 0's after it), only them.
+    provs = [Provenance.from_bytes(m.payload) for m in mio.iter_messages(tmp_path) if m.topic == "mntes/t/provenance"]
+    assert provs and all(p.owns == _shard_owns(1) for p in provs)
+    assert stats.no_provenance == ("converter-0of2",)
+    assert "; WARNING no provenance recorded from converter-0of2: " in stats.final_line()
+
+
 def test_records_everything_verbatim_with_stats(tmp_path):
     sent = []
     with running_recorder(tmp_path, prefix="rec") as (ep, result):

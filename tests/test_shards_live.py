@@ -45,8 +45,8 @@ def _layout(tmp: Path, source_s: float = 4.0, history_s: float | None = None) ->
     (tmp / "zenoh-client.json5").write_text(
         f'{{mode: "client", connect: {{endpoints: ["tcp/127.0.0.1:{port}"]}}, scouting: {{multicast: {{enabled: false}}}}}}')
     # Provenance every second: a recorder started after the converters asks for it, but twice in CI one shard's
-    # answer never came within the 9 s recording (cause unknown; its statuses and power did), and the test is
-    # about the shards' split, so the periodic provenance, which recorders started later rely on anyway, covers it.
+    # answer never came within the 9 s recording (cause unknown; its statuses and power did). The recorders now ask
+    # again (tests/test_recorder.py); this test is about the shards' split, so the periodic provenance covers it too.
     (tmp / "converter.toml").write_text(
         f'[converter]\nparams = "params.toml"\ntable_cache = "{tmp / "cache"}"\nprovenance_interval_s = 1.0\n'
         '[status]\ninterval_s = 0.5\n')

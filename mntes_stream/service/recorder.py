@@ -38,6 +38,10 @@ from mntes_stream.io.transport import ZenohSettings
 from mntes_stream.service.base import Service
 from mntes_stream.service.metrics import MetricsSettings
 
+# When a converter's provenance is asked again (its status came and it did not): after 2 s, then twice as long each
+# time it is still missing, up to 30 s (one query each time, answered by every converter).
+_ASK_AGAIN_S, _ASK_AGAIN_MAX_S = 2.0, 30.0
+
 __all__ = ["RecorderConfig", "RecorderService", "RecorderStats", "cost_line", "final_line", "run_recorder"]
 
 log = logging.getLogger("mntes_stream.recorder")
@@ -143,8 +147,9 @@ class RecorderStats:
     ``unpowered`` per stream the counts chunks recorded without their power
     (``count``, ``ranges`` of numbers ``[lo, hi)``: ``io.mcap.ledger.unpowered``)
     ``conflicts`` the streams two or more publishers sent side by side (each
-    one's chunks numbered apart: ``core.sequence.PublisherSequences``); and
-    ``ledger_note`` both in words, for the closing line.
+    one's chunks numbered apart: ``core.sequence.PublisherSequences``);
+    ``no_provenance`` the converters whose statuses were recorded and none of
+    whose provenance was; and ``ledger_note`` these in words, for the closing line.
     """
 
     messages: int
@@ -176,11 +181,19 @@ class RecorderStats:
     receive_cpu_s_per_msamples: float | None = None
     unpowered: dict | None = None
     conflicts: dict | None = None
+    no_provenance: tuple[str, ...] = ()
     ledger_note: str = ""
 
     def final_line(self) -> str:
         """The ledger in one line: what ``record`` prints last."""
         return final_line(asdict(self))
+
+
+def _no_provenance_line(names) -> str:
+    if not names:
+        return ""
+    return (f"no provenance recorded from {', '.join(names)}: this recording does not hold the parameters "
+            "their power was converted with")
 
 
 def final_line(stats: dict) -> str:
@@ -275,6 +288,8 @@ class RecorderService(Service):
         config = self.config
         self._t_start = time.monotonic()
         self._next_log = self._t_start + config.log_interval_s
+        # A converter whose status came but whose provenance did not is asked again, at growing intervals.
+        self._ask_every_s, self._next_ask = _ASK_AGAIN_S, self._t_start + _ASK_AGAIN_S
         self._sink = sink = RecorderSink(config)
         self._sub = None
         try:
@@ -306,11 +321,29 @@ class RecorderService(Service):
             writer.tick()
         except BaseException as exc:
             raise _failed(exc) from exc
-        if time.monotonic() >= self._next_log:
+        now = time.monotonic()
+        if now >= self._next_ask:
+            self._ask_again(ctx, now)
+        if now >= self._next_log:
             self._next_log += self.config.log_interval_s
             log.info("recorded %d messages (%d invalid) into %s", writer.messages, writer.invalid,
                      writer.current_path.name)
         return True
+
+    def _ask_again(self, ctx, now: float) -> None:
+        """Ask for the provenance again if a converter's statuses came and it did not. Twice in CI one of three
+        shards' answer to the first query never came (cause unknown: docs/streaming.md); without this its
+        provenance waited for its next periodic publication (``provenance_interval_s``), or never came in a
+        recording shorter than that."""
+        missing = self._sink.without_provenance()
+        if missing:
+            log.info("no provenance recorded yet from %s: asking again", ", ".join(missing))
+            try:
+                self._sub.query(ctx.session, keys.provenance_key(self.config.setup), timeout_s=10.0)
+            except MntesError as exc:  # the next attempt may do; the closing line names what is still missing
+                log.warning("%s", exc)
+            self._ask_every_s = min(2 * self._ask_every_s, _ASK_AGAIN_MAX_S)
+        self._next_ask = now + self._ask_every_s
 
     def counters(self) -> dict:
         sink, sub = getattr(self, "_sink", None), getattr(self, "_sub", None)
@@ -351,6 +384,7 @@ class RecorderService(Service):
 
         led = book.ledger_now()
         holes = book.unpowered()
+        no_provenance = sink.without_provenance()
         if holes:
             log.warning("recording lacks %s", unpowered_line(holes))
         trackers = [*sink.sequences.values(), *book.sequences.values()]
@@ -381,7 +415,9 @@ class RecorderService(Service):
             writer_queue_high_water=writer.queue_high_water,
             unpowered=holes,
             conflicts=book.conflicts(),
-            ledger_note="".join(f"; WARNING {x}" for x in (unpowered_line(holes), conflict_line(book.conflicts())) if x),
+            no_provenance=tuple(no_provenance),
+            ledger_note="".join(f"; WARNING {x}" for x in (unpowered_line(holes), conflict_line(book.conflicts()),
+                                                           _no_provenance_line(no_provenance)) if x),
             **sink.cpu(),
         )
         log.info("recorder stopped: %s", stats)

@@ -16,15 +16,18 @@ import time
 
 from mntes_stream.core.sequence import PublisherSequences
 from mntes_stream.core.shards import Shard
+from mntes_stream.errors import MntesError
 from mntes_stream.io import keys
 from mntes_stream.io.mcap.background import BackgroundMcapWriter
 from mntes_stream.io.mcap.envelope import peek_envelope
 from mntes_stream.io.mcap.ledger import LEDGER_METADATA, RecordingBook
+from mntes_stream.io.messages import Provenance, StatusMessage
 from mntes_stream.service.coverage import Coverage
 
 __all__ = ["RecorderSink", "shard_filter"]
 
 _MAX_TOPICS = 100_000  # topics whose kind is remembered (names come from any peer)
+_MAX_CONVERTERS = 1024  # converters and provenances whose owns are kept (names come from any peer)
 
 
 class RecorderSink:
@@ -65,19 +68,26 @@ class RecorderSink:
         self.samples = 0  # counts samples (channels x samples of every valid counts chunk)
         self._kinds: dict[str, str] = {}
         self._mine = shard_filter(config.shard_parsed)
+        # What each converter's newest status says it owns, and what the provenances recorded cover (their
+        # ``owns``, that of the status less its state): a converter none of them covers has its provenance
+        # asked again (the recorder) and named at the end.
+        self._converter_owns: dict[str, dict] = {}
+        self._provenance_owns: list[dict] = []
         self.cpu0_s = time.process_time()
         self.thread_cpu0_s = time.thread_time()  # the receive thread's: a sink is fed by the thread that made it
 
     def add(self, topic: str, payload: bytes, t_ns: int, source: str | None = None) -> None:
         """One received message (``source``: its publisher's zenoh id, if known): header, books, hand-over to the
         writer (waits while its queue is full)."""
-        if self._mine is not None and not self._mine(topic):
-            return
         kind = self._kinds.get(topic)
         if kind is None:
             kind = keys.kind_of(topic) or "other"
             if len(self._kinds) < _MAX_TOPICS:
                 self._kinds[topic] = kind
+        if kind in ("status", "provenance"):  # a second or so apart: whose provenance is held (every shard)
+            self._owner(kind, payload)
+        if self._mine is not None and not self._mine(topic):
+            return
         env = peek_envelope(payload)
         self.writer.write(topic, payload, t_ns, env)
         late = env.late and kind == "power" and not env.problem
@@ -101,6 +111,23 @@ class RecorderSink:
                 seq = self.sequences[topic] = PublisherSequences()
             seq.observe(env.seq, env.publish_time_ns if env.publish_time_ns is not None else t_ns, source)
         self.writer.rotate_if_full()  # after booking: the closing ledger of a full file counts its last message
+
+    def _owner(self, kind: str, payload: bytes) -> None:
+        try:
+            msg = (StatusMessage if kind == "status" else Provenance).from_bytes(payload)
+        except MntesError:  # booked as invalid where it is recorded
+            return
+        if kind == "status":
+            if msg.service in self._converter_owns or len(self._converter_owns) < _MAX_CONVERTERS:
+                self._converter_owns[msg.service] = dict(msg.owns)
+        elif msg.owns not in self._provenance_owns and len(self._provenance_owns) < _MAX_CONVERTERS:
+            self._provenance_owns.append(dict(msg.owns))
+
+    def without_provenance(self) -> list[str]:
+        """The converters (status service names) whose statuses came but none of whose provenance did: a
+        provenance covers a converter whose status owns what it owns (an unsharded one's owns nothing: all)."""
+        return sorted(name for name, owns in self._converter_owns.items()
+                      if not any(p.items() <= owns.items() for p in self._provenance_owns))
 
     def cpu(self) -> dict:
         """CPU since the sink started, per million counts samples: the process's (every thread: receive, writer,
