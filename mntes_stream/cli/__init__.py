@@ -84,6 +84,13 @@ def build_parser(lazy: bool = False) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # also while a command is still starting (its imports, its arguments): no traceback
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser(lazy=True)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -103,8 +110,6 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except MntesError as exc:  # said on purpose: bad config, input or data, a dead endpoint
         return _error(exc, 2)
-    except KeyboardInterrupt:
-        return 130
     except BrokenPipeError:  # e.g. `mntes-stream inspect ... | head`: the reader has gone
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141

@@ -98,9 +98,15 @@ class CommandParser(OneLineParser):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._fill = None
+        self._describe = None
 
     def fill_later(self, fill) -> None:
         self._fill = fill
+
+    def describe_later(self, describe) -> None:
+        """``describe()`` gives the description when the help is printed, not before (``serve``'s lists
+        every service, which imports every service's module: 0.9 CPU s that a service starting needs not)."""
+        self._describe = describe
 
     def filled(self) -> CommandParser:
         """This parser with its arguments added (once)."""
@@ -116,7 +122,18 @@ class CommandParser(OneLineParser):
         return super(CommandParser, self.filled()).format_usage()
 
     def format_help(self) -> str:
-        return super(CommandParser, self.filled()).format_help()
+        parser = self.filled()
+        if parser._describe is not None:
+            parser.description, parser._describe = parser._describe(), None
+        return super(CommandParser, parser).format_help()
+
+
+def description(p, describe) -> None:
+    """``describe()`` is ``p``'s description: when its help is printed (a :class:`CommandParser`), else now."""
+    if isinstance(p, CommandParser):
+        p.describe_later(describe)
+    else:
+        p.description = describe()
 
 
 def arguments(p, fill) -> None:

@@ -12,7 +12,7 @@ import logging
 import sys
 import threading
 
-from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, setup_logging, zenoh_layer
+from mntes_stream.cli._common import add_quiet, add_zenoh_args, arguments, description, setup_logging, zenoh_layer
 from mntes_stream.options import number
 
 
@@ -119,13 +119,17 @@ def _numbers(text: str | None, flag: str) -> tuple[int, ...] | None:
         raise ConfigError(f"{flag} {text!r}: expected numbers separated by commas, e.g. 0,3") from None
 
 
-def _serve_args(p) -> None:
-    from mntes_stream.service.registry import SERVICES  # every service's class, for its summary: `serve` alone
+def _description() -> str:
+    from mntes_stream.service.registry import SERVICES  # every service's class, for its summary: the help alone
 
     listed = "; ".join(f"[{name}] {cls.summary}" for name, cls in SERVICES.items())
-    p.description = ("Run the service a config describes until it ends or SIGINT/SIGTERM, which stop "
-                     f"it cleanly. The config's main table names the service: {listed}. "
-                     "`mntes-stream config template SERVICE` prints a service's settings.")
+    return ("Run the service a config describes until it ends or SIGINT/SIGTERM, which stop "
+            f"it cleanly. The config's main table names the service: {listed}. "
+            "`mntes-stream config template SERVICE` prints a service's settings.")
+
+
+def _serve_args(p) -> None:
+    description(p, _description)
     p.add_argument("--config", required=True, metavar="FILE", help="e.g. services/converter.toml")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a setting, e.g. converter.kind=exact (repeatable; VALUE in TOML)")
