@@ -17,8 +17,9 @@ from mntes_stream.io.history import HistoryTopUp
 from mntes_stream.io.transport import Publishers, QueueSubscriber, free_tcp_port, loopback, open_session
 
 
-def _msg(seq: int) -> bytes:
-    return msgpack.packb({"schema": "mntes.counts", "version": 1, "seq": seq, "t_pub_ns": time.time_ns()})
+def _msg(seq: int, t_pub_ns: int | None = None) -> bytes:
+    return msgpack.packb({"schema": "mntes.counts", "version": 1, "seq": seq,
+                          "t_pub_ns": time.time_ns() if t_pub_ns is None else t_pub_ns})
 
 
 def _seqs(sub, seconds: float) -> list[int]:
@@ -85,3 +86,28 @@ def test_a_source_without_caches_gives_a_few_lines_not_one_per_key():
         assert "further keys" in said[8] and all("seq 7" in s for s in said[:8])
         assert _seqs(sub, 0.5) == []  # nobody answers
         sub.close()
+
+
+def test_a_first_message_published_just_before_the_subscription_still_brings_the_ones_before_it():
+    """CI's bench chaos: a restarted recorder's first message of a stream was published 1.3 s before its
+    subscription (the tail of a history cut short), and the 8.7 s of cache before it never came. A first message
+    that recent has its key's cache asked; one from further back (a history that began there) does not."""
+    port = free_tcp_port()
+    key, old_key = keys.counts_key("t", 0, 0), keys.counts_key("t", 0, 1)
+    with open_session(loopback(port)) as zp:
+        pubs = Publishers(zp, history_chunks=100)
+        for i in range(20):
+            pubs.put(key, _msg(i))
+        with open_session(loopback(None, [port])) as zs:
+            declared = time.time_ns()
+            sub = QueueSubscriber(zs, ["mntes/t/**"])  # no history: as when zenoh cut it short
+            top_up = HistoryTopUp(zs, sub, declared)
+            time.sleep(1.0)  # the subscription reaches the publisher
+            # The first of each key as the cut history gave it: seq 15 published 1.3 s before the subscription,
+            # and seq 3 of a key whose history began 8 s back.
+            assert top_up.first(key, _msg(15, declared - 1_300_000_000)) is not None
+            assert top_up.first(old_key, _msg(3, declared - 8_000_000_000)) is None
+            assert top_up.asked == [(key, 15)]
+            assert _seqs(sub, 2.0) == list(range(15))  # the cache's 0..14, once each
+            sub.close()
+        pubs.close()
