@@ -8,6 +8,7 @@ messages before the first live one, once each, and ask nothing where nothing was
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import msgpack
@@ -31,28 +32,37 @@ def _seqs(sub, seconds: float) -> list[int]:
     return got
 
 
-def test_a_live_first_message_brings_the_cached_ones_before_it_once_each():
+@contextlib.contextmanager
+def _twenty_cached(key: str):
+    """Publishers whose cache holds ``key``'s seq 0..19, and a second session connected to them."""
     port = free_tcp_port()
-    key, other = keys.counts_key("t", 0, 0), keys.counts_key("t", 0, 1)
     with open_session(loopback(port)) as zp:
         pubs = Publishers(zp, history_chunks=100)
         for i in range(20):
             pubs.put(key, _msg(i))
-        with open_session(loopback(None, [port])) as zs:
-            sub = QueueSubscriber(zs, ["mntes/t/**"])  # no history: as when zenoh dropped it
-            top_up = HistoryTopUp(zs, sub, time.time_ns())
-            time.sleep(1.0)  # the subscription reaches the publisher
-            pubs.put(key, _msg(20))
-            pubs.put(other, _msg(0))  # a key that starts here: nothing before it to ask for
-            first = [sub.get(timeout_s=5.0) for _ in range(2)]
-            assert sorted(k for k, *_ in first) == [key, other]
-            said = [top_up.first(k, p) for k, p, *_ in first]
-            assert [s is not None for s in said] == [k == key for k, *_ in first], said
-            assert top_up.asked == [(key, 20)]
-            assert _seqs(sub, 2.0) == list(range(20))  # the cache's 0..20, less the one already here
-            assert top_up.first(key, _msg(21)) is None  # a key is looked at once
-            sub.close()
-        pubs.close()
+        try:
+            with open_session(loopback(None, [port])) as zs:
+                yield pubs, zs
+        finally:
+            pubs.close()
+
+
+def test_a_live_first_message_brings_the_cached_ones_before_it_once_each():
+    key, other = keys.counts_key("t", 0, 0), keys.counts_key("t", 0, 1)
+    with _twenty_cached(key) as (pubs, zs):
+        sub = QueueSubscriber(zs, ["mntes/t/**"])  # no history: as when zenoh dropped it
+        top_up = HistoryTopUp(zs, sub, time.time_ns())
+        time.sleep(1.0)  # the subscription reaches the publisher
+        pubs.put(key, _msg(20))
+        pubs.put(other, _msg(0))  # a key that starts here: nothing before it to ask for
+        first = [sub.get(timeout_s=5.0) for _ in range(2)]
+        assert sorted(k for k, *_ in first) == [key, other]
+        said = [top_up.first(k, p) for k, p, *_ in first]
+        assert [s is not None for s in said] == [k == key for k, *_ in first], said
+        assert top_up.asked == [(key, 20)]
+        assert _seqs(sub, 2.0) == list(range(20))  # the cache's 0..20, less the one already here
+        assert top_up.first(key, _msg(21)) is None  # a key is looked at once
+        sub.close()
 
 
 def test_a_first_message_from_the_history_asks_nothing():
@@ -92,22 +102,16 @@ def test_a_first_message_published_just_before_the_subscription_still_brings_the
     """CI's bench chaos: a restarted recorder's first message of a stream was published 1.3 s before its
     subscription (the tail of a history cut short), and the 8.7 s of cache before it never came. A first message
     that recent has its key's cache asked; one from further back (a history that began there) does not."""
-    port = free_tcp_port()
     key, old_key = keys.counts_key("t", 0, 0), keys.counts_key("t", 0, 1)
-    with open_session(loopback(port)) as zp:
-        pubs = Publishers(zp, history_chunks=100)
-        for i in range(20):
-            pubs.put(key, _msg(i))
-        with open_session(loopback(None, [port])) as zs:
-            declared = time.time_ns()
-            sub = QueueSubscriber(zs, ["mntes/t/**"])  # no history: as when zenoh cut it short
-            top_up = HistoryTopUp(zs, sub, declared)
-            time.sleep(1.0)  # the subscription reaches the publisher
-            # The first of each key as the cut history gave it: seq 15 published 1.3 s before the subscription,
-            # and seq 3 of a key whose history began 8 s back.
-            assert top_up.first(key, _msg(15, declared - 1_300_000_000)) is not None
-            assert top_up.first(old_key, _msg(3, declared - 8_000_000_000)) is None
-            assert top_up.asked == [(key, 15)]
-            assert _seqs(sub, 2.0) == list(range(15))  # the cache's 0..14, once each
-            sub.close()
-        pubs.close()
+    with _twenty_cached(key) as (_, zs):
+        declared = time.time_ns()
+        sub = QueueSubscriber(zs, ["mntes/t/**"])  # no history: as when zenoh cut it short
+        top_up = HistoryTopUp(zs, sub, declared)
+        time.sleep(1.0)  # the subscription reaches the publisher
+        # The first of each key as the cut history gave it: seq 15 published 1.3 s before the subscription,
+        # and seq 3 of a key whose history began 8 s back.
+        assert top_up.first(key, _msg(15, declared - 1_300_000_000)) is not None
+        assert top_up.first(old_key, _msg(3, declared - 8_000_000_000)) is None
+        assert top_up.asked == [(key, 15)]
+        assert _seqs(sub, 2.0) == list(range(15))  # the cache's 0..14, once each
+        sub.close()

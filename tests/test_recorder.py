@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -40,29 +41,37 @@ def _publishers(z, keys, proc=None):
     return {k: pubs.publisher(k) for k in keys}
 
 
+@contextlib.contextmanager
+def _recorder_connected_to(tmp_path, ep: str):
+    """A recorder (``run_recorder`` in a thread) connected to ``ep``, stopped on leaving; yields the dict that
+    then holds its ``stats``."""
+    import threading
+
+    from mntes_stream.service.recorder import run_recorder
+
+    cfg = RecorderConfig(directory=str(tmp_path), setup="t", flush_interval_s=0.1, zenoh=ZenohSettings(connect=(ep,)))
+    stop, ready, result = threading.Event(), threading.Event(), {}
+    thread = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg, stop, ready)), daemon=True)
+    thread.start()
+    try:
+        assert ready.wait(30), "recorder not ready"
+        yield result
+    finally:
+        stop.set()
+        thread.join(30)
+
+
 def test_a_converter_slow_to_answer_still_has_its_provenance_recorded(tmp_path):
     """A recorder asks the converters for their provenance as it starts. A converter answering after 3 s (CI saw
     one of three shards' provenance missing when replies were taken for 2 s only) is still recorded."""
-    import threading
-
     from mntes_stream.io.transport import answer
-    from mntes_stream.service.recorder import run_recorder
 
     ep = free_endpoint()
     with open_session(ZenohSettings(listen=(ep,))) as z:
         answer(z, "mntes/t/provenance", lambda: (time.sleep(3.0), provenance_payload("slow"))[1])
-        cfg = RecorderConfig(directory=str(tmp_path), setup="t", flush_interval_s=0.1,
-                             zenoh=ZenohSettings(connect=(ep,)))
-        stop, ready, result = threading.Event(), threading.Event(), {}
-        thread = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg, stop, ready)), daemon=True)
-        thread.start()
-        try:
-            assert ready.wait(30), "recorder not ready"
+        with _recorder_connected_to(tmp_path, ep) as result:
             _wait_for(lambda: any(m.topic == "mntes/t/provenance" for m in readable_messages(tmp_path)), 20,
                       "the slow provenance recorded")
-        finally:
-            stop.set()
-            thread.join(30)
     assert mio.latest_provenance(tmp_path) == provenance_payload("slow")
     assert result["stats"].by_kind == {"provenance": 1}
 
@@ -100,8 +109,6 @@ def test_a_converter_whose_provenance_did_not_come_is_asked_again_and_named_if_i
     is named in the closing line."""
     import threading
 
-    from mntes_stream.service.recorder import run_recorder
-
     ep = free_endpoint()
     stop_convs, asked = threading.Event(), {0: [], 1: []}
     with open_session(ZenohSettings(listen=(ep,))) as z:
@@ -109,19 +116,12 @@ def test_a_converter_whose_provenance_did_not_come_is_asked_again_and_named_if_i
                                   daemon=True) for i in (0, 1)]
         for t in convs:
             t.start()
-        cfg = RecorderConfig(directory=str(tmp_path), setup="t", flush_interval_s=0.1,
-                             zenoh=ZenohSettings(connect=(ep,)))
-        stop, ready, result = threading.Event(), threading.Event(), {}
-        thread = threading.Thread(target=lambda: result.update(stats=run_recorder(cfg, stop, ready)), daemon=True)
-        thread.start()
         try:
-            assert ready.wait(30), "recorder not ready"
-            _wait_for(lambda: any(m.topic == "mntes/t/provenance" for m in readable_messages(tmp_path)), 20,
-                      "shard 1's provenance, asked again")
-            _wait_for(lambda: len(asked[0]) >= 3, 20, "shard 0 asked a third time")
+            with _recorder_connected_to(tmp_path, ep) as result:
+                _wait_for(lambda: any(m.topic == "mntes/t/provenance" for m in readable_messages(tmp_path)), 20,
+                          "shard 1's provenance, asked again")
+                _wait_for(lambda: len(asked[0]) >= 3, 20, "shard 0 asked a third time")
         finally:
-            stop.set()
-            thread.join(30)
             stop_convs.set()
             for t in convs:
                 t.join(10)
