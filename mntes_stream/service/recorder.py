@@ -189,10 +189,14 @@ class RecorderStats:
         return final_line(asdict(self))
 
 
+def _names(names, most: int = 8) -> str:
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 def _no_provenance_line(names) -> str:
     if not names:
         return ""
-    return (f"no provenance recorded from {', '.join(names)}: this recording does not hold the parameters "
+    return (f"no provenance recorded from {_names(names)}: this recording does not hold the parameters "
             "their power was converted with")
 
 
@@ -337,7 +341,7 @@ class RecorderService(Service):
         recording shorter than that."""
         missing = self._sink.without_provenance()
         if missing:
-            log.info("no provenance recorded yet from %s: asking again", ", ".join(missing))
+            log.info("no provenance recorded yet from %s: asking again", _names(missing))
             try:
                 self._sub.query(ctx.session, keys.provenance_key(self.config.setup), timeout_s=10.0)
             except MntesError as exc:  # the next attempt may do; the closing line names what is still missing
