@@ -205,6 +205,8 @@ def test_bench_stream_flat_out_and_one_real_time_trial_on_a_tiny_array():
     per_chunk = out["converter_cpu_us_per_chunk"]
     kernel = out["converter_kernel_us_per_chunk"]
     assert out["converter_kernel_cpu_s"] > 0 and 0 < kernel < per_chunk
+    # The tiny array's steps are 2 modules: a kernel call takes at least a chunk, at most a batch (512 messages).
+    assert 1 <= out["converter_chunks_per_kernel_call"] <= 512
     assert per_chunk == pytest.approx(conv["cpu_s"] / out["chunks_converted"] * 1e6, rel=0.01)
     assert out["relay_cpu_us_per_chunk"] == pytest.approx(relay["relay"]["cpu_s"] / out["relay_chunks"] * 1e6, rel=0.05)
     assert out["converter_overhead_per_relay"] == pytest.approx((per_chunk - kernel) / out["relay_cpu_us_per_chunk"],

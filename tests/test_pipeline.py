@@ -629,3 +629,20 @@ def test_each_streams_power_leaves_in_sequence_when_housekeeping_splits_a_step()
     assert all(s == list(range(len(counts))) for s in seqs.values()), seqs
     assert all(np.array_equal(p.p_opt_w, reference[(p.module, p.seq)].p_opt_w, equal_nan=True)
                and np.array_equal(p.flags, reference[(p.module, p.seq)].flags) for p in power)
+
+
+def test_chunks_per_kernel_call_is_what_one_converter_call_took_of_a_batch(source, converter):
+    """A call per chunk message by message, a few per batch when a batch's steps share their rows (the figure
+    ``bench stream`` reports beside the kernel's CPU per chunk)."""
+    msgs = _messages(source, 12)
+    n_steps = sum(1 for k, _, _ in msgs if "/counts/" in k) // SRC.modules
+    one = ConverterPipeline(converter, PipelineConfig(setup="lab", hk_wait_s=0.0), clock=None)
+    assert one.chunks_per_kernel_call is None
+    _run(one, msgs)
+    # Each chunk is released as it comes (its step's housekeeping came first): a call of its own.
+    assert one.chunks_per_kernel_call == 1.0
+    batched = ConverterPipeline(converter, PipelineConfig(setup="lab", hk_wait_s=0.0), clock=None)
+    batched.handle_many(msgs)
+    batched.flush()
+    assert batched.counters.chunks_converted == n_steps * SRC.modules
+    assert batched.chunks_per_kernel_call > 4 * SRC.modules  # a batch of twelve steps: few calls

@@ -449,7 +449,8 @@ def _per_process(samples: list, t0_ns, t1_ns, msamples_per_s: float, handled: di
 
 # The figures ``--repeat`` gives per run and as medians (rates, per-chunk CPU, ratios), and per run and summed
 # (what went missing: a loss in any run counts, not its median).
-MEDIANS = ("msamples_per_s", "converter_cpu_us_per_chunk", "converter_kernel_us_per_chunk", "relay_cpu_us_per_chunk",
+MEDIANS = ("msamples_per_s", "converter_cpu_us_per_chunk", "converter_kernel_us_per_chunk",
+           "converter_chunks_per_kernel_call", "relay_cpu_us_per_chunk",
            "converter_overhead_per_relay", "converter_ratio_to_relay")
 TOTALS = ("lost", "converter_shed")
 
@@ -705,6 +706,10 @@ def run_once(args) -> dict:
         "converter_cpu_us_per_chunk": round(conv_us, 1) if conv_us else None,
         "converter_kernel_cpu_s": kernel_cpu,
         "converter_kernel_us_per_chunk": round(kernel_us, 1) if kernel_us is not None else None,
+        # Chunks one kernel call took on average: the kernel's CPU per chunk falls as batches grow (a converter
+        # keeping up converts a readout step at a time; one catching up, several), so it reads beside it.
+        "converter_chunks_per_kernel_call": (round(conv["chunks_per_kernel_call"], 1)
+                                             if isinstance(conv, dict) and conv.get("chunks_per_kernel_call") else None),
         "relay_cpu_us_per_chunk": round(relay_us, 1) if relay_us else None,
         "converter_overhead_per_relay": ratio(outside_us, relay_us),
         "recorder_msamples_per_cpu_s": round(rec_per_cpu, 3) if rec_per_cpu else None,

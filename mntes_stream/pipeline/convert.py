@@ -92,6 +92,9 @@ class Convert:
         # CPU seconds inside converter calls (each calling thread's own CPU, summed over threads): what a
         # benchmark subtracts from the converter's CPU to see its per-chunk cost around the kernel.
         self.kernel_cpu_s = 0.0
+        # Converter calls and the chunks they converted: chunks per call is how much of a batch one call took
+        # (the kernel's cost per chunk falls as it grows: each detector's tables are looked up once per call).
+        self.kernel_calls = self.kernel_chunks = 0
         self._ids_cache: dict[tuple, tuple] = {}
         self._kernel_lock = threading.Lock()
 
@@ -190,7 +193,7 @@ class Convert:
             env_flags = block(lambda r: np.broadcast_to(r.env_flags, r.chunk.counts_i.shape))
         env = EnvironmentBlock(t_bath_k=t_bath, b_field_t=b_field, v_thev_v=v_bias, flags=env_flags)
         ids = self._ids(rows)
-        p_opt, flags, sigma = self._converted(ids, ci, cq, env)
+        p_opt, flags, sigma = self._converted(ids, ci, cq, env, len(rows) * steps)
         if p_opt.shape != ci.shape or flags.shape != ci.shape:
             raise ValueError(f"converter returned shapes {p_opt.shape}, {flags.shape} for {ci.shape}")
         return p_opt, flags, env_flags, rows, sigma
@@ -209,10 +212,10 @@ class Convert:
         self._ids_cache[tuple(map(id, per))] = (per, ids)
         return ids
 
-    def _converted(self, ids, ci, cq, env) -> tuple:
-        """p_opt, flags and sigma_P (None unless published) of a block: LOW_RESPONSIVITY flagged when the
-        pipeline has a noise model, in the conversion's own pass unless sigma_P is published; the call's CPU
-        in ``kernel_cpu_s``."""
+    def _converted(self, ids, ci, cq, env, chunks: int = 1) -> tuple:
+        """p_opt, flags and sigma_P (None unless published) of a block of ``chunks`` chunks: LOW_RESPONSIVITY
+        flagged when the pipeline has a noise model, in the conversion's own pass unless sigma_P is published;
+        the call's CPU in ``kernel_cpu_s``, the call and its chunks in ``kernel_calls`` and ``kernel_chunks``."""
         c0 = time.thread_time()
         try:
             return self._call(ids, ci, cq, env)
@@ -220,6 +223,8 @@ class Convert:
             dt = time.thread_time() - c0
             with self._kernel_lock:
                 self.kernel_cpu_s += dt
+                self.kernel_calls += 1
+                self.kernel_chunks += chunks
 
     def _call(self, ids, ci, cq, env) -> tuple:
         if self._noise is None or not self._sigma_p:

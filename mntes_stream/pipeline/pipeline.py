@@ -326,6 +326,12 @@ class ConverterPipeline:
         return self._convert.kernel_cpu_s
 
     @property
+    def chunks_per_kernel_call(self) -> float | None:
+        """Chunks converted per converter call so far, on average (None before the first call)."""
+        c = self._convert
+        return c.kernel_chunks / c.kernel_calls if c.kernel_calls else None
+
+    @property
     def hk(self) -> Housekeeping:
         return self._align.hk
 

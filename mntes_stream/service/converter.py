@@ -404,6 +404,7 @@ class ConverterService(Service):
         # The receive queue's peak in bytes: bounded by queue_mb whatever comes (a flood of big messages).
         return {f.name: getattr(final, f.name) for f in fields(final)} | {
             "dropped_on_close": sub.dropped_on_close, "ledger_line": line, "kernel_cpu_s": round(pipe.kernel_cpu_s, 4),
+            "chunks_per_kernel_call": pipe.chunks_per_kernel_call,
             "queue_high_water_mb": round(sub.high_water_bytes / 1e6, 3), "unconfirmed_before_restart": unconfirmed,
             "ledger_note": f"; WARNING {words}" if words else ""}
 
