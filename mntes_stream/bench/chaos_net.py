@@ -198,7 +198,9 @@ class Lab:
         self.made = []
 
 
-_QUERY_TIMEOUT_S = 10.0  # zenoh's default (queries_default_timeout), which the services' sessions keep
+# zenoh-ext's AdvancedSubscriber times its history and recovery queries out after this (its builder's default,
+# query_timeout; zenoh-python does not set it).
+_QUERY_TIMEOUT_S = 10.0
 
 
 def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0, delay_ms: float = 50.0,
@@ -248,7 +250,7 @@ def run_chaos_net(work: Path, partition_s: float = 15.0, history_s: float = 10.0
         rss_mb = {name: _max_rss_mb(pr.p.pid) for name, pr in procs.items()}
     finally:
         # Orderly end: the source stops, the converter converts what it holds, the recorder finishes last.
-        # The converter is given zenoh's query timeout (10 s) and one more: a zenoh-ext subscriber that saw a gap
+        # The converter is given zenoh-ext's query timeout (10 s) and one more: a subscriber that saw a gap
         # holds the samples after it until its recovery query ends. A CI run saw a converter stall 11 s after
         # the router restart while the recorder did not, and stopped 3 s after the source it lacked the last 30
         # chunks, which its summary could not know of (the recorder's named them: counts without power).
